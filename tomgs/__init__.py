@@ -1,0 +1,34 @@
+"""tomgs: editable video as static 3D Gaussians with temporal opacity (TOM-GS).
+
+Importing this package is cheap: no kernel is compiled and no GPU is touched until the first call.
+Public names are resolved lazily from the module that owns them.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+__version__ = "0.1.0"
+
+# public name -> owning module (one module owns each concept; see DESIGN.md)
+_EXPORTS = {
+    "rasterize": "tomgs.render",
+    "RenderError": "tomgs.render",
+    "rasterize_reference": "tomgs.reference",
+    "eval_sh": "tomgs.sh",
+}
+
+__all__ = ["__version__", *_EXPORTS]
+
+
+def __getattr__(name: str):
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'tomgs' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(__all__)
