@@ -1,0 +1,81 @@
+"""The contract of `rasterize`: validated, normalised inputs shared by the renderer and the reference."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from tomgs.sh import sh_degree_of, sh_to_colors
+
+
+class RenderError(ValueError):
+    """Invalid rasterizer input or a frame too large to bin; the message says what to change."""
+
+
+@dataclass
+class RasterInputs:
+    means: torch.Tensor  # [N,3]
+    quats: torch.Tensor  # [N,4] w x y z, any norm
+    scales: torch.Tensor  # [N,3] > 0
+    opacities: torch.Tensor  # [N] base opacity in (0, 1)
+    colors: torch.Tensor  # [N,3] RGB after SH evaluation
+    t_means: torch.Tensor  # [N]
+    t_scales: torch.Tensor  # [N] sigma > 0
+    viewmat: torch.Tensor  # [4,4] world -> camera, OpenCV axes
+    K: torch.Tensor  # [3,3] pixels
+    background: torch.Tensor | None  # [3]
+    width: int
+    height: int
+    t: float
+    near: float
+    far: float
+
+
+def _shape_error(name: str, tensor: torch.Tensor, expected: str) -> RenderError:
+    return RenderError(f"{name} must have shape {expected}, got {tuple(tensor.shape)}")
+
+
+def prepare_inputs(
+    means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width, height, t,
+    background, near, far, dtype: torch.dtype | None,
+) -> RasterInputs:
+    """Check shapes, devices and scalars; evaluate SH into RGB; cast to `dtype` (None keeps means')."""
+    tensors = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
+                   t_means=t_means, t_scales=t_scales, viewmat=viewmat, K=K)
+    for name, value in tensors.items():
+        if not isinstance(value, torch.Tensor):
+            raise RenderError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
+    n = means.shape[0] if means.dim() == 2 else -1
+    expected = dict(means=(n, 3), quats=(n, 4), scales=(n, 3), opacities=(n,), t_means=(n,),
+                    t_scales=(n,), viewmat=(4, 4), K=(3, 3))
+    for name, shape in expected.items():
+        if tuple(tensors[name].shape) != shape:
+            raise _shape_error(name, tensors[name], str(tuple("N" if s == n else s for s in shape)))
+    if not ((colors.dim() == 2 and colors.shape == (n, 3)) or (colors.dim() == 3 and colors.shape[0] == n
+                                                                  and colors.shape[2] == 3)):
+        raise _shape_error("colors", colors, "(N, 3) for RGB or (N, K, 3) for SH")
+    devices = {v.device for v in tensors.values()}
+    if background is not None:
+        if not isinstance(background, torch.Tensor) or tuple(background.shape) != (3,):
+            raise RenderError("background must be a tensor of shape (3,) or None")
+        devices.add(background.device)
+    if len(devices) != 1:
+        raise RenderError(f"all tensors must be on one device, got {sorted(map(str, devices))}")
+    for name, value in tensors.items():
+        if not value.is_floating_point():
+            raise RenderError(f"{name} must be a floating-point tensor, got {value.dtype}")
+    if int(width) != width or int(height) != height or width < 1 or height < 1:
+        raise RenderError(f"width and height must be positive integers, got {width}x{height}")
+    if not (0.0 < near < far):
+        raise RenderError(f"need 0 < near < far, got near={near}, far={far}")
+    if colors.dim() == 3:
+        sh_degree_of(colors.shape[1])  # raises on a bad coefficient count
+        colors = sh_to_colors(colors, means, viewmat)
+    dtype = dtype or means.dtype
+    cast = {k: v.to(dtype) for k, v in dict(tensors, colors=colors).items()}
+    return RasterInputs(
+        **cast,
+        background=None if background is None else background.to(dtype),
+        width=int(width), height=int(height), t=float(t), near=float(near), far=float(far),
+    )

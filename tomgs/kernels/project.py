@@ -1,0 +1,332 @@
+"""Stage 1: project Gaussians to the image, one thread per Gaussian, and its backward.
+
+Forward writes, per Gaussian i: means2d (px), conic (inverse 2D covariance, upper triangle),
+depth (camera z), radii (px per axis; 0 = culled), temporal opacity o_i(t), and tiles touched.
+Culled: depth outside (near, far), anything non-finite, o_i(t) < 1/255, or off screen.
+"""
+
+import warp as wp
+
+from tomgs import constants
+from tomgs.kernels.binning import tile_rect
+
+wp.set_module_options({"enable_backward": False})
+
+ALPHA_MIN = wp.constant(constants.ALPHA_MIN)
+EPS2D = wp.constant(constants.EPS2D)
+RADIUS_SIGMAS = wp.constant(constants.RADIUS_SIGMAS)
+FOV_CLAMP = wp.constant(constants.FOV_CLAMP)
+QUAT_EPS = wp.constant(constants.QUAT_EPS)
+MAX_RADIUS = wp.constant(float(2**30))  # keeps radii inside int32; tiles are clamped to the image anyway
+
+mat23 = wp.types.matrix(shape=(2, 3), dtype=wp.float32)
+
+
+@wp.func
+def quat_norm(q: wp.vec4) -> float:
+    return wp.max(wp.length(q), QUAT_EPS)
+
+
+@wp.func
+def rotation_from_unit_quat(q: wp.vec4) -> wp.mat33:
+    # q = (w, x, y, z); rows of the rotation matrix
+    w = q[0]
+    x = q[1]
+    y = q[2]
+    z = q[3]
+    return wp.mat33(
+        1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y),
+        2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x),
+        2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y),
+    )
+
+
+@wp.func
+def temporal_opacity(base: float, t: float, t_mean: float, t_scale: float) -> float:
+    z = (t - t_mean) / t_scale
+    return base * wp.exp(-0.5 * z * z)
+
+
+@wp.func
+def fov_limits(K: wp.mat33, width: int, height: int) -> wp.vec2:
+    return wp.vec2(FOV_CLAMP * 0.5 * float(width) / K[0, 0], FOV_CLAMP * 0.5 * float(height) / K[1, 1])
+
+
+@wp.func
+def ewa_jacobian(p: wp.vec3, K: wp.mat33, lim: wp.vec2) -> mat23:
+    # d(pixel)/d(camera point), evaluated at x/z, y/z clamped to the widened field of view
+    u = wp.clamp(p[0] / p[2], -lim[0], lim[0])
+    v = wp.clamp(p[1] / p[2], -lim[1], lim[1])
+    return mat23(K[0, 0] / p[2], 0.0, -K[0, 0] * u / p[2], 0.0, K[1, 1] / p[2], -K[1, 1] * v / p[2])
+
+
+@wp.func
+def conic_of(A: mat23) -> wp.vec3:
+    # inverse of A A^T + eps I; its determinant as a sum of squared 2x2 minors (Cauchy-Binet)
+    # plus the dilation terms, all non-negative, so thin or huge Gaussians lose no precision
+    a0 = A[0, 0] * A[0, 0] + A[0, 1] * A[0, 1] + A[0, 2] * A[0, 2]
+    c0 = A[1, 0] * A[1, 0] + A[1, 1] * A[1, 1] + A[1, 2] * A[1, 2]
+    b = A[0, 0] * A[1, 0] + A[0, 1] * A[1, 1] + A[0, 2] * A[1, 2]
+    m01 = A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]
+    m02 = A[0, 0] * A[1, 2] - A[0, 2] * A[1, 0]
+    m12 = A[0, 1] * A[1, 2] - A[0, 2] * A[1, 1]
+    det = m01 * m01 + m02 * m02 + m12 * m12 + EPS2D * (a0 + c0) + EPS2D * EPS2D
+    return wp.vec3((c0 + EPS2D) / det, -b / det, (a0 + EPS2D) / det)
+
+
+@wp.func
+def world_to_camera(viewmat: wp.mat44, x: wp.vec3) -> wp.vec3:
+    return wp.vec3(
+        viewmat[0, 0] * x[0] + viewmat[0, 1] * x[1] + viewmat[0, 2] * x[2] + viewmat[0, 3],
+        viewmat[1, 0] * x[0] + viewmat[1, 1] * x[1] + viewmat[1, 2] * x[2] + viewmat[1, 3],
+        viewmat[2, 0] * x[0] + viewmat[2, 1] * x[1] + viewmat[2, 2] * x[2] + viewmat[2, 3],
+    )
+
+
+@wp.func
+def view_rotation(viewmat: wp.mat44) -> wp.mat33:
+    return wp.mat33(
+        viewmat[0, 0], viewmat[0, 1], viewmat[0, 2],
+        viewmat[1, 0], viewmat[1, 1], viewmat[1, 2],
+        viewmat[2, 0], viewmat[2, 1], viewmat[2, 2],
+    )
+
+
+@wp.func
+def scaled_rotation(q: wp.vec4, s: wp.vec3) -> wp.mat33:
+    # M = R diag(s), so that the 3D covariance is M M^T
+    R = rotation_from_unit_quat(q / quat_norm(q))
+    return wp.mat33(
+        R[0, 0] * s[0], R[0, 1] * s[1], R[0, 2] * s[2],
+        R[1, 0] * s[0], R[1, 1] * s[1], R[1, 2] * s[2],
+        R[2, 0] * s[0], R[2, 1] * s[1], R[2, 2] * s[2],
+    )
+
+
+@wp.kernel
+def project_forward(
+    means: wp.array(dtype=wp.vec3),  # [N]
+    quats: wp.array(dtype=wp.vec4),  # [N] w x y z, any norm
+    scales: wp.array(dtype=wp.vec3),  # [N]
+    opacities: wp.array(dtype=float),  # [N] base opacity
+    t_means: wp.array(dtype=float),  # [N]
+    t_scales: wp.array(dtype=float),  # [N] sigma
+    viewmats: wp.array(dtype=wp.mat44),  # [1] world -> camera
+    Ks: wp.array(dtype=wp.mat33),  # [1]
+    width: int,
+    height: int,
+    t: float,
+    near: float,
+    far: float,
+    tiles_x: int,
+    tiles_y: int,
+    means2d: wp.array(dtype=wp.vec2),  # out [N]
+    conics: wp.array(dtype=wp.vec3),  # out [N]
+    depths: wp.array(dtype=float),  # out [N]
+    radii: wp.array(dtype=wp.vec2i),  # out [N], (0, 0) when culled
+    opacities_t: wp.array(dtype=float),  # out [N] o_i(t)
+    tiles_touched: wp.array(dtype=wp.int32),  # out [N]
+):
+    i = wp.tid()
+    radii[i] = wp.vec2i(0, 0)
+    tiles_touched[i] = 0
+    means2d[i] = wp.vec2(0.0, 0.0)
+    conics[i] = wp.vec3(0.0, 0.0, 0.0)
+
+    # temporal cull first: a Gaussian dead at t costs one exp and no more
+    opac = temporal_opacity(opacities[i], t, t_means[i], t_scales[i])
+    opacities_t[i] = opac
+    viewmat = viewmats[0]
+    p = world_to_camera(viewmat, means[i])
+    depths[i] = p[2]
+    if not (opac >= ALPHA_MIN and opac <= 1.0e30):  # also rejects NaN
+        return
+    if not (p[2] > near and p[2] < far):
+        return
+
+    K = Ks[0]
+    J = ewa_jacobian(p, K, fov_limits(K, width, height))
+    A = J * view_rotation(viewmat) * scaled_rotation(quats[i], scales[i])
+    conic = conic_of(A)
+    a = A[0, 0] * A[0, 0] + A[0, 1] * A[0, 1] + A[0, 2] * A[0, 2] + EPS2D
+    c = A[1, 0] * A[1, 0] + A[1, 1] * A[1, 1] + A[1, 2] * A[1, 2] + EPS2D
+    center = wp.vec2(K[0, 0] * p[0] / p[2] + K[0, 2], K[1, 1] * p[1] / p[2] + K[1, 2])
+
+    # opacity-aware extent: beyond it the Gaussian's alpha is below 1/255 everywhere
+    extend = wp.min(RADIUS_SIGMAS, wp.sqrt(wp.max(2.0 * wp.log(opac / ALPHA_MIN), 0.0)))
+    rx = wp.min(wp.ceil(extend * wp.sqrt(a)), MAX_RADIUS)
+    ry = wp.min(wp.ceil(extend * wp.sqrt(c)), MAX_RADIUS)
+    finite = wp.isfinite(center) and wp.isfinite(conic) and wp.isfinite(rx) and wp.isfinite(ry)
+    if not finite or (rx <= 0.0 and ry <= 0.0):
+        return
+    if center[0] + rx <= 0.0 or center[0] - rx >= float(width) or center[1] + ry <= 0.0 or center[1] - ry >= float(height):
+        return
+
+    radius = wp.vec2i(int(rx), int(ry))
+    rect = tile_rect(center, radius, tiles_x, tiles_y)
+    means2d[i] = center
+    conics[i] = conic
+    radii[i] = radius
+    tiles_touched[i] = (rect[2] - rect[0]) * (rect[3] - rect[1])
+
+
+@wp.func
+def rotation_vjp(q: wp.vec4, g: wp.mat33) -> wp.vec4:
+    # gradient of rotation_from_unit_quat at unit q, given dL/dR = g
+    w = q[0]
+    x = q[1]
+    y = q[2]
+    z = q[3]
+    vw = 2.0 * (-z * g[0, 1] + y * g[0, 2] + z * g[1, 0] - x * g[1, 2] - y * g[2, 0] + x * g[2, 1])
+    vx = 2.0 * (y * g[0, 1] + z * g[0, 2] + y * g[1, 0] - 2.0 * x * g[1, 1] - w * g[1, 2]
+                + z * g[2, 0] + w * g[2, 1] - 2.0 * x * g[2, 2])
+    vy = 2.0 * (-2.0 * y * g[0, 0] + x * g[0, 1] + w * g[0, 2] + x * g[1, 0] + z * g[1, 2]
+                - w * g[2, 0] + z * g[2, 1] - 2.0 * y * g[2, 2])
+    vz = 2.0 * (-2.0 * z * g[0, 0] - w * g[0, 1] + x * g[0, 2] + w * g[1, 0] - 2.0 * z * g[1, 1]
+                + y * g[1, 2] + x * g[2, 0] + y * g[2, 1])
+    return wp.vec4(vw, vx, vy, vz)
+
+
+@wp.kernel
+def project_backward(
+    means: wp.array(dtype=wp.vec3),  # [N] (forward inputs, as above)
+    quats: wp.array(dtype=wp.vec4),
+    scales: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    t_means: wp.array(dtype=float),
+    t_scales: wp.array(dtype=float),
+    viewmats: wp.array(dtype=wp.mat44),
+    Ks: wp.array(dtype=wp.mat33),
+    width: int,
+    height: int,
+    t: float,
+    radii: wp.array(dtype=wp.vec2i),  # [N] from the forward; (0, 0) = culled, no gradient
+    conics: wp.array(dtype=wp.vec3),  # [N] from the forward
+    v_means2d: wp.array(dtype=wp.vec2),  # [N] incoming gradients
+    v_conics: wp.array(dtype=wp.vec3),
+    v_opacities_t: wp.array(dtype=float),
+    camera_grads: int,  # 1: write per-Gaussian viewmat and K partials below
+    v_means: wp.array(dtype=wp.vec3),  # out [N]
+    v_quats: wp.array(dtype=wp.vec4),  # out [N]
+    v_scales: wp.array(dtype=wp.vec3),  # out [N]
+    v_opacities: wp.array(dtype=float),  # out [N]
+    v_t_means: wp.array(dtype=float),  # out [N]
+    v_t_scales: wp.array(dtype=float),  # out [N]
+    v_viewmat_parts: wp.array(dtype=wp.mat44),  # out [N] when camera_grads, summed by the caller
+    v_K_parts: wp.array(dtype=wp.vec4),  # out [N] (fx, fy, cx, cy) when camera_grads
+):
+    i = wp.tid()
+    r = radii[i]
+    if r[0] == 0 and r[1] == 0:
+        v_means[i] = wp.vec3(0.0)
+        v_quats[i] = wp.vec4(0.0)
+        v_scales[i] = wp.vec3(0.0)
+        v_opacities[i] = 0.0
+        v_t_means[i] = 0.0
+        v_t_scales[i] = 0.0
+        if camera_grads != 0:
+            v_viewmat_parts[i] = wp.mat44(0.0)
+            v_K_parts[i] = wp.vec4(0.0)
+        return
+
+    # temporal window: o = a g, g = exp(-z^2 / 2), z = (t - m) / sigma
+    sigma = t_scales[i]
+    z = (t - t_means[i]) / sigma
+    g = wp.exp(-0.5 * z * z)
+    v_o = v_opacities_t[i]
+    o = opacities[i] * g
+    v_opacities[i] = v_o * g
+    v_t_means[i] = v_o * o * z / sigma
+    v_t_scales[i] = v_o * o * z * z / sigma
+
+    viewmat = viewmats[0]
+    W = view_rotation(viewmat)
+    K = Ks[0]
+    fx = K[0, 0]
+    fy = K[1, 1]
+    mu = means[i]
+    p = world_to_camera(viewmat, mu)
+    lim = fov_limits(K, width, height)
+    J = ewa_jacobian(p, K, lim)
+    q = quats[i]
+    qn_len = quat_norm(q)
+    qn = q / qn_len
+    R = rotation_from_unit_quat(qn)
+    s = scales[i]
+    M = wp.mat33(
+        R[0, 0] * s[0], R[0, 1] * s[1], R[0, 2] * s[2],
+        R[1, 0] * s[0], R[1, 1] * s[1], R[1, 2] * s[2],
+        R[2, 0] * s[0], R[2, 1] * s[1], R[2, 2] * s[2],
+    )
+    B = W * M
+    A = J * B
+
+    # conic = Sigma2d^-1: dL/dSigma2d = -Q V Q, V the symmetric gradient of the stored (Q00, Q01, Q11)
+    con = conics[i]
+    vc = v_conics[i]
+    Q = wp.mat22(con[0], con[1], con[1], con[2])
+    V = wp.mat22(vc[0], 0.5 * vc[1], 0.5 * vc[1], vc[2])
+    G = -(Q * V * Q)
+    v_A = 2.0 * G * A  # Sigma2d = A A^T + eps I
+    v_J = v_A * wp.transpose(B)
+    v_B = wp.transpose(J) * v_A
+    v_M = wp.transpose(W) * v_B
+    v_W = v_B * wp.transpose(M)
+
+    v_R = wp.mat33(
+        v_M[0, 0] * s[0], v_M[0, 1] * s[1], v_M[0, 2] * s[2],
+        v_M[1, 0] * s[0], v_M[1, 1] * s[1], v_M[1, 2] * s[2],
+        v_M[2, 0] * s[0], v_M[2, 1] * s[1], v_M[2, 2] * s[2],
+    )
+    v_scales[i] = wp.vec3(
+        v_M[0, 0] * R[0, 0] + v_M[1, 0] * R[1, 0] + v_M[2, 0] * R[2, 0],
+        v_M[0, 1] * R[0, 1] + v_M[1, 1] * R[1, 1] + v_M[2, 1] * R[2, 1],
+        v_M[0, 2] * R[0, 2] + v_M[1, 2] * R[1, 2] + v_M[2, 2] * R[2, 2],
+    )
+    v_qn = rotation_vjp(qn, v_R)
+    if wp.length(q) >= QUAT_EPS:
+        v_quats[i] = (v_qn - qn * wp.dot(qn, v_qn)) / qn_len
+    else:
+        v_quats[i] = v_qn / QUAT_EPS
+
+    # Jacobian entries J00 = fx/z, J02 = -fx u/z, J11 = fy/z, J12 = -fy v/z with u, v clamped
+    px = p[0]
+    py = p[1]
+    pz = p[2]
+    u = wp.clamp(px / pz, -lim[0], lim[0])
+    v = wp.clamp(py / pz, -lim[1], lim[1])
+    v_p = wp.vec3(0.0)
+    v_fx = v_J[0, 0] / pz - v_J[0, 2] * u / pz
+    v_fy = v_J[1, 1] / pz - v_J[1, 2] * v / pz
+    v_p[2] = (-fx * v_J[0, 0] - fy * v_J[1, 1] + fx * u * v_J[0, 2] + fy * v * v_J[1, 2]) / (pz * pz)
+    v_u = -fx * v_J[0, 2] / pz
+    v_v = -fy * v_J[1, 2] / pz
+    if wp.abs(px / pz) <= lim[0]:
+        v_p[0] += v_u / pz
+        v_p[2] -= v_u * px / (pz * pz)
+    else:
+        v_fx -= v_u * u / fx  # u = +-lim, and lim scales with 1 / fx
+    if wp.abs(py / pz) <= lim[1]:
+        v_p[1] += v_v / pz
+        v_p[2] -= v_v * py / (pz * pz)
+    else:
+        v_fy -= v_v * v / fy
+
+    # pixel centre (fx x/z + cx, fy y/z + cy)
+    vm2 = v_means2d[i]
+    v_p[0] += fx * vm2[0] / pz
+    v_p[1] += fy * vm2[1] / pz
+    v_p[2] -= (fx * px * vm2[0] + fy * py * vm2[1]) / (pz * pz)
+    v_fx += vm2[0] * px / pz
+    v_fy += vm2[1] * py / pz
+
+    v_means[i] = wp.transpose(W) * v_p
+    if camera_grads != 0:
+        v_W += wp.outer(v_p, mu)
+        v_viewmat_parts[i] = wp.mat44(
+            v_W[0, 0], v_W[0, 1], v_W[0, 2], v_p[0],
+            v_W[1, 0], v_W[1, 1], v_W[1, 2], v_p[1],
+            v_W[2, 0], v_W[2, 1], v_W[2, 2], v_p[2],
+            0.0, 0.0, 0.0, 0.0,
+        )
+        v_K_parts[i] = wp.vec4(v_fx, v_fy, vm2[0], vm2[1])

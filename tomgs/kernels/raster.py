@@ -1,0 +1,135 @@
+"""Stage 3: per-tile compositing, front to back, and its hand-written back-to-front backward.
+
+Threads are laid out tile by tile (256 consecutive threads = one 16x16 tile = one CUDA block), so a
+block walks one tile's depth-sorted list together and the per-Gaussian loads are shared in cache.
+"""
+
+import warp as wp
+
+from tomgs import constants
+
+wp.set_module_options({"enable_backward": False})
+
+TILE = wp.constant(constants.TILE_SIZE)
+TILE_PIXELS = wp.constant(constants.TILE_SIZE * constants.TILE_SIZE)
+ALPHA_MIN = wp.constant(constants.ALPHA_MIN)
+ALPHA_MAX = wp.constant(constants.ALPHA_MAX)
+T_MIN = wp.constant(constants.T_MIN)
+ONE_MINUS_ALPHA_FLOOR = wp.constant(constants.ONE_MINUS_ALPHA_FLOOR)
+
+
+@wp.func
+def pixel_of(tid: int, tiles_x: int) -> wp.vec3i:
+    """(tile, x, y) of the pixel handled by thread `tid`."""
+    tile = tid // TILE_PIXELS
+    local = tid - tile * TILE_PIXELS
+    ty = tile // tiles_x
+    tx = tile - ty * tiles_x
+    return wp.vec3i(tile, tx * TILE + local % TILE, ty * TILE + local // TILE)
+
+
+@wp.func
+def gaussian_power(center: wp.vec2, conic: wp.vec3, pixel: wp.vec2) -> float:
+    d = center - pixel
+    return 0.5 * (conic[0] * d[0] * d[0] + conic[2] * d[1] * d[1]) + conic[1] * d[0] * d[1]
+
+
+@wp.kernel
+def raster_forward(
+    ranges: wp.array2d(dtype=wp.int32),  # [tiles, 2]
+    gaussian_ids: wp.array(dtype=wp.int32),  # [M] depth-sorted per tile
+    means2d: wp.array(dtype=wp.vec2),  # [N]
+    conics: wp.array(dtype=wp.vec3),  # [N]
+    opacities_t: wp.array(dtype=float),  # [N]
+    colors: wp.array(dtype=wp.vec3),  # [N]
+    width: int,
+    height: int,
+    tiles_x: int,
+    out_color: wp.array2d(dtype=wp.vec3),  # out [H, W] premultiplied, no background
+    out_trans: wp.array2d(dtype=float),  # out [H, W] final transmittance
+    out_end: wp.array2d(dtype=wp.int32),  # out [H, W] one past the last composited list entry
+):
+    tile_xy = pixel_of(wp.tid(), tiles_x)
+    x = tile_xy[1]
+    y = tile_xy[2]
+    if x >= width or y >= height:
+        return
+    tile = tile_xy[0]
+    pixel = wp.vec2(float(x) + 0.5, float(y) + 0.5)
+    start = ranges[tile, 0]
+    end = ranges[tile, 1]
+    trans = float(1.0)
+    color = wp.vec3(0.0)
+    last = start
+    for k in range(start, end):
+        g = gaussian_ids[k]
+        alpha = wp.min(ALPHA_MAX, opacities_t[g] * wp.exp(-gaussian_power(means2d[g], conics[g], pixel)))
+        if alpha < ALPHA_MIN:
+            continue
+        next_trans = trans * (1.0 - alpha)
+        if next_trans <= T_MIN:
+            break
+        color += colors[g] * (alpha * trans)
+        trans = next_trans
+        last = k + 1
+    out_color[y, x] = color
+    out_trans[y, x] = trans
+    out_end[y, x] = last
+
+
+@wp.kernel
+def raster_backward(
+    ranges: wp.array2d(dtype=wp.int32),  # [tiles, 2]
+    gaussian_ids: wp.array(dtype=wp.int32),  # [M]
+    means2d: wp.array(dtype=wp.vec2),  # [N]
+    conics: wp.array(dtype=wp.vec3),  # [N]
+    opacities_t: wp.array(dtype=float),  # [N]
+    colors: wp.array(dtype=wp.vec3),  # [N]
+    width: int,
+    height: int,
+    tiles_x: int,
+    out_trans: wp.array2d(dtype=float),  # [H, W] from the forward
+    out_end: wp.array2d(dtype=wp.int32),  # [H, W] from the forward
+    v_color: wp.array2d(dtype=wp.vec3),  # [H, W] dL/d(premultiplied colour)
+    v_trans: wp.array2d(dtype=float),  # [H, W] dL/d(final transmittance)
+    v_means2d: wp.array(dtype=wp.vec2),  # out [N], accumulated (zeroed by the caller)
+    v_conics: wp.array(dtype=wp.vec3),  # out [N], accumulated
+    v_opacities_t: wp.array(dtype=float),  # out [N], accumulated
+    v_colors: wp.array(dtype=wp.vec3),  # out [N], accumulated
+):
+    tile_xy = pixel_of(wp.tid(), tiles_x)
+    x = tile_xy[1]
+    y = tile_xy[2]
+    if x >= width or y >= height:
+        return
+    tile = tile_xy[0]
+    pixel = wp.vec2(float(x) + 0.5, float(y) + 0.5)
+    start = ranges[tile, 0]
+    final_trans = out_trans[y, x]
+    trans = final_trans
+    dc = v_color[y, x]
+    dt_final = v_trans[y, x] * final_trans
+    behind = wp.vec3(0.0)  # colour composited behind the current Gaussian, already weighted
+    for k in range(out_end[y, x] - 1, start - 1, -1):
+        g = gaussian_ids[k]
+        center = means2d[g]
+        conic = conics[g]
+        opac = opacities_t[g]
+        falloff = wp.exp(-gaussian_power(center, conic, pixel))
+        raw_alpha = opac * falloff
+        alpha = wp.min(ALPHA_MAX, raw_alpha)
+        if alpha < ALPHA_MIN:
+            continue
+        one_minus = wp.max(1.0 - alpha, ONE_MINUS_ALPHA_FLOOR)
+        trans = trans / one_minus  # transmittance in front of Gaussian k
+        c = colors[g]
+        weight = alpha * trans
+        wp.atomic_add(v_colors, g, dc * weight)
+        v_alpha = trans * wp.dot(c, dc) - (wp.dot(behind, dc) + dt_final) / one_minus
+        behind += c * weight
+        if raw_alpha <= ALPHA_MAX:
+            v_power = -v_alpha * alpha
+            d = center - pixel
+            wp.atomic_add(v_opacities_t, g, v_alpha * falloff)
+            wp.atomic_add(v_conics, g, v_power * wp.vec3(0.5 * d[0] * d[0], d[0] * d[1], 0.5 * d[1] * d[1]))
+            wp.atomic_add(v_means2d, g, v_power * wp.vec2(conic[0] * d[0] + conic[1] * d[1], conic[1] * d[0] + conic[2] * d[1]))

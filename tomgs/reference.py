@@ -1,0 +1,125 @@
+"""Dense pure-torch renderer with the semantics of the Warp rasterizer: the oracle for every test.
+
+Same projection (EWA with 0.3 px dilation, clamped Jacobian, opacity-aware radius), same culls
+(near/far, non-finite, temporal opacity < 1/255, off screen), same compositing (alpha clamp 0.99,
+skip alpha < 1/255, stop before T <= 1e-4), but every pixel meets every visible Gaussian and
+autograd provides the gradients. Run it in float64 on small scenes; memory is O(pixels x N).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+from tomgs.constants import ALPHA_MAX, ALPHA_MIN, EPS2D, FOV_CLAMP, QUAT_EPS, RADIUS_SIGMAS, T_MIN
+from tomgs.inputs import RasterInputs, prepare_inputs
+
+_PER_GAUSSIAN = ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales")
+
+
+def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices [N,3,3] of quaternions [N,4] (w x y z), normalised with an epsilon."""
+    q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(QUAT_EPS)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ], dim=-1).reshape(-1, 3, 3)
+
+
+def _project(p: RasterInputs) -> dict[str, torch.Tensor]:
+    """Per-Gaussian 2D quantities for all N (culled ones are garbage, see `valid`)."""
+    rot_view, trans_view = p.viewmat[:3, :3], p.viewmat[:3, 3]
+    cam = p.means @ rot_view.T + trans_view  # [N,3]
+    x, y, depth = cam.unbind(-1)
+    depth_ok = (depth > p.near) & (depth < p.far)
+    z = torch.where(depth_ok, depth, torch.ones_like(depth))  # keep culled lanes NaN-free for autograd
+
+    tz = (p.t - p.t_means) / p.t_scales
+    opac_t = p.opacities * torch.exp(-0.5 * tz * tz)
+
+    fx, fy, cx, cy = p.K[0, 0], p.K[1, 1], p.K[0, 2], p.K[1, 2]
+    lim_x = FOV_CLAMP * 0.5 * p.width / fx
+    lim_y = FOV_CLAMP * 0.5 * p.height / fy
+    u = torch.clamp(x / z, -lim_x, lim_x)
+    v = torch.clamp(y / z, -lim_y, lim_y)
+    zero = torch.zeros_like(z)
+    jac = torch.stack([fx / z, zero, -fx * u / z, zero, fy / z, -fy * v / z], -1).reshape(-1, 2, 3)
+
+    m = quat_to_rotmat(p.quats) * p.scales[:, None, :]  # R diag(s): Sigma = m m^T
+    a_mat = jac @ rot_view @ m  # [N,2,3]; 2D covariance = a a^T + eps I
+    a0 = (a_mat[:, 0] ** 2).sum(-1)
+    c0 = (a_mat[:, 1] ** 2).sum(-1)
+    b = (a_mat[:, 0] * a_mat[:, 1]).sum(-1)
+    a, c = a0 + EPS2D, c0 + EPS2D
+    # det(a a^T) by Cauchy-Binet (sum of squared 2x2 minors): no cancellation for thin Gaussians
+    r0, r1 = a_mat[:, 0], a_mat[:, 1]
+    minors = torch.stack([r0[:, 0] * r1[:, 1] - r0[:, 1] * r1[:, 0], r0[:, 0] * r1[:, 2] - r0[:, 2] * r1[:, 0],
+                          r0[:, 1] * r1[:, 2] - r0[:, 2] * r1[:, 1]], -1)
+    det = (minors ** 2).sum(-1) + EPS2D * (a0 + c0) + EPS2D * EPS2D
+    conics = torch.stack([c / det, -b / det, a / det], -1)
+    means2d = torch.stack([fx * x / z + cx, fy * y / z + cy], -1)
+    return dict(means2d=means2d, conics=conics, opac_t=opac_t, depth=depth, depth_ok=depth_ok, cov_a=a, cov_c=c)
+
+
+def _radii_and_valid(proj: dict[str, torch.Tensor], width: int, height: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Integer radii [N,2] and the visibility mask [N] (no gradients)."""
+    finite = torch.stack([proj[k].isfinite().all(-1) if proj[k].dim() == 2 else proj[k].isfinite()
+                          for k in ("means2d", "conics", "opac_t", "depth")]).all(0)
+    alive = proj["opac_t"] >= ALPHA_MIN
+    valid = proj["depth_ok"] & finite & alive
+    opac = torch.where(valid, proj["opac_t"], torch.ones_like(proj["opac_t"]))
+    extend = torch.clamp(torch.sqrt(2.0 * torch.log(opac / ALPHA_MIN).clamp_min(0)), max=RADIUS_SIGMAS)
+    rx = torch.ceil(extend * proj["cov_a"].sqrt())
+    ry = torch.ceil(extend * proj["cov_c"].sqrt())
+    mx, my = proj["means2d"].unbind(-1)
+    on_screen = (mx + rx > 0) & (mx - rx < width) & (my + ry > 0) & (my - ry < height) & ((rx > 0) | (ry > 0))
+    valid = valid & on_screen & rx.isfinite() & ry.isfinite()
+    radii = torch.where(valid[:, None], torch.stack([rx, ry], -1), torch.zeros_like(proj["means2d"]))
+    return radii.clamp(max=2**30).long(), valid
+
+
+def rasterize_reference(
+    means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width, height, t, *,
+    background=None, near=0.01, far=1e10, dtype=torch.float64,
+):
+    """Same signature and outputs as `tomgs.rasterize`; `dtype` is the compute precision."""
+    p = prepare_inputs(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width, height, t,
+                       background, near, far, dtype)
+    with torch.no_grad():
+        full = _project(p)
+        radii, valid = _radii_and_valid(full, p.width, p.height)
+    # differentiate only the visible subset: culled Gaussians get exactly zero gradient, never NaN
+    idx = torch.nonzero(valid).squeeze(-1)
+    idx = idx[torch.argsort(full["depth"][idx], stable=True)]
+    sub = dataclasses.replace(p, **{k: getattr(p, k)[idx] for k in _PER_GAUSSIAN})
+    proj = _project(sub)
+
+    ys, xs = torch.meshgrid(torch.arange(p.height, dtype=dtype, device=p.means.device) + 0.5,
+                            torch.arange(p.width, dtype=dtype, device=p.means.device) + 0.5, indexing="ij")
+    pix = torch.stack([xs, ys], -1).reshape(-1, 1, 2)  # [P,1,2]
+    delta = proj["means2d"][None] - pix  # [P,M,2]
+    con = proj["conics"]
+    power = 0.5 * (con[:, 0] * delta[..., 0] ** 2 + con[:, 2] * delta[..., 1] ** 2) + con[:, 1] * delta[..., 0] * delta[..., 1]
+    alpha = torch.clamp(proj["opac_t"] * torch.exp(-power), max=ALPHA_MAX)
+    alpha = alpha * (alpha >= ALPHA_MIN).detach()
+    with torch.no_grad():
+        stopped = torch.cumprod(1.0 - alpha, dim=1) <= T_MIN
+        keep = torch.cumsum(stopped.to(torch.int32), dim=1) == 0
+    alpha = alpha * keep
+    trans = torch.cumprod(1.0 - alpha, dim=1)  # [P,M] transmittance after each Gaussian
+    trans_before = torch.cat([torch.ones_like(trans[:, :1]), trans[:, :-1]], dim=1)
+    color = torch.einsum("pm,mc->pc", alpha * trans_before, sub.colors)
+    t_final = trans[:, -1:] if trans.shape[1] else torch.ones_like(pix[:, 0, :1])
+    if p.background is not None:
+        color = color + t_final * p.background
+    image = color.reshape(p.height, p.width, 3)
+    alpha_out = (1.0 - t_final).reshape(p.height, p.width, 1)
+    meta = dict(radii=radii, means2d=full["means2d"], depths=full["depth"], conics=full["conics"],
+                opacities_t=full["opac_t"], n_visible=int(valid.sum()))
+    return image, alpha_out, meta
+
+
+__all__ = ["rasterize_reference", "quat_to_rotmat"]

@@ -1,0 +1,241 @@
+"""The public rasterizer: `rasterize(...)` and one torch.autograd.Function per differentiable stage.
+
+    project (Warp) -> binning (Warp keys + radix sort, no gradient) -> raster (Warp) -> + background
+
+Every buffer is a torch tensor handed to Warp without a copy, so torch's allocator and memory
+statistics see the whole frame; kernels run on torch's current stream, where the inputs live.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass
+
+import torch
+import warp as wp
+
+from tomgs.constants import ALPHA_MIN, TILE_SIZE
+from tomgs.inputs import RenderError, prepare_inputs
+from tomgs.kernels import binning, project, raster
+
+_warp_ready = False
+
+
+def _init_warp() -> None:
+    """Initialise Warp once, quietly: no banner, no per-module compile lines, no CPU-only driver warning."""
+    global _warp_ready
+    if not _warp_ready:
+        wp.config.log_level = max(wp.config.log_level, wp.LOG_ERROR)
+        wp.init()
+        wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
+        _warp_ready = True
+
+# The radix sort needs 2 x count slots and counts in int32: 2^30 keeps both inside int32.
+MAX_INTERSECTIONS = 2**30
+
+
+@dataclass(frozen=True)
+class _Frame:
+    width: int
+    height: int
+    t: float
+    near: float
+    far: float
+
+    @property
+    def tiles_x(self) -> int:
+        return (self.width + TILE_SIZE - 1) // TILE_SIZE
+
+    @property
+    def tiles_y(self) -> int:
+        return (self.height + TILE_SIZE - 1) // TILE_SIZE
+
+    @property
+    def num_tiles(self) -> int:
+        return self.tiles_x * self.tiles_y
+
+
+def _warp_device(device: torch.device) -> str:
+    return "cpu" if device.type == "cpu" else f"cuda:{device.index if device.index is not None else torch.cuda.current_device()}"
+
+
+@contextlib.contextmanager
+def _on(device: torch.device):
+    """Run Warp launches on `device`, on torch's current stream when it is a GPU."""
+    _init_warp()  # deferred to the first render so that importing tomgs stays cheap
+    if device.type == "cuda":
+        with wp.ScopedStream(wp.stream_from_torch(device)):
+            yield _warp_device(device)
+    elif device.type == "cpu":
+        yield "cpu"
+    else:
+        raise RenderError(f"tensors on {device} are not supported: use a CPU or CUDA device")
+
+
+def _wp(tensor: torch.Tensor, dtype=None):
+    return wp.from_torch(tensor, dtype=dtype, requires_grad=False)
+
+
+def _zeros_if_none(grad: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor:
+    return torch.zeros_like(like) if grad is None else grad.contiguous()
+
+
+class _Project(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, t_means, t_scales, viewmat, K, frame: _Frame):
+        n = means.shape[0]
+        f32 = dict(device=means.device, dtype=torch.float32)
+        means2d = torch.empty(n, 2, **f32)
+        conics = torch.empty(n, 3, **f32)
+        depths = torch.empty(n, **f32)
+        opacities_t = torch.empty(n, **f32)
+        radii = torch.empty(n, 2, device=means.device, dtype=torch.int32)
+        tiles_touched = torch.empty(n, device=means.device, dtype=torch.int32)
+        with _on(means.device) as device:
+            wp.launch(project.project_forward, dim=n, device=device, inputs=[
+                _wp(means, wp.vec3), _wp(quats, wp.vec4), _wp(scales, wp.vec3), _wp(opacities),
+                _wp(t_means), _wp(t_scales), _wp(viewmat.reshape(1, 4, 4), wp.mat44), _wp(K.reshape(1, 3, 3), wp.mat33),
+                frame.width, frame.height, frame.t, frame.near, frame.far, frame.tiles_x, frame.tiles_y,
+                _wp(means2d, wp.vec2), _wp(conics, wp.vec3), _wp(depths), _wp(radii, wp.vec2i), _wp(opacities_t),
+                _wp(tiles_touched),
+            ])
+        ctx.frame = frame
+        ctx.save_for_backward(means, quats, scales, opacities, t_means, t_scales, viewmat, K, radii, conics)
+        ctx.mark_non_differentiable(depths, radii, tiles_touched)
+        return means2d, conics, depths, radii, opacities_t, tiles_touched
+
+    @staticmethod
+    def backward(ctx, v_means2d, v_conics, _v_depths, _v_radii, v_opacities_t, _v_tiles):
+        means, quats, scales, opacities, t_means, t_scales, viewmat, K, radii, conics = ctx.saved_tensors
+        frame = ctx.frame
+        n = means.shape[0]
+        camera_grads = ctx.needs_input_grad[6] or ctx.needs_input_grad[7]
+        v_means, v_quats, v_scales = torch.empty_like(means), torch.empty_like(quats), torch.empty_like(scales)
+        v_opacities, v_t_means, v_t_scales = (torch.empty_like(opacities), torch.empty_like(t_means),
+                                              torch.empty_like(t_scales))
+        parts = n if camera_grads else 0  # per-Gaussian camera partials only when someone asked
+        v_viewmat_parts = torch.empty(parts, 4, 4, device=means.device, dtype=torch.float32)
+        v_K_parts = torch.empty(parts, 4, device=means.device, dtype=torch.float32)
+        with _on(means.device) as device:
+            wp.launch(project.project_backward, dim=n, device=device, inputs=[
+                _wp(means, wp.vec3), _wp(quats, wp.vec4), _wp(scales, wp.vec3), _wp(opacities),
+                _wp(t_means), _wp(t_scales), _wp(viewmat.reshape(1, 4, 4), wp.mat44), _wp(K.reshape(1, 3, 3), wp.mat33),
+                frame.width, frame.height, frame.t, _wp(radii, wp.vec2i), _wp(conics, wp.vec3),
+                _wp(_zeros_if_none(v_means2d, conics[:, :2]), wp.vec2), _wp(_zeros_if_none(v_conics, conics), wp.vec3),
+                _wp(_zeros_if_none(v_opacities_t, opacities)), int(camera_grads),
+                _wp(v_means, wp.vec3), _wp(v_quats, wp.vec4), _wp(v_scales, wp.vec3), _wp(v_opacities),
+                _wp(v_t_means), _wp(v_t_scales), _wp(v_viewmat_parts, wp.mat44), _wp(v_K_parts, wp.vec4),
+            ])
+        v_viewmat = v_K = None
+        if camera_grads:
+            v_viewmat = v_viewmat_parts.sum(0)
+            fx, fy, cx, cy = v_K_parts.sum(0).unbind()
+            zero = torch.zeros_like(fx)
+            v_K = torch.stack([fx, zero, cx, zero, fy, cy, zero, zero, zero]).reshape(3, 3)
+        return v_means, v_quats, v_scales, v_opacities, v_t_means, v_t_scales, v_viewmat, v_K, None
+
+
+def _bin(means2d, radii, depths, tiles_touched, frame: _Frame, total: int):
+    """Depth-sorted Gaussian ids per tile: (ranges [tiles, 2] int32, ids [total] int32)."""
+    device = means2d.device
+    n = means2d.shape[0]
+    ranges = torch.zeros(frame.num_tiles, 2, device=device, dtype=torch.int32)
+    keys = torch.empty(max(2 * total, 2), device=device, dtype=torch.int64)
+    ids = torch.empty(max(2 * total, 2), device=device, dtype=torch.int32)
+    if total == 0:
+        return ranges, ids[:0]
+    offsets = torch.cumsum(tiles_touched, 0, dtype=torch.int32) - tiles_touched
+    tile_bits = max(1, (frame.num_tiles - 1).bit_length())
+    with _on(device) as wp_device:
+        keys_wp, ids_wp = _wp(keys), _wp(ids)
+        wp.launch(binning.write_tile_keys, dim=n, device=wp_device, inputs=[
+            _wp(means2d, wp.vec2), _wp(radii, wp.vec2i), _wp(depths), _wp(offsets), frame.tiles_x, frame.tiles_y,
+            keys_wp, ids_wp,
+        ])
+        wp.utils.radix_sort_pairs(keys_wp, ids_wp, total, 0, 32 + tile_bits)
+        wp.launch(binning.tile_ranges, dim=total, device=wp_device, inputs=[keys_wp, total, _wp(ranges)])
+    return ranges, ids[:total]
+
+
+class _Rasterize(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities_t, colors, ranges, ids, frame: _Frame):
+        device = means2d.device
+        color = torch.empty(frame.height, frame.width, 3, device=device, dtype=torch.float32)
+        trans = torch.empty(frame.height, frame.width, 1, device=device, dtype=torch.float32)
+        end = torch.empty(frame.height, frame.width, device=device, dtype=torch.int32)
+        with _on(device) as wp_device:
+            wp.launch(raster.raster_forward, dim=frame.num_tiles * TILE_SIZE * TILE_SIZE, device=wp_device,
+                      block_dim=TILE_SIZE * TILE_SIZE, inputs=[
+                          _wp(ranges), _wp(ids), _wp(means2d, wp.vec2), _wp(conics, wp.vec3), _wp(opacities_t),
+                          _wp(colors, wp.vec3), frame.width, frame.height, frame.tiles_x,
+                          _wp(color, wp.vec3), _wp(trans[..., 0]), _wp(end)])
+        ctx.frame = frame
+        ctx.save_for_backward(means2d, conics, opacities_t, colors, ranges, ids, trans, end)
+        return color, trans
+
+    @staticmethod
+    def backward(ctx, v_color, v_trans):
+        means2d, conics, opacities_t, colors, ranges, ids, trans, end = ctx.saved_tensors
+        frame = ctx.frame
+        v_means2d, v_conics = torch.zeros_like(means2d), torch.zeros_like(conics)
+        v_opacities_t, v_colors = torch.zeros_like(opacities_t), torch.zeros_like(colors)
+        with _on(means2d.device) as wp_device:
+            wp.launch(raster.raster_backward, dim=frame.num_tiles * TILE_SIZE * TILE_SIZE, device=wp_device,
+                      block_dim=TILE_SIZE * TILE_SIZE, inputs=[
+                          _wp(ranges), _wp(ids), _wp(means2d, wp.vec2), _wp(conics, wp.vec3), _wp(opacities_t),
+                          _wp(colors, wp.vec3), frame.width, frame.height, frame.tiles_x,
+                          _wp(trans[..., 0]), _wp(end), _wp(_zeros_if_none(v_color, colors.new_empty(frame.height, frame.width, 3)), wp.vec3),
+                          _wp(_zeros_if_none(v_trans, trans)[..., 0]),
+                          _wp(v_means2d, wp.vec2), _wp(v_conics, wp.vec3), _wp(v_opacities_t), _wp(v_colors, wp.vec3)])
+        return v_means2d, v_conics, v_opacities_t, v_colors, None, None, None
+
+
+def rasterize(
+    means: torch.Tensor,  # [N,3] world
+    quats: torch.Tensor,  # [N,4] w x y z, any norm (zero = identity)
+    scales: torch.Tensor,  # [N,3] > 0
+    opacities: torch.Tensor,  # [N] base opacity in (0, 1)
+    colors: torch.Tensor,  # [N,3] RGB, or [N,K,3] SH with K in {1, 4, 9, 16}
+    t_means: torch.Tensor,  # [N] temporal centre
+    t_scales: torch.Tensor,  # [N] temporal sigma > 0
+    viewmat: torch.Tensor,  # [4,4] world -> camera, OpenCV axes
+    K: torch.Tensor,  # [3,3] intrinsics in pixels, pixel centres at +0.5
+    width: int,
+    height: int,
+    t: float,
+    *,
+    background: torch.Tensor | None = None,  # [3]
+    near: float = 0.01,
+    far: float = 1e10,
+):
+    """Render the Gaussians at time t: (image [H,W,3], alpha [H,W,1], meta).
+
+    Opacity at t is opacities * exp(-(t - t_means)^2 / (2 t_scales^2)); a Gaussian below 1/255 at t
+    is culled in projection and costs no tile work. Differentiable in every tensor input; runs on
+    the device of the inputs (CPU or CUDA) in float32. `meta` holds per-Gaussian `radii` [N,2],
+    `means2d` [N,2] (call `.retain_grad()` on it for screen-space gradients), `depths`, `conics`,
+    `opacities_t`, and counts `n_visible`, `n_alive` (alive at t), `n_intersections`.
+    """
+    p = prepare_inputs(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width, height, t,
+                       background, near, far, torch.float32)
+    frame = _Frame(p.width, p.height, p.t, p.near, p.far)
+    means2d, conics, depths, radii, opacities_t, tiles_touched = _Project.apply(
+        p.means.contiguous(), p.quats.contiguous(), p.scales.contiguous(), p.opacities.contiguous(),
+        p.t_means.contiguous(), p.t_scales.contiguous(), p.viewmat.contiguous(), p.K.contiguous(), frame)
+
+    # one host sync per frame: the intersection count sizes the sort buffers
+    total, n_visible, n_alive = torch.stack([
+        tiles_touched.sum(dtype=torch.int64), (tiles_touched > 0).sum(), (opacities_t >= ALPHA_MIN).sum(),
+    ]).tolist()
+    if total > MAX_INTERSECTIONS:
+        raise RenderError(
+            f"this frame needs {total:,} Gaussian-tile intersections, more than the {MAX_INTERSECTIONS:,} the "
+            f"rasterizer can sort; render at a lower resolution or with fewer or smaller Gaussians")
+    ranges, ids = _bin(means2d, radii, depths, tiles_touched, frame, total)
+    color, trans = _Rasterize.apply(means2d, conics, opacities_t, p.colors.contiguous(), ranges, ids, frame)
+    image = color if p.background is None else color + trans * p.background
+    meta = dict(radii=radii, means2d=means2d, depths=depths, conics=conics, opacities_t=opacities_t,
+                n_visible=n_visible, n_alive=n_alive, n_intersections=total, tile_size=TILE_SIZE,
+                width=frame.width, height=frame.height)
+    return image, 1.0 - trans, meta
