@@ -1,0 +1,118 @@
+"""Random Gaussian scenes for rasterizer tests, with the awkward cases mixed in on purpose."""
+
+from __future__ import annotations
+
+import os
+
+import torch
+import warp as wp
+
+# Seeds are fixed so CI is repeatable; set TOMGS_TEST_SEED to draw a different family of scenes.
+SEED_BASE = int(os.environ.get("TOMGS_TEST_SEED", "0"))
+
+INPUT_NAMES = ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales", "viewmat", "K", "background")
+
+
+def devices() -> list[str]:
+    """CPU always; CUDA too when both torch and Warp can use a GPU."""
+    found = ["cpu"]
+    if torch.cuda.is_available():
+        wp.init()
+        if wp.is_cuda_available():
+            found.append("cuda")
+    return found
+
+
+def look_at(eye, target, dtype=torch.float64) -> torch.Tensor:
+    """World->camera [4,4] (OpenCV axes) for a camera at `eye` looking at `target`, y down."""
+    eye, target = torch.as_tensor(eye, dtype=dtype), torch.as_tensor(target, dtype=dtype)
+    forward = torch.nn.functional.normalize(target - eye, dim=0)
+    right = torch.nn.functional.normalize(torch.linalg.cross(forward, torch.tensor([0.0, -1.0, 0.0], dtype=dtype)), dim=0)
+    down = torch.linalg.cross(forward, right)
+    rot = torch.stack([right, down, forward])  # rows: camera axes in world coordinates
+    view = torch.eye(4, dtype=dtype)
+    view[:3, :3] = rot
+    view[:3, 3] = -rot @ eye
+    return view
+
+
+def random_scene(seed: int, n: int = 120, width: int = 45, height: int = 37, sh_degree: int | None = None,
+                 dtype=torch.float64) -> dict:
+    """A small scene seen by a tilted camera: a dense overlapping cluster, Gaussians off screen,
+    behind the camera and near the near plane, random temporal windows, and a background."""
+    g = torch.Generator().manual_seed(SEED_BASE * 1000 + seed)
+
+    def rand(*shape):
+        return torch.rand(*shape, generator=g, dtype=dtype)
+
+    def randn(*shape):
+        return torch.randn(*shape, generator=g, dtype=dtype)
+
+    view = look_at(randn(3) * 0.3 + torch.tensor([0.2, -0.1, -3.0], dtype=dtype), randn(3) * 0.1, dtype)
+    c2w = torch.linalg.inv(view)
+    # points in camera space, then to world
+    kind = torch.randint(0, 10, (n,), generator=g)
+    cam = torch.stack([randn(n) * 0.6, randn(n) * 0.5, 1.0 + rand(n) * 5.0], -1)
+    cam[kind == 0] = torch.stack([randn(n) * 0.1, randn(n) * 0.1, 2.5 + rand(n) * 0.2], -1)[kind == 0]  # overlap
+    cam[kind == 1, 0] += 6.0 * torch.sign(randn(n))[kind == 1]  # off screen to the side
+    cam[kind == 2, 2] = -rand(n)[kind == 2] * 3.0  # behind the camera
+    cam[kind == 3, 2] = 0.011 + rand(n)[kind == 3] * 0.05  # hugging the near plane
+    means = cam @ c2w[:3, :3].T + c2w[:3, 3]
+    fx = width * (0.7 + 0.6 * rand(1)).item()
+    K = torch.tensor([[fx, 0.0, width / 2 + randn(1).item()], [0.0, fx * (0.9 + 0.2 * rand(1)).item(),
+                                                                  height / 2 + randn(1).item()], [0.0, 0.0, 1.0]], dtype=dtype)
+    colors = rand(n, 3) if sh_degree is None else randn(n, (sh_degree + 1) ** 2, 3) * 0.5
+    return dict(
+        means=means,
+        quats=randn(n, 4) * (0.2 + 2.0 * rand(n, 1)),
+        scales=torch.exp(randn(n, 3) * 0.6 - 2.3),
+        opacities=0.05 + 0.9 * rand(n),
+        colors=colors,
+        t_means=rand(n),
+        t_scales=torch.exp(randn(n) * 0.8 - 1.5),
+        viewmat=view,
+        K=K,
+        background=rand(3),
+        width=width,
+        height=height,
+        t=rand(1).item(),
+    )
+
+
+def split(scene: dict, device: str, requires_grad: bool = True) -> tuple[list[torch.Tensor], dict]:
+    """(tensor inputs in INPUT_NAMES order on `device`, the remaining keyword arguments)."""
+    tensors = [scene[k].detach().to(device).requires_grad_(requires_grad) for k in INPUT_NAMES]
+    rest = {k: v for k, v in scene.items() if k not in INPUT_NAMES}
+    return tensors, rest
+
+
+def render_both(scene: dict, device: str, **kw):
+    """Render with the Warp rasterizer on `device` and with the float64 reference on the CPU.
+    Returns (outputs, reference outputs, input tensors of each, weights) where a shared random
+    loss sum(image * w_img) + sum(alpha * w_alpha) can be differentiated."""
+    import tomgs
+
+    # both sides see the same float32-representable values, so the comparison measures arithmetic only
+    scene = {k: (v.float().double() if isinstance(v, torch.Tensor) else v) for k, v in scene.items()}
+    scene["t"] = float(torch.tensor(scene["t"], dtype=torch.float32))
+    ours_in, rest = split(scene, device)
+    ref_in, _ = split(scene, "cpu")
+    args = dict(width=rest["width"], height=rest["height"], t=rest["t"], **kw)
+
+    def call(fn, tensors):
+        named = dict(zip(INPUT_NAMES, tensors))
+        background = named.pop("background")
+        return fn(**named, background=background, **args)
+
+    ours = call(tomgs.rasterize, ours_in)
+    ref = call(tomgs.rasterize_reference, ref_in)
+    return ours, ref, ours_in, ref_in
+
+
+def rel_l2(a: torch.Tensor, b: torch.Tensor) -> float:
+    """|a - b| / |b| in float64; 0 when both are exactly zero."""
+    a, b = a.detach().double().cpu(), b.detach().double().cpu()
+    denom = b.norm()
+    if denom == 0:
+        return float(a.norm())
+    return float((a - b).norm() / denom)
