@@ -7,6 +7,7 @@ block walks one tile's depth-sorted list together and the per-Gaussian loads are
 import warp as wp
 
 from tomgs import constants
+from tomgs.kernels.lanes import lane_index, lanes_any, lanes_max, lanes_sum, lanes_sum_vec2, lanes_sum_vec3
 
 wp.set_module_options({"enable_backward": False})
 
@@ -97,39 +98,59 @@ def raster_backward(
     v_opacities_t: wp.array(dtype=float),  # out [N], accumulated
     v_colors: wp.array(dtype=wp.vec3),  # out [N], accumulated
 ):
+    # All 32 lanes of a GPU warp lie in one tile and walk its list in lockstep, so each Gaussian's
+    # gradient is summed across the lanes before a single atomic add. No lane may return early.
     tile_xy = pixel_of(wp.tid(), tiles_x)
+    tile = tile_xy[0]
     x = tile_xy[1]
     y = tile_xy[2]
-    if x >= width or y >= height:
-        return
-    tile = tile_xy[0]
     pixel = wp.vec2(float(x) + 0.5, float(y) + 0.5)
     start = ranges[tile, 0]
-    final_trans = out_trans[y, x]
+    end = start  # lanes outside the image composite nothing
+    final_trans = float(1.0)
+    dc = wp.vec3(0.0)
+    dt_final = float(0.0)
+    if x < width and y < height:
+        end = out_end[y, x]
+        final_trans = out_trans[y, x]
+        dc = v_color[y, x]
+        dt_final = v_trans[y, x] * final_trans
     trans = final_trans
-    dc = v_color[y, x]
-    dt_final = v_trans[y, x] * final_trans
     behind = wp.vec3(0.0)  # colour composited behind the current Gaussian, already weighted
-    for k in range(out_end[y, x] - 1, start - 1, -1):
+    lead = lane_index() == 0
+    for k in range(lanes_max(end) - 1, start - 1, -1):
         g = gaussian_ids[k]
         center = means2d[g]
         conic = conics[g]
-        opac = opacities_t[g]
         falloff = wp.exp(-gaussian_power(center, conic, pixel))
-        raw_alpha = opac * falloff
+        raw_alpha = opacities_t[g] * falloff
         alpha = wp.min(ALPHA_MAX, raw_alpha)
-        if alpha < ALPHA_MIN:
-            continue
-        one_minus = wp.max(1.0 - alpha, ONE_MINUS_ALPHA_FLOOR)
-        trans = trans / one_minus  # transmittance in front of Gaussian k
-        c = colors[g]
-        weight = alpha * trans
-        wp.atomic_add(v_colors, g, dc * weight)
-        v_alpha = trans * wp.dot(c, dc) - (wp.dot(behind, dc) + dt_final) / one_minus
-        behind += c * weight
-        if raw_alpha <= ALPHA_MAX:
-            v_power = -v_alpha * alpha
-            d = center - pixel
-            wp.atomic_add(v_opacities_t, g, v_alpha * falloff)
-            wp.atomic_add(v_conics, g, v_power * wp.vec3(0.5 * d[0] * d[0], d[0] * d[1], 0.5 * d[1] * d[1]))
-            wp.atomic_add(v_means2d, g, v_power * wp.vec2(conic[0] * d[0] + conic[1] * d[1], conic[1] * d[0] + conic[2] * d[1]))
+        used = k < end and alpha >= ALPHA_MIN
+        v_col = wp.vec3(0.0)
+        v_opac = float(0.0)
+        v_conic = wp.vec3(0.0)
+        v_mean = wp.vec2(0.0)
+        if used:
+            one_minus = wp.max(1.0 - alpha, ONE_MINUS_ALPHA_FLOOR)
+            trans = trans / one_minus  # transmittance in front of Gaussian k
+            c = colors[g]
+            weight = alpha * trans
+            v_col = dc * weight
+            v_alpha = trans * wp.dot(c, dc) - (wp.dot(behind, dc) + dt_final) / one_minus
+            behind += c * weight
+            if raw_alpha <= ALPHA_MAX:  # the 0.99 clamp passes no gradient
+                v_power = -v_alpha * alpha
+                d = center - pixel
+                v_opac = v_alpha * falloff
+                v_conic = v_power * wp.vec3(0.5 * d[0] * d[0], d[0] * d[1], 0.5 * d[1] * d[1])
+                v_mean = v_power * wp.vec2(conic[0] * d[0] + conic[1] * d[1], conic[1] * d[0] + conic[2] * d[1])
+        if lanes_any(used):
+            v_col = lanes_sum_vec3(v_col)
+            v_opac = lanes_sum(v_opac)
+            v_conic = lanes_sum_vec3(v_conic)
+            v_mean = lanes_sum_vec2(v_mean)
+            if lead:
+                wp.atomic_add(v_colors, g, v_col)
+                wp.atomic_add(v_opacities_t, g, v_opac)
+                wp.atomic_add(v_conics, g, v_conic)
+                wp.atomic_add(v_means2d, g, v_mean)

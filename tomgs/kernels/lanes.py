@@ -1,0 +1,73 @@
+"""Warp-lane (32-thread SIMT group) collectives for CUDA kernels, identities on the CPU.
+
+On the GPU a group of 32 threads reduces its values with register shuffles before one lane does
+the atomic add: this turns 32 contended atomics into one. On the CPU every thread runs alone,
+so each helper is the identity and every thread is lane 0. Callers must reach these helpers with
+all 32 lanes converged (no lane-dependent branch around the call), hence no early returns.
+"""
+
+import warp as wp
+
+_FULL = "0xffffffffu"
+
+
+def _shuffle_sum(fields: list[str]) -> str:
+    adds = "\n".join(f"        r{f} += __shfl_xor_sync({_FULL}, r{f}, o);" for f in fields)
+    return f"""
+#if defined(__CUDA_ARCH__)
+    auto r = v;
+    for (int o = 16; o > 0; o >>= 1) {{
+{adds}
+    }}
+    return r;
+#else
+    return v;
+#endif
+"""
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    return static_cast<wp::int32>(threadIdx.x & 31u);
+#else
+    return 0;
+#endif
+""")
+def lane_index() -> int: ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    return __any_sync(0xffffffffu, pred) != 0;
+#else
+    return pred;
+#endif
+""")
+def lanes_any(pred: bool) -> bool: ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    wp::int32 r = x;
+    for (int o = 16; o > 0; o >>= 1) {
+        const wp::int32 other = __shfl_xor_sync(0xffffffffu, r, o);
+        r = other > r ? other : r;
+    }
+    return r;
+#else
+    return x;
+#endif
+""")
+def lanes_max(x: int) -> int: ...
+
+
+@wp.func_native(_shuffle_sum([""]).replace("auto r = v;", "float r = v;"))
+def lanes_sum(v: float) -> float: ...
+
+
+@wp.func_native(_shuffle_sum([".c[0]", ".c[1]"]))
+def lanes_sum_vec2(v: wp.vec2) -> wp.vec2: ...
+
+
+@wp.func_native(_shuffle_sum([".c[0]", ".c[1]", ".c[2]"]))
+def lanes_sum_vec3(v: wp.vec3) -> wp.vec3: ...
