@@ -60,12 +60,19 @@ def _warp_device(device: torch.device) -> str:
     return "cpu" if device.type == "cpu" else f"cuda:{device.index if device.index is not None else torch.cuda.current_device()}"
 
 
+_streams: dict[int, wp.Stream] = {}
+
+
 @contextlib.contextmanager
 def _on(device: torch.device):
     """Run Warp launches on `device`, on torch's current stream when it is a GPU."""
     _init_warp()  # deferred to the first render so that importing tomgs stays cheap
     if device.type == "cuda":
-        with wp.ScopedStream(wp.stream_from_torch(device)):
+        torch_stream = torch.cuda.current_stream(device)
+        stream = _streams.get(torch_stream.cuda_stream)
+        if stream is None:  # wrapping a stream costs tens of microseconds: once per stream
+            stream = _streams[torch_stream.cuda_stream] = wp.stream_from_torch(torch_stream)
+        with wp.ScopedStream(stream, sync_enter=False):  # same stream as torch: already ordered
             yield _warp_device(device)
     elif device.type == "cpu":
         yield "cpu"
@@ -73,21 +80,60 @@ def _on(device: torch.device):
         raise RenderError(f"tensors on {device} are not supported: use a CPU or CUDA device")
 
 
-def _wp(tensor: torch.Tensor, dtype=wp.float32):
+_INNER_AXES = {wp.vec2: 1, wp.vec3: 1, wp.vec4: 1, wp.vec2i: 1, wp.mat33: 2, wp.mat44: 2}
+
+
+def _wp(tensor: torch.Tensor, dtype=None):
     """Zero-copy Warp array descriptor of `tensor`; a vector or matrix dtype folds the trailing axes.
 
-    A bare descriptor costs ~1 us against ~20 us for a full `wp.array`, which matters at ~70
-    arguments per frame. The caller keeps `tensor` alive for the launch.
+    A bare descriptor costs a few microseconds against ~20 for a full `wp.array`, which matters at
+    ~60 arguments per frame. The caller keeps `tensor` alive until the launch is queued.
     """
-    inner = len(getattr(dtype, "_shape_", ()))
-    shape = tuple(tensor.shape[: tensor.dim() - inner]) or (1,)
+    keep = tensor.dim() - _INNER_AXES.get(dtype, 0)
     item = tensor.element_size()
-    strides = tuple(s * item for s in tensor.stride()[: tensor.dim() - inner]) or (item,)
+    shape = tuple(tensor.shape[:keep]) or (1,)
+    strides = tuple(s * item for s in tensor.stride()[:keep]) or (item,)
     return _array_t(tensor.data_ptr(), 0, len(shape), shape, strides)
 
 
-def _zeros_if_none(grad: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor:
-    return torch.zeros_like(like) if grad is None else grad.contiguous()
+class _Launches:
+    """One recorded Warp launch per (kernel, device, block size), re-armed with fresh arguments.
+
+    `wp.launch` spends tens of microseconds in Python per call validating and packing arguments;
+    re-arming a recorded launch with ready-made descriptors skips that, which is a large share of
+    a frame at 1M Gaussians. Not thread-safe: render from one thread at a time.
+    """
+
+    def __init__(self):
+        self._recorded: dict[tuple, tuple[wp.Launch, object]] = {}
+
+    def __call__(self, kernel, dim: int, args: list, device: str, block_dim: int = 256) -> None:
+        key = (kernel.key, device, block_dim)
+        entry = self._recorded.get(key)
+        if entry is None:
+            cmd = wp.launch(kernel, dim=dim, inputs=args, device=device, block_dim=block_dim, record_cmd=True)
+            self._recorded[key] = entry = (cmd, dim)
+        else:
+            cmd, last_dim = entry
+            if dim != last_dim:
+                cmd.set_dim(dim)
+                self._recorded[key] = (cmd, dim)
+            for i, arg in enumerate(args):
+                cmd.set_param_at_index_from_ctype(i, arg)
+        if dim > 0:
+            cmd.launch(wp.get_stream(device) if device != "cpu" else None)
+
+
+_launch = _Launches()
+
+
+def _dense(grad: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor:
+    """An incoming gradient Warp can index: zeros for None; rows may be strided, the last axis must not be."""
+    if grad is None:
+        return torch.zeros_like(like)
+    if grad.dim() > 1 and grad.stride(-1) != 1 or 0 in grad.stride():
+        return grad.contiguous()
+    return grad
 
 
 class _Project(torch.autograd.Function):
@@ -101,15 +147,17 @@ class _Project(torch.autograd.Function):
         opacities_t = torch.empty(n, **f32)
         radii = torch.empty(n, 2, device=means.device, dtype=torch.int32)
         tiles_touched = torch.empty(n, device=means.device, dtype=torch.int32)
+        # descriptors of the inputs are built once and reused by the backward (their tensors are saved)
+        inputs = [_wp(means, wp.vec3), _wp(quats, wp.vec4), _wp(scales, wp.vec3), _wp(opacities), _wp(t_means),
+                  _wp(t_scales), _wp(viewmat.reshape(1, 4, 4), wp.mat44), _wp(K.reshape(1, 3, 3), wp.mat33)]
+        radii_d, conics_d = _wp(radii, wp.vec2i), _wp(conics, wp.vec3)
         with _on(means.device) as device:
-            wp.launch(project.project_forward, dim=n, device=device, inputs=[
-                _wp(means, wp.vec3), _wp(quats, wp.vec4), _wp(scales, wp.vec3), _wp(opacities),
-                _wp(t_means), _wp(t_scales), _wp(viewmat.reshape(1, 4, 4), wp.mat44), _wp(K.reshape(1, 3, 3), wp.mat33),
-                frame.width, frame.height, frame.t, frame.near, frame.far, frame.tiles_x, frame.tiles_y,
-                _wp(means2d, wp.vec2), _wp(conics, wp.vec3), _wp(depths), _wp(radii, wp.vec2i), _wp(opacities_t),
-                _wp(tiles_touched),
+            _launch(project.project_forward, n, device=device, args=[
+                *inputs, frame.width, frame.height, frame.t, frame.near, frame.far, frame.tiles_x, frame.tiles_y,
+                _wp(means2d, wp.vec2), conics_d, _wp(depths), radii_d, _wp(opacities_t), _wp(tiles_touched),
             ])
         ctx.frame = frame
+        ctx.descriptors = (inputs, radii_d, conics_d)
         ctx.save_for_backward(means, quats, scales, opacities, t_means, t_scales, viewmat, K, radii, conics)
         ctx.mark_non_differentiable(depths, radii, tiles_touched)
         return means2d, conics, depths, radii, opacities_t, tiles_touched
@@ -126,13 +174,12 @@ class _Project(torch.autograd.Function):
         parts = n if camera_grads else 0  # per-Gaussian camera partials only when someone asked
         v_viewmat_parts = torch.empty(parts, 4, 4, device=means.device, dtype=torch.float32)
         v_K_parts = torch.empty(parts, 4, device=means.device, dtype=torch.float32)
+        inputs, radii_d, conics_d = ctx.descriptors
         with _on(means.device) as device:
-            wp.launch(project.project_backward, dim=n, device=device, inputs=[
-                _wp(means, wp.vec3), _wp(quats, wp.vec4), _wp(scales, wp.vec3), _wp(opacities),
-                _wp(t_means), _wp(t_scales), _wp(viewmat.reshape(1, 4, 4), wp.mat44), _wp(K.reshape(1, 3, 3), wp.mat33),
-                frame.width, frame.height, frame.t, _wp(radii, wp.vec2i), _wp(conics, wp.vec3),
-                _wp(_zeros_if_none(v_means2d, conics[:, :2]), wp.vec2), _wp(_zeros_if_none(v_conics, conics), wp.vec3),
-                _wp(_zeros_if_none(v_opacities_t, opacities)), int(camera_grads),
+            _launch(project.project_backward, n, device=device, args=[
+                *inputs, frame.width, frame.height, frame.t, radii_d, conics_d,
+                _wp(_dense(v_means2d, conics[:, :2]), wp.vec2), _wp(_dense(v_conics, conics), wp.vec3),
+                _wp(_dense(v_opacities_t, opacities)), int(camera_grads),
                 _wp(v_means, wp.vec3), _wp(v_quats, wp.vec4), _wp(v_scales, wp.vec3), _wp(v_opacities),
                 _wp(v_t_means), _wp(v_t_scales), _wp(v_viewmat_parts, wp.mat44), _wp(v_K_parts, wp.vec4),
             ])
@@ -145,26 +192,27 @@ class _Project(torch.autograd.Function):
         return v_means, v_quats, v_scales, v_opacities, v_t_means, v_t_scales, v_viewmat, v_K, None
 
 
-def _bin(means2d, radii, depths, tiles_touched, frame: _Frame, total: int):
-    """Depth-sorted Gaussian ids per tile: (ranges [tiles, 2] int32, ids [total] int32)."""
+def _bin(means2d, radii, depths, ends, frame: _Frame, total: int):
+    """Depth-sorted Gaussian ids per tile: (ranges [tiles, 2] int32, ids [total] int32).
+
+    `ends` [N] int64 is the inclusive scan of tiles touched: Gaussian i writes keys [ends[i-1], ends[i]).
+    """
     device = means2d.device
-    n = means2d.shape[0]
     ranges = torch.zeros(frame.num_tiles, 2, device=device, dtype=torch.int32)
-    keys = torch.empty(max(2 * total, 2), device=device, dtype=torch.int64)
-    ids = torch.empty(max(2 * total, 2), device=device, dtype=torch.int32)
     if total == 0:
-        return ranges, ids[:0]
-    offsets = torch.cumsum(tiles_touched, 0, dtype=torch.int32) - tiles_touched
+        return ranges, torch.empty(0, device=device, dtype=torch.int32)
+    keys = torch.empty(2 * total, device=device, dtype=torch.int64)  # the radix sort uses the upper half
+    ids = torch.empty(2 * total, device=device, dtype=torch.int32)
     tile_bits = max(1, (frame.num_tiles - 1).bit_length())
     with _on(device) as wp_device:
         keys_wp = wp.from_torch(keys, requires_grad=False)  # the sort wants full arrays
         ids_wp = wp.from_torch(ids, requires_grad=False)
-        wp.launch(binning.write_tile_keys, dim=n, device=wp_device, inputs=[
-            _wp(means2d, wp.vec2), _wp(radii, wp.vec2i), _wp(depths), _wp(offsets), frame.tiles_x, frame.tiles_y,
-            keys_wp, ids_wp,
+        _launch(binning.write_tile_keys, means2d.shape[0], device=wp_device, args=[
+            _wp(means2d, wp.vec2), _wp(radii, wp.vec2i), _wp(depths), _wp(ends), frame.tiles_x, frame.tiles_y,
+            _wp(keys), _wp(ids),
         ])
         wp.utils.radix_sort_pairs(keys_wp, ids_wp, total, 0, 32 + tile_bits)
-        wp.launch(binning.tile_ranges, dim=total, device=wp_device, inputs=[keys_wp, total, _wp(ranges, wp.int32)])
+        _launch(binning.tile_ranges, total, device=wp_device, args=[_wp(keys), total, _wp(ranges)])
     return ranges, ids[:total]
 
 
@@ -175,30 +223,31 @@ class _Rasterize(torch.autograd.Function):
         color = torch.empty(frame.height, frame.width, 3, device=device, dtype=torch.float32)
         trans = torch.empty(frame.height, frame.width, 1, device=device, dtype=torch.float32)
         end = torch.empty(frame.height, frame.width, device=device, dtype=torch.int32)
+        # the list, the per-Gaussian inputs and the per-pixel state, shared with the backward
+        shared = [_wp(ranges), _wp(ids), _wp(means2d, wp.vec2), _wp(conics, wp.vec3), _wp(opacities_t),
+                  _wp(colors, wp.vec3), frame.width, frame.height, frame.tiles_x]
+        state = [_wp(trans[..., 0]), _wp(end)]
         with _on(device) as wp_device:
-            wp.launch(raster.raster_forward, dim=frame.num_tiles * TILE_SIZE * TILE_SIZE, device=wp_device,
-                      block_dim=TILE_SIZE * TILE_SIZE, inputs=[
-                          _wp(ranges, wp.int32), _wp(ids), _wp(means2d, wp.vec2), _wp(conics, wp.vec3), _wp(opacities_t),
-                          _wp(colors, wp.vec3), frame.width, frame.height, frame.tiles_x,
-                          _wp(color, wp.vec3), _wp(trans[..., 0]), _wp(end)])
+            _launch(raster.raster_forward, frame.num_tiles * TILE_SIZE * TILE_SIZE, device=wp_device,
+                    block_dim=TILE_SIZE * TILE_SIZE, args=[*shared, _wp(color, wp.vec3), *state])
         ctx.frame = frame
+        ctx.descriptors = (shared, state)
         ctx.save_for_backward(means2d, conics, opacities_t, colors, ranges, ids, trans, end)
         return color, trans
 
     @staticmethod
     def backward(ctx, v_color, v_trans):
-        means2d, conics, opacities_t, colors, ranges, ids, trans, end = ctx.saved_tensors
+        means2d, _, _, colors, _, _, trans, _ = ctx.saved_tensors
         frame = ctx.frame
-        v_means2d, v_conics = torch.zeros_like(means2d), torch.zeros_like(conics)
-        v_opacities_t, v_colors = torch.zeros_like(opacities_t), torch.zeros_like(colors)
+        shared, state = ctx.descriptors
+        grads = torch.zeros(means2d.shape[0], 9, device=means2d.device, dtype=torch.float32)  # one fill, four views
+        v_means2d, v_conics, v_opacities_t, v_colors = grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 6:9]
+        v_color = _dense(v_color, trans.expand(-1, -1, 3))
         with _on(means2d.device) as wp_device:
-            wp.launch(raster.raster_backward, dim=frame.num_tiles * TILE_SIZE * TILE_SIZE, device=wp_device,
-                      block_dim=TILE_SIZE * TILE_SIZE, inputs=[
-                          _wp(ranges, wp.int32), _wp(ids), _wp(means2d, wp.vec2), _wp(conics, wp.vec3), _wp(opacities_t),
-                          _wp(colors, wp.vec3), frame.width, frame.height, frame.tiles_x,
-                          _wp(trans[..., 0]), _wp(end), _wp(_zeros_if_none(v_color, colors.new_empty(frame.height, frame.width, 3)), wp.vec3),
-                          _wp(_zeros_if_none(v_trans, trans)[..., 0]),
-                          _wp(v_means2d, wp.vec2), _wp(v_conics, wp.vec3), _wp(v_opacities_t), _wp(v_colors, wp.vec3)])
+            _launch(raster.raster_backward, frame.num_tiles * TILE_SIZE * TILE_SIZE, device=wp_device,
+                    block_dim=TILE_SIZE * TILE_SIZE, args=[
+                        *shared, *state, _wp(v_color, wp.vec3), _wp(_dense(v_trans, trans)[..., 0]),
+                        _wp(v_means2d, wp.vec2), _wp(v_conics, wp.vec3), _wp(v_opacities_t), _wp(v_colors, wp.vec3)])
         return v_means2d, v_conics, v_opacities_t, v_colors, None, None, None
 
 
@@ -235,18 +284,18 @@ def rasterize(
         p.means.contiguous(), p.quats.contiguous(), p.scales.contiguous(), p.opacities.contiguous(),
         p.t_means.contiguous(), p.t_scales.contiguous(), p.viewmat.contiguous(), p.K.contiguous(), frame)
 
-    # one host sync per frame: the intersection count sizes the sort buffers
-    total, n_visible, n_alive = torch.stack([
-        tiles_touched.sum(dtype=torch.int64), (tiles_touched > 0).sum(), (opacities_t >= ALPHA_MIN).sum(),
-    ]).tolist()
+    # the one host sync per frame: the intersection count sizes the sort buffers
+    ends = torch.cumsum(tiles_touched, 0, dtype=torch.int64)  # [N] inclusive scan
+    total = int(ends[-1]) if ends.numel() else 0
     if total > MAX_INTERSECTIONS:
         raise RenderError(
             f"this frame needs {total:,} Gaussian-tile intersections, more than the {MAX_INTERSECTIONS:,} the "
             f"rasterizer can sort; render at a lower resolution or with fewer or smaller Gaussians")
-    ranges, ids = _bin(means2d, radii, depths, tiles_touched, frame, total)
+    ranges, ids = _bin(means2d, radii, depths, ends, frame, total)
     color, trans = _Rasterize.apply(means2d, conics, opacities_t, p.colors.contiguous(), ranges, ids, frame)
     image = color if p.background is None else color + trans * p.background
     meta = dict(radii=radii, means2d=means2d, depths=depths, conics=conics, opacities_t=opacities_t,
-                n_visible=n_visible, n_alive=n_alive, n_intersections=total, tile_size=TILE_SIZE,
+                n_visible=torch.count_nonzero(tiles_touched), n_alive=torch.count_nonzero(opacities_t >= ALPHA_MIN),
+                n_intersections=total, tile_size=TILE_SIZE,
                 width=frame.width, height=frame.height)
     return image, 1.0 - trans, meta

@@ -28,7 +28,7 @@ def write_tile_keys(
     means2d: wp.array(dtype=wp.vec2),  # [N]
     radii: wp.array(dtype=wp.vec2i),  # [N]
     depths: wp.array(dtype=float),  # [N] > 0 for every visible Gaussian
-    offsets: wp.array(dtype=wp.int32),  # [N] exclusive scan of tiles touched
+    ends: wp.array(dtype=wp.int64),  # [N] inclusive scan of tiles touched
     tiles_x: int,
     tiles_y: int,
     keys: wp.array(dtype=wp.int64),  # out [>= total] tile << 32 | depth bits
@@ -41,7 +41,7 @@ def write_tile_keys(
     rect = tile_rect(means2d[i], r, tiles_x, tiles_y)
     # a positive float's bit pattern orders like its value
     depth_bits = wp.int64(wp.cast(depths[i], wp.int32))
-    k = offsets[i]
+    k = int(ends[i]) - (rect[2] - rect[0]) * (rect[3] - rect[1])
     for ty in range(rect[1], rect[3]):
         for tx in range(rect[0], rect[2]):
             keys[k] = (wp.int64(ty * tiles_x + tx) << wp.int64(32)) | depth_bits

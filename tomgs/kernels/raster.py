@@ -9,7 +9,9 @@ import warp as wp
 from tomgs import constants
 from tomgs.kernels.lanes import lane_index, lanes_any, lanes_max, lanes_sum, lanes_sum_vec2, lanes_sum_vec3
 
-wp.set_module_options({"enable_backward": False})
+# fast math: __expf and approximate division in the per-pixel loops, which are bound by instruction
+# issue on the GPU; compositing needs no IEEE corner cases (projection, which checks finiteness, stays exact)
+wp.set_module_options({"enable_backward": False, "fast_math": True})
 
 TILE = wp.constant(constants.TILE_SIZE)
 TILE_PIXELS = wp.constant(constants.TILE_SIZE * constants.TILE_SIZE)

@@ -1,0 +1,72 @@
+"""Where a frame's time goes: GPU time per kernel (torch profiler, which sees Warp's kernels too)
+against the wall time of forward and backward, on the random scene of bench_raster.py.
+
+    python benchmarks/profile_raster.py --size 854x480 --n 1M --variant static
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_raster import camera, make_scene, parse_count, parse_size, temporal_scales  # noqa: E402
+
+import tomgs  # noqa: E402
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--size", default="854x480")
+    ap.add_argument("--n", default="1M")
+    ap.add_argument("--variant", default="static", choices=["static", "temporal"])
+    ap.add_argument("--iters", type=int, default=20)
+    args = ap.parse_args()
+    width, height = parse_size(args.size)
+    n = parse_count(args.n)
+    dev = torch.device("cuda")
+    P = make_scene(n, 0, dev)
+    P["t_scales"] = (temporal_scales(P["opacities"], 0.1) if args.variant == "temporal"
+                     else torch.full((n,), 1e3, device=dev))
+    viewmat, K = camera(width, height, dev)
+    for v in P.values():
+        v.requires_grad_(True)
+    w = torch.rand(height, width, 3, device=dev)
+
+    def step(t=0.5):
+        img, alpha, _ = tomgs.rasterize(P["means"], P["quats"], P["scales"], P["opacities"], P["colors"],
+                                        P["t_means"], P["t_scales"], viewmat, K, width, height, t)
+        ((img * w).sum() + alpha.sum()).backward()
+
+    for _ in range(5):
+        step()
+    torch.cuda.synchronize()
+    t0 = time.perf_counter()
+    for _ in range(args.iters):
+        step()
+    torch.cuda.synchronize()
+    wall = (time.perf_counter() - t0) / args.iters * 1e3
+
+    acts = [torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
+    with torch.profiler.profile(activities=acts) as prof:
+        for _ in range(args.iters):
+            step()
+        torch.cuda.synchronize()
+    per_kernel = defaultdict(float)
+    for evt in prof.key_averages():
+        if evt.device_type == torch.autograd.DeviceType.CUDA and evt.device_time_total > 0:
+            per_kernel[evt.key[:70]] += evt.device_time_total / args.iters / 1e3
+    gpu = sum(per_kernel.values())
+    print(f"\n{args.size} N={n:,} {args.variant}: wall {wall:.3f} ms per fwd+bwd, GPU kernels {gpu:.3f} ms "
+          f"(gap {wall - gpu:.3f} ms = host overhead and syncs)")
+    for name, ms in sorted(per_kernel.items(), key=lambda kv: -kv[1])[:18]:
+        print(f"  {ms:8.3f} ms  {name}")
+
+
+if __name__ == "__main__":
+    main()
