@@ -126,21 +126,22 @@ def _polar(M: np.ndarray) -> np.ndarray:
 class Tracker:
     """One run of the built-in tracker on a clip; `solve()` returns a `Solution`."""
 
-    def __init__(self, frames, masks=None, focal=None, progress=None, max_corners=None):
+    def __init__(self, frames, masks=None, focal=None, progress=None, max_corners=None, K=None):
         self.frames = frames
+        self.K_given = None if K is None else np.asarray(K, dtype=np.float64)
         self.T, self.H, self.W = frames.shape[:3]
         self.masks = masks
         self.focal_given = focal is not None
         self.focal = float(focal) if focal is not None else 1.2 * max(self.W, self.H)
         self.progress = progress or (lambda done, total: None)
-        self.max_corners = max_corners or int(np.clip(self.W * self.H / 270, 300, 1500))
+        self.max_corners = max_corners or int(np.clip(self.W * self.H / 150, 300, 1500))
         self.notes: list[str] = []
         self.timings: dict[str, float] = {}
         self.side = max(self.W, self.H)
 
     @property
     def K(self):
-        return intrinsics(self.focal, self.W, self.H)
+        return self.K_given if self.K_given is not None else intrinsics(self.focal, self.W, self.H)
 
     def _tick(self, name, t0):
         self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - t0
@@ -159,14 +160,17 @@ class Tracker:
                               "fixed camera detected: identity poses, no poses solved")
             pts, cols = unit_depth_points(self.frames, self.K, static=self.static)
             self.progress(2 * T, 2 * T)
-            return Solution(np.tile(np.eye(4), (T, 1, 1)), self.K, pts, cols, "fixed", 0.0, self.notes, self.timings)
+            return Solution(np.tile(np.eye(4), (T, 1, 1)), self.K, pts, cols, "fixed", float("nan"), self.notes,
+                            self.timings)
         self.tracks = klt_tracks(gray, self.static, self.max_corners, progress=lambda k: self.progress(k + 1, 2 * T))
         t0 = self._tick("tracks", t0)
         j, general = self._init_pair()
         if not self.focal_given:
             self.focal = self._focal_search(j, general)
             if general:
-                self.focal = self._focal_trials(j)
+                f = self._focal_trials(j)
+                general = f is not None
+                self.focal = f if general else self._focal_search(j, False)
             self.notes.append(f"focal search: {self.focal:.1f} px before the final adjustment")
         t0 = self._tick("focal", t0)
         sol = self._solve_general(j) if general else None
@@ -183,7 +187,7 @@ class Tracker:
     def _init_pair(self) -> tuple[int, bool]:
         """(j, general): frame paired with 0, and whether translation is observable.
 
-        Parallax is what a homography cannot explain: the median residual of the tracks shared by
+        Parallax is what a homography cannot explain: the residuals of the tracks shared by
         frames 0 and j after a RANSAC homography. The first j with enough of it starts the
         reconstruction; if no frame gets there, the clip is treated as rotation-only.
         """
@@ -197,7 +201,8 @@ class Tracker:
             if Hm is None:
                 continue
             proj = cv2.perspectiveTransform(xa.reshape(-1, 1, 2), Hm).reshape(-1, 2)
-            par = float(np.median(np.linalg.norm(proj - xb, axis=1)))
+            # upper quartile: a dominant plane (a wall) fits the homography whatever the motion
+            par = float(np.percentile(np.linalg.norm(proj - xb, axis=1), 75))
             if par > best_par:
                 best_j, best_par = j, par
             if par >= need:
@@ -254,15 +259,15 @@ class Tracker:
         """Reconstruct the first frames from a few starting focals (the self-calibration guess
         and a log-spaced spread), each refined by bundle adjustment; keep the one that explains
         most track observations (a wrong focal bends the structure and loses inliers)."""
-        upto = min(self.T, max(2 * j + 1, 12))
+        upto = min(self.T, max(j + 8, 12))
         starts = [self.focal] + [self.side * m for m in (0.5, 0.8, 1.25, 2.0)]
-        best = (-1, self.focal)
+        best = (-1, None)
         for f in starts:
             self.focal = f
             sol = self._solve_general(j, upto=upto, report=False)
             if sol is not None and sol.inliers > best[0]:
                 best = (sol.inliers, float(sol.K[0, 0]))
-        return best[1]
+        return best[1]  # None: no start could be reconstructed
 
     # ---- general motion ------------------------------------------------------------------------
 
@@ -304,7 +309,7 @@ class Tracker:
                 n_since = 0
             if report:
                 self.progress(T + count + 2, 2 * T)
-        return self._finish()
+        return self._finish(quick=not report)
 
     def _reject(self, obs_idx):
         """Drop observations and everything later on their tracks: a track that stops agreeing
@@ -319,7 +324,7 @@ class Tracker:
     def _cam_depths(self, k, pids):
         return (self.X[pids] @ self.Rw[k].T + self.tw[k])[:, 2]
 
-    def _triangulate_pairs(self, pids, fa, fb, xa, xb, min_angle=1.0, max_err=2.0):
+    def _triangulate_pairs(self, pids, fa, fb, xa, xb, min_angle=0.5, max_err=2.0):
         """Triangulate tracks pids between frames fa[i] and fb[i]; keep well-conditioned points."""
         if len(pids) == 0:
             return
@@ -410,12 +415,13 @@ class Tracker:
         free[0] = False
         self._run_ba(free, iters=10, opt_focal=not self.focal_given and self.reg.sum() >= 6)
 
-    def _finish(self) -> Solution:
+    def _finish(self, quick: bool = False) -> Solution:
         free = self.reg.copy()
         free[0] = False
         opt_f = not self.focal_given
-        self._run_ba(free, iters=40, opt_focal=opt_f)
-        self._run_ba(free, iters=25, opt_focal=opt_f)
+        self._run_ba(free, iters=15 if quick else 40, opt_focal=opt_f)
+        if not quick:
+            self._run_ba(free, iters=25, opt_focal=opt_f)
         # gauge: frame 0 stays the identity; median depth of frame 0's points = 1
         ci, pi, obs, pts, _ = self._ba_problem(free | self.reg)
         in0 = np.unique(pi[ci == 0])
@@ -482,3 +488,31 @@ class Tracker:
         c2w[:, :3, :3] = np.transpose(self.Rw, (0, 2, 1))
         return Solution(c2w, self.K, X, self._point_colors(pts), "rotation",
                         float(np.median(err)) if len(err) else float("nan"), self.notes, self.timings)
+
+
+def known_camera_points(frames: np.ndarray, masks: np.ndarray | None, cams):
+    """Sparse points for given cameras: KLT tracks triangulated with the cameras' poses and
+    refined with the poses fixed. Falls back to unit-depth points when the cameras have no
+    baseline (e.g. identity poses). Returns (points [P,3], colors [P,3], median reprojection px)."""
+    tr = Tracker(frames, masks, cams.focal, K=cams.K)
+    gray = to_gray(frames)
+    tr.static = static_masks(frames, masks, gray, tr.notes)
+    T = len(frames)
+    if T >= 2:
+        tr.tracks = klt_tracks(gray, tr.static, tr.max_corners)
+        w2c = np.linalg.inv(cams.c2w)
+        tr.Rw, tr.tw = w2c[:, :3, :3].copy(), w2c[:, :3, 3].copy()
+        tr.reg = np.ones(T, bool)
+        tr.X = np.full((tr.tracks.n_tracks, 3), np.nan)
+        tr.obs_ok = np.ones(len(tr.tracks.frame), bool)
+        tr.track_end = np.full(tr.tracks.n_tracks, T)
+        for k in range(1, T):
+            tr._triangulate_frame(k)
+        if tr._has().sum() >= 50:
+            tr._run_ba(np.zeros(T, bool), iters=10)
+            ci, pi, obs, pts, _ = tr._ba_problem(np.ones(T, bool))
+            err = reprojection_errors(tr.Rw, tr.tw, tr.X[pts], tr.K, ci, pi, obs)
+            return tr.X[pts], tr._point_colors(pts), float(np.median(err))
+    pts, cols = unit_depth_points(frames, cams.K, static=tr.static)
+    # frame 0's camera coordinates -> world
+    return pts @ cams.c2w[0, :3, :3].T + cams.c2w[0, :3, 3], cols, float("nan")
