@@ -123,6 +123,24 @@ def _polar(M: np.ndarray) -> np.ndarray:
     return R
 
 
+def _recover_pose(E, xa, xb, K, inl):
+    """Pick among the four (R, t) of an essential matrix the one that puts most inliers in front
+    of both cameras. Unlike cv2.recoverPose's default, far points (small parallax) vote too.
+    Returns R [3,3], t [3] (unit) and the inliers in front (bool [N])."""
+    R1, R2, t = cv2.decomposeEssentialMat(E)
+    n = int(inl.sum())
+    best = (-1, None, None, None)
+    for R, tt in ((R1, t), (R1, -t), (R2, t), (R2, -t)):
+        X, _ = triangulate(np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3)), np.tile(R, (n, 1, 1)),
+                           np.tile(tt.ravel(), (n, 1)), xa[inl], xb[inl], K)
+        front = (X[:, 2] > 0) & ((X @ R.T + tt.ravel())[:, 2] > 0)
+        if front.sum() > best[0]:
+            ok = inl.copy()
+            ok[inl] = front
+            best = (int(front.sum()), R, tt.ravel(), ok)
+    return best[1], best[2], best[3]
+
+
 class Tracker:
     """One run of the built-in tracker on a clip; `solve()` returns a `Solution`."""
 
@@ -138,6 +156,7 @@ class Tracker:
         self.notes: list[str] = []
         self.timings: dict[str, float] = {}
         self.side = max(self.W, self.H)
+        self.min_angle = 0.5  # degrees between rays for a new point; set from the first pair
 
     @property
     def K(self):
@@ -259,28 +278,30 @@ class Tracker:
         """Reconstruct the first frames from a few starting focals (the self-calibration guess
         and a log-spaced spread), each refined by bundle adjustment; keep the one that explains
         most track observations (a wrong focal bends the structure and loses inliers)."""
-        upto = min(self.T, max(j + 8, 12))
+        # about a dozen frames spread up to a little past j: enough views to pin the focal, cheap
+        trial = np.unique(np.linspace(1, min(self.T - 1, j + 8), 12).round().astype(int))
+        trial = sorted(set(trial.tolist()) | {j})
         starts = [self.focal] + [self.side * m for m in (0.5, 0.8, 1.25, 2.0)]
         best = (-1, None)
         for f in starts:
             self.focal = f
-            sol = self._solve_general(j, upto=upto, report=False)
+            sol = self._solve_general(j, frames=trial, report=False)
             if sol is not None and sol.inliers > best[0]:
                 best = (sol.inliers, float(sol.K[0, 0]))
         return best[1]  # None: no start could be reconstructed
 
     # ---- general motion ------------------------------------------------------------------------
 
-    def _solve_general(self, j: int, upto: int | None = None, report: bool = True) -> Solution | None:
-        """Incremental reconstruction of frames [0, upto) (all by default) starting from (0, j)."""
+    def _solve_general(self, j: int, frames=None, report: bool = True) -> Solution | None:
+        """Incremental reconstruction of frame 0 and `frames` (all by default) from the pair (0, j)."""
         T, tr = self.T, self.tracks
         K = self.K
         ids, x0, xj = tr.common(0, j)
         E, inl = robust_fit(cv2.findEssentialMat, x0, xj, K, cv2.USAC_MAGSAC, 0.999, 1.0)
         if E is None or E.shape != (3, 3):
             return None
-        n, R, t, inl = cv2.recoverPose(E, x0, xj, K, mask=inl.copy())
-        if n < 20:
+        R, t, inl = _recover_pose(E, x0, xj, K, inl.ravel() > 0)
+        if inl.sum() < 20:
             return None
         self.Rw = np.tile(np.eye(3), (T, 1, 1))
         self.tw = np.zeros((T, 3))
@@ -290,7 +311,13 @@ class Tracker:
         self.X = np.full((tr.n_tracks, 3), np.nan)
         self.obs_ok = np.ones(len(tr.frame), bool)
         self.track_end = np.full(tr.n_tracks, T)
-        keep = inl.ravel() > 0
+        keep = inl
+        # slow or narrow-angle clips never reach a fixed triangulation angle: take half the
+        # median angle of the first pair (within 0.05..1 degree) as the bar for new points
+        _, ang = triangulate(self.Rw[[0]].repeat(keep.sum(), 0), self.tw[[0]].repeat(keep.sum(), 0),
+                             self.Rw[[j]].repeat(keep.sum(), 0), self.tw[[j]].repeat(keep.sum(), 0),
+                             x0[keep], xj[keep], K)
+        self.min_angle = float(np.clip(0.5 * np.median(ang), 0.05, 1.0))
         self._triangulate_pairs(ids[keep], np.zeros(keep.sum(), int), np.full(keep.sum(), j), x0[keep], xj[keep])
         d = self._cam_depths(0, np.flatnonzero(self._has()))
         if len(d) < 15:
@@ -298,7 +325,7 @@ class Tracker:
         s = np.median(d)  # scale: median depth of the first pair = 1
         self.tw[j] /= s
         self.X /= s
-        order = [k for k in range(1, upto or T) if k != j]
+        order = [k for k in (range(1, T) if frames is None else frames) if k not in (0, j)]
         n_since = 0
         for count, k in enumerate(order):
             self._register(k)
@@ -324,12 +351,12 @@ class Tracker:
     def _cam_depths(self, k, pids):
         return (self.X[pids] @ self.Rw[k].T + self.tw[k])[:, 2]
 
-    def _triangulate_pairs(self, pids, fa, fb, xa, xb, min_angle=0.5, max_err=2.0):
+    def _triangulate_pairs(self, pids, fa, fb, xa, xb, max_err=2.0):
         """Triangulate tracks pids between frames fa[i] and fb[i]; keep well-conditioned points."""
         if len(pids) == 0:
             return
         X, ang = triangulate(self.Rw[fa], self.tw[fa], self.Rw[fb], self.tw[fb], xa, xb, self.K)
-        ok = ang >= min_angle
+        ok = ang >= self.min_angle
         for f, x in ((fa, xa), (fb, xb)):
             e = reprojection_errors(self.Rw, self.tw, X, self.K, f, np.arange(len(X)), x)
             ok &= e < max_err
@@ -378,11 +405,13 @@ class Tracker:
         kb = np.array([pos[t] for t in first_t], int)
         self._triangulate_pairs(first_t, tr.frame[first_i], np.full(len(first_t), k), tr.xy[first_i], xy[kb])
 
-    def _ba_problem(self, cams_free: np.ndarray):
-        """Observations touching points seen by free cameras: (cam_idx, pt_idx, obs, point ids)."""
+    def _ba_problem(self, cams_free: np.ndarray, frames_used: np.ndarray | None = None):
+        """Observations (in `frames_used`, default all) of points seen by free cameras:
+        (cam_idx, pt_idx, obs, point ids, observation indices)."""
         tr = self.tracks
         has = self._has()
-        valid = self.obs_ok & self.reg[tr.frame] & has[tr.track]
+        used = self.reg if frames_used is None else self.reg & frames_used
+        valid = self.obs_ok & used[tr.frame] & has[tr.track]
         pts = np.unique(tr.track[valid & cams_free[tr.frame]])
         m = valid & np.isin(tr.track, pts)
         # points observed once cannot be adjusted: drop them from the problem
@@ -393,27 +422,43 @@ class Tracker:
         remap[pts] = np.arange(len(pts))
         return tr.frame[m], remap[tr.track[m]], tr.xy[m], pts, np.flatnonzero(m)
 
-    def _run_ba(self, cams_free, iters, opt_focal=False, fix_translation=False):
-        ci, pi, obs, pts, oidx = self._ba_problem(cams_free)
+    def _run_ba(self, cams_free, iters, opt_focal=False, fix_translation=False, max_points=1000, rest=False,
+                frames_used=None):
+        """Adjust free cameras with the `max_points` longest tracks (enough to pin the cameras;
+        the cost grows with the observations), then with `rest` the other points with the
+        cameras fixed; finally drop observations far above the median error."""
+        ci, pi, obs, pts, oidx = self._ba_problem(cams_free, frames_used)
         if len(obs) == 0:
             return
-        R, t, X, K = bundle_adjust(self.Rw, self.tw, self.X[pts], self.K, ci, pi, obs,
-                                   cams_free & self.reg, opt_focal=opt_focal, fix_translation=fix_translation,
-                                   iters=iters, focal_bounds=(0.25 * self.side, 4 * self.side))
-        self.Rw, self.tw = R, t
-        self.X[pts] = X
-        self.focal = float(K[0, 0])
-        err = reprojection_errors(R, t, X, K, ci, pi, obs)
+        cnt = np.bincount(pi, minlength=len(pts))
+        sub = np.zeros(len(pts), bool)
+        sub[np.argsort(-cnt, kind="stable")[:max_points]] = True
+        bounds = (0.25 * self.side, 4 * self.side)
+        for part, free, it in ((sub, cams_free & self.reg, iters), (~sub, np.zeros(self.T, bool), 5)):
+            if not part.any() or (part is not sub and not rest):
+                continue
+            m = part[pi]
+            remap = np.cumsum(part) - 1
+            R, t, X, K = bundle_adjust(self.Rw, self.tw, self.X[pts[part]], self.K, ci[m], remap[pi[m]], obs[m],
+                                       free, opt_focal=opt_focal and free.any(), fix_translation=fix_translation,
+                                       iters=it, focal_bounds=bounds)
+            self.Rw, self.tw = R, t
+            self.X[pts[part]] = X
+            self.focal = float(K[0, 0])
+        err = reprojection_errors(self.Rw, self.tw, self.X[pts], self.K, ci, pi, obs)
         thresh = max(0.5, 4 * float(np.median(err)))
         self._reject(oidx[err > thresh])
 
     def _local_ba(self):
         regd = np.flatnonzero(self.reg)
         free = np.zeros(self.T, bool)
-        last = sorted(regd, key=lambda k: k)[-12:]
+        last = np.sort(regd)[-12:]
         free[last] = True
         free[0] = False
-        self._run_ba(free, iters=10, opt_focal=not self.focal_given and self.reg.sum() >= 6)
+        # the window and as many fixed frames before it: older views barely move the window
+        used = np.zeros(self.T, bool)
+        used[np.sort(regd)[-24:]] = True
+        self._run_ba(free, iters=10, opt_focal=not self.focal_given and self.reg.sum() >= 6, frames_used=used)
 
     def _finish(self, quick: bool = False) -> Solution:
         free = self.reg.copy()
@@ -421,7 +466,7 @@ class Tracker:
         opt_f = not self.focal_given
         self._run_ba(free, iters=15 if quick else 40, opt_focal=opt_f)
         if not quick:
-            self._run_ba(free, iters=25, opt_focal=opt_f)
+            self._run_ba(free, iters=25, opt_focal=opt_f, rest=True)
         # gauge: frame 0 stays the identity; median depth of frame 0's points = 1
         ci, pi, obs, pts, _ = self._ba_problem(free | self.reg)
         in0 = np.unique(pi[ci == 0])
@@ -479,7 +524,7 @@ class Tracker:
         free = np.ones(T, bool)
         free[0] = False
         for iters in (40, 25):
-            self._run_ba(free, iters=iters, opt_focal=not self.focal_given, fix_translation=True)
+            self._run_ba(free, iters=iters, opt_focal=not self.focal_given, fix_translation=True, rest=iters < 40)
         ci, pi, obs, pts, _ = self._ba_problem(np.ones(T, bool))
         X = self.X[pts]
         X = X / np.linalg.norm(X, axis=1, keepdims=True)
@@ -509,7 +554,7 @@ def known_camera_points(frames: np.ndarray, masks: np.ndarray | None, cams):
         for k in range(1, T):
             tr._triangulate_frame(k)
         if tr._has().sum() >= 50:
-            tr._run_ba(np.zeros(T, bool), iters=10)
+            tr._run_ba(np.zeros(T, bool), iters=10, rest=True)
             ci, pi, obs, pts, _ = tr._ba_problem(np.ones(T, bool))
             err = reprojection_errors(tr.Rw, tr.tw, tr.X[pts], tr.K, ci, pi, obs)
             return tr.X[pts], tr._point_colors(pts), float(np.median(err))

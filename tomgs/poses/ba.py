@@ -5,7 +5,8 @@ the focal length (fx = fy) is updated in log space when asked. Each iteration el
 points with the Schur complement: for every point p with damped block V_p,
     S = H_cc - sum_p M_p V_p^-1 M_p^T = H_cc - Z^T Z,   Z_p = (M_p chol(V_p^-1))^T,
 so the reduced camera system is one dense BLAS product, independent of track length.
-Everything is numpy float64 (no autograd needed: the Jacobians are a few lines).
+Everything is float64: numpy for the per-observation algebra (the Jacobians are a few lines, no
+autograd needed), torch for the reduced dense solve.
 Observations are in pixels with +0.5 centres, like K.
 """
 
@@ -45,6 +46,21 @@ def reprojection_errors(R, t, X, K, cam_idx, pt_idx, obs) -> np.ndarray:
 def _huber_cost(err: np.ndarray, delta: float) -> float:
     e = np.where(np.isfinite(err), err, 1e6)
     return float(np.where(e <= delta, 0.5 * e * e, delta * (e - 0.5 * delta)).sum())
+
+
+def _reduced_solve(H: np.ndarray, Z: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Solve (H - Z^T Z) x = b. Done in torch on one thread: for these sizes (a few hundred
+    unknowns) handing BLAS work to threads costs more than it saves on a busy 2-core machine."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        Zt = torch.from_numpy(np.ascontiguousarray(Z))
+        S = torch.from_numpy(H) - Zt.T @ Zt
+        return torch.linalg.solve(S, torch.from_numpy(b)).numpy()
+    finally:
+        torch.set_num_threads(threads)
 
 
 def bundle_adjust(R0: np.ndarray, t0: np.ndarray, X0: np.ndarray, K: np.ndarray,
@@ -111,12 +127,11 @@ def bundle_adjust(R0: np.ndarray, t0: np.ndarray, X0: np.ndarray, K: np.ndarray,
             Vinv = np.linalg.inv(Vd)
             L = np.linalg.cholesky(0.5 * (Vinv + Vinv.transpose(0, 2, 1)))
             Z = np.bincount(zidx, (W @ L[pt_idx]).ravel(), 3 * P * D).reshape(3 * P, D)
-            S = Hd - Z.T @ Z
             Vg = np.einsum("pij,pj->pi", Vinv, gp)
             rhs = g - np.bincount(cols.ravel(), np.einsum("nij,nj->ni", W, Vg[pt_idx]).ravel(), D)
             dc = np.zeros(D)
             if len(keep):
-                dc[keep] = np.linalg.solve(S[np.ix_(keep, keep)], -rhs[keep])
+                dc[keep] = _reduced_solve(Hd[np.ix_(keep, keep)], Z[:, keep], -rhs[keep])
             wdc = np.einsum("nij,ni->nj", W, dc[cols])
             back = np.stack([np.bincount(pt_idx, wdc[:, i], P) for i in range(3)], 1)
             dX = -np.einsum("pij,pj->pi", Vinv, gp + back)

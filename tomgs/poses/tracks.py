@@ -121,7 +121,7 @@ def klt_tracks(gray: np.ndarray, static: np.ndarray | None, max_corners: int = 1
     """
     T, H, W = gray.shape
     min_dist = max(5, round(0.012 * max(H, W)))
-    lk = dict(winSize=(21, 21), maxLevel=3, criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+    lk = dict(winSize=(15, 15), maxLevel=3, criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
     frames_l, tracks_l, xy_l = [], [], []
     pts = np.empty((0, 2), np.float32)
     ids = np.empty(0, np.int64)
