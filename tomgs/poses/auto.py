@@ -296,6 +296,7 @@ class Tracker:
         """Incremental reconstruction of frame 0 and `frames` (all by default) from the pair (0, j)."""
         T, tr = self.T, self.tracks
         K = self.K
+        self.reporting = report
         ids, x0, xj = tr.common(0, j)
         E, inl = robust_fit(cv2.findEssentialMat, x0, xj, K, cv2.USAC_MAGSAC, 0.999, 1.0)
         if E is None or E.shape != (3, 3):
@@ -385,7 +386,8 @@ class Tracker:
                 ok = False
         if not ok:
             rvec, tvec = rvec0, tvec0
-            self.notes.append(f"frame {k}: too few tracked points for PnP, pose copied from frame {prev}")
+            if self.reporting:
+                self.notes.append(f"frame {k}: too few tracked points for PnP, pose copied from frame {prev}")
         self.Rw[k] = cv2.Rodrigues(rvec)[0]
         self.tw[k] = tvec.ravel()
         self.reg[k] = True
@@ -464,9 +466,9 @@ class Tracker:
         free = self.reg.copy()
         free[0] = False
         opt_f = not self.focal_given
-        self._run_ba(free, iters=15 if quick else 40, opt_focal=opt_f)
+        self._run_ba(free, iters=10 if quick else 20, opt_focal=opt_f)
         if not quick:
-            self._run_ba(free, iters=25, opt_focal=opt_f, rest=True)
+            self._run_ba(free, iters=10, opt_focal=opt_f, rest=True)
         # gauge: frame 0 stays the identity; median depth of frame 0's points = 1
         ci, pi, obs, pts, _ = self._ba_problem(free | self.reg)
         in0 = np.unique(pi[ci == 0])
@@ -523,8 +525,8 @@ class Tracker:
         self.X = np.einsum("nji,nj->ni", self.Rw[tr.frame[first]], rays / rays[:, 2:3])
         free = np.ones(T, bool)
         free[0] = False
-        for iters in (40, 25):
-            self._run_ba(free, iters=iters, opt_focal=not self.focal_given, fix_translation=True, rest=iters < 40)
+        for iters in (20, 10):
+            self._run_ba(free, iters=iters, opt_focal=not self.focal_given, fix_translation=True, rest=iters == 10)
         ci, pi, obs, pts, _ = self._ba_problem(np.ones(T, bool))
         X = self.X[pts]
         X = X / np.linalg.norm(X, axis=1, keepdims=True)

@@ -148,11 +148,11 @@ def bundle_adjust(R0: np.ndarray, t0: np.ndarray, X0: np.ndarray, K: np.ndarray,
                 improved = (cost - new) / max(cost, 1e-12)
                 cost, lam = new, max(lam / 3, 1e-7)
                 break
-            lam *= 4
+            lam *= 10
             if lam > 1e8:
                 improved = 0.0
                 break
-        if improved < 1e-6:
+        if improved < 1e-5:
             break
     K[0, 0] = K[1, 1] = f
     return R, t, X, K
