@@ -45,8 +45,9 @@ def main():
 
     print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
           f"masks: {'flow residuals' if args.no_masks else 'given'}, max side {args.max_side}")
-    print("| sequence | frames | size | mode | focal px | reproj median px | points | s | s / 100 frames |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("| sequence | frames | size | mode | focal px | reproj median px (kept) | reproj median px (all) "
+          "| rejected | points | s | s / 100 frames |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     errs, rates = [], []
     for seq in sequences(args.data):
         masks = None if args.no_masks or not (seq / "masks").is_dir() else seq / "masks"
@@ -55,14 +56,15 @@ def main():
         cams, pts, _, rep = estimate_cameras(video, focal=args.focal)
         dt = time.perf_counter() - t0
         per100 = dt / len(video) * 100
-        errs.append(rep.reproj_px)
+        errs.append((rep.reproj_px, rep.reproj_all_px))
         rates.append(per100)
         T, H, W = video.frames.shape[:3]
-        print(f"| {seq.name} | {T} | {W}x{H} | {rep.mode} | {rep.focal:.0f} | {rep.reproj_px:.3f} | {len(pts)} | "
-              f"{dt:.1f} | {per100:.1f} |", flush=True)
+        print(f"| {seq.name} | {T} | {W}x{H} | {rep.mode} | {rep.focal:.0f} | {rep.reproj_px:.3f} | "
+              f"{rep.reproj_all_px:.3f} | {100 * rep.rejected:.1f}% | {len(pts)} | {dt:.1f} | {per100:.1f} |", flush=True)
         if os.environ.get("BENCH_VERBOSE"):
             print("   ", rep.notes, {k: round(v, 2) for k, v in rep.timings.items()}, flush=True)
-    print(f"| **median** | | | | | {np.median(errs):.3f} | | | {np.median(rates):.1f} |")
+    e = np.array(errs)
+    print(f"| **median** | | | | | {np.median(e[:, 0]):.3f} | {np.median(e[:, 1]):.3f} | | | | {np.median(rates):.1f} |")
 
 
 if __name__ == "__main__":

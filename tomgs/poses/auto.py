@@ -31,10 +31,12 @@ class Solution:
     points: np.ndarray
     colors: np.ndarray
     mode: str  # "fixed", "rotation" or "general"
-    reproj_px: float  # median reprojection error of background track observations (nan: none)
+    reproj_px: float  # median reprojection error of the background observations kept (nan: none)
     notes: list = field(default_factory=list)
     timings: dict = field(default_factory=dict)
-    inliers: int = 0  # observations the solution explains, used to compare trial focals
+    inliers: int = 0  # observations kept by the final adjustment
+    reproj_all_px: float = float("nan")  # the same median over every observation of those tracks
+    rejected: float = 0.0  # fraction of those observations rejected as outliers
 
 
 def static_masks(frames: np.ndarray, masks: np.ndarray | None, gray: np.ndarray, notes: list) -> np.ndarray:
@@ -276,18 +278,23 @@ class Tracker:
 
     def _focal_trials(self, j: int) -> float:
         """Reconstruct the first frames from a few starting focals (the self-calibration guess
-        and a log-spaced spread), each refined by bundle adjustment; keep the one that explains
-        most track observations (a wrong focal bends the structure and loses inliers)."""
+        and a log-spaced spread), each refined by bundle adjustment; keep the one with the lowest
+        median reprojection error over all observations of its tracks, outliers included (a
+        wrong focal bends the structure; counting inliers alone favours whichever hypothesis
+        happened to triangulate more tracks)."""
         # about a dozen frames spread up to a little past j: enough views to pin the focal, cheap
         trial = np.unique(np.linspace(1, min(self.T - 1, j + 8), 12).round().astype(int))
         trial = sorted(set(trial.tolist()) | {j})
         starts = [self.focal] + [self.side * m for m in (0.5, 0.8, 1.25, 2.0)]
-        best = (-1, None)
+        best, seen = (np.inf, None), []
         for f in starts:
             self.focal = f
             sol = self._solve_general(j, frames=trial, report=False)
-            if sol is not None and sol.inliers > best[0]:
-                best = (sol.inliers, float(sol.K[0, 0]))
+            if sol is not None:
+                seen.append(f"{f:.0f}->{sol.K[0, 0]:.0f} ({sol.reproj_all_px:.3f} px)")
+                if sol.reproj_all_px < best[0]:
+                    best = (sol.reproj_all_px, float(sol.K[0, 0]))
+        self.notes.append("focal trials, start -> refined (median error): " + ", ".join(seen))
         return best[1]  # None: no start could be reconstructed
 
     # ---- general motion ------------------------------------------------------------------------
@@ -466,9 +473,10 @@ class Tracker:
         free = self.reg.copy()
         free[0] = False
         opt_f = not self.focal_given
-        self._run_ba(free, iters=10 if quick else 20, opt_focal=opt_f)
+        # a free focal moves along a shallow valley: give it more iterations
+        self._run_ba(free, iters=10 if quick else 30 if opt_f else 20, opt_focal=opt_f)
         if not quick:
-            self._run_ba(free, iters=10, opt_focal=opt_f, rest=True)
+            self._run_ba(free, iters=15 if opt_f else 10, opt_focal=opt_f, rest=True)
         # gauge: frame 0 stays the identity; median depth of frame 0's points = 1
         ci, pi, obs, pts, _ = self._ba_problem(free | self.reg)
         in0 = np.unique(pi[ci == 0])
@@ -483,7 +491,17 @@ class Tracker:
         sol = Solution(c2w, self.K, self.X[pts], self._point_colors(pts), "general",
                        float(np.median(err)) if len(err) else float("nan"), self.notes, self.timings)
         sol.inliers = int(len(obs))
+        self._all_errors(sol, pts)
         return sol
+
+    def _all_errors(self, sol: Solution, pts: np.ndarray):
+        """Median error over every observation of the solution's tracks, outliers included."""
+        tr = self.tracks
+        m = self.reg[tr.frame] & np.isin(tr.track, pts)
+        if m.any():
+            e = reprojection_errors(self.Rw, self.tw, self.X, self.K, tr.frame[m], tr.track[m], tr.xy[m])
+            sol.reproj_all_px = float(np.median(e))
+            sol.rejected = float(1 - self.obs_ok[m].mean())
 
     def _point_colors(self, pts):
         tr = self.tracks
@@ -533,8 +551,11 @@ class Tracker:
         err = reprojection_errors(self.Rw, self.tw, X, self.K, ci, pi, obs)
         c2w = np.tile(np.eye(4), (T, 1, 1))
         c2w[:, :3, :3] = np.transpose(self.Rw, (0, 2, 1))
-        return Solution(c2w, self.K, X, self._point_colors(pts), "rotation",
-                        float(np.median(err)) if len(err) else float("nan"), self.notes, self.timings)
+        sol = Solution(c2w, self.K, X, self._point_colors(pts), "rotation",
+                       float(np.median(err)) if len(err) else float("nan"), self.notes, self.timings)
+        self.X[pts] = X
+        self._all_errors(sol, pts)
+        return sol
 
 
 def known_camera_points(frames: np.ndarray, masks: np.ndarray | None, cams):

@@ -20,7 +20,9 @@ class PoseReport:
 
     method: "auto", "identity", "file" or "onnx"; mode: "fixed", "rotation", "general" (auto) or
     the method; frames: T; focal: px; focal_estimated: True if it was not given;
-    reproj_px: median reprojection error of background track observations (nan if not measured);
+    reproj_px: median reprojection error of the background track observations kept by the final
+    adjustment (nan if not measured); reproj_all_px: the same over all observations of those
+    tracks, rejected outliers included; rejected: the fraction rejected;
     seconds: wall time; points: P; notes: what was detected, skipped or assumed.
     """
 
@@ -34,6 +36,8 @@ class PoseReport:
     points: int
     notes: list = field(default_factory=list)
     timings: dict = field(default_factory=dict)
+    reproj_all_px: float = float("nan")
+    rejected: float = float("nan")
 
     def summary(self) -> str:
         err = "n/a" if not np.isfinite(self.reproj_px) else f"{self.reproj_px:.2f} px"
@@ -80,7 +84,7 @@ def estimate_cameras(frames, masks=None, method="auto", focal=None, progress=Non
         sol = Tracker(frames, masks, focal, progress).solve()
         cams = Cameras.create(sol.c2w, sol.K, W, H, indices)
         rep = PoseReport("auto", sol.mode, T, cams.focal, focal is None and sol.mode != "fixed", sol.reproj_px,
-                         0.0, len(sol.points), list(sol.notes), dict(sol.timings))
+                         0.0, len(sol.points), list(sol.notes), dict(sol.timings), sol.reproj_all_px, sol.rejected)
         pts, cols = sol.points, sol.colors
     elif isinstance(method, (str, Path)) and str(method) == "identity":
         from tomgs.poses.auto import unit_depth_points
