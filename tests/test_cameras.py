@@ -101,6 +101,12 @@ def test_colmap_import(tmp_path):
     assert np.allclose(cams.K, [[500.5, 0, 320], [0, 500.5, 240], [0, 0, 1]])
     expect = np.linalg.inv(c2w[0]) @ c2w
     assert np.allclose(cams.c2w, expect, atol=1e-9)
+    (tmp_path / "cameras.txt").write_text("1 SIMPLE_RADIAL 640 480 not-a-number 320 240 0\n")
+    with pytest.raises(InputError, match="cannot parse"):
+        Cameras.from_colmap(tmp_path)
+    (tmp_path / "cameras.txt").write_text("1 THIN_PRISM_FISHEYE 640 480 1 2 3 4 5 6 7 8 9 10 11 12\n")
+    with pytest.raises(InputError, match="not supported"):
+        Cameras.from_colmap(tmp_path)
     (tmp_path / "cameras.txt").unlink()
     with pytest.raises(InputError, match="cameras.txt is missing"):
         Cameras.from_colmap(tmp_path)

@@ -8,6 +8,9 @@ from tomgs.io import InputError
 from tomgs.poses import estimate_cameras
 from tomgs.poses.onnx_model import run_onnx
 
+# the legacy (TorchScript) exporter needs no onnxscript, which the test extras do not install
+pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
+
 
 class TinyPoses(torch.nn.Module):
     """Frames [T,3,H,W] -> c2w [T,4,4] (frame k moved by 0.1 k along x, and by the frame's mean

@@ -220,30 +220,13 @@ class Cameras:
             if not f.is_file():
                 raise InputError(f"{f} is missing: export the COLMAP model as text (colmap model_converter "
                                  "--output_type TXT)")
-        cams = {}
-        for line in cams_txt.read_text().splitlines():
-            if not line.strip() or line.startswith("#"):
-                continue
-            p = line.split()
-            cam_id, model, w, h, params = p[0], p[1], int(p[2]), int(p[3]), [float(x) for x in p[4:]]
-            if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE"):
-                fx = fy = params[0]
-                cx, cy = params[1], params[2]
-            elif model in ("PINHOLE", "OPENCV", "OPENCV_FISHEYE", "FULL_OPENCV"):
-                fx, fy, cx, cy = params[:4]
-            else:
-                raise InputError(f"{cams_txt}: camera model {model} is not supported")
-            cams[cam_id] = (np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]), w, h)
-        lines = [l.strip() for l in imgs_txt.read_text().splitlines() if not l.startswith("#")]
-        entries, i = [], 0
-        while i < len(lines):  # each image takes two lines: its pose, then its 2D points (may be blank)
-            if not lines[i]:
-                i += 1
-                continue
-            p = lines[i].split()
-            qw, qx, qy, qz, tx, ty, tz = map(float, p[1:8])
-            entries.append((p[9], p[8], _quat_to_R(np.array([qw, qx, qy, qz])), np.array([tx, ty, tz])))
-            i += 2
+        try:
+            cams, entries = _parse_colmap(cams_txt, imgs_txt)
+        except InputError:
+            raise
+        except (ValueError, IndexError) as e:
+            raise InputError(f"{folder}: cannot parse the COLMAP text model ({e}); export it with "
+                             "colmap model_converter --output_type TXT") from None
         if not entries:
             raise InputError(f"{imgs_txt} lists no images")
         entries.sort(key=lambda e: natural_key(Path(e[0])))
@@ -256,6 +239,35 @@ class Cameras:
             c2w[k, :3, :3] = R.T
             c2w[k, :3, 3] = -R.T @ t
         return cls.create(c2w, K, w, h).rebased()
+
+
+def _parse_colmap(cams_txt: Path, imgs_txt: Path):
+    """(camera id -> (K, w, h), [(name, camera id, R w2c, t w2c)]) from COLMAP text files."""
+    cams = {}
+    for line in cams_txt.read_text().splitlines():
+        if not line.strip() or line.startswith("#"):
+            continue
+        p = line.split()
+        cam_id, model, w, h, params = p[0], p[1], int(p[2]), int(p[3]), [float(x) for x in p[4:]]
+        if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE"):
+            fx = fy = params[0]
+            cx, cy = params[1], params[2]
+        elif model in ("PINHOLE", "OPENCV", "OPENCV_FISHEYE", "FULL_OPENCV"):
+            fx, fy, cx, cy = params[:4]
+        else:
+            raise InputError(f"{cams_txt}: camera model {model} is not supported")
+        cams[cam_id] = (np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]), w, h)
+    lines = [l.strip() for l in imgs_txt.read_text().splitlines() if not l.startswith("#")]
+    entries, i = [], 0
+    while i < len(lines):  # each image takes two lines: its pose, then its 2D points (may be blank)
+        if not lines[i]:
+            i += 1
+            continue
+        p = lines[i].split()
+        qw, qx, qy, qz, tx, ty, tz = map(float, p[1:8])
+        entries.append((p[9], p[8], _quat_to_R(np.array([qw, qx, qy, qz])), np.array([tx, ty, tz])))
+        i += 2
+    return cams, entries
 
 
 def _quat_to_R(q: np.ndarray) -> np.ndarray:

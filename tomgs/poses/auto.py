@@ -34,7 +34,6 @@ class Solution:
     reproj_px: float  # median reprojection error of the background observations kept (nan: none)
     notes: list = field(default_factory=list)
     timings: dict = field(default_factory=dict)
-    inliers: int = 0  # observations kept by the final adjustment
     reproj_all_px: float = float("nan")  # the same median over every observation of those tracks
     rejected: float = 0.0  # fraction of those observations rejected as outliers
 
@@ -490,7 +489,6 @@ class Tracker:
         c2w[:, :3, 3] = -np.einsum("nji,nj->ni", self.Rw, self.tw)
         sol = Solution(c2w, self.K, self.X[pts], self._point_colors(pts), "general",
                        float(np.median(err)) if len(err) else float("nan"), self.notes, self.timings)
-        sol.inliers = int(len(obs))
         self._all_errors(sol, pts)
         return sol
 

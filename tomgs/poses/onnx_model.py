@@ -61,6 +61,7 @@ def run_onnx(path, frames: np.ndarray, indices=None) -> Cameras:
         K = K.mean(0)
     if K.shape != (3, 3):
         raise InputError(f"{path} outputs {got}: K must be [3,3] or [T,3,3]")
-    if not (np.isfinite(c2w).all() and np.isfinite(K).all()) or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise InputError(f"{path} outputs non-finite poses or a non-positive focal length")
+    if not (np.isfinite(c2w).all() and np.isfinite(K).all()) or K[0, 0] <= 0 or K[1, 1] <= 0 \
+            or abs(np.linalg.det(c2w[0, :3, :3])) < 1e-6:
+        raise InputError(f"{path} outputs non-finite or singular poses, or a non-positive focal length")
     return Cameras.create(c2w, K, W, H, indices).rebased()
