@@ -42,6 +42,7 @@ def orbit_clip():
 def test_auto_unknown_focal_with_masks(orbit_clip):
     clip = orbit_clip
     cams, pts, cols, rep = estimate_cameras(clip.frames, clip.masks)
+    assert any("focal trials" in n for n in rep.notes)
     traj, rot = errors(cams.c2w, clip.c2w)
     assert rep.mode == "general" and rep.focal_estimated
     assert traj <= 0.02, traj
@@ -53,6 +54,15 @@ def test_auto_unknown_focal_with_masks(orbit_clip):
     assert pts.shape[1] == 3 and len(pts) > 200 and cols.shape == pts.shape
     assert 0 <= cols.min() and cols.max() <= 1 and np.median(pts[:, 2]) > 0
     assert np.allclose(cams.times, np.arange(24) / 23)
+
+
+def test_auto_flow_masks_unknown_focal():
+    """Neither masks nor focal: the card is found by flow residuals, the focal by the search."""
+    clip = make_clip(orbit(24, strafe=2.4), mover=True, seed=1)
+    cams, _, _, rep = estimate_cameras(clip.frames)
+    traj, rot = errors(cams.c2w, clip.c2w)
+    assert traj <= 0.02 and rot <= 1.0, (traj, rot)
+    assert abs(cams.focal / 300 - 1) <= 0.05, cams.focal
 
 
 def test_auto_flow_masks_known_focal(orbit_clip):
