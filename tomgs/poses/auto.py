@@ -1,10 +1,11 @@
 """The built-in, weight-free camera tracker (REFERENCES.md, "Camera poses").
 
 frames (+ moving masks) -> static-region masks -> KLT tracks -> [fixed camera? -> identity]
--> init pair (0, j) chosen by parallax left after a homography -> focal by self-calibration when
-unknown -> essential matrix (USAC_MAGSAC) + recoverPose + triangulation -> PnP (RANSAC + LM)
-per new frame, triangulating new tracks, windowed bundle adjustment -> final robust bundle
-adjustment (focal refined) -> frame 0 = identity, median depth of frame 0's points = 1.
+-> init pair (0, j) chosen by parallax left after a homography -> focal, when unknown, by
+self-calibration on a log grid and trial reconstructions -> essential matrix (USAC_MAGSAC) + a
+chirality vote + triangulation -> PnP (RANSAC + LM) per new frame, triangulating new tracks,
+windowed bundle adjustment -> final robust bundle adjustment (focal refined) -> frame 0 =
+identity, median depth of frame 0's points = 1.
 A clip whose views are all related by homographies (pure rotation, or a very distant scene)
 is solved with rotation-only cameras.
 """
@@ -38,8 +39,9 @@ class Solution:
     rejected: float = 0.0  # fraction of those observations rejected as outliers
 
 
-def static_masks(frames: np.ndarray, masks: np.ndarray | None, gray: np.ndarray, notes: list) -> np.ndarray:
-    """bool [T,H,W], True where pixels may be used: given masks (dilated) or flow residuals."""
+def static_masks(masks: np.ndarray | None, gray: np.ndarray, notes: list) -> np.ndarray:
+    """bool [T,H,W], True where pixels may be used: given masks [T,H,W] (dilated) or, without
+    them, flow residuals of gray [T,H,W]."""
     T, H, W = gray.shape
     if masks is not None:
         r = max(1, round(0.01 * max(H, W)))
@@ -73,7 +75,7 @@ def is_fixed_camera(gray: np.ndarray, static: np.ndarray, thresh_px: float = 0.3
     return True
 
 
-def _unproject_colors(frames: np.ndarray, frame_idx: np.ndarray, xy: np.ndarray) -> np.ndarray:
+def _sample_colors(frames: np.ndarray, frame_idx: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """Colours float32 [N,3] in [0,1] sampled (nearest pixel) at +0.5-convention pixels."""
     T, H, W, _ = frames.shape
     xi = np.clip(np.floor(xy[:, 0]).astype(int), 0, W - 1)
@@ -90,7 +92,7 @@ def unit_depth_points(frames: np.ndarray, K: np.ndarray, n: int = 4000, static: 
     if static is not None:
         xy = xy[static[0, ys.ravel(), xs.ravel()]]
     pts = np.concatenate([(xy - K[:2, 2]) / np.diag(K)[:2], np.ones((len(xy), 1))], 1)
-    return pts, _unproject_colors(frames, np.zeros(len(xy), int), xy)
+    return pts, _sample_colors(frames, np.zeros(len(xy), int), xy)
 
 
 def triangulate(Ra, ta, Rb, tb, xa, xb, K):
@@ -143,7 +145,14 @@ def _recover_pose(E, xa, xb, K, inl):
 
 
 class Tracker:
-    """One run of the built-in tracker on a clip; `solve()` returns a `Solution`."""
+    """One run of the built-in tracker on a clip; `solve()` returns a `Solution`.
+
+    frames uint8 [T,H,W,3] RGB; masks bool [T,H,W] (True = moving) or None; focal px or None
+    (estimated); progress callable(done, total) or None; K [3,3] to use instead of a centred
+    square-pixel K built from the focal (known cameras).
+    State while solving: poses as world-to-camera Rw [T,3,3], tw [T,3]; X [n_tracks,3] (nan
+    until triangulated); obs_ok bool per track observation.
+    """
 
     def __init__(self, frames, masks=None, focal=None, progress=None, max_corners=None, K=None):
         self.frames = frames
@@ -173,7 +182,7 @@ class Tracker:
         t0 = time.perf_counter()
         T = self.T
         gray = to_gray(self.frames)
-        self.static = static_masks(self.frames, self.masks, gray, self.notes)
+        self.static = static_masks(self.masks, gray, self.notes)
         t0 = self._tick("masks", t0)
         if T == 1 or is_fixed_camera(gray, self.static):
             self.notes.append("single frame: identity pose" if T == 1 else
@@ -506,7 +515,7 @@ class Tracker:
         m = np.isin(tr.track, pts)
         t, first = np.unique(tr.track[m], return_index=True)
         idx = np.flatnonzero(m)[first]
-        return _unproject_colors(self.frames, tr.frame[idx], tr.xy[idx])
+        return _sample_colors(self.frames, tr.frame[idx], tr.xy[idx])
 
     # ---- rotation only -------------------------------------------------------------------------
 
@@ -562,7 +571,7 @@ def known_camera_points(frames: np.ndarray, masks: np.ndarray | None, cams):
     baseline (e.g. identity poses). Returns (points [P,3], colors [P,3], median reprojection px)."""
     tr = Tracker(frames, masks, cams.focal, K=cams.K)
     gray = to_gray(frames)
-    tr.static = static_masks(frames, masks, gray, tr.notes)
+    tr.static = static_masks(masks, gray, tr.notes)
     T = len(frames)
     if T >= 2:
         tr.tracks = klt_tracks(gray, tr.static, tr.max_corners)
