@@ -67,3 +67,23 @@ def test_onnx_wrong_outputs(tmp_path, frames):
     junk.write_bytes(b"not a model")
     with pytest.raises(InputError, match="cannot load ONNX model"):
         run_onnx(junk, frames)
+
+
+def test_cli_wrong_outputs_exit_2(tmp_path, frames):
+    import cv2
+    from click.testing import CliRunner
+
+    from tomgs.cli import main
+
+    d = tmp_path / "frames"
+    d.mkdir()
+    for k, f in enumerate(frames):
+        cv2.imwrite(str(d / f"{k}.png"), f)
+    model = _export(WrongPoses(), tmp_path / "wrong.onnx", ["pose"])
+    out = tmp_path / "cams.json"
+    res = CliRunner().invoke(main, ["poses", str(d), "--method", str(model), "-o", str(out)])
+    assert res.exit_code == 2 and "pose contract" in res.output and not out.exists()
+    good = _export(TinyPoses(), tmp_path / "good.onnx", ["c2w", "K"])
+    res = CliRunner().invoke(main, ["poses", str(d), "--method", str(good), "-o", str(out)])
+    assert res.exit_code == 0, res.output
+    assert out.exists() and "onnx" in res.output
