@@ -86,6 +86,12 @@ def estimate_cameras(frames, masks=None, method="auto", focal=None, progress=Non
         rep = PoseReport("auto", sol.mode, T, cams.focal, focal is None and sol.mode != "fixed", sol.reproj_px,
                          0.0, len(sol.points), list(sol.notes), dict(sol.timings), sol.reproj_all_px, sol.rejected)
         pts, cols = sol.points, sol.colors
+        if len(pts) == 0:  # nothing trackable (blank frames): still give the trainer something
+            from tomgs.poses.auto import unit_depth_points
+
+            pts, cols = unit_depth_points(frames, cams.K)
+            rep.notes.append("no trackable texture: points placed at depth 1 in front of frame 0")
+            rep.points = len(pts)
     elif isinstance(method, (str, Path)) and str(method) == "identity":
         from tomgs.poses.auto import unit_depth_points
 
