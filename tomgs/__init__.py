@@ -16,6 +16,12 @@ _EXPORTS = {
     "RenderError": "tomgs.render",
     "rasterize_reference": "tomgs.reference",
     "eval_sh": "tomgs.sh",
+    "InputError": "tomgs.io",
+    "Video": "tomgs.io",
+    "read_video": "tomgs.io",
+    "Cameras": "tomgs.cameras",
+    "estimate_cameras": "tomgs.poses",
+    "PoseReport": "tomgs.poses",
 }
 
 __all__ = ["__version__", *_EXPORTS]

@@ -1,0 +1,136 @@
+"""The built-in tracker on synthetic clips with known cameras (rendered here, no data files).
+
+Accuracy is measured after a similarity (Umeyama) alignment of the camera centres; rotations are
+compared as rotations relative to frame 0, which both trajectories share as the identity.
+"""
+
+import numpy as np
+import pytest
+
+from tomgs.io import InputError
+from tomgs.poses import estimate_cameras
+from tomgs.poses.synthetic import make_clip, orbit, pan
+
+
+def umeyama(src, dst):
+    """Similarity (s, R, t) minimising |s R src + t - dst|^2; src, dst [N,3]."""
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    S, D = src - mu_s, dst - mu_d
+    U, sig, Vt = np.linalg.svd(D.T @ S / len(src))
+    E = np.eye(3)
+    if np.linalg.det(U @ Vt) < 0:
+        E[2, 2] = -1
+    s = np.trace(np.diag(sig) @ E) / max((S ** 2).sum(1).mean(), 1e-300)
+    R = U @ E @ Vt
+    return s, R, mu_d - s * R @ mu_s
+
+
+def errors(est, gt):
+    """(max position error / path length, max rotation error in degrees) of c2w [T,4,4]."""
+    s, R, t = umeyama(est[:, :3, 3], gt[:, :3, 3])
+    pos = np.linalg.norm(s * est[:, :3, 3] @ R.T + t - gt[:, :3, 3], axis=1)
+    path = np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1).sum()
+    cos = (np.einsum("kij,kij->k", gt[:, :3, :3], est[:, :3, :3]) - 1) / 2
+    return (pos.max() / path if path > 0 else 0.0), np.degrees(np.arccos(np.clip(cos, -1, 1))).max()
+
+
+@pytest.fixture(scope="module")
+def orbit_clip():
+    return make_clip(orbit(24, strafe=2.4), mover=True, seed=0)
+
+
+def test_auto_unknown_focal_with_masks(orbit_clip):
+    clip = orbit_clip
+    cams, pts, cols, rep = estimate_cameras(clip.frames, clip.masks)
+    assert any("focal trials" in n for n in rep.notes)
+    traj, rot = errors(cams.c2w, clip.c2w)
+    assert rep.mode == "general" and rep.focal_estimated
+    assert traj <= 0.02, traj
+    assert rot <= 1.0, rot
+    assert abs(cams.focal / clip.K[0, 0] - 1) <= 0.05, cams.focal
+    assert np.allclose(cams.c2w[0], np.eye(4))
+    assert rep.reproj_px < 0.5
+    # points: world coordinates in front of frame 0, median depth of frame 0's points ~ 1
+    assert pts.shape[1] == 3 and len(pts) > 200 and cols.shape == pts.shape
+    assert 0 <= cols.min() and cols.max() <= 1 and np.median(pts[:, 2]) > 0
+    assert np.allclose(cams.times, np.arange(24) / 23)
+
+
+def test_auto_flow_masks_unknown_focal():
+    """Neither masks nor focal: the card is found by flow residuals, the focal by the search."""
+    clip = make_clip(orbit(24, strafe=2.4), mover=True, seed=1)
+    cams, _, _, rep = estimate_cameras(clip.frames)
+    traj, rot = errors(cams.c2w, clip.c2w)
+    assert traj <= 0.02 and rot <= 1.0, (traj, rot)
+    assert abs(cams.focal / 300 - 1) <= 0.05, cams.focal
+
+
+def test_auto_flow_masks_known_focal(orbit_clip):
+    """No masks given: the moving card must be found by flow residuals."""
+    clip = orbit_clip
+    cams, _, _, rep = estimate_cameras(clip.frames, focal=300.0)
+    traj, rot = errors(cams.c2w, clip.c2w)
+    assert not rep.focal_estimated and cams.focal == 300.0
+    assert traj <= 0.02 and rot <= 1.0, (traj, rot)
+
+
+def test_fixed_camera_gives_identity():
+    clip = make_clip(np.tile(np.eye(4), (10, 1, 1)), width=160, height=120, focal=150.0, mover=True)
+    cams, pts, _, rep = estimate_cameras(clip.frames)
+    assert rep.mode == "fixed" and any("fixed camera" in n for n in rep.notes)
+    assert np.array_equal(cams.c2w, np.tile(np.eye(4), (10, 1, 1)))
+    assert len(pts) > 0
+
+
+def test_pure_rotation_unknown_focal():
+    clip = make_clip(pan(16, yaw_deg=20, pitch_deg=6), mover=True, seed=1)
+    cams, _, _, rep = estimate_cameras(clip.frames, clip.masks)
+    assert rep.mode == "rotation"
+    _, rot = errors(cams.c2w, clip.c2w)
+    assert rot <= 1.0, rot
+    assert np.abs(cams.c2w[:, :3, 3]).max() < 1e-9
+    assert abs(cams.focal / 300 - 1) <= 0.05, cams.focal
+
+
+def test_two_frames():
+    c2w = orbit(9, strafe=1.0)[[0, 8]]
+    clip = make_clip(c2w, mover=False, seed=2)
+    cams, _, _, rep = estimate_cameras(clip.frames, focal=300.0)
+    assert len(cams) == 2 and rep.mode == "general"
+    _, rot = errors(cams.c2w, clip.c2w)
+    assert rot <= 1.0
+    t_est, t_gt = cams.c2w[1, :3, 3], clip.c2w[1, :3, 3]
+    angle = np.degrees(np.arccos(t_est @ t_gt / np.linalg.norm(t_est) / np.linalg.norm(t_gt)))
+    assert angle <= 3.0, angle
+
+
+def test_identity_method_and_bad_inputs(orbit_clip):
+    frames = orbit_clip.frames[:3]
+    cams, pts, cols, rep = estimate_cameras(frames, method="identity", focal=250)
+    assert np.array_equal(cams.c2w, np.tile(np.eye(4), (3, 1, 1))) and cams.focal == 250
+    assert np.allclose(pts[:, 2], 1.0)
+    with pytest.raises(InputError, match="unknown method"):
+        estimate_cameras(frames, method="colmap-please")
+    with pytest.raises(InputError, match="masks must be"):
+        estimate_cameras(frames, masks=np.zeros((2, 5, 5), bool))
+    with pytest.raises(InputError, match="frames must be"):
+        estimate_cameras(frames.astype(np.float32))
+    with pytest.raises(InputError, match="focal"):
+        estimate_cameras(frames, focal=-3)
+
+
+def test_pose_file_methods(orbit_clip, tmp_path):
+    """Cameras from a JSON / npy file come back unchanged, with points triangulated from them."""
+    from tomgs.cameras import Cameras
+
+    clip = orbit_clip
+    gt = Cameras.create(clip.c2w, clip.K, 320, 240)
+    gt.save(tmp_path / "gt.json")
+    cams, pts, _, rep = estimate_cameras(clip.frames, clip.masks, method=tmp_path / "gt.json")
+    assert rep.method == "file" and np.allclose(cams.c2w, clip.c2w)
+    assert len(pts) > 100 and rep.reproj_px < 0.5
+    np.save(tmp_path / "c2w.npy", clip.c2w)
+    cams, _, _, _ = estimate_cameras(clip.frames, method=str(tmp_path / "c2w.npy"), focal=300.0)
+    assert np.allclose(cams.c2w, clip.c2w) and cams.focal == 300.0
+    with pytest.raises(InputError, match="gives 24 cameras for 3 frames"):
+        estimate_cameras(clip.frames[:3], method=tmp_path / "gt.json")

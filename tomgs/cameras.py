@@ -1,0 +1,291 @@
+"""Per-frame cameras of a clip: poses, intrinsics, image size and frame times.
+
+Conventions (DESIGN.md): OpenCV axes (x right, y down, z forward); `c2w` maps camera to world;
+frame 0 is the identity pose; K in pixels with pixel centres at +0.5 (pixel (i, j) is centred at
+x = j + 0.5, y = i + 0.5); time t in [0, 1], frame k of n at t = k / (n - 1).
+
+Arrays are numpy float64 (poses are estimated and stored in double precision); `viewmats` and
+`Ks` hand out torch tensors for the renderer when asked for a device.
+
+JSON schema (`Cameras.save` / `Cameras.load`), version 1:
+
+    {
+      "format": "tomgs-cameras", "version": 1,
+      "width": W, "height": H,                   # image size in pixels
+      "K": [[fx, 0, cx], [0, fy, cy], [0, 0, 1]],  # pixels, centres at +0.5
+      "frames": [                                  # one entry per frame, in clip order
+        {"index": 0, "time": 0.0, "c2w": [[...4 numbers...] x 4]},
+        ...
+      ]
+    }
+
+`index` is the frame number in the source video (after any range selection it need not start
+at 0); `time` is the frame time in [0, 1].
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from tomgs.io import InputError
+
+FORMAT = "tomgs-cameras"
+VERSION = 1
+
+
+def frame_times(n: int) -> np.ndarray:
+    """float64 [n]: t = k / (n - 1); a single frame at t = 0."""
+    return np.arange(n, dtype=np.float64) / max(n - 1, 1)
+
+
+def intrinsics(focal: float, width: int, height: int) -> np.ndarray:
+    """float64 [3, 3]: square pixels, principal point at the image centre (+0.5 convention)."""
+    return np.array([[focal, 0.0, width / 2.0], [0.0, focal, height / 2.0], [0.0, 0.0, 1.0]])
+
+
+@dataclass
+class Cameras:
+    """c2w float64 [T,4,4]; K float64 [3,3]; width, height in pixels; times float64 [T] in [0,1];
+    frame_indices int64 [T] (source frame numbers)."""
+
+    c2w: np.ndarray
+    K: np.ndarray
+    width: int
+    height: int
+    times: np.ndarray
+    frame_indices: np.ndarray
+
+    def __post_init__(self):
+        self.c2w = np.asarray(self.c2w, dtype=np.float64)
+        self.K = np.asarray(self.K, dtype=np.float64)
+        self.times = np.asarray(self.times, dtype=np.float64)
+        self.frame_indices = np.asarray(self.frame_indices, dtype=np.int64)
+        self.width, self.height = int(self.width), int(self.height)
+        T = len(self.c2w)
+        if self.c2w.shape != (T, 4, 4) or self.K.shape != (3, 3) or self.times.shape != (T,) \
+                or self.frame_indices.shape != (T,):
+            raise ValueError(f"Cameras: expected c2w [T,4,4], K [3,3], times [T], frame_indices [T]; got "
+                             f"{self.c2w.shape}, {self.K.shape}, {self.times.shape}, {self.frame_indices.shape}")
+        if not (np.isfinite(self.c2w).all() and np.isfinite(self.K).all()):
+            raise ValueError("Cameras: c2w and K must be finite")
+
+    @classmethod
+    def create(cls, c2w, K, width: int, height: int, frame_indices=None) -> "Cameras":
+        """Cameras with times k/(n-1) and indices 0..T-1 unless given."""
+        T = len(c2w)
+        idx = np.arange(T) if frame_indices is None else frame_indices
+        return cls(c2w, K, width, height, frame_times(T), idx)
+
+    @classmethod
+    def identity(cls, n: int, K, width: int, height: int, frame_indices=None) -> "Cameras":
+        """n frames of a fixed camera."""
+        return cls.create(np.tile(np.eye(4), (n, 1, 1)), K, width, height, frame_indices)
+
+    def __len__(self) -> int:
+        return len(self.c2w)
+
+    def __getitem__(self, key) -> "Cameras":
+        """Subset of frames (int, slice, index array or bool mask); times are kept, not renumbered."""
+        if isinstance(key, (int, np.integer)):
+            key = [int(key)]
+        return Cameras(self.c2w[key], self.K.copy(), self.width, self.height, self.times[key],
+                       self.frame_indices[key])
+
+    @property
+    def focal(self) -> float:
+        return float((self.K[0, 0] + self.K[1, 1]) / 2)
+
+    def viewmats(self, device=None):
+        """World-to-camera [T,4,4] (what the rasterizer takes): numpy float64, or torch float32 on
+        `device` when one is given."""
+        w2c = np.linalg.inv(self.c2w)
+        if device is None:
+            return w2c
+        import torch
+
+        return torch.as_tensor(w2c, dtype=torch.float32, device=device)
+
+    def Ks(self, device=None):
+        """K repeated per frame [T,3,3]: numpy float64, or torch float32 on `device`."""
+        Ks = np.broadcast_to(self.K, (len(self), 3, 3)).copy()
+        if device is None:
+            return Ks
+        import torch
+
+        return torch.as_tensor(Ks, dtype=torch.float32, device=device)
+
+    def resized(self, width: int, height: int) -> "Cameras":
+        """The same cameras for images resized to width x height (K scaled; +0.5 centres keep
+        cx = sx * cx exactly)."""
+        sx, sy = width / self.width, height / self.height
+        K = self.K.copy()
+        K[0] *= sx
+        K[1] *= sy
+        return Cameras(self.c2w.copy(), K, width, height, self.times.copy(), self.frame_indices.copy())
+
+    def rebased(self) -> "Cameras":
+        """Re-anchored so that frame 0 is the identity: c2w_k <- inv(c2w_0) @ c2w_k."""
+        c2w = np.linalg.inv(self.c2w[0]) @ self.c2w
+        return Cameras(c2w, self.K.copy(), self.width, self.height, self.times.copy(), self.frame_indices.copy())
+
+    # ---- files ---------------------------------------------------------------------------------
+
+    def to_dict(self) -> dict:
+        return {
+            "format": FORMAT,
+            "version": VERSION,
+            "width": self.width,
+            "height": self.height,
+            "K": self.K.tolist(),
+            "frames": [{"index": int(i), "time": float(t), "c2w": m.tolist()}
+                       for i, t, m in zip(self.frame_indices, self.times, self.c2w)],
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict, source="<dict>") -> "Cameras":
+        if not isinstance(d, dict) or d.get("format") != FORMAT:
+            raise InputError(f"{source} is not a tomgs cameras file (missing \"format\": \"{FORMAT}\")")
+        if d.get("version") != VERSION:
+            raise InputError(f"{source} has cameras version {d.get('version')!r}; this tomgs reads version {VERSION}")
+        try:
+            frames = d["frames"]
+            if not frames:
+                raise InputError(f"{source} holds zero frames")
+            return cls(np.array([f["c2w"] for f in frames]), np.array(d["K"]), d["width"], d["height"],
+                       np.array([f["time"] for f in frames]), np.array([f["index"] for f in frames]))
+        except (KeyError, TypeError, ValueError) as e:
+            if isinstance(e, InputError):
+                raise
+            raise InputError(f"{source} does not follow the tomgs cameras schema ({e}); see tomgs.cameras") from None
+
+    def save(self, path) -> Path:
+        """Write JSON atomically (temporary file in the same folder, then rename)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")  # plain open: the umask applies
+        try:
+            with open(tmp, "w") as f:
+                json.dump(self.to_dict(), f, indent=1)
+            os.replace(tmp, path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+        return path
+
+    @classmethod
+    def load(cls, path) -> "Cameras":
+        path = Path(path)
+        if not path.is_file():
+            raise InputError(f"cameras file {path} does not exist")
+        try:
+            d = json.loads(path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as e:
+            raise InputError(f"{path} is not valid JSON ({e}): write it with Cameras.save") from None
+        return cls.from_dict(d, path)
+
+    @classmethod
+    def from_anycam(cls, c2w, K, width: int, height: int) -> "Cameras":
+        """AnyCam output: c2w [T,4,4] camera-to-world in OpenCV axes (array or .npy path) and K
+        [3,3] or [T,3,3] in pixels (array or .npy/.txt path; per-frame K are averaged). Scale is
+        kept as given; poses are re-anchored so that frame 0 is the identity."""
+        c2w = _load_array(c2w, "c2w")
+        K = _load_array(K, "K")
+        if c2w.ndim != 3 or c2w.shape[1:] != (4, 4) or len(c2w) == 0:
+            raise InputError(f"AnyCam c2w must have shape [T,4,4], got {c2w.shape}")
+        if K.shape == (len(c2w), 3, 3):
+            K = K.mean(axis=0)
+        if K.shape != (3, 3):
+            raise InputError(f"AnyCam K must have shape [3,3] or [T,3,3], got {K.shape}")
+        return cls.create(c2w, K, width, height).rebased()
+
+    @classmethod
+    def from_colmap(cls, folder) -> "Cameras":
+        """A COLMAP text model (folder with cameras.txt and images.txt; one shared camera).
+
+        Images are ordered by name (natural sort); COLMAP's world-to-camera (qw qx qy qz, t) poses
+        are inverted and re-anchored so that frame 0 is the identity. COLMAP already puts pixel
+        centres at +0.5. Distortion parameters are dropped (undistort the frames first).
+        """
+        from tomgs.io.video import natural_key
+
+        folder = Path(folder)
+        cams_txt, imgs_txt = folder / "cameras.txt", folder / "images.txt"
+        for f in (cams_txt, imgs_txt):
+            if not f.is_file():
+                raise InputError(f"{f} is missing: export the COLMAP model as text (colmap model_converter "
+                                 "--output_type TXT)")
+        try:
+            cams, entries = _parse_colmap(cams_txt, imgs_txt)
+        except InputError:
+            raise
+        except (ValueError, IndexError) as e:
+            raise InputError(f"{folder}: cannot parse the COLMAP text model ({e}); export it with "
+                             "colmap model_converter --output_type TXT") from None
+        if not entries:
+            raise InputError(f"{imgs_txt} lists no images")
+        entries.sort(key=lambda e: natural_key(Path(e[0])))
+        cam_ids = {e[1] for e in entries}
+        if len(cam_ids) != 1 or not cam_ids <= set(cams):
+            raise InputError(f"{folder}: tomgs needs one shared camera in cameras.txt, images use {sorted(cam_ids)}")
+        K, w, h = cams[cam_ids.pop()]
+        c2w = np.tile(np.eye(4), (len(entries), 1, 1))
+        for k, (_, _, R, t) in enumerate(entries):
+            c2w[k, :3, :3] = R.T
+            c2w[k, :3, 3] = -R.T @ t
+        return cls.create(c2w, K, w, h).rebased()
+
+
+def _parse_colmap(cams_txt: Path, imgs_txt: Path):
+    """(camera id -> (K, w, h), [(name, camera id, R w2c, t w2c)]) from COLMAP text files."""
+    cams = {}
+    for line in cams_txt.read_text().splitlines():
+        if not line.strip() or line.startswith("#"):
+            continue
+        p = line.split()
+        cam_id, model, w, h, params = p[0], p[1], int(p[2]), int(p[3]), [float(x) for x in p[4:]]
+        if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE"):
+            fx = fy = params[0]
+            cx, cy = params[1], params[2]
+        elif model in ("PINHOLE", "OPENCV", "OPENCV_FISHEYE", "FULL_OPENCV"):
+            fx, fy, cx, cy = params[:4]
+        else:
+            raise InputError(f"{cams_txt}: camera model {model} is not supported")
+        cams[cam_id] = (np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]), w, h)
+    lines = [l.strip() for l in imgs_txt.read_text().splitlines() if not l.startswith("#")]
+    entries, i = [], 0
+    while i < len(lines):  # each image takes two lines: its pose, then its 2D points (may be blank)
+        if not lines[i]:
+            i += 1
+            continue
+        p = lines[i].split()
+        qw, qx, qy, qz, tx, ty, tz = map(float, p[1:8])
+        entries.append((p[9], p[8], _quat_to_R(np.array([qw, qx, qy, qz])), np.array([tx, ty, tz])))
+        i += 2
+    return cams, entries
+
+
+def _quat_to_R(q: np.ndarray) -> np.ndarray:
+    """Unit quaternion (w, x, y, z) -> rotation matrix [3,3]."""
+    w, x, y, z = q / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def _load_array(a, what: str) -> np.ndarray:
+    if isinstance(a, (str, Path)):
+        p = Path(a)
+        if not p.is_file():
+            raise InputError(f"{what} file {p} does not exist")
+        try:
+            a = np.load(p) if p.suffix == ".npy" else np.loadtxt(p)
+        except ValueError as e:
+            raise InputError(f"cannot read {what} from {p} ({e})") from None
+    return np.asarray(a, dtype=np.float64)

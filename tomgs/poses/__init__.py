@@ -1,0 +1,10 @@
+"""Camera poses for a clip: the built-in tracker, pose files, and ONNX models.
+
+`estimate_cameras(frames, masks=None, method="auto", focal=None)` -> (Cameras, points, colors, report)
+"""
+
+from __future__ import annotations
+
+from tomgs.poses.estimate import PoseReport, estimate_cameras
+
+__all__ = ["PoseReport", "estimate_cameras"]
