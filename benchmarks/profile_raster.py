@@ -26,6 +26,7 @@ def main() -> None:
     ap.add_argument("--n", default="1M")
     ap.add_argument("--variant", default="static", choices=["static", "temporal"])
     ap.add_argument("--iters", type=int, default=20)
+    ap.add_argument("--host", action="store_true", help="also print the Python functions that cost host time")
     args = ap.parse_args()
     width, height = parse_size(args.size)
     n = parse_count(args.n)
@@ -66,6 +67,18 @@ def main() -> None:
           f"(gap {wall - gpu:.3f} ms = host overhead and syncs)")
     for name, ms in sorted(per_kernel.items(), key=lambda kv: -kv[1])[:18]:
         print(f"  {ms:8.3f} ms  {name}")
+    if args.host:
+        import cProfile
+        import pstats
+
+        profiler = cProfile.Profile()
+        profiler.enable()
+        for _ in range(args.iters):
+            step()
+        torch.cuda.synchronize()
+        profiler.disable()
+        print(f"\nhost time per fwd+bwd, top functions (cumulative over {args.iters} iterations):")
+        pstats.Stats(profiler).sort_stats("tottime").print_stats(25)
 
 
 if __name__ == "__main__":
