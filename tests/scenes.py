@@ -7,6 +7,8 @@ import os
 import torch
 import warp as wp
 
+from tomgs import cameras
+
 # Seeds are fixed so CI is repeatable; set TOMGS_TEST_SEED to draw a different family of scenes.
 SEED_BASE = int(os.environ.get("TOMGS_TEST_SEED", "0"))
 
@@ -25,15 +27,8 @@ def devices() -> list[str]:
 
 def look_at(eye, target, dtype=torch.float64) -> torch.Tensor:
     """World->camera [4,4] (OpenCV axes) for a camera at `eye` looking at `target`, y down."""
-    eye, target = torch.as_tensor(eye, dtype=dtype), torch.as_tensor(target, dtype=dtype)
-    forward = torch.nn.functional.normalize(target - eye, dim=0)
-    right = torch.nn.functional.normalize(torch.linalg.cross(forward, torch.tensor([0.0, -1.0, 0.0], dtype=dtype)), dim=0)
-    down = torch.linalg.cross(forward, right)
-    rot = torch.stack([right, down, forward])  # rows: camera axes in world coordinates
-    view = torch.eye(4, dtype=dtype)
-    view[:3, :3] = rot
-    view[:3, 3] = -rot @ eye
-    return view
+    return torch.linalg.inv(torch.as_tensor(cameras.look_at(torch.as_tensor(eye).tolist(),
+                                                            torch.as_tensor(target).tolist()), dtype=dtype))
 
 
 def random_scene(seed: int, n: int = 120, width: int = 45, height: int = 37, sh_degree: int | None = None,

@@ -48,6 +48,21 @@ def intrinsics(focal: float, width: int, height: int) -> np.ndarray:
     return np.array([[focal, 0.0, width / 2.0], [0.0, focal, height / 2.0], [0.0, 0.0, 1.0]])
 
 
+def look_at(eye, target, up=(0.0, -1.0, 0.0)) -> np.ndarray:
+    """float64 [4,4] camera-to-world of a camera at `eye` looking at `target` (OpenCV axes: the
+    image's up is along `up`, by default world -y, since y points down)."""
+    eye, target = np.asarray(eye, dtype=np.float64), np.asarray(target, dtype=np.float64)
+    forward = target - eye
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, np.asarray(up, dtype=np.float64))
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    c2w = np.eye(4)
+    c2w[:3, :3] = np.stack([right, down, forward], axis=1)  # columns: camera axes in world coordinates
+    c2w[:3, 3] = eye
+    return c2w
+
+
 @dataclass
 class Cameras:
     """c2w float64 [T,4,4]; K float64 [3,3]; width, height in pixels; times float64 [T] in [0,1];

@@ -299,3 +299,37 @@ def rasterize(
                 n_intersections=total, tile_size=TILE_SIZE,
                 width=frame.width, height=frame.height)
     return image, 1.0 - trans, meta
+
+
+def resolve_device(name: str | None = "auto") -> torch.device:
+    """'auto' (CUDA when available, else CPU), 'cpu', 'cuda' or 'cuda:N'; raises RenderError otherwise."""
+    name = "auto" if name is None else str(name)
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise RenderError(f"unknown device {name!r}: use auto, cpu, cuda or cuda:N") from None
+    if device.type not in ("cpu", "cuda"):
+        raise RenderError(f"device {name!r} is not supported: use auto, cpu, cuda or cuda:N")
+    if device.type == "cuda" and (not torch.cuda.is_available()
+                                  or (device.index or 0) >= torch.cuda.device_count()):
+        raise RenderError(f"device {name!r} is not available on this machine: use cpu (or auto)")
+    return device
+
+
+def render_sequence(gaussians, cameras, indices=None, *, background=None, device=None):
+    """Yield (frame k, image [H,W,3] float32 in [0,1] on the CPU, meta) for frames `indices` of `cameras`.
+
+    `gaussians`: mapping with means, quats, scales, opacities, colors (RGB or SH), t_means,
+    t_scales; `cameras`: a `tomgs.Cameras`; frame k renders at t = cameras.times[k]. No gradients.
+    """
+    device = torch.device(device) if device is not None else gaussians["means"].device
+    g = {k: gaussians[k].to(device) for k in ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales")}
+    viewmats, Ks = cameras.viewmats(device), cameras.Ks(device)
+    bg = None if background is None else torch.as_tensor(background, dtype=torch.float32, device=device)
+    with torch.no_grad():
+        for k in range(len(cameras)) if indices is None else indices:
+            image, _, meta = rasterize(**g, viewmat=viewmats[k], K=Ks[k], width=cameras.width, height=cameras.height,
+                                    t=float(cameras.times[k]), background=bg)
+            yield k, image.clamp(0.0, 1.0).cpu(), meta

@@ -1,4 +1,4 @@
-"""Input and output of pixels: video files, frame folders and masks (PNG/MP4 writing lands here too).
+"""Input and output of pixels: video files, frame folders and masks and PNG/MP4 frames out.
 
 `InputError` is the one exception type for bad user input anywhere in tomgs: a ValueError whose
 message names the file and the fix. The CLI turns it into exit code 2.
@@ -12,5 +12,6 @@ class InputError(ValueError):
 
 
 from tomgs.io.video import Video, parse_frames, read_video  # noqa: E402  (needs InputError)
+from tomgs.io.writer import write_frames  # noqa: E402
 
-__all__ = ["InputError", "Video", "parse_frames", "read_video"]
+__all__ = ["InputError", "Video", "parse_frames", "read_video", "write_frames"]

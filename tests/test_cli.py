@@ -1,0 +1,66 @@
+"""The `tomgs` command line: version, help, the demo render, and bad input (exit code 2, nothing written)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import cv2
+import pytest
+from click.testing import CliRunner
+
+import tomgs
+from tomgs.cli import main
+
+
+def run(*args):
+    return CliRunner().invoke(main, list(args), catch_exceptions=False)
+
+
+def test_version_and_help():
+    assert run("--version").output.strip().endswith(tomgs.__version__)
+    help_text = run("--help").output
+    for command in ("demo", "poses"):
+        assert command in help_text
+
+
+def test_console_script_entry_point():
+    out = subprocess.run([sys.executable, "-m", "tomgs.cli", "--version"], capture_output=True, text=True, check=True)
+    assert tomgs.__version__ in out.stdout
+
+
+def test_demo_writes_a_video(tmp_path):
+    out = tmp_path / "demo.mp4"
+    result = run("demo", "-o", str(out), "--frames", "6", "--size", "96x54", "--device", "cpu")
+    assert result.exit_code == 0, result.output
+    assert "6 frames at 96x54" in result.output and "alive per frame" in result.output
+    video = cv2.VideoCapture(str(out))
+    assert int(video.get(cv2.CAP_PROP_FRAME_COUNT)) == 6
+    ok, frame = video.read()
+    assert ok and frame.shape == (54, 96, 3) and frame.std() > 10  # a picture, not a blank
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["demo.mp4"]  # no temporary left behind
+
+
+def test_demo_writes_png_frames_and_the_ball_moves(tmp_path):
+    out = tmp_path / "frames"
+    assert run("demo", "-o", str(out), "--frames", "5", "--size", "64x36", "--device", "cpu").exit_code == 0
+    names = sorted(p.name for p in out.iterdir())
+    assert names == [f"{k:05d}.png" for k in range(5)]
+    first, last = (cv2.imread(str(out / n)).astype(float) for n in (names[0], names[-1]))
+    assert abs(first - last).mean() > 2.0
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--size", "big"], "--size"),
+    (["--size", "0x10"], "--size"),
+    (["--device", "tpu"], "device"),
+    (["-o", "{tmp}/out.gif"], "unknown output type"),
+    (["-o", "{tmp}/missing/out.mp4"], "does not exist"),
+])
+def test_demo_bad_input(tmp_path, args, message):
+    args = [a.replace("{tmp}", str(tmp_path)) for a in args]
+    result = CliRunner().invoke(main, ["demo", "--frames", "2", "--size", "32x18", *args] if "--size" not in args
+                                else ["demo", "--frames", "2", *args])
+    assert result.exit_code == 2, result.output
+    assert message in result.output
+    assert list(tmp_path.iterdir()) == []

@@ -1,0 +1,67 @@
+"""Frames out: an MP4/AVI/MOV/MKV file or a folder of numbered PNGs, written atomically.
+
+Everything is written under a temporary name next to the target and renamed at the end, so an
+interrupted or failed write never leaves a half-written output behind.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from collections.abc import Iterable
+from pathlib import Path
+
+import numpy as np
+
+from tomgs.io import InputError
+
+VIDEO_SUFFIXES = {".mp4": "mp4v", ".avi": "MJPG", ".mov": "mp4v", ".mkv": "mp4v"}
+
+
+def write_frames(frames: Iterable[np.ndarray], path, fps: float = 25.0) -> int:
+    """Write RGB uint8 frames [H,W,3] to `path`: a video file by suffix, else a folder of PNGs
+    (00000.png, ...). Returns the number of frames written. Existing output is replaced only on
+    success."""
+    import cv2
+
+    path = Path(path)
+    if not path.parent.exists():
+        raise InputError(f"{path}: folder {path.parent} does not exist; create it or choose another output path")
+    is_video = path.suffix.lower() in VIDEO_SUFFIXES
+    if path.suffix and not is_video:
+        raise InputError(f"{path}: unknown output type {path.suffix!r}; use one of "
+                         f"{', '.join(sorted(VIDEO_SUFFIXES))} or a folder name without a suffix for PNG frames")
+    staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
+    count = 0
+    writer = None
+    try:
+        target = staging / f"out{path.suffix}" if is_video else staging
+        for frame in frames:
+            frame = np.ascontiguousarray(frame)
+            if frame.dtype != np.uint8 or frame.ndim != 3 or frame.shape[2] != 3:
+                raise ValueError(f"frames must be uint8 [H,W,3], got {frame.dtype} {frame.shape}")
+            bgr = frame[..., ::-1]
+            if is_video:
+                if writer is None:
+                    fourcc = cv2.VideoWriter_fourcc(*VIDEO_SUFFIXES[path.suffix.lower()])
+                    writer = cv2.VideoWriter(str(target), fourcc, fps, (frame.shape[1], frame.shape[0]))
+                    if not writer.isOpened():
+                        raise InputError(f"{path}: OpenCV cannot write {path.suffix} here; write PNG frames to a folder")
+                writer.write(np.ascontiguousarray(bgr))
+            elif not cv2.imwrite(str(target / f"{count:05d}.png"), bgr):
+                raise InputError(f"{path}: could not write PNG frame {count}")
+            count += 1
+        if writer is not None:
+            writer.release()
+            writer = None
+        if count == 0:
+            raise InputError(f"{path}: no frames to write")
+        if path.is_dir() and not is_video:
+            shutil.rmtree(path)
+        os.replace(target, path)
+    finally:
+        if writer is not None:
+            writer.release()
+        shutil.rmtree(staging, ignore_errors=True)
+    return count
