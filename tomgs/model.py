@@ -1,0 +1,119 @@
+"""GaussianModel: the stored parameters of a TOM-GS scene and the one place that activates them.
+
+Stored (unconstrained, what the optimiser sees), per Gaussian:
+    means [N,3]  quats [N,4] (w x y z, raw)  log_scales [N,3]  opacity_logits [N]
+    sh_dc [N,1,3]  sh_rest [N,K-1,3] (K = (max_degree + 1)^2)  t_means [N]  log_t_scales [N]
+Activated (what the renderer takes): scales = exp(log_scales), opacities = sigmoid(logits),
+t_scales = exp(log_t_scales), SH truncated to the active degree. Optimising log(sigma) keeps
+the temporal window's gradient bounded (DESIGN.md: d o / d log sigma = o z^2 <= 2a/e).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from tomgs.sh import _C0, sh_degree_of
+
+PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest", "t_means", "log_t_scales")
+
+
+def rgb_to_sh_dc(rgb: torch.Tensor) -> torch.Tensor:
+    """DC coefficient [N,1,3] whose colour (C0 * dc + 0.5) is `rgb` [N,3]."""
+    return ((rgb - 0.5) / _C0)[:, None, :]
+
+
+class GaussianModel(torch.nn.Module):
+    """N Gaussians with temporal opacity; `sh_degree` is the active degree (0 .. max_sh_degree)."""
+
+    def __init__(self, means, quats, log_scales, opacity_logits, sh_dc, sh_rest, t_means, log_t_scales,
+                 sh_degree: int = 0):
+        super().__init__()
+        n = means.shape[0]
+        shapes = dict(means=(n, 3), quats=(n, 4), log_scales=(n, 3), opacity_logits=(n,), sh_dc=(n, 1, 3),
+                      t_means=(n,), log_t_scales=(n,))
+        values = dict(means=means, quats=quats, log_scales=log_scales, opacity_logits=opacity_logits, sh_dc=sh_dc,
+                      sh_rest=sh_rest, t_means=t_means, log_t_scales=log_t_scales)
+        for name, shape in shapes.items():
+            if tuple(values[name].shape) != shape:
+                raise ValueError(f"{name} must have shape {shape}, got {tuple(values[name].shape)}")
+        if sh_rest.dim() != 3 or sh_rest.shape[0] != n or sh_rest.shape[2] != 3:
+            raise ValueError(f"sh_rest must have shape (N, K-1, 3), got {tuple(sh_rest.shape)}")
+        self.max_sh_degree = sh_degree_of(sh_rest.shape[1] + 1)
+        if not 0 <= sh_degree <= self.max_sh_degree:
+            raise ValueError(f"sh_degree must be in 0..{self.max_sh_degree}, got {sh_degree}")
+        self.sh_degree = sh_degree
+        for name, value in values.items():
+            setattr(self, name, torch.nn.Parameter(value.detach().float().contiguous()))
+
+    # -- construction -------------------------------------------------------------------------
+
+    @classmethod
+    def from_points(cls, points: torch.Tensor, colors: torch.Tensor, t_means: torch.Tensor,
+                    t_scale: float, max_sh_degree: int = 3, opacity: float = 0.1) -> "GaussianModel":
+        """Isotropic Gaussians at `points` [P,3] with RGB `colors` [P,3] in [0,1], temporal centres
+        `t_means` [P] and a common temporal sigma; size from the 3 nearest neighbours (as 3DGS)."""
+        points = points.float()
+        n = points.shape[0]
+        dist = nearest_neighbour_distance(points, k=3).clamp_min(1e-7)
+        rest = (max_sh_degree + 1) ** 2 - 1
+        return cls(
+            means=points,
+            quats=torch.tensor([1.0, 0.0, 0.0, 0.0], device=points.device).repeat(n, 1),
+            log_scales=torch.log(dist)[:, None].repeat(1, 3),
+            opacity_logits=torch.full((n,), math.log(opacity / (1 - opacity)), device=points.device),
+            sh_dc=rgb_to_sh_dc(colors.float().clamp(0, 1)),
+            sh_rest=torch.zeros(n, rest, 3, device=points.device),
+            t_means=t_means.float(),
+            log_t_scales=torch.full((n,), math.log(t_scale), device=points.device),
+        )
+
+    # -- activations ---------------------------------------------------------------------------
+
+    def __len__(self) -> int:
+        return self.means.shape[0]
+
+    @property
+    def scales(self) -> torch.Tensor:
+        return torch.exp(self.log_scales)
+
+    @property
+    def opacities(self) -> torch.Tensor:
+        return torch.sigmoid(self.opacity_logits)
+
+    @property
+    def t_scales(self) -> torch.Tensor:
+        return torch.exp(self.log_t_scales)
+
+    def sh(self, degree: int | None = None) -> torch.Tensor:
+        """SH coefficients [N,(d+1)^2,3] of the active degree (or `degree`)."""
+        degree = self.sh_degree if degree is None else degree
+        return torch.cat([self.sh_dc, self.sh_rest[:, : (degree + 1) ** 2 - 1]], dim=1)
+
+    def render_inputs(self) -> dict[str, torch.Tensor]:
+        """Keyword arguments of `tomgs.rasterize` for these Gaussians (camera and time excluded)."""
+        return dict(means=self.means, quats=self.quats, scales=self.scales, opacities=self.opacities,
+                    colors=self.sh(), t_means=self.t_means, t_scales=self.t_scales)
+
+    def parameters_by_name(self) -> dict[str, torch.nn.Parameter]:
+        return {name: getattr(self, name) for name in PARAM_NAMES}
+
+    def replace(self, tensors: dict[str, torch.Tensor]) -> None:
+        """Swap in new per-Gaussian tensors (after densify/prune); the optimiser must be told too."""
+        for name in PARAM_NAMES:
+            setattr(self, name, torch.nn.Parameter(tensors[name].detach().contiguous()))
+
+
+def nearest_neighbour_distance(points: torch.Tensor, k: int = 3, chunk: int = 4096) -> torch.Tensor:
+    """Root mean squared distance [P] from each point to its k nearest others (brute force, chunked)."""
+    n = points.shape[0]
+    if n <= 1:
+        return torch.ones(n, device=points.device)
+    k = min(k, n - 1)
+    out = torch.empty(n, device=points.device)
+    for start in range(0, n, chunk):
+        d2 = torch.cdist(points[start:start + chunk], points).square()
+        d2[torch.arange(d2.shape[0]), torch.arange(start, start + d2.shape[0])] = float("inf")
+        out[start:start + chunk] = d2.topk(k, dim=1, largest=False).values.mean(1).sqrt()
+    return out
