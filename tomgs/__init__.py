@@ -22,6 +22,9 @@ _EXPORTS = {
     "Cameras": "tomgs.cameras",
     "estimate_cameras": "tomgs.poses",
     "PoseReport": "tomgs.poses",
+    "GaussianModel": "tomgs.model",
+    "fit": "tomgs.train",
+    "TrainConfig": "tomgs.train",
 }
 
 __all__ = ["__version__", *_EXPORTS]
