@@ -22,6 +22,11 @@ _EXPORTS = {
     "Cameras": "tomgs.cameras",
     "estimate_cameras": "tomgs.poses",
     "PoseReport": "tomgs.poses",
+    "psnr": "tomgs.metrics",
+    "ssim": "tomgs.metrics",
+    "LPIPS": "tomgs.metrics",
+    "EvalReport": "tomgs.metrics",
+    "evaluate": "tomgs.metrics",
 }
 
 __all__ = ["__version__", *_EXPORTS]
