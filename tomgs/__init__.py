@@ -25,6 +25,11 @@ _EXPORTS = {
     "GaussianModel": "tomgs.model",
     "fit": "tomgs.train",
     "TrainConfig": "tomgs.train",
+    "psnr": "tomgs.metrics",
+    "ssim": "tomgs.metrics",
+    "LPIPS": "tomgs.metrics",
+    "EvalReport": "tomgs.metrics",
+    "evaluate": "tomgs.metrics",
 }
 
 __all__ = ["__version__", *_EXPORTS]
