@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from tomgs.cameras import Cameras
+from tomgs.metrics import psnr, ssim
 from tomgs.model import GaussianModel
 from tomgs.render import rasterize
 from tomgs.train.config import TrainConfig
@@ -37,11 +38,6 @@ class FitResult:
     seconds: float
     history: list[dict] = field(default_factory=list)  # the CSV rows
     notes: list[str] = field(default_factory=list)  # what was left out or assumed
-
-
-def psnr_of(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    mse = torch.mean((image - target) ** 2)
-    return -10.0 * torch.log10(mse.clamp_min(1e-12))
 
 
 class Trainer:
@@ -147,8 +143,6 @@ class Trainer:
                          height=self.height, t=self.times[k], **kw)
 
     def step(self) -> None:
-        from tomgs.metrics import ssim
-
         c = self.config
         k = self.sampler.sample()
         image, _, meta = self.render(k)
@@ -156,7 +150,7 @@ class Trainer:
         target = self.target(k)
         loss = (1 - c.ssim_weight) * (image - target).abs().mean() + c.ssim_weight * (1 - ssim(image, target))
         loss.backward()
-        self.sampler.update(k, float(psnr_of(image.detach(), target)))
+        self.sampler.update(k, float(psnr(image.detach(), target)))
         if self.iteration < c.densify_until:
             self.densifier.observe(meta)
         for group in self.optimizer.param_groups:
@@ -177,7 +171,7 @@ class Trainer:
     @torch.no_grad()
     def clip_psnr(self) -> list[float]:
         """PSNR of every frame, rendered at its time: [T] floats."""
-        return [float(psnr_of(self.render(k)[0], self.target(k))) for k in range(self.num_frames)]
+        return [float(psnr(self.render(k)[0], self.target(k))) for k in range(self.num_frames)]
 
     def run(self, checkpoint: Path | None = None, log_csv: Path | None = None, progress=None) -> FitResult:
         """Train to `config.iterations`. `progress(dict)` is called every log interval."""
