@@ -213,20 +213,22 @@ class EvalReport:
 
 def evaluate(model, cameras, frames, indices=None, lpips: LPIPS | None = None, device=None) -> EvalReport:
     """Render `model` (a GaussianModel, or a mapping of rasterizer inputs) at `cameras` and compare with
-    `frames` (uint8 [T,H,W,3] RGB, or a tomgs Video), frame k of the cameras against frame k of the clip.
+    `frames`, frame k of the cameras against frame k of the clip.
 
+    `frames`: uint8 [T,H,W,3] RGB, float [T,H,W,3] in [0,1], or a tomgs Video. Renders are compared
+    as floats (no 8-bit rounding); note that 8-bit references alone bound PSNR near 59 dB.
     `indices`: the frames to evaluate (default all); `lpips`: an LPIPS instance to add that metric;
-    `device`: where to render (default: where the model lives). Raises ValueError on mismatched
-    sizes or counts."""
+    `device`: where to render and measure (default: where the model lives). Raises ValueError on
+    mismatched sizes, counts or indices."""
     from tomgs.render import render_sequence
 
     clip = getattr(frames, "frames", frames)
     if isinstance(clip, torch.Tensor):
-        clip = clip.cpu().numpy()
+        clip = clip.detach().cpu().numpy()
     clip = np.asarray(clip)
-    if clip.ndim != 4 or clip.shape[-1] != 3 or clip.dtype != np.uint8:
-        raise ValueError(f"evaluate: frames must be uint8 [T,H,W,3] RGB (or a tomgs Video), got {clip.dtype} "
-                         f"{clip.shape}")
+    if clip.ndim != 4 or clip.shape[-1] != 3 or not (clip.dtype == np.uint8 or np.issubdtype(clip.dtype, np.floating)):
+        raise ValueError(f"evaluate: frames must be uint8 or float [T,H,W,3] RGB (or a tomgs Video), got "
+                         f"{clip.dtype} {clip.shape}")
     T, H, W = clip.shape[:3]
     if (H, W) != (cameras.height, cameras.width):
         raise ValueError(f"evaluate: frames are {W}x{H} but the cameras render {cameras.width}x{cameras.height}; "
@@ -238,13 +240,14 @@ def evaluate(model, cameras, frames, indices=None, lpips: LPIPS | None = None, d
     if bad:
         raise ValueError(f"evaluate: frame indices {bad[:5]} out of range 0..{T - 1}")
     gaussians = model.render_inputs() if hasattr(model, "render_inputs") else model
+    dev = torch.device(device) if device is not None else gaussians["means"].device
+    scale = 1.0 / 255.0 if clip.dtype == np.uint8 else 1.0
     start = time.perf_counter()
     report = EvalReport(frames=[], psnr=[], ssim=[], lpips=[] if lpips is not None else None, width=W, height=H)
     with torch.no_grad():
-        for k, image, _ in render_sequence(gaussians, cameras, indices, device=device):
-            dev = gaussians["means"].device if device is None else torch.device(device)
+        for k, image, _ in render_sequence(gaussians, cameras, indices, device=dev):
             img = image.to(dev)
-            ref = torch.from_numpy(clip[k]).to(dev).float() / 255.0
+            ref = torch.from_numpy(np.ascontiguousarray(clip[k])).to(dev).float() * scale
             report.frames.append(k)
             report.psnr.append(float(psnr(img, ref)))
             report.ssim.append(float(ssim(img, ref)))
