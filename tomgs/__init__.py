@@ -22,6 +22,9 @@ _EXPORTS = {
     "Cameras": "tomgs.cameras",
     "estimate_cameras": "tomgs.poses",
     "PoseReport": "tomgs.poses",
+    "save_scene": "tomgs.io.scene",
+    "load_scene": "tomgs.io.scene",
+    "Scene": "tomgs.io.scene",
 }
 
 __all__ = ["__version__", *_EXPORTS]
