@@ -328,9 +328,10 @@ def temporal_scales_in_frames(model, cameras: Cameras) -> np.ndarray:
     return sigma * max(len(cameras) - 1, 1)
 
 
-def log_histogram(values: np.ndarray, per_octave: int = 1, max_bins: int = 24) -> tuple[np.ndarray, np.ndarray]:
+def log_histogram(values: np.ndarray, per_octave: int = 1, max_bins: int = 24,
+                  min_bins: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """(edges [B+1], counts [B]) of positive `values` in bins spaced by powers of two (`per_octave` per
-    doubling); at most `max_bins` bins, the outer ones stretched to hold the extremes."""
+    doubling); `min_bins` .. `max_bins` bins, the outer ones stretched to hold the extremes."""
     values = np.asarray(values, dtype=np.float64)
     values = values[np.isfinite(values) & (values > 0)]
     if len(values) == 0:
@@ -341,6 +342,9 @@ def log_histogram(values: np.ndarray, per_octave: int = 1, max_bins: int = 24) -
         mid = round(math.log2(float(np.median(values))) * per_octave)
         lo = max(lo, min(mid - max_bins // 2, hi - max_bins))
         hi = lo + max_bins
+    if hi - lo < min_bins:  # widen evenly around the data
+        lo -= (min_bins - (hi - lo)) // 2
+        hi = lo + min_bins
     edges = 2.0 ** (np.arange(lo, hi + 1) / per_octave)
     counts = np.histogram(np.clip(values, edges[0], edges[-1]), bins=edges)[0]
     return edges, counts
@@ -417,12 +421,23 @@ def format_summary(s: dict, width: int = 40) -> str:
     return "\n".join(lines)
 
 
-def plot_temporal_scales(summary: dict, path) -> Path:
-    """PNG histogram of temporal sigma (in frames, log axis) from `summarize`'s dict, written atomically."""
-    h = summary["temporal_sigma_frames"]
-    unit = "frames" if h["unit"] == "frames" else "clip time"
-    title = f"temporal sigma ({unit}) of {summary['gaussians']:,} Gaussians, {summary['frames']} frames"
-    return _histogram_png(np.asarray(h["edges"]), np.asarray(h["counts"]), path, title, f"sigma ({unit}), log scale")
+def plot_temporal_scales(scene: Scene, path) -> Path:
+    """PNG histogram of the temporal sigmas in frames (log axis, 4 bins per doubling), written atomically."""
+    sigma = temporal_scales_in_frames(scene.model, scene.cameras)
+    edges, counts = log_histogram(sigma, per_octave=4, max_bins=64, min_bins=8)
+    unit = "frames" if len(scene.cameras) > 1 else "clip time"
+    title = f"temporal sigma ({unit}) of {len(sigma):,} Gaussians, {len(scene.cameras)} frames"
+    return _histogram_png(edges, counts, path, title, f"sigma ({unit}), log scale")
+
+
+def check_png_path(path) -> Path:
+    """The plot's path, checked before any work: a .png in an existing folder, else InputError."""
+    path = Path(path)
+    if path.suffix.lower() != ".png":
+        raise InputError(f"{path}: the plot is a PNG; give a path ending in .png")
+    if not path.parent.exists():
+        raise InputError(f"{path}: folder {path.parent} does not exist; create it or choose another path")
+    return path
 
 
 def _histogram_png(edges: np.ndarray, counts: np.ndarray, path, title: str, xlabel: str,
@@ -431,11 +446,7 @@ def _histogram_png(edges: np.ndarray, counts: np.ndarray, path, title: str, xlab
     shared plotting module lands)."""
     import cv2
 
-    path = Path(path)
-    if path.suffix.lower() != ".png":
-        raise InputError(f"{path}: the plot is a PNG; give a path ending in .png")
-    if not path.parent.exists():
-        raise InputError(f"{path}: folder {path.parent} does not exist; create it or choose another path")
+    path = check_png_path(path)
     w, h = size
     left, right, top, bottom = 70, 20, 40, 60
     img = np.full((h, w, 3), 255, np.uint8)
