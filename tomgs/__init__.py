@@ -30,6 +30,9 @@ _EXPORTS = {
     "LPIPS": "tomgs.metrics",
     "EvalReport": "tomgs.metrics",
     "evaluate": "tomgs.metrics",
+    "save_scene": "tomgs.io.scene",
+    "load_scene": "tomgs.io.scene",
+    "Scene": "tomgs.io.scene",
 }
 
 __all__ = ["__version__", *_EXPORTS]

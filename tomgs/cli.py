@@ -177,5 +177,101 @@ def demo(output, num_frames, size, device):
                f"projection and cost no tile work")
 
 
+def _parse_background(text: str | None):
+    """'r,g,b' in [0, 1] -> tuple, or None."""
+    if text is None:
+        return None
+    try:
+        rgb = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        rgb = ()
+    if len(rgb) != 3 or not all(0.0 <= v <= 1.0 for v in rgb):
+        raise UsageError(f"--background must be three numbers in [0, 1] like 0,0,0 or 1,1,1, got {text!r}")
+    return rgb
+
+
+@main.command()
+@click.argument("scene", type=click.Path(path_type=str))
+@click.option("--frames", default=None, help="frame range start:stop:step in the scene's frame numbers, e.g. 0:80")
+@click.option("-o", "--output", required=True, type=click.Path(path_type=str),
+              help="an .mp4/.avi/.mov/.mkv file, or a folder (no suffix) for PNG frames")
+@click.option("--device", default="auto", show_default=True, help="auto, cpu, cuda or cuda:N")
+@click.option("--background", default=None,
+              help="r,g,b in [0, 1]; default: the scene's (info \"background\"), else black")
+@click.option("--fps", type=click.FloatRange(min=0.1), default=None,
+              help="frame rate of a video output; default: the scene's (info \"fps\"), else 25")
+def render(scene, frames, output, device, background, fps):
+    """Render frames of SCENE (a .ply from `tomgs fit`) from its own cameras at their frame times.
+
+    \b
+    Examples:
+      tomgs render scene.ply -o scene.mp4
+      tomgs render scene.ply --frames 0:80 -o frames/ --device cuda
+    """
+    import time
+
+    import numpy as np
+
+    from tomgs.io import InputError, write_frames
+    from tomgs.io.scene import load_scene, select_frames
+    from tomgs.render import RenderError, render_sequence, resolve_device
+
+    rgb = _parse_background(background)
+    try:
+        dev = resolve_device(device)
+        loaded = load_scene(scene)
+        cams = loaded.cameras
+        positions = select_frames(cams, frames)
+        if rgb is None:
+            rgb = tuple(loaded.info.get("background", (0.0, 0.0, 0.0)))
+        rate = fps or float(loaded.info.get("fps", 25.0))
+        alive = []
+        start = time.perf_counter()
+
+        def images():
+            sequence = render_sequence(loaded.model.render_inputs(), cams, positions.tolist(), background=rgb,
+                                       device=dev)
+            with click.progressbar(sequence, length=len(positions), label="render") as bar:
+                for _, image, meta in bar:
+                    alive.append(int(meta["n_alive"]))
+                    yield (image.numpy() * 255.0 + 0.5).astype(np.uint8)
+
+        count = write_frames(images(), output, fps=rate)
+    except (InputError, RenderError) as e:
+        raise UsageError(str(e)) from None
+    seconds = time.perf_counter() - start
+    numbers = cams.frame_indices[positions]
+    click.echo(f"{output}: {count} frames ({numbers[0]}..{numbers[-1]}) at {cams.width}x{cams.height} on {dev} in "
+               f"{seconds:.1f} s ({count / seconds:.1f} fps)")
+    click.echo(f"  {len(loaded.model):,} Gaussians; alive per frame {min(alive):,}..{max(alive):,}: the rest were "
+               f"culled in projection and cost no tile work")
+
+
+@main.command()
+@click.argument("scene", type=click.Path(path_type=str))
+@click.option("--plot", type=click.Path(dir_okay=False, path_type=str), default=None,
+              help="write a PNG histogram of temporal scales (log axis) here")
+@click.option("--json", "as_json", is_flag=True, help="print the numbers as JSON instead of text")
+def info(scene, plot, as_json):
+    """Counts, time coverage, temporal scales and opacities of SCENE (a .ply from `tomgs fit`)."""
+    import json
+
+    from tomgs.io import InputError
+    from tomgs.io.scene import check_png_path, format_summary, load_scene, plot_temporal_scales, summarize
+
+    try:
+        if plot is not None:
+            check_png_path(plot)
+        loaded = load_scene(scene)
+        summary = summarize(loaded, scene)
+        if plot is not None:
+            plot_temporal_scales(loaded, plot)
+    except InputError as e:
+        raise UsageError(str(e)) from None
+    click.echo(json.dumps(summary, indent=1) if as_json else format_summary(summary))
+    if plot is not None and not as_json:
+        click.echo(f"{plot}: histogram of temporal scales")
+
+
 if __name__ == "__main__":
     main()

@@ -1,0 +1,257 @@
+"""Scene files: exact round trip, the INRIA layout, frame selection, summaries, and bad files."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from plyfile import PlyData, PlyElement
+
+import tomgs
+from tomgs.cameras import Cameras, intrinsics, look_at
+from tomgs.io import InputError
+from tomgs.io.scene import (alive_per_frame, load_scene, log_histogram, save_scene, select_frames, summarize,
+                            format_summary)
+from tomgs.model import PARAM_NAMES, GaussianModel
+
+# written out by hand from INRIA's GaussianModel.construct_list_of_attributes, not from tomgs
+INRIA_DEGREE_3 = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+                  + [f"f_rest_{i}" for i in range(45)]
+                  + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+
+
+def random_model(n: int, max_degree: int, degree: int, seed: int = 0) -> GaussianModel:
+    g = torch.Generator().manual_seed(seed)
+    r = lambda *shape: torch.randn(*shape, generator=g)  # noqa: E731
+    model = GaussianModel(r(n, 3) * 0.4 + torch.tensor([0.0, 0.0, 3.0]), r(n, 4), r(n, 3) * 0.3 - 2.5, r(n) + 1.0,
+                          r(n, 1, 3), r(n, (max_degree + 1) ** 2 - 1, 3) * 0.2, torch.rand(n, generator=g),
+                          r(n) * 0.5 - 2.0, sh_degree=degree)
+    if n >= 4:  # awkward float32 values: signed zero, a subnormal, extremes
+        with torch.no_grad():
+            model.means[0, 0] = -0.0
+            model.means[1, 1] = 1e-45
+            model.opacity_logits[2] = 3.4e38
+            model.t_means[3] = -1e-38
+    return model
+
+
+def random_cameras(T: int, seed: int = 0, width: int = 64, height: int = 36) -> Cameras:
+    rng = np.random.default_rng(seed)
+    c2w = np.stack([look_at(rng.normal(size=3) * 0.1, [0.0, 0.0, 3.0]) for _ in range(T)])
+    c2w[:, :3, 3] += rng.normal(size=(T, 3)) * 1e-9  # digits a float32 or a short repr would lose
+    K = intrinsics(57.123456789012345, width, height)
+    K[0, 2] += 1 / 3
+    times = np.sort(rng.uniform(0, 1, T))
+    return Cameras(c2w, K, width, height, times, 10 + 3 * np.arange(T))
+
+
+def assert_same_scene(a_model, a_cams, b):
+    for name in PARAM_NAMES:
+        x, y = getattr(a_model, name), getattr(b.model, name)
+        assert x.dtype == y.dtype == torch.float32 and x.shape == y.shape, name
+        assert x.detach().numpy().tobytes() == y.detach().numpy().tobytes(), name  # bit-identical
+    assert (b.model.sh_degree, b.model.max_sh_degree) == (a_model.sh_degree, a_model.max_sh_degree)
+    for name in ("c2w", "K", "times", "frame_indices"):
+        x, y = getattr(a_cams, name), getattr(b.cameras, name)
+        assert x.dtype == y.dtype and x.tobytes() == y.tobytes(), name
+    assert (b.cameras.width, b.cameras.height) == (a_cams.width, a_cams.height)
+
+
+@pytest.mark.parametrize("max_degree, degree", [(0, 0), (1, 1), (2, 1), (3, 0), (3, 3)])
+def test_round_trip_is_exact(tmp_path, max_degree, degree):
+    model, cams = random_model(50, max_degree, degree, seed=max_degree), random_cameras(7, seed=degree)
+    info = {"fps": 29.97, "psnr": [31.25, 0.1 + 0.2], "nested": {"a": None, "b": True}, "text": "end_header é\n"}
+    path = save_scene(tmp_path / "scene.ply", model, cams, info)
+    scene = load_scene(path)
+    assert_same_scene(model, cams, scene)
+    assert scene.info == info and isinstance(scene, tomgs.Scene)
+    # saving what was loaded writes the same bytes again
+    save_scene(tmp_path / "again.ply", scene.model, scene.cameras, scene.info)
+    assert (tmp_path / "again.ply").read_bytes() == path.read_bytes()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["again.ply", "scene.ply"]  # no temporaries
+
+
+def test_empty_model_and_single_frame(tmp_path):
+    model, cams = random_model(0, 1, 0), random_cameras(1)
+    scene = load_scene(save_scene(tmp_path / "s.ply", model, cams))
+    assert_same_scene(model, cams, scene)
+    assert scene.info == {}
+
+
+def test_layout_is_inria_first_then_temporal(tmp_path):
+    model, cams = random_model(20, 3, 2), random_cameras(4)
+    with torch.no_grad():  # sh_rest[i, j, c] = 1000 i + 10 j + c: where each coefficient lands is visible
+        i, j, c = torch.meshgrid(torch.arange(20), torch.arange(15), torch.arange(3), indexing="ij")
+        model.sh_rest.copy_((1000 * i + 10 * j + c).float())
+    ply = PlyData.read(str(save_scene(tmp_path / "s.ply", model, cams)))
+    assert [e.name for e in ply.elements] == ["vertex", "camera"]
+    vertex = ply["vertex"]
+    names = [p.name for p in vertex.properties]
+    assert names[:len(INRIA_DEGREE_3)] == INRIA_DEGREE_3
+    assert names[len(INRIA_DEGREE_3):] == ["t_mean", "t_log_sigma"]
+    assert not any(n.startswith(("scale_", "rot", "f_rest_")) for n in names[len(INRIA_DEGREE_3):])
+    assert all(vertex.data.dtype[n] == np.dtype("<f4") for n in names)
+    assert ply.text is False and ply.byte_order == "<"
+    # channel-major f_rest: all 15 R coefficients, then G, then B (INRIA's transpose(1, 2).flatten)
+    for channel in range(3):
+        for coeff in range(15):
+            np.testing.assert_array_equal(vertex[f"f_rest_{channel * 15 + coeff}"],
+                                          1000 * np.arange(20) + 10 * coeff + channel)
+    np.testing.assert_array_equal(vertex["opacity"], model.opacity_logits.detach().numpy())
+    np.testing.assert_array_equal(vertex["rot_0"], model.quats[:, 0].detach().numpy())
+    np.testing.assert_array_equal(vertex["t_log_sigma"], model.log_t_scales.detach().numpy())
+    camera = ply["camera"]
+    assert len(camera.data) == 4 and camera.data.dtype["c2w_23"] == np.dtype("<f8")
+    np.testing.assert_array_equal(camera["c2w_03"], cams.c2w[:, 0, 3])
+    np.testing.assert_array_equal(camera["index"], cams.frame_indices)
+
+
+def test_degree_zero_has_no_f_rest(tmp_path):
+    ply = PlyData.read(str(save_scene(tmp_path / "s.ply", random_model(5, 0, 0), random_cameras(2))))
+    names = [p.name for p in ply["vertex"].properties]
+    assert names == INRIA_DEGREE_3[:9] + INRIA_DEGREE_3[54:] + ["t_mean", "t_log_sigma"]
+
+
+def test_save_refuses_what_would_not_load_and_keeps_the_old_file(tmp_path, monkeypatch):
+    path = save_scene(tmp_path / "s.ply", random_model(5, 1, 0), random_cameras(2))
+    before = path.read_bytes()
+    bad = random_model(5, 1, 0)
+    with torch.no_grad():
+        bad.log_t_scales[3] = float("nan")
+    with pytest.raises(ValueError, match="non-finite"):
+        save_scene(path, bad, random_cameras(2))
+    with pytest.raises(ValueError, match="JSON"):
+        save_scene(path, random_model(5, 1, 0), random_cameras(2), {"x": object()})
+
+    def broken_write(self, stream):
+        stream.write(b"ply\nformat binary_little_endian 1.0\n")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(PlyData, "write", broken_write)
+    with pytest.raises(OSError):
+        save_scene(path, random_model(6, 1, 0), random_cameras(3))
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["s.ply"]
+
+
+# ---- bad files ---------------------------------------------------------------------------------
+
+def _write_ply(path, elements, comments):
+    PlyData(elements, text=False, byte_order="<", comments=comments).write(str(path))
+
+
+def _rewrite(src, dst, *, drop_vertex=(), drop_camera=False, comment=None, vertex_fn=None):
+    ply = PlyData.read(str(src))
+    v = ply["vertex"].data
+    keep = [n for n in v.dtype.names if n not in drop_vertex]
+    v2 = np.empty(len(v), dtype=[(n, v.dtype[n]) for n in keep])
+    for n in keep:
+        v2[n] = v[n]
+    if vertex_fn:
+        vertex_fn(v2)
+    elements = [PlyElement.describe(v2, "vertex")]
+    if not drop_camera:
+        elements.append(PlyElement.describe(ply["camera"].data, "camera"))
+    _write_ply(dst, elements, ply.comments if comment is None else comment)
+    return dst
+
+
+@pytest.fixture
+def good(tmp_path):
+    return save_scene(tmp_path / "good.ply", random_model(8, 1, 1), random_cameras(3))
+
+
+def _file(path, data: bytes):
+    path.write_bytes(data)
+    return path
+
+
+def _nan_opacity(v):
+    v["opacity"][2] = np.nan
+
+
+@pytest.mark.parametrize("make, message", [
+    (lambda d, g: d / "missing.ply", "does not exist"),
+    (lambda d, g: d, "does not exist"),
+    (lambda d, g: _file(d / "x.ply", b"hello, not a ply"), "not a PLY file"),
+    (lambda d, g: _file(d / "t.ply", g.read_bytes()[:-40]), "damaged or truncated"),
+    (lambda d, g: _file(d / "h.ply", b"ply\nformat binary_little_endian 1.0\nelement vertex 3\n"),
+     "damaged or truncated"),
+    (lambda d, g: _rewrite(g, d / "p.ply", drop_vertex=("t_log_sigma",)), "lacks properties t_log_sigma"),
+    (lambda d, g: _rewrite(g, d / "r.ply", drop_vertex=("rot_3", "f_rest_8")), "f_rest_8, rot_3"),
+    (lambda d, g: _rewrite(g, d / "c.ply", drop_camera=True), "'camera'"),
+    (lambda d, g: _rewrite(g, d / "i.ply", comment=["made by a 3DGS trainer"]), "not a tomgs scene"),
+    (lambda d, g: _rewrite(g, d / "j.ply", comment=["tomgs-scene {not json"]), "not valid JSON"),
+    (lambda d, g: _rewrite(g, d / "v.ply", comment=['tomgs-scene {"format": "tomgs-scene", "version": 9}']),
+     "version 9"),
+    (lambda d, g: _rewrite(g, d / "n.ply", vertex_fn=_nan_opacity), "non-finite"),
+])
+def test_bad_files_raise_input_error(tmp_path, good, make, message):
+    bad = make(tmp_path, good)
+    with pytest.raises(InputError, match=message) as e:
+        load_scene(bad)
+    assert str(bad) in str(e.value)
+
+
+def test_more_f_rest_than_the_header_says(tmp_path, good):
+    ply = PlyData.read(str(good))
+    header = json.loads(ply.comments[0].split(None, 1)[1])
+    header["max_sh_degree"] = 0
+    header["sh_degree"] = 0
+    bad = _rewrite(good, tmp_path / "d.ply", comment=["tomgs-scene " + json.dumps(header)])
+    with pytest.raises(InputError, match="f_rest_"):
+        load_scene(bad)
+
+
+# ---- frames and summaries ----------------------------------------------------------------------
+
+def test_select_frames_uses_the_scene_numbering():
+    cams = Cameras.create(np.tile(np.eye(4), (5, 1, 1)), np.eye(3), 8, 8, frame_indices=[10, 12, 14, 16, 18])
+    assert select_frames(cams, None).tolist() == [0, 1, 2, 3, 4]
+    assert select_frames(cams, "12:17").tolist() == [1, 2, 3]
+    assert select_frames(cams, "10:19:4").tolist() == [0, 2, 4]
+    assert select_frames(cams, "14").tolist() == [2]
+    assert select_frames(cams, "-1").tolist() == [4]
+    assert select_frames(cams, "12:").tolist() == [1, 2, 3, 4]
+    for spec in ("0:5", "12:40", "19", "13", "x:y", "::0", "-30:"):
+        with pytest.raises(InputError):
+            select_frames(cams, spec)
+
+
+def test_alive_per_frame_matches_the_renderer():
+    from tomgs.render import render_sequence
+
+    model, cams = random_model(200, 0, 0, seed=3), Cameras.create(
+        np.tile(np.eye(4), (4, 1, 1)), intrinsics(40.0, 32, 18), 32, 18)
+    counts, ever = alive_per_frame(model, cams)
+    rendered = [int(meta["n_alive"]) for _, _, meta in render_sequence(model.render_inputs(), cams)]
+    assert counts.tolist() == rendered
+    assert 0 < min(rendered) < len(model) and ever.sum() >= max(rendered)
+
+
+def test_log_histogram_bins_by_doubling():
+    edges, counts = log_histogram(np.array([0.3, 0.6, 0.7, 1.5, 3.0, 100.0]))
+    assert edges.tolist() == [0.25, 0.5, 1, 2, 4, 8, 16, 32, 64, 128]
+    assert counts.tolist() == [1, 2, 1, 1, 0, 0, 0, 0, 1] and counts.sum() == 6
+    edges, counts = log_histogram(np.geomspace(1e-9, 1e9, 1000), max_bins=10)
+    assert len(counts) == 10 and counts.sum() == 1000  # extremes fall into the outer bins
+
+
+def test_summary_numbers(tmp_path):
+    model, cams = random_model(30, 2, 1), random_cameras(5)
+    with torch.no_grad():
+        model.opacity_logits[:3] = -20.0  # three Gaussians that can never be seen
+    path = save_scene(tmp_path / "s.ply", model, cams, {"fps": 12})
+    s = summarize(load_scene(path), path)
+    assert (s["gaussians"], s["frames"], s["width"], s["height"]) == (30, 5, 64, 36)
+    assert (s["sh_degree"], s["max_sh_degree"]) == (1, 2)
+    assert s["file_bytes"] == path.stat().st_size and s["frame_numbers"] == [10, 22]
+    assert s["never_alive"] >= 3 and s["opacity"]["below_1_255"] == 3
+    assert sum(s["temporal_sigma_frames"]["counts"]) == 30
+    sigma = np.exp(model.log_t_scales.detach().double().numpy()) * 4
+    assert s["temporal_sigma_frames"]["median"] == pytest.approx(np.median(sigma))
+    json.dumps(s)  # plain JSON
+    text = format_summary(s)
+    assert "30 Gaussians" in text and "5 frames" in text and "SH degree 1 of 2" in text and "#" in text

@@ -1,0 +1,486 @@
+"""Scene files: one PLY holds the Gaussians, the cameras and the frame-to-time mapping.
+
+`save_scene(path, model, cameras, info)` writes it atomically; `load_scene(path)` reads it back
+exactly (float32 parameters and float64 cameras bit for bit, the active SH degree, `info`).
+
+Layout (binary little endian, format "tomgs-scene" version 1):
+
+    ply
+    format binary_little_endian 1.0
+    comment tomgs-scene {"format": "tomgs-scene", "version": 1, "width": W, "height": H,
+                         "K": [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], "sh_degree": d,
+                         "max_sh_degree": D, "tomgs": "0.1.0", "info": {...}}   (one line)
+    element vertex N                      one per Gaussian, all float32, in this order:
+      x y z                               mean
+      nx ny nz                            zeros (INRIA writes them; nothing reads them)
+      f_dc_0 f_dc_1 f_dc_2                SH DC coefficient, R G B
+      f_rest_0 .. f_rest_{3(K-1)-1}       SH rest, channel-major: K-1 coefficients of R, then G,
+                                          then B (INRIA's features_rest [N,K-1,3] transposed to
+                                          [N,3,K-1] and flattened); none for degree 0
+      opacity                             base opacity, logit
+      scale_0 scale_1 scale_2             log scales
+      rot_0 rot_1 rot_2 rot_3             raw quaternion w x y z
+      t_mean                              temporal centre (clip time, t in [0, 1])
+      t_log_sigma                         log of the temporal sigma (clip time)
+    element camera T                      one per frame, in clip order:
+      c2w_00 .. c2w_33  double            camera-to-world, row-major, OpenCV axes
+      time              double            frame time in [0, 1]
+      index             int               source frame number
+
+Why this shape: 3DGS loaders and viewers read the first element, `vertex`, and match its
+properties by name or prefix (`f_rest_`, `scale_`, `rot`), so the INRIA properties come first and
+in INRIA's order and the temporal ones after them under names without those prefixes; tools that
+read only the vertex block stop before the `camera` element, which is stored after it. Cameras are
+binary float64 so poses survive bit for bit; K and the image size are per clip and travel in the
+header comment as JSON, whose float text (Python's repr) also reads back exactly. `K` is the
+maximum SH degree stored: (K = (D + 1)^2 coefficients per channel); `sh_degree` the active one.
+`info` is any JSON object (e.g. the fit's settings and results; `fps` and `background` are used
+by `tomgs render` when present). A tool that re-saves the PLY may drop the comment or the camera
+element; `load_scene` then says so.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from tomgs.cameras import Cameras
+from tomgs.io import InputError
+
+FORMAT = "tomgs-scene"
+VERSION = 1
+COMMENT_TAG = FORMAT  # the header comment that carries the JSON starts with this word
+TEMPORAL_PROPERTIES = ("t_mean", "t_log_sigma")
+_C2W = tuple(f"c2w_{r}{c}" for r in range(4) for c in range(4))
+
+
+def inria_properties(max_sh_degree: int) -> list[str]:
+    """The INRIA 3DGS vertex property names, in order, for SH of `max_sh_degree`."""
+    rest = 3 * ((max_sh_degree + 1) ** 2 - 1)
+    return (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+            + [f"f_rest_{i}" for i in range(rest)]
+            + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+
+
+def vertex_properties(max_sh_degree: int) -> list[str]:
+    """Every vertex property of a tomgs scene: the INRIA ones, then the temporal ones."""
+    return inria_properties(max_sh_degree) + list(TEMPORAL_PROPERTIES)
+
+
+@dataclass
+class Scene:
+    """What a scene file holds: the Gaussians, the cameras (with frame times) and free-form info."""
+
+    model: "GaussianModel"  # noqa: F821  (tomgs.model, imported lazily)
+    cameras: Cameras
+    info: dict = field(default_factory=dict)
+
+
+# ---- writing -----------------------------------------------------------------------------------
+
+def save_scene(path, model, cameras: Cameras, info: dict | None = None) -> Path:
+    """Write `model` (a GaussianModel), `cameras` and `info` (a JSON-serialisable dict) to the PLY
+    file `path`, atomically: a temporary file in the same folder, renamed at the end."""
+    from plyfile import PlyData, PlyElement
+
+    path = Path(path)
+    info = {} if info is None else info
+    if not isinstance(info, dict):
+        raise TypeError(f"info must be a dict, got {type(info).__name__}")
+    if len(cameras) == 0:
+        raise ValueError("a scene needs at least one camera")
+    if not (np.abs(cameras.frame_indices) < 2**31).all():
+        raise ValueError("frame indices must fit in int32")
+
+    n, degree = len(model), model.max_sh_degree
+    with torch.no_grad():
+        params = {name: getattr(model, name).detach().cpu() for name in
+                  ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest", "t_means", "log_t_scales")}
+    bad = [name for name, value in params.items() if not bool(torch.isfinite(value).all())]
+    if bad:
+        raise ValueError(f"cannot save a scene with non-finite parameters ({', '.join(bad)})")
+    columns = [
+        params["means"],
+        torch.zeros(n, 3),
+        params["sh_dc"].reshape(n, 3),
+        params["sh_rest"].transpose(1, 2).reshape(n, 3 * (params["sh_rest"].shape[1])),  # [N,3,K-1]: channel-major
+        params["opacity_logits"].reshape(n, 1),
+        params["log_scales"],
+        params["quats"],
+        params["t_means"].reshape(n, 1),
+        params["log_t_scales"].reshape(n, 1),
+    ]
+    flat = torch.cat([c.float() for c in columns], dim=1).numpy()
+    names = vertex_properties(degree)
+    assert flat.shape == (n, len(names))
+    vertex = np.empty(n, dtype=[(name, "<f4") for name in names])
+    for j, name in enumerate(names):
+        vertex[name] = flat[:, j]
+
+    camera = np.empty(len(cameras), dtype=[(name, "<f8") for name in _C2W] + [("time", "<f8"), ("index", "<i4")])
+    c2w = cameras.c2w.reshape(len(cameras), 16)
+    for j, name in enumerate(_C2W):
+        camera[name] = c2w[:, j]
+    camera["time"] = cameras.times
+    camera["index"] = cameras.frame_indices
+
+    from tomgs import __version__
+
+    header = {"format": FORMAT, "version": VERSION, "width": cameras.width, "height": cameras.height,
+              "K": cameras.K.tolist(), "sh_degree": int(model.sh_degree), "max_sh_degree": int(degree),
+              "tomgs": __version__, "info": info}
+    try:
+        text = json.dumps(header, ensure_ascii=True, allow_nan=False, separators=(",", ":"))
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"info must be JSON-serialisable with finite numbers ({e})") from None
+    text = text.replace("end_header", "end\\u005fheader")  # never spell the header terminator in a comment
+    ply = PlyData([PlyElement.describe(vertex, "vertex"), PlyElement.describe(camera, "camera")],
+                  text=False, byte_order="<", comments=[f"{COMMENT_TAG} {text}"])
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            ply.write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+# ---- reading -----------------------------------------------------------------------------------
+
+def load_scene(path, device="cpu") -> Scene:
+    """Read a scene written by `save_scene`; the model's parameters are put on `device`.
+    Raises `tomgs.InputError` naming the file and the fix when it is missing or malformed."""
+    from plyfile import PlyData, PlyParseError
+
+    from tomgs.model import GaussianModel
+
+    path = Path(path)
+    fix = "write scenes with `tomgs fit` or tomgs.save_scene"
+    if not path.is_file():
+        raise InputError(f"scene file {path} does not exist" + (" (it is a folder)" if path.is_dir() else "")
+                         + f": give the path of a .ply scene ({fix})")
+    with open(path, "rb") as f:
+        magic = f.read(4)
+    if magic not in (b"ply\n", b"ply\r"):
+        raise InputError(f"{path} is not a PLY file (it does not start with 'ply'): {fix}")
+    try:
+        ply = PlyData.read(str(path), mmap=False)
+    except (PlyParseError, ValueError, UnicodeDecodeError, EOFError) as e:
+        raise InputError(f"{path} is a damaged or truncated PLY file ({e}): {fix}") from None
+
+    header = _header(ply, path, fix)
+    names = [e.name for e in ply.elements]
+    if not names or names[0] != "vertex" or "camera" not in names:
+        raise InputError(f"{path} has elements {names}; a tomgs scene has 'vertex' first and then 'camera' "
+                         f"(a tool that re-saved it may have dropped the cameras): {fix}")
+    degree = header["max_sh_degree"]
+    vertex = ply["vertex"].data
+    missing = [p for p in vertex_properties(degree) if p not in (vertex.dtype.names or ())]
+    if missing:
+        shown = ", ".join(missing[:6]) + (f" and {len(missing) - 6} more" if len(missing) > 6 else "")
+        raise InputError(f"{path}: vertex element lacks properties {shown} (SH degree {degree} per the header): {fix}")
+    extra_rest = [p for p in vertex.dtype.names if p.startswith("f_rest_") and p not in vertex_properties(degree)]
+    if extra_rest:
+        raise InputError(f"{path}: vertex has {len(extra_rest)} more f_rest_ properties than SH degree {degree} "
+                         f"allows (the header and the data disagree): {fix}")
+    camera = ply["camera"].data
+    missing = [p for p in (*_C2W, "time", "index") if p not in (camera.dtype.names or ())]
+    if missing:
+        raise InputError(f"{path}: camera element lacks properties {', '.join(missing)}: {fix}")
+    if len(camera) == 0:
+        raise InputError(f"{path} holds zero cameras: a scene needs one per frame ({fix})")
+
+    n = len(vertex)
+
+    def col(names_):  # float32 [N, len(names_)]
+        return np.stack([np.asarray(vertex[p], dtype=np.float32) for p in names_], axis=1) if names_ \
+            else np.zeros((n, 0), np.float32)
+
+    rest = 3 * ((degree + 1) ** 2 - 1)
+    arrays = dict(
+        means=col(["x", "y", "z"]),
+        sh_dc=col(["f_dc_0", "f_dc_1", "f_dc_2"]).reshape(n, 1, 3),
+        sh_rest=col([f"f_rest_{i}" for i in range(rest)]).reshape(n, 3, rest // 3).transpose(0, 2, 1),
+        opacity_logits=col(["opacity"])[:, 0],
+        log_scales=col(["scale_0", "scale_1", "scale_2"]),
+        quats=col(["rot_0", "rot_1", "rot_2", "rot_3"]),
+        t_means=col(["t_mean"])[:, 0],
+        log_t_scales=col(["t_log_sigma"])[:, 0],
+    )
+    bad = {name: int((~np.isfinite(a.reshape(n, a[0].size if n else 0))).any(axis=1).sum())
+           for name, a in arrays.items()}
+    bad = {name: count for name, count in bad.items() if count}
+    if bad:
+        raise InputError(f"{path}: non-finite values (NaN or infinity) in "
+                         + ", ".join(f"{name} of {count} Gaussians" for name, count in bad.items())
+                         + f": the file is corrupt or came from a diverged fit; refit or remove those Gaussians")
+
+    try:
+        c2w = np.stack([np.asarray(camera[p], dtype=np.float64) for p in _C2W], axis=1).reshape(-1, 4, 4)
+        cameras = Cameras(c2w, np.asarray(header["K"], dtype=np.float64), header["width"], header["height"],
+                          np.asarray(camera["time"], dtype=np.float64), np.asarray(camera["index"], dtype=np.int64))
+    except (ValueError, TypeError) as e:
+        raise InputError(f"{path}: bad cameras ({e}): {fix}") from None
+    if cameras.width < 1 or cameras.height < 1:
+        raise InputError(f"{path}: bad image size {cameras.width}x{cameras.height}: {fix}")
+    if not np.isfinite(cameras.times).all():
+        raise InputError(f"{path}: non-finite frame times: {fix}")
+
+    tensors = {name: torch.from_numpy(np.ascontiguousarray(a)).to(device) for name, a in arrays.items()}
+    model = GaussianModel(**tensors, sh_degree=header["sh_degree"])
+    return Scene(model=model, cameras=cameras, info=header["info"])
+
+
+def _header(ply, path: Path, fix: str) -> dict:
+    """The JSON header comment, checked."""
+    tagged = [c for c in ply.comments if c.split(None, 1)[:1] == [COMMENT_TAG]]
+    if not tagged:
+        raise InputError(f"{path} is a PLY file but not a tomgs scene (no '{COMMENT_TAG}' header comment; "
+                         f"a plain 3DGS PLY has no cameras or frame times): {fix}")
+    try:
+        header = json.loads(tagged[0].split(None, 1)[1])
+    except (IndexError, json.JSONDecodeError) as e:
+        raise InputError(f"{path}: the '{COMMENT_TAG}' header comment is not valid JSON ({e}): {fix}") from None
+    if not isinstance(header, dict) or header.get("format") != FORMAT:
+        raise InputError(f"{path}: the '{COMMENT_TAG}' header comment lacks \"format\": \"{FORMAT}\": {fix}")
+    if header.get("version") != VERSION:
+        raise InputError(f"{path} is tomgs scene version {header.get('version')!r}; this tomgs reads version "
+                         f"{VERSION}: install the tomgs that wrote it, or refit")
+    checks = {
+        "width": lambda v: isinstance(v, int),
+        "height": lambda v: isinstance(v, int),
+        "K": lambda v: np.asarray(v, dtype=object).shape == (3, 3),
+        "max_sh_degree": lambda v: isinstance(v, int) and 0 <= v <= 3,
+        "sh_degree": lambda v: isinstance(v, int) and 0 <= v <= header.get("max_sh_degree", -1),
+        "info": lambda v: isinstance(v, dict),
+    }
+    for key, ok in checks.items():
+        if key not in header or not ok(header[key]):
+            raise InputError(f"{path}: header field {key!r} is missing or invalid ({header.get(key)!r}): {fix}")
+    return header
+
+
+# ---- frames and summaries ----------------------------------------------------------------------
+
+def select_frames(cameras: Cameras, spec) -> np.ndarray:
+    """Positions (into `cameras`) of the frames that `spec` ('a:b', 'a:b:c', 'k', None = all) picks, in
+    the scene's frame numbering (`cameras.frame_indices`, the source video's frame numbers).
+
+    Numbers follow Python slices over 0 .. last frame number (negative counts from the end); a start
+    or stop outside the scene's frames, or a range that holds none of them, raises InputError.
+    """
+    from tomgs.io.video import parse_frames
+
+    numbers = cameras.frame_indices
+    first, last = int(numbers.min()), int(numbers.max())
+    span = f"{first}:{last + 1}" if len(numbers) == last - first + 1 else \
+        f"{len(numbers)} frames numbered {first}..{last}"
+    sel = parse_frames(spec)
+    if spec is None or sel == slice(None):
+        return np.arange(len(cameras))
+    for value, what, hi in ((sel.start, "start", last), (sel.stop, "stop", last + 1)):
+        if value is None:
+            continue
+        absolute = value + last + 1 if value < 0 else value
+        if not first <= absolute <= hi:
+            raise InputError(f"frame range {spec!r}: {what} {value} is outside the scene's frames ({span}); "
+                             f"pick a range inside {first}:{last + 1}")
+    wanted = set(np.arange(last + 1)[sel].tolist())
+    positions = np.array([k for k, num in enumerate(numbers.tolist()) if num in wanted], dtype=np.int64)
+    if len(positions) == 0:
+        raise InputError(f"frame range {spec!r} holds none of the scene's frames ({span})")
+    return positions
+
+
+def alive_per_frame(model, cameras: Cameras, alpha_min: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(count [T] of Gaussians whose temporal opacity at frame k's time is >= 1/255 -- those the
+    renderer does not cull --, bool [N]: alive in at least one frame). Float32, as the renderer."""
+    from tomgs.constants import ALPHA_MIN
+
+    alpha_min = ALPHA_MIN if alpha_min is None else alpha_min
+    with torch.no_grad():
+        a, m, s = model.opacities.detach(), model.t_means.detach(), model.t_scales.detach()
+        counts = np.zeros(len(cameras), dtype=np.int64)
+        ever = torch.zeros(len(model), dtype=torch.bool, device=a.device)
+        for k, t in enumerate(cameras.times.tolist()):
+            z = (torch.tensor(t, dtype=torch.float32, device=a.device) - m) / s
+            alive = a * torch.exp(-0.5 * z * z) >= alpha_min
+            counts[k] = int(alive.sum())
+            ever |= alive
+    return counts, ever.cpu().numpy()
+
+
+def temporal_scales_in_frames(model, cameras: Cameras) -> np.ndarray:
+    """float64 [N]: sigma in frames, sigma * (T - 1) (clip units for a single-frame scene)."""
+    sigma = model.t_scales.detach().cpu().double().numpy()
+    return sigma * max(len(cameras) - 1, 1)
+
+
+def log_histogram(values: np.ndarray, per_octave: int = 1, max_bins: int = 24,
+                  min_bins: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """(edges [B+1], counts [B]) of positive `values` in bins spaced by powers of two (`per_octave` per
+    doubling); `min_bins` .. `max_bins` bins, the outer ones stretched to hold the extremes."""
+    values = np.asarray(values, dtype=np.float64)
+    values = values[np.isfinite(values) & (values > 0)]
+    if len(values) == 0:
+        return np.array([0.5, 1.0]), np.zeros(1, dtype=np.int64)
+    lo = math.floor(math.log2(values.min()) * per_octave)
+    hi = max(math.ceil(math.log2(values.max()) * per_octave), lo + 1)
+    if hi - lo > max_bins:  # centre the window on the median, the rest goes into the outer bins
+        mid = round(math.log2(float(np.median(values))) * per_octave)
+        lo = max(lo, min(mid - max_bins // 2, hi - max_bins))
+        hi = lo + max_bins
+    if hi - lo < min_bins:  # widen evenly around the data
+        lo -= (min_bins - (hi - lo)) // 2
+        hi = lo + min_bins
+    edges = 2.0 ** (np.arange(lo, hi + 1) / per_octave)
+    counts = np.histogram(np.clip(values, edges[0], edges[-1]), bins=edges)[0]
+    return edges, counts
+
+
+def summarize(scene: Scene, path=None) -> dict:
+    """Numbers `tomgs info` prints: counts, time coverage, temporal scales and opacities."""
+    model, cams = scene.model, scene.cameras
+    n, T = len(model), len(cams)
+    counts, ever = alive_per_frame(model, cams)
+    sigma = temporal_scales_in_frames(model, cams)
+    edges, hist = log_histogram(sigma)
+    opac = model.opacities.detach().cpu().double().numpy()
+    a, m, s = opac, model.t_means.detach().cpu().double().numpy(), model.t_scales.detach().cpu().double().numpy()
+    # peak opacity inside the clip: at the clip time nearest the temporal centre
+    nearest = np.clip(m, float(cams.times.min()), float(cams.times.max()))
+    peak = a * np.exp(-0.5 * ((nearest - m) / s) ** 2)
+
+    def stats(x):
+        if len(x) == 0:
+            return {"min": None, "median": None, "mean": None, "max": None}
+        return {"min": float(np.min(x)), "median": float(np.median(x)), "mean": float(np.mean(x)),
+                "max": float(np.max(x))}
+
+    out = {
+        "path": None if path is None else str(path),
+        "file_bytes": None if path is None else Path(path).stat().st_size,
+        "gaussians": n,
+        "frames": T,
+        "frame_numbers": [int(cams.frame_indices.min()), int(cams.frame_indices.max())],
+        "width": cams.width,
+        "height": cams.height,
+        "focal": cams.focal,
+        "sh_degree": int(model.sh_degree),
+        "max_sh_degree": int(model.max_sh_degree),
+        "alive_per_frame": {**{k: v for k, v in stats(counts).items() if k != "mean"},
+                            "min_frame": int(cams.frame_indices[int(np.argmin(counts))]),
+                            "max_frame": int(cams.frame_indices[int(np.argmax(counts))]),
+                            "counts": counts.tolist()},
+        "never_alive": int(n - ever.sum()),
+        "temporal_sigma_frames": {**stats(sigma), "unit": "frames" if T > 1 else "clip",
+                                  "edges": edges.tolist(), "counts": hist.tolist()},
+        "opacity": {**stats(opac), "below_1_255": int((opac < 1 / 255).sum())},
+        "peak_opacity_in_clip": {**stats(peak), "below_1_255": int((peak < 1 / 255).sum())},
+        "info": scene.info,
+    }
+    return out
+
+
+def format_summary(s: dict, width: int = 40) -> str:
+    """Human-readable text of `summarize`'s dict, with a bar histogram of temporal scales."""
+    lines = []
+    size = "" if s["file_bytes"] is None else f", {s['file_bytes'] / 1e6:.2f} MB"
+    lines.append(f"{s['path'] or 'scene'}: {s['gaussians']:,} Gaussians, {s['frames']} frames "
+                 f"(numbers {s['frame_numbers'][0]}..{s['frame_numbers'][1]}) at {s['width']}x{s['height']}, "
+                 f"focal {s['focal']:.1f} px, SH degree {s['sh_degree']} of {s['max_sh_degree']}{size}")
+    a = s["alive_per_frame"]
+    lines.append(f"alive per frame: min {a['min']:,.0f} (frame {a['min_frame']}), median {a['median']:,.0f}, "
+                 f"max {a['max']:,.0f} (frame {a['max_frame']}); never alive in any frame: {s['never_alive']:,}")
+    o, p = s["opacity"], s["peak_opacity_in_clip"]
+    if s["gaussians"]:
+        lines.append(f"opacity (base): min {o['min']:.3f}, median {o['median']:.3f}, mean {o['mean']:.3f}, "
+                     f"max {o['max']:.3f}; below 1/255: {o['below_1_255']:,}")
+        lines.append(f"peak opacity inside the clip: median {p['median']:.3f}; below 1/255: {p['below_1_255']:,}")
+    h = s["temporal_sigma_frames"]
+    unit = "frames" if h["unit"] == "frames" else "clip time (single frame)"
+    if s["gaussians"]:
+        lines.append(f"temporal sigma in {unit}: min {h['min']:.3g}, median {h['median']:.3g}, max {h['max']:.3g}")
+    top = max(h["counts"]) if h["counts"] else 0
+    for k, count in enumerate(h["counts"]):
+        lo, hi = h["edges"][k], h["edges"][k + 1]
+        bar = "#" * (round(width * count / top) if top else 0)
+        lines.append(f"  {lo:>9.3g} .. {hi:<9.3g} {count:>10,} {bar}")
+    return "\n".join(lines)
+
+
+def plot_temporal_scales(scene: Scene, path) -> Path:
+    """PNG histogram of the temporal sigmas in frames (log axis, 4 bins per doubling), written atomically."""
+    sigma = temporal_scales_in_frames(scene.model, scene.cameras)
+    edges, counts = log_histogram(sigma, per_octave=4, max_bins=64, min_bins=8)
+    unit = "frames" if len(scene.cameras) > 1 else "clip time"
+    title = f"temporal sigma ({unit}) of {len(sigma):,} Gaussians, {len(scene.cameras)} frames"
+    return _histogram_png(edges, counts, path, title, f"sigma ({unit}), log scale")
+
+
+def check_png_path(path) -> Path:
+    """The plot's path, checked before any work: a .png in an existing folder, else InputError."""
+    path = Path(path)
+    if path.suffix.lower() != ".png":
+        raise InputError(f"{path}: the plot is a PNG; give a path ending in .png")
+    if not path.parent.exists():
+        raise InputError(f"{path}: folder {path.parent} does not exist; create it or choose another path")
+    return path
+
+
+def _histogram_png(edges: np.ndarray, counts: np.ndarray, path, title: str, xlabel: str,
+                   size: tuple[int, int] = (720, 420)) -> Path:
+    """Bars of `counts` between log-spaced `edges`, drawn with OpenCV (a private stand-in until a
+    shared plotting module lands)."""
+    import cv2
+
+    path = check_png_path(path)
+    w, h = size
+    left, right, top, bottom = 70, 20, 40, 60
+    img = np.full((h, w, 3), 255, np.uint8)
+    x0, x1, y0, y1 = left, w - right, top, h - bottom
+    lx = np.log10(edges)
+    span = max(lx[-1] - lx[0], 1e-12)
+    px = lambda v: int(round(x0 + (math.log10(v) - lx[0]) / span * (x1 - x0)))  # noqa: E731
+    peak = max(int(counts.max()) if len(counts) else 0, 1)
+    font, grey, black = cv2.FONT_HERSHEY_SIMPLEX, (200, 200, 200), (0, 0, 0)
+    for frac in (0.25, 0.5, 0.75, 1.0):  # horizontal grid with counts
+        y = int(round(y1 - frac * (y1 - y0)))
+        cv2.line(img, (x0, y), (x1, y), grey, 1)
+        cv2.putText(img, f"{frac * peak:,.0f}", (4, y + 4), font, 0.4, black, 1, cv2.LINE_AA)
+    for k, count in enumerate(counts):
+        a, b = px(edges[k]), px(edges[k + 1])
+        y = int(round(y1 - count / peak * (y1 - y0)))
+        if count:
+            cv2.rectangle(img, (a + 1, y), (b - 1, y1), (180, 110, 40), -1)  # BGR: a blue bar
+    step = max(1, len(edges) // 10)
+    for k in range(0, len(edges), step):
+        x = px(edges[k])
+        cv2.line(img, (x, y1), (x, y1 + 5), black, 1)
+        cv2.putText(img, f"{edges[k]:.3g}", (x - 14, y1 + 20), font, 0.4, black, 1, cv2.LINE_AA)
+    cv2.rectangle(img, (x0, y0), (x1, y1), black, 1)
+    cv2.putText(img, title, (x0, 25), font, 0.5, black, 1, cv2.LINE_AA)
+    cv2.putText(img, xlabel, (x0 + (x1 - x0) // 2 - 80, h - 15), font, 0.45, black, 1, cv2.LINE_AA)
+    ok, data = cv2.imencode(".png", img)
+    if not ok:
+        raise InputError(f"{path}: OpenCV could not encode the PNG")
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        tmp.write_bytes(data.tobytes())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
