@@ -120,6 +120,68 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
         click.echo(f"  note: {note}")
 
 
+@main.command("eval")
+@click.argument("scene", type=click.Path(path_type=str))
+@click.argument("video", type=click.Path(path_type=str))
+@click.option("--lpips", "lpips_weights", type=click.Path(path_type=str), default=None,
+              help="LPIPS AlexNet weights (.npz); default $TOMGS_LPIPS_WEIGHTS, else LPIPS is left out")
+@click.option("--json", "json_out", type=click.Path(path_type=str), default=None,
+              help="also write per-frame and mean metrics as JSON to this file ('-' for stdout)")
+@click.option("--device", default="auto", show_default=True, help="auto, cpu, cuda or cuda:N")
+def evaluate_command(scene, video, lpips_weights, json_out, device):
+    """Compare SCENE, rendered at every frame it was fitted on, with VIDEO: PSNR and SSIM per frame
+    and on average, as the peers compute them (float renders, 11x11 Gaussian SSIM); LPIPS when its
+    weights are given.
+
+    \b
+    Examples:
+      tomgs eval scene.ply clip.mp4
+      tomgs eval scene.ply frames/ --lpips alexnet-lpips-v0.1.npz --json metrics.json
+    """
+    import json
+
+    from tomgs.io import InputError
+    from tomgs.io.scene import load_scene
+    from tomgs.io.video import read_video_for
+    from tomgs.metrics import LPIPS, default_lpips_weights, evaluate
+    from tomgs.render import RenderError, resolve_device
+
+    try:
+        dev = resolve_device(device)
+        loaded = load_scene(scene, device=dev)
+        frames = read_video_for(video, loaded.cameras)
+        weights = lpips_weights or default_lpips_weights()
+        lpips = LPIPS(weights, device=dev) if weights else None
+        report = evaluate(loaded.model, loaded.cameras, frames, lpips=lpips, device=dev)
+    except (InputError, RenderError) as e:
+        raise UsageError(str(e)) from None
+    except ValueError as e:  # LPIPS weights that do not load
+        raise UsageError(str(e)) from None
+    for k, p, s in zip(report.frames, report.psnr, report.ssim):
+        click.echo(f"  frame {int(loaded.cameras.frame_indices[k]):5d}: PSNR {p:6.2f} dB  SSIM {s:.4f}")
+    click.echo(f"{scene}: {report.summary()}" + ("" if lpips else " (LPIPS left out: no weights given)"))
+    if json_out:
+        text = json.dumps(_finite_or_null(report.to_dict()), indent=1)  # a perfect frame's PSNR is inf
+        if json_out == "-":
+            click.echo(text)
+        else:
+            with open(json_out, "w") as f:
+                f.write(text)
+
+
+def _finite_or_null(value):
+    """JSON has no infinity: non-finite floats become null, recursively."""
+    import math
+
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _finite_or_null(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite_or_null(v) for v in value]
+    return value
+
+
 def _parse_size(text: str) -> tuple[int, int]:
     try:
         width, height = (int(v) for v in text.lower().split("x"))

@@ -188,3 +188,19 @@ def _read_masks(folder: Path, total: int, idx: np.ndarray, h: int, w: int) -> np
                              "masks must have the size of the source frames")
         out[k] = m > 127
     return out
+
+
+def read_video_for(path, cameras) -> np.ndarray:
+    """uint8 [T,H,W,3]: the frames of `path` that `cameras` (a tomgs.Cameras) were made for, picked by
+    source frame number and resized as `read_video` resizes, so a scene meets its own training frames."""
+    clip = read_video(path, max_side=max(cameras.width, cameras.height))
+    position = {int(s): i for i, s in enumerate(clip.indices)}
+    missing = [int(s) for s in cameras.frame_indices if int(s) not in position]
+    if missing:
+        raise InputError(f"{path} has {len(clip)} frames but the scene was fitted on source frame {missing[0]}; "
+                         "give the video the scene was fitted on")
+    frames = clip.frames[[position[int(s)] for s in cameras.frame_indices]]
+    if frames.shape[1:3] != (cameras.height, cameras.width):
+        raise InputError(f"{path} gives {frames.shape[2]}x{frames.shape[1]} frames but the scene is "
+                         f"{cameras.width}x{cameras.height}; give the video the scene was fitted on")
+    return frames
