@@ -73,6 +73,17 @@ def test_round_trip_is_exact(tmp_path, max_degree, degree):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["again.ply", "scene.ply"]  # no temporaries
 
 
+def test_loaded_scene_does_not_keep_the_file(tmp_path):
+    model, cams = random_model(40, 2, 2), random_cameras(5)
+    path = save_scene(tmp_path / "s.ply", model, cams)
+    scene = load_scene(path)
+    size = path.stat().st_size
+    with open(path, "r+b") as f:  # overwrite the data in place: a memory-mapped view would change too
+        f.seek(size - 2000)
+        f.write(b"\xff" * 2000)
+    assert_same_scene(model, cams, scene)
+
+
 def test_empty_model_and_single_frame(tmp_path):
     model, cams = random_model(0, 1, 0), random_cameras(1)
     scene = load_scene(save_scene(tmp_path / "s.ply", model, cams))

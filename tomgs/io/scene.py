@@ -176,7 +176,7 @@ def load_scene(path, device="cpu") -> Scene:
     if magic not in (b"ply\n", b"ply\r"):
         raise InputError(f"{path} is not a PLY file (it does not start with 'ply'): {fix}")
     try:
-        ply = PlyData.read(str(path), mmap=False)
+        ply = PlyData.read(str(path))  # memory-mapped: each column is copied out once below
     except (PlyParseError, ValueError, UnicodeDecodeError, EOFError) as e:
         raise InputError(f"{path} is a damaged or truncated PLY file ({e}): {fix}") from None
 
@@ -230,7 +230,7 @@ def load_scene(path, device="cpu") -> Scene:
     try:
         c2w = np.stack([np.asarray(camera[p], dtype=np.float64) for p in _C2W], axis=1).reshape(-1, 4, 4)
         cameras = Cameras(c2w, np.asarray(header["K"], dtype=np.float64), header["width"], header["height"],
-                          np.asarray(camera["time"], dtype=np.float64), np.asarray(camera["index"], dtype=np.int64))
+                          np.array(camera["time"], dtype=np.float64), np.array(camera["index"], dtype=np.int64))
     except (ValueError, TypeError) as e:
         raise InputError(f"{path}: bad cameras ({e}): {fix}") from None
     if cameras.width < 1 or cameras.height < 1:
