@@ -50,6 +50,76 @@ def poses(video, output, masks, frames, method, focal, max_side):
     click.echo(f"{output}: {report.summary()}")
 
 
+@main.command()
+@click.argument("video", type=click.Path(path_type=str))
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=str),
+              help="scene file to write (.ply); a .csv log and a .psnr.png plot are written beside it")
+@click.option("--preset", default="default", show_default=True, type=click.Choice(["default", "paper", "quick"]),
+              help="default: tuned for speed; paper: 80k iterations, densify to 60k; quick: a few hundred")
+@click.option("--iterations", type=click.IntRange(1), default=None, help="override the preset's iteration count")
+@click.option("--frames", default=None, help="frame range start:stop:step, e.g. 0:80")
+@click.option("--max-side", type=click.IntRange(16), default=None, help="resize frames so that max(W, H) <= N")
+@click.option("--masks", type=click.Path(path_type=str), default=None, help="folder of masks (moving content)")
+@click.option("--poses", default="auto", show_default=True,
+              help="auto, identity, or a cameras .json / AnyCam .npy / COLMAP folder / .onnx model")
+@click.option("--focal", type=float, default=None, help="focal length in pixels, if known")
+@click.option("--device", default="auto", show_default=True, help="auto, cpu, cuda or cuda:N")
+@click.option("--cap", "max_gaussians", type=click.IntRange(1), default=None, help="most Gaussians (default 10M)")
+@click.option("--sampling", type=click.Choice(["inverse_psnr", "uniform"]), default=None)
+@click.option("--static", "static_3dgs", is_flag=True, help="ablation: no temporal opacity (static 3DGS)")
+@click.option("--opacity-reset", type=click.IntRange(0), default=None, help="ablation: reset opacities every N")
+@click.option("--sh-degree", type=click.IntRange(0, 3), default=None, help="view-dependent colour (default 0)")
+@click.option("--seed", type=int, default=None)
+@click.option("--resume", is_flag=True, help="continue from the checkpoint beside OUTPUT")
+def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal, device, max_gaussians, sampling,
+        static_3dgs, opacity_reset, sh_degree, seed, resume):
+    """Fit a TOM-GS scene to VIDEO (a video file or a folder of frames).
+
+    \b
+    Examples:
+      tomgs fit clip.mp4 -o scene.ply
+      tomgs fit frames/ -o scene.ply --masks masks/ --frames 0:80 --max-side 854 --device cuda
+      tomgs fit clip.mp4 -o scene.ply --resume          # after Ctrl-C
+    """
+    from tomgs.io import InputError
+    from tomgs.render import RenderError
+    from tomgs.train import fit as fit_scene
+    from tomgs.train import output_paths
+    from tomgs.train import preset as make_config
+
+    overrides = dict(iterations=iterations, max_gaussians=max_gaussians, sampling=sampling,
+                     opacity_reset_interval=opacity_reset, sh_degree=sh_degree, seed=seed)
+    overrides = {k: v for k, v in overrides.items() if v is not None}
+    if static_3dgs:
+        overrides["temporal"] = False
+    config = make_config(preset, **overrides)
+    if config.densify_until > config.iterations:
+        config = config.replace(densify_until=int(0.75 * config.iterations))
+    bar = click.progressbar(length=config.iterations, label="fit", show_eta=True, show_percent=True,
+                            item_show_func=lambda row: row and (
+                                f"PSNR {row['train_psnr']} dB, {row['gaussians']:,} Gaussians, "
+                                f"{row['iteration'] / max(row['wall_s'], 1e-9):.0f} it/s"))
+    try:
+        with bar:
+            def progress(row):
+                bar.update(row["iteration"] - bar.pos, row)
+
+            result = fit_scene(video, output, config, masks=masks, frames=frames, max_side=max_side, poses=poses,
+                               focal=focal, device=device, resume=resume, progress=progress)
+    except (InputError, RenderError) as e:
+        raise UsageError(str(e)) from None
+    except KeyboardInterrupt:
+        click.echo(f"\ninterrupted: checkpoint kept at {output_paths(output)['checkpoint']}; "
+                   f"continue with --resume", err=True)
+        raise SystemExit(130) from None
+    paths = output_paths(output)
+    click.echo(f"{output}: {len(result.model):,} Gaussians, {result.iterations} iterations in {result.seconds:.1f} s, "
+               f"full-clip PSNR {result.clip_psnr:.2f} dB")
+    click.echo(f"  error against run time: {paths['csv']} and {paths['plot']}")
+    for note in result.notes:
+        click.echo(f"  note: {note}")
+
+
 def _parse_size(text: str) -> tuple[int, int]:
     try:
         width, height = (int(v) for v in text.lower().split("x"))

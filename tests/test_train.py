@@ -1,0 +1,112 @@
+"""The trainer on CPU: a synthetic clip fits, the sampler favours bad frames, the cap holds,
+a seeded run repeats exactly, and an interrupted run resumed from its checkpoint ends where an
+uninterrupted one does."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from tomgs.demo import demo_scene
+from tomgs.model import GaussianModel
+from tomgs.render import render_sequence
+from tomgs.train import Trainer, preset
+from tomgs.train.densify import Densifier
+from tomgs.train.sampler import FrameSampler
+
+CPU = torch.device("cpu")
+
+
+def synthetic_clip(frames: int, width: int, height: int):
+    """Frames of the demo scene (a static room and a moving ball) with its known cameras, and a
+    sparse cloud taken from the scene, as the tracker would give."""
+    gaussians, cams = demo_scene(num_frames=frames, width=width, height=height)
+    images = np.stack([(img.numpy() * 255 + 0.5).astype(np.uint8)
+                       for _, img, _ in render_sequence(gaussians, cams, background=(0.05, 0.05, 0.08))])
+    points = gaussians["means"][::7].double().numpy()
+    return images, cams, points, np.full((len(points), 3), 0.5, dtype=np.float32)
+
+
+def small_config(iterations: int, **kw):
+    return preset("quick", iterations=iterations, log_interval=25, eval_interval_s=1e9, init_points_per_frame=300,
+                  max_gaussians=4000, densify_from=50, densify_until=int(0.75 * iterations), densify_interval=50, **kw)
+
+
+def test_synthetic_clip_fits_to_30db():
+    images, cams, points, colors = synthetic_clip(4, 48, 27)
+    result = Trainer(images, cams, points, colors, small_config(400), CPU).run()
+    assert result.clip_psnr >= 30.0, result.history[-3:]
+    assert len(result.model) <= 4000
+    psnrs = [row["train_psnr"] for row in result.history]
+    assert psnrs[-1] > psnrs[0] + 10  # it learned, it did not start there
+
+
+def test_sampler_favours_low_psnr_frames():
+    sampler = FrameSampler(4, "inverse_psnr", seed=3)
+    for frame, value in enumerate([20.0, 40.0, 40.0, 40.0]):
+        sampler.update(frame, value)
+    counts = np.bincount([sampler.sample() for _ in range(4000)], minlength=4)
+    assert counts[0] > 1.7 * counts[1:].mean()  # p ~ 1/PSNR: twice as likely
+    uniform = FrameSampler(4, "uniform", seed=3)
+    counts = np.bincount([uniform.sample() for _ in range(4000)], minlength=4)
+    assert counts.min() > 900
+
+
+def test_unseen_frames_count_as_the_worst():
+    sampler = FrameSampler(3, seed=0)
+    sampler.update(0, 30.0)
+    p = sampler.probabilities()
+    assert p[1] == p[2] and p[1] >= p[0]
+
+
+@pytest.mark.parametrize("cap", [60, 100, 1000])
+def test_densification_never_exceeds_the_cap(cap):
+    g = torch.Generator().manual_seed(0)
+    model = GaussianModel.from_points(torch.randn(50, 3, generator=g), torch.rand(50, 3, generator=g),
+                                      torch.rand(50, generator=g), 0.5, max_sh_degree=1)
+    model.log_scales.data[:25] = -1.0  # large: split; the rest small: clone
+    model.log_scales.data[25:] = -8.0
+    optimizer = torch.optim.Adam([dict(params=[p], lr=1e-3, name=n) for n, p in model.parameters_by_name().items()])
+    sum(p.sum() for p in model.parameters()).backward()
+    optimizer.step()  # give Adam moments that must follow the rows
+    config = preset("quick", max_gaussians=cap, percent_dense=0.01)
+    densifier = Densifier(config, extent=1.0, num_gaussians=50, device=CPU)
+    for _ in range(5):
+        densifier.grad_sum.fill_(1.0)
+        densifier.seen.fill_(1.0)
+        densifier.step(model, optimizer)
+        assert len(model) <= cap
+        for group in optimizer.param_groups:
+            param = group["params"][0]
+            assert param.shape[0] == len(model)
+            assert optimizer.state[param]["exp_avg"].shape == param.shape
+    assert len(model) == min(cap, len(model))
+
+
+def run_clip(iterations, interrupt_at=None, checkpoint=None, resume_from=None):
+    images, cams, points, colors = synthetic_clip(3, 32, 18)
+    trainer = Trainer(images, cams, points, colors, small_config(iterations), CPU)
+    if resume_from is not None:
+        trainer.load_checkpoint(resume_from)
+
+    def progress(row):
+        if row["iteration"] == interrupt_at:
+            raise KeyboardInterrupt
+
+    return trainer.run(checkpoint=checkpoint, progress=progress)
+
+
+def test_seeded_run_repeats_and_resume_matches(tmp_path):
+    straight = run_clip(100)
+    again = run_clip(100)
+    for name, value in straight.model.parameters_by_name().items():
+        assert torch.equal(value, again.model.parameters_by_name()[name]), name
+
+    checkpoint = tmp_path / "run.ckpt"
+    with pytest.raises(KeyboardInterrupt):
+        run_clip(100, interrupt_at=50, checkpoint=checkpoint)
+    resumed = run_clip(100, checkpoint=checkpoint, resume_from=checkpoint)
+    assert resumed.iterations == 100
+    assert abs(resumed.clip_psnr - straight.clip_psnr) <= 0.1
+    assert [r["iteration"] for r in resumed.history] == [r["iteration"] for r in straight.history]

@@ -1,0 +1,260 @@
+"""Image quality: PSNR, SSIM and LPIPS (AlexNet, v0.1 heads) as the peers compute them, and `evaluate`.
+
+Images are float tensors in [0, 1], shape [H,W,3] or batched [B,H,W,3], on any device; each metric
+returns one value per image (a 0-d tensor for [H,W,3], [B] for a batch). Protocol
+(../shared/data/README.md): float renders, no 8-bit rounding; PSNR per frame, averaged over frames.
+
+SSIM follows the 3DGS implementation exactly: 11x11 Gaussian window (sigma 1.5), C1 = 0.01^2,
+C2 = 0.03^2, per channel, zero "same" padding (conv2d padding=5), mean over all pixels and
+channels. It is differentiable (the trainer's loss uses 1 - ssim); the window is separable, so it
+runs as two 1D convolutions over the five moments at once, and is built once per device/dtype.
+
+LPIPS needs its weights as an npz file (no downloads): pass the path, or set TOMGS_LPIPS_WEIGHTS.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+SSIM_WINDOW = 11
+SSIM_SIGMA = 1.5
+SSIM_C1 = 0.01 ** 2
+SSIM_C2 = 0.03 ** 2
+LPIPS_ENV = "TOMGS_LPIPS_WEIGHTS"
+
+
+def _as_batch(img: torch.Tensor, ref: torch.Tensor, what: str) -> tuple[torch.Tensor, torch.Tensor, bool]:
+    """([B,H,W,3], [B,H,W,3], was_batched) after checking shapes."""
+    if img.shape != ref.shape:
+        raise ValueError(f"{what}: image and reference differ in shape: {tuple(img.shape)} vs {tuple(ref.shape)}")
+    if img.dim() not in (3, 4) or img.shape[-1] != 3:
+        raise ValueError(f"{what}: expected images [H,W,3] or [B,H,W,3], got {tuple(img.shape)}")
+    if not img.is_floating_point() or not ref.is_floating_point():
+        raise ValueError(f"{what}: expected float images in [0,1], got {img.dtype} and {ref.dtype}")
+    batched = img.dim() == 4
+    return (img, ref, True) if batched else (img[None], ref[None], False)
+
+
+def psnr(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    """PSNR in dB of float images in [0,1] ([H,W,3] -> 0-d, [B,H,W,3] -> [B]); identical images give inf."""
+    x, y, batched = _as_batch(img, ref, "psnr")
+    mse = (x - y).square().flatten(1).mean(1)
+    out = -10.0 * torch.log10(mse)
+    return out if batched else out[0]
+
+
+_WINDOWS: dict[tuple, torch.Tensor] = {}
+
+
+def _gaussian_1d(device, dtype) -> torch.Tensor:
+    """Normalised 1D Gaussian [11] (sigma 1.5), cached per device and dtype."""
+    key = (str(device), dtype)
+    w = _WINDOWS.get(key)
+    if w is None:
+        x = torch.arange(SSIM_WINDOW, dtype=torch.float64) - SSIM_WINDOW // 2
+        g = torch.exp(-x.square() / (2 * SSIM_SIGMA ** 2))
+        w = (g / g.sum()).to(device=device, dtype=dtype)
+        _WINDOWS[key] = w
+    return w
+
+
+def ssim_map(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    """Per-pixel SSIM [B,3,H,W] of [B,H,W,3] images (zero padding, 3DGS formula)."""
+    x = img.permute(0, 3, 1, 2)
+    y = ref.permute(0, 3, 1, 2)
+    b, c, h, w = x.shape
+    g = _gaussian_1d(x.device, x.dtype)
+    pad = SSIM_WINDOW // 2
+    # five moments, every channel filtered on its own: [B, 5*C, H, W]
+    stack = torch.cat([x, y, x * x, y * y, x * y], dim=1)
+    n = stack.shape[1]
+    stack = F.conv2d(stack, g.view(1, 1, 1, -1).expand(n, 1, 1, SSIM_WINDOW), padding=(0, pad), groups=n)
+    stack = F.conv2d(stack, g.view(1, 1, -1, 1).expand(n, 1, SSIM_WINDOW, 1), padding=(pad, 0), groups=n)
+    mu1, mu2, e11, e22, e12 = stack.split(c, dim=1)
+    mu1_sq, mu2_sq, mu12 = mu1 * mu1, mu2 * mu2, mu1 * mu2
+    sigma1_sq, sigma2_sq, sigma12 = e11 - mu1_sq, e22 - mu2_sq, e12 - mu12
+    return ((2 * mu12 + SSIM_C1) * (2 * sigma12 + SSIM_C2)) / \
+        ((mu1_sq + mu2_sq + SSIM_C1) * (sigma1_sq + sigma2_sq + SSIM_C2))
+
+
+def ssim(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    """SSIM of float images in [0,1] ([H,W,3] -> 0-d, [B,H,W,3] -> [B]), mean over pixels and channels.
+
+    Differentiable in both arguments; the D-SSIM loss is 1 - ssim(render, target)."""
+    x, y, batched = _as_batch(img, ref, "ssim")
+    out = ssim_map(x, y).flatten(1).mean(1)
+    return out if batched else out[0]
+
+
+# -- LPIPS ---------------------------------------------------------------------------------------
+
+_LPIPS_SHIFT = (-0.030, -0.088, -0.188)
+_LPIPS_SCALE = (0.458, 0.448, 0.450)
+# (stride, padding, max-pool after the ReLU) of AlexNet's five convolutions
+_ALEX_LAYERS = ((4, 2, True), (1, 2, True), (1, 1, False), (1, 1, False), (1, 1, False))
+
+
+def default_lpips_weights() -> Path | None:
+    """The path in TOMGS_LPIPS_WEIGHTS (a file, or a folder holding alexnet-lpips-v0.1.npz), or None."""
+    value = os.environ.get(LPIPS_ENV)
+    if not value:
+        return None
+    path = Path(value)
+    return path / "alexnet-lpips-v0.1.npz" if path.is_dir() else path
+
+
+class LPIPS:
+    """LPIPS distance (AlexNet features, linear heads v0.1) from an npz of weights; no downloads.
+
+    `weights_path`: npz with conv{0..4}.weight/bias and lin{0..4}.weight (or a folder holding
+    alexnet-lpips-v0.1.npz); None uses $TOMGS_LPIPS_WEIGHTS. Call with images [H,W,3] or
+    [B,H,W,3] in [0,1]; returns one distance per image (lower is closer).
+    """
+
+    def __init__(self, weights_path=None, device=None):
+        path = Path(weights_path) if weights_path is not None else default_lpips_weights()
+        if path is None:
+            raise ValueError(f"LPIPS needs its weights: pass the path of alexnet-lpips-v0.1.npz or set {LPIPS_ENV}")
+        if path.is_dir():
+            path = path / "alexnet-lpips-v0.1.npz"
+        if not path.is_file():
+            raise ValueError(f"{path}: LPIPS weights not found; give the path of alexnet-lpips-v0.1.npz "
+                             f"(conv0..4 weight/bias, lin0..4 weight)")
+        self.path = path
+        self.device = torch.device(device) if device is not None else torch.device("cpu")
+        try:
+            with np.load(path) as data:
+                arrays = {k: torch.as_tensor(np.asarray(data[k], dtype=np.float32), device=self.device)
+                          for k in [f"{p}{i}.{q}" for i in range(5) for p, q in (("conv", "weight"), ("conv", "bias"),
+                                                                              ("lin", "weight"))]}
+        except (KeyError, OSError, ValueError) as exc:
+            raise ValueError(f"{path}: not an LPIPS weights file ({exc}); expected conv0..4 weight/bias and "
+                             f"lin0..4 weight") from None
+        self.convs = [(arrays[f"conv{i}.weight"], arrays[f"conv{i}.bias"]) for i in range(5)]
+        self.lins = [arrays[f"lin{i}.weight"].view(1, -1, 1, 1) for i in range(5)]
+        self.shift = torch.tensor(_LPIPS_SHIFT, device=self.device).view(1, 3, 1, 1)
+        self.scale = torch.tensor(_LPIPS_SCALE, device=self.device).view(1, 3, 1, 1)
+
+    def features(self, x: torch.Tensor) -> list[torch.Tensor]:
+        """AlexNet features after each of the 5 ReLUs of [B,3,H,W] images in [0,1]."""
+        h = ((x * 2 - 1) - self.shift) / self.scale
+        feats = []
+        for (w, b), (stride, padding, pool) in zip(self.convs, _ALEX_LAYERS):
+            h = F.relu(F.conv2d(h, w, b, stride=stride, padding=padding))
+            feats.append(h)
+            if pool:
+                h = F.max_pool2d(h, kernel_size=3, stride=2)
+        return feats
+
+    def __call__(self, img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+        x, y, batched = _as_batch(img, ref, "lpips")
+        x = x.to(self.device, torch.float32).permute(0, 3, 1, 2)
+        y = y.to(self.device, torch.float32).permute(0, 3, 1, 2)
+        total = 0.0
+        for fx, fy, lin in zip(self.features(x), self.features(y), self.lins):
+            fx = fx / (fx.square().sum(1, keepdim=True).sqrt() + 1e-10)
+            fy = fy / (fy.square().sum(1, keepdim=True).sqrt() + 1e-10)
+            total = total + ((fx - fy).square() * lin).sum(1).mean((1, 2))
+        return total if batched else total[0]
+
+
+# -- evaluation of a fitted scene -----------------------------------------------------------------
+
+@dataclass
+class EvalReport:
+    """Per-frame metrics of a scene against its clip; `frames` are the evaluated frame indices."""
+
+    frames: list[int]
+    psnr: list[float]
+    ssim: list[float]
+    lpips: list[float] | None = None
+    seconds: float = 0.0
+    width: int = 0
+    height: int = 0
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def mean_psnr(self) -> float:
+        return float(np.mean(self.psnr)) if self.psnr else float("nan")
+
+    @property
+    def mean_ssim(self) -> float:
+        return float(np.mean(self.ssim)) if self.ssim else float("nan")
+
+    @property
+    def mean_lpips(self) -> float | None:
+        return float(np.mean(self.lpips)) if self.lpips else None
+
+    def to_dict(self) -> dict:
+        """JSON-ready: means and per-frame lists."""
+        out = dict(frames=len(self.frames), width=self.width, height=self.height, seconds=self.seconds,
+                   psnr=self.mean_psnr, ssim=self.mean_ssim,
+                   per_frame=[dict(frame=k, psnr=p, ssim=s) for k, p, s in zip(self.frames, self.psnr, self.ssim)])
+        if self.lpips is not None:
+            out["lpips"] = self.mean_lpips
+            for row, v in zip(out["per_frame"], self.lpips):
+                row["lpips"] = v
+        return out
+
+    def summary(self) -> str:
+        text = f"{len(self.frames)} frames at {self.width}x{self.height}: PSNR {self.mean_psnr:.2f} dB, " \
+               f"SSIM {self.mean_ssim:.4f}"
+        if self.lpips is not None:
+            text += f", LPIPS {self.mean_lpips:.4f}"
+        return text + f" ({self.seconds:.1f} s)"
+
+
+def evaluate(model, cameras, frames, indices=None, lpips: LPIPS | None = None, device=None) -> EvalReport:
+    """Render `model` (a GaussianModel, or a mapping of rasterizer inputs) at `cameras` and compare with
+    `frames`, frame k of the cameras against frame k of the clip.
+
+    `frames`: uint8 [T,H,W,3] RGB, float [T,H,W,3] in [0,1], or a tomgs Video. Renders are compared
+    as floats (no 8-bit rounding); note that 8-bit references alone bound PSNR near 59 dB.
+    `indices`: the frames to evaluate (default all); `lpips`: an LPIPS instance to add that metric;
+    `device`: where to render and measure (default: where the model lives). Raises ValueError on
+    mismatched sizes, counts or indices."""
+    from tomgs.render import render_sequence
+
+    clip = getattr(frames, "frames", frames)
+    if isinstance(clip, torch.Tensor):
+        clip = clip.detach().cpu().numpy()
+    clip = np.asarray(clip)
+    if clip.ndim != 4 or clip.shape[-1] != 3 or not (clip.dtype == np.uint8 or np.issubdtype(clip.dtype, np.floating)):
+        raise ValueError(f"evaluate: frames must be uint8 or float [T,H,W,3] RGB (or a tomgs Video), got "
+                         f"{clip.dtype} {clip.shape}")
+    T, H, W = clip.shape[:3]
+    if (H, W) != (cameras.height, cameras.width):
+        raise ValueError(f"evaluate: frames are {W}x{H} but the cameras render {cameras.width}x{cameras.height}; "
+                         f"read the video at the scene's size (or resize the cameras)")
+    if T != len(cameras):
+        raise ValueError(f"evaluate: {T} frames but {len(cameras)} cameras; evaluate the clip the scene was fitted to")
+    indices = list(range(T)) if indices is None else [int(k) for k in indices]
+    bad = [k for k in indices if not 0 <= k < T]
+    if bad:
+        raise ValueError(f"evaluate: frame indices {bad[:5]} out of range 0..{T - 1}")
+    gaussians = model.render_inputs() if hasattr(model, "render_inputs") else model
+    dev = torch.device(device) if device is not None else gaussians["means"].device
+    scale = 1.0 / 255.0 if clip.dtype == np.uint8 else 1.0
+    start = time.perf_counter()
+    report = EvalReport(frames=[], psnr=[], ssim=[], lpips=[] if lpips is not None else None, width=W, height=H)
+    with torch.no_grad():
+        for k, image, _ in render_sequence(gaussians, cameras, indices, device=dev):
+            img = image.to(dev)
+            ref = torch.from_numpy(np.ascontiguousarray(clip[k])).to(dev).float() * scale
+            report.frames.append(k)
+            report.psnr.append(float(psnr(img, ref)))
+            report.ssim.append(float(ssim(img, ref)))
+            if lpips is not None:
+                report.lpips.append(float(lpips(img, ref)))
+    report.seconds = time.perf_counter() - start
+    return report
+
+
+__all__ = ["psnr", "ssim", "ssim_map", "LPIPS", "EvalReport", "evaluate", "default_lpips_weights"]

@@ -1,0 +1,154 @@
+"""Adaptive density control (3DGS clone / split / prune) with a cap, plus TOM-GS's temporal pruning.
+
+Talks to the renderer only through `meta` (screen-space gradients and radii), and keeps Adam's
+moments aligned with the rows it keeps, copies and adds (new rows start with zero moments).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from tomgs.constants import ALPHA_MIN
+from tomgs.model import PARAM_NAMES, GaussianModel
+from tomgs.reference import quat_to_rotmat
+
+
+class Densifier:
+    def __init__(self, config, extent: float, num_gaussians: int, device, seed: int = 0):
+        self.config = config
+        self.extent = extent
+        self.generator = torch.Generator(device=device).manual_seed(seed + 1)
+        self.reset_stats(num_gaussians, device)
+        self.capped = False
+
+    def reset_stats(self, n: int, device) -> None:
+        self.grad_sum = torch.zeros(n, device=device)
+        self.seen = torch.zeros(n, device=device)
+
+    def observe(self, meta: dict) -> None:
+        """Accumulate the view-space positional gradient of the Gaussians visible in this frame."""
+        grad = meta["means2d"].grad
+        if grad is None:
+            return
+        visible = (meta["radii"] > 0).any(-1)
+        # pixels -> NDC units, the scale the 3DGS threshold is defined in
+        scale = torch.tensor([meta["width"] / 2.0, meta["height"] / 2.0], device=grad.device)
+        self.grad_sum += torch.where(visible, (grad * scale).norm(dim=-1), torch.zeros_like(self.grad_sum))
+        self.seen += visible.float()
+
+    def due(self, iteration: int) -> bool:
+        c = self.config
+        return (c.densify_from <= iteration < c.densify_until and iteration % c.densify_interval == 0)
+
+    def step(self, model: GaussianModel, optimizer: torch.optim.Optimizer) -> dict:
+        """Clone small and split large Gaussians with high gradients (until the cap), then prune.
+        Returns counts of what happened."""
+        c = self.config
+        n = len(model)
+        grads = self.grad_sum / self.seen.clamp_min(1.0)
+        hot = grads >= c.grad_threshold
+        max_scale = model.scales.detach().amax(-1)
+        room = max(c.max_gaussians - n, 0)
+        clone = hot & (max_scale <= c.percent_dense * self.extent)
+        split = hot & ~clone
+        clone, split = _limit(clone, split, room)
+        self.capped = self.capped or room == 0 or bool((clone.sum() + 2 * split.sum()) >= room)
+
+        params = {k: v.detach() for k, v in model.parameters_by_name().items()}
+        added = {k: [params[k][clone]] for k in PARAM_NAMES}
+        if split.any():
+            samples = self._split(params, split)
+            for k in PARAM_NAMES:
+                added[k].append(samples[k])
+        _apply(model, optimizer, ~split, {k: torch.cat(v) for k, v in added.items()})  # a split replaces its source
+        pruned = self.prune(model, optimizer)
+        self.reset_stats(len(model), params["means"].device)
+        return dict(cloned=int(clone.sum()), split=int(split.sum()), pruned=pruned, total=len(model))
+
+    def prune(self, model: GaussianModel, optimizer) -> int:
+        """Remove Gaussians that are transparent, or dead over the whole clip [0, 1]."""
+        params = {k: v.detach() for k, v in model.parameters_by_name().items()}
+        remove = self._prunable(model, params)
+        if remove.any():
+            _apply(model, optimizer, ~remove, None)
+        return int(remove.sum())
+
+    def _prunable(self, model: GaussianModel, params) -> torch.Tensor:
+        opacity = torch.sigmoid(params["opacity_logits"])
+        remove = opacity < self.config.prune_opacity
+        if self.config.temporal:
+            # peak opacity inside the clip: the window's centre clamped into [0, 1]
+            t = params["t_means"]
+            gap = (t - t.clamp(0.0, 1.0)).abs()
+            peak = opacity * torch.exp(-0.5 * (gap / torch.exp(params["log_t_scales"])) ** 2)
+            remove |= peak < ALPHA_MIN
+        return remove
+
+    def _split(self, params, mask: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Two samples per selected Gaussian, drawn from it, each with scales / 1.6."""
+        rot = quat_to_rotmat(params["quats"][mask]).repeat(2, 1, 1)
+        scales = torch.exp(params["log_scales"][mask]).repeat(2, 1)
+        noise = torch.randn(scales.shape, generator=self.generator, device=scales.device)
+        out = {k: params[k][mask].repeat(2, *([1] * (params[k].dim() - 1))) for k in PARAM_NAMES}
+        out["means"] = out["means"] + (rot @ (scales * noise)[..., None])[..., 0]
+        out["log_scales"] = torch.log(scales / 1.6)
+        return out
+
+    def reset_opacity(self, model: GaussianModel, optimizer) -> None:
+        """The 3DGS opacity reset (off in TOM-GS; kept for the ablation)."""
+        logit_001 = math.log(0.01 / 0.99)
+        new = torch.minimum(model.opacity_logits.detach(), torch.full_like(model.opacity_logits, logit_001))
+        keep = torch.ones(len(model), dtype=torch.bool, device=new.device)
+        tensors = {k: v.detach() for k, v in model.parameters_by_name().items()}
+        tensors["opacity_logits"] = new
+        _apply(model, optimizer, keep, None, replace=tensors, reset_moments=("opacity_logits",))
+
+    def state_dict(self) -> dict:
+        return dict(grad_sum=self.grad_sum, seen=self.seen, capped=self.capped,
+                    generator=self.generator.get_state())
+
+    def load_state_dict(self, state: dict) -> None:
+        self.grad_sum, self.seen, self.capped = state["grad_sum"], state["seen"], state["capped"]
+        self.generator.set_state(state["generator"])
+
+
+def _limit(clone: torch.Tensor, split: torch.Tensor, room: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Keep clones and splits within `room` new Gaussians (a split adds one net): the cap is exact."""
+    n_clone, n_split = int(clone.sum()), int(split.sum())
+    if n_clone + n_split <= room:
+        return clone, split
+    keep_split = min(n_split, room // 2)
+    keep_clone = min(n_clone, room - keep_split)
+    return _first(clone, keep_clone), _first(split, keep_split)
+
+
+def _first(mask: torch.Tensor, k: int) -> torch.Tensor:
+    out = torch.zeros_like(mask)
+    out[torch.nonzero(mask).squeeze(-1)[:k]] = True
+    return out
+
+
+def _apply(model: GaussianModel, optimizer, keep: torch.Tensor, added: dict | None, replace: dict | None = None,
+           reset_moments: tuple = ()) -> None:
+    """Rows `keep` of every parameter, then `added` rows; Adam moments follow (zeros for new rows)."""
+    old = model.parameters_by_name()
+    base = replace if replace is not None else {k: v.detach() for k, v in old.items()}
+    new = {k: base[k][keep] if added is None else torch.cat([base[k][keep], added[k]]) for k in PARAM_NAMES}
+    model.replace(new)
+    fresh = model.parameters_by_name()
+    for group in optimizer.param_groups:
+        name = group["name"]
+        param = old[name]
+        state = optimizer.state.pop(param, None)
+        group["params"] = [fresh[name]]
+        if state:
+            for key in ("exp_avg", "exp_avg_sq"):
+                moment = state[key][keep]
+                if name in reset_moments:
+                    moment = torch.zeros_like(moment)
+                if added is not None:
+                    moment = torch.cat([moment, torch.zeros_like(added[name])])
+                state[key] = moment
+            optimizer.state[fresh[name]] = state

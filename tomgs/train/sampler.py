@@ -1,0 +1,45 @@
+"""Which frame to train on next: inverse-PSNR sampling (TOM-GS) or uniform (ablation)."""
+
+from __future__ import annotations
+
+import torch
+
+
+class FrameSampler:
+    """p(frame k) proportional to 1 / running PSNR_k; frames not yet seen count as the worst.
+
+    The running PSNR of a frame is updated whenever it is trained on. Sampling uses its own
+    torch.Generator, so a seeded run repeats exactly and a resumed run continues the same draws.
+    """
+
+    def __init__(self, num_frames: int, mode: str = "inverse_psnr", momentum: float = 0.8, seed: int = 0):
+        if mode not in ("inverse_psnr", "uniform"):
+            raise ValueError(f"unknown sampling {mode!r}: use inverse_psnr or uniform")
+        self.mode = mode
+        self.momentum = momentum
+        self.psnr = torch.zeros(num_frames, dtype=torch.float64)  # 0 = not measured yet
+        self.generator = torch.Generator().manual_seed(seed)
+
+    def probabilities(self) -> torch.Tensor:
+        """[T] float64 summing to 1."""
+        n = self.psnr.shape[0]
+        if self.mode == "uniform":
+            return torch.full((n,), 1.0 / n, dtype=torch.float64)
+        seen = self.psnr > 0
+        floor = self.psnr[seen].min() if seen.any() else torch.tensor(1.0, dtype=torch.float64)
+        weights = 1.0 / torch.where(seen, self.psnr, floor).clamp_min(1.0)
+        return weights / weights.sum()
+
+    def sample(self) -> int:
+        return int(torch.multinomial(self.probabilities(), 1, generator=self.generator))
+
+    def update(self, frame: int, psnr: float) -> None:
+        old = float(self.psnr[frame])
+        self.psnr[frame] = psnr if old == 0 else self.momentum * old + (1 - self.momentum) * psnr
+
+    def state_dict(self) -> dict:
+        return dict(psnr=self.psnr.clone(), generator=self.generator.get_state())
+
+    def load_state_dict(self, state: dict) -> None:
+        self.psnr = state["psnr"].clone()
+        self.generator.set_state(state["generator"])
