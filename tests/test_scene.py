@@ -62,7 +62,8 @@ def assert_same_scene(a_model, a_cams, b):
 @pytest.mark.parametrize("max_degree, degree", [(0, 0), (1, 1), (2, 1), (3, 0), (3, 3)])
 def test_round_trip_is_exact(tmp_path, max_degree, degree):
     model, cams = random_model(50, max_degree, degree, seed=max_degree), random_cameras(7, seed=degree)
-    info = {"fps": 29.97, "psnr": [31.25, 0.1 + 0.2], "nested": {"a": None, "b": True}, "text": "end_header é\n"}
+    info = {"fps": 29.97, "psnr": [31.25, 0.1 + 0.2, float("inf")], "nested": {"a": None, "b": True},
+            "text": "end_header é\n"}
     path = save_scene(tmp_path / "scene.ply", model, cams, info)
     scene = load_scene(path)
     assert_same_scene(model, cams, scene)
