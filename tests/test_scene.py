@@ -62,7 +62,8 @@ def assert_same_scene(a_model, a_cams, b):
 @pytest.mark.parametrize("max_degree, degree", [(0, 0), (1, 1), (2, 1), (3, 0), (3, 3)])
 def test_round_trip_is_exact(tmp_path, max_degree, degree):
     model, cams = random_model(50, max_degree, degree, seed=max_degree), random_cameras(7, seed=degree)
-    info = {"fps": 29.97, "psnr": [31.25, 0.1 + 0.2], "nested": {"a": None, "b": True}, "text": "end_header é\n"}
+    info = {"fps": 29.97, "psnr": [31.25, 0.1 + 0.2, float("inf")], "nested": {"a": None, "b": True},
+            "text": "end_header é\n"}
     path = save_scene(tmp_path / "scene.ply", model, cams, info)
     scene = load_scene(path)
     assert_same_scene(model, cams, scene)
@@ -71,6 +72,17 @@ def test_round_trip_is_exact(tmp_path, max_degree, degree):
     save_scene(tmp_path / "again.ply", scene.model, scene.cameras, scene.info)
     assert (tmp_path / "again.ply").read_bytes() == path.read_bytes()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["again.ply", "scene.ply"]  # no temporaries
+
+
+def test_loaded_scene_does_not_keep_the_file(tmp_path):
+    model, cams = random_model(40, 2, 2), random_cameras(5)
+    path = save_scene(tmp_path / "s.ply", model, cams)
+    scene = load_scene(path)
+    size = path.stat().st_size
+    with open(path, "r+b") as f:  # overwrite the data in place: a memory-mapped view would change too
+        f.seek(size - 2000)
+        f.write(b"\xff" * 2000)
+    assert_same_scene(model, cams, scene)
 
 
 def test_empty_model_and_single_frame(tmp_path):
@@ -106,6 +118,26 @@ def test_layout_is_inria_first_then_temporal(tmp_path):
     assert len(camera.data) == 4 and camera.data.dtype["c2w_23"] == np.dtype("<f8")
     np.testing.assert_array_equal(camera["c2w_03"], cams.c2w[:, 0, 3])
     np.testing.assert_array_equal(camera["index"], cams.frame_indices)
+
+
+def test_inria_loader_reads_the_gaussians(tmp_path):
+    """INRIA's GaussianModel.load_ply, transcribed: first element, names matched by prefix."""
+    model = random_model(30, 3, 3)
+    el = PlyData.read(str(save_scene(tmp_path / "s.ply", model, random_cameras(2)))).elements[0]
+    xyz = np.stack([np.asarray(el[k]) for k in ("x", "y", "z")], axis=1)
+    opacities = np.asarray(el["opacity"])[..., None]
+    dc = np.stack([np.asarray(el[f"f_dc_{i}"]) for i in range(3)], axis=1)[:, :, None]  # [N,3,1]
+    extra = sorted((p.name for p in el.properties if p.name.startswith("f_rest_")), key=lambda x: int(x.split("_")[-1]))
+    assert len(extra) == 3 * (3 + 1) ** 2 - 3
+    rest = np.stack([np.asarray(el[k]) for k in extra], axis=1).reshape(-1, 3, 15)
+    scales = np.stack([np.asarray(el[p.name]) for p in el.properties if p.name.startswith("scale_")], axis=1)
+    rots = np.stack([np.asarray(el[p.name]) for p in el.properties if p.name.startswith("rot")], axis=1)
+    np.testing.assert_array_equal(xyz, model.means.detach().numpy())
+    np.testing.assert_array_equal(opacities[:, 0], model.opacity_logits.detach().numpy())
+    np.testing.assert_array_equal(dc.transpose(0, 2, 1), model.sh_dc.detach().numpy())
+    np.testing.assert_array_equal(rest.transpose(0, 2, 1), model.sh_rest.detach().numpy())
+    np.testing.assert_array_equal(scales, model.log_scales.detach().numpy())
+    np.testing.assert_array_equal(rots, model.quats.detach().numpy())
 
 
 def test_degree_zero_has_no_f_rest(tmp_path):

@@ -32,11 +32,12 @@ properties by name or prefix (`f_rest_`, `scale_`, `rot`), so the INRIA properti
 in INRIA's order and the temporal ones after them under names without those prefixes; tools that
 read only the vertex block stop before the `camera` element, which is stored after it. Cameras are
 binary float64 so poses survive bit for bit; K and the image size are per clip and travel in the
-header comment as JSON, whose float text (Python's repr) also reads back exactly. `K` is the
-maximum SH degree stored: (K = (D + 1)^2 coefficients per channel); `sh_degree` the active one.
-`info` is any JSON object (e.g. the fit's settings and results; `fps` and `background` are used
-by `tomgs render` when present). A tool that re-saves the PLY may drop the comment or the camera
-element; `load_scene` then says so.
+header comment as JSON, whose float text (Python's repr) also reads back exactly. `max_sh_degree`
+D is the SH degree stored (K = (D + 1)^2 coefficients per channel), `sh_degree` the active one.
+`info` is any JSON object, e.g. the fit's settings and results (non-finite numbers are written as
+Python's JSON writes them, NaN and Infinity); `fps` and `background` are used by `tomgs render`
+when present. A tool that re-saves the PLY may drop the comment or the camera element;
+`load_scene` then says so.
 """
 
 from __future__ import annotations
@@ -135,10 +136,10 @@ def save_scene(path, model, cameras: Cameras, info: dict | None = None) -> Path:
     header = {"format": FORMAT, "version": VERSION, "width": cameras.width, "height": cameras.height,
               "K": cameras.K.tolist(), "sh_degree": int(model.sh_degree), "max_sh_degree": int(degree),
               "tomgs": __version__, "info": info}
-    try:
-        text = json.dumps(header, ensure_ascii=True, allow_nan=False, separators=(",", ":"))
+    try:  # NaN and infinities are written as Python's JSON does (NaN, Infinity) and read back
+        text = json.dumps(header, ensure_ascii=True, separators=(",", ":"))
     except (TypeError, ValueError) as e:
-        raise ValueError(f"info must be JSON-serialisable with finite numbers ({e})") from None
+        raise ValueError(f"info must be JSON-serialisable ({e})") from None
     text = text.replace("end_header", "end\\u005fheader")  # never spell the header terminator in a comment
     ply = PlyData([PlyElement.describe(vertex, "vertex"), PlyElement.describe(camera, "camera")],
                   text=False, byte_order="<", comments=[f"{COMMENT_TAG} {text}"])
@@ -176,7 +177,7 @@ def load_scene(path, device="cpu") -> Scene:
     if magic not in (b"ply\n", b"ply\r"):
         raise InputError(f"{path} is not a PLY file (it does not start with 'ply'): {fix}")
     try:
-        ply = PlyData.read(str(path), mmap=False)
+        ply = PlyData.read(str(path))  # memory-mapped: each column is copied out once below
     except (PlyParseError, ValueError, UnicodeDecodeError, EOFError) as e:
         raise InputError(f"{path} is a damaged or truncated PLY file ({e}): {fix}") from None
 
@@ -230,7 +231,7 @@ def load_scene(path, device="cpu") -> Scene:
     try:
         c2w = np.stack([np.asarray(camera[p], dtype=np.float64) for p in _C2W], axis=1).reshape(-1, 4, 4)
         cameras = Cameras(c2w, np.asarray(header["K"], dtype=np.float64), header["width"], header["height"],
-                          np.asarray(camera["time"], dtype=np.float64), np.asarray(camera["index"], dtype=np.int64))
+                          np.array(camera["time"], dtype=np.float64), np.array(camera["index"], dtype=np.int64))
     except (ValueError, TypeError) as e:
         raise InputError(f"{path}: bad cameras ({e}): {fix}") from None
     if cameras.width < 1 or cameras.height < 1:
@@ -328,10 +329,9 @@ def temporal_scales_in_frames(model, cameras: Cameras) -> np.ndarray:
     return sigma * max(len(cameras) - 1, 1)
 
 
-def log_histogram(values: np.ndarray, per_octave: int = 1, max_bins: int = 24,
-                  min_bins: int = 1) -> tuple[np.ndarray, np.ndarray]:
+def log_histogram(values: np.ndarray, per_octave: int = 1, max_bins: int = 24) -> tuple[np.ndarray, np.ndarray]:
     """(edges [B+1], counts [B]) of positive `values` in bins spaced by powers of two (`per_octave` per
-    doubling); `min_bins` .. `max_bins` bins, the outer ones stretched to hold the extremes."""
+    doubling); at most `max_bins` bins, the outer ones stretched to hold the extremes."""
     values = np.asarray(values, dtype=np.float64)
     values = values[np.isfinite(values) & (values > 0)]
     if len(values) == 0:
@@ -342,9 +342,6 @@ def log_histogram(values: np.ndarray, per_octave: int = 1, max_bins: int = 24,
         mid = round(math.log2(float(np.median(values))) * per_octave)
         lo = max(lo, min(mid - max_bins // 2, hi - max_bins))
         hi = lo + max_bins
-    if hi - lo < min_bins:  # widen evenly around the data
-        lo -= (min_bins - (hi - lo)) // 2
-        hi = lo + min_bins
     edges = 2.0 ** (np.arange(lo, hi + 1) / per_octave)
     counts = np.histogram(np.clip(values, edges[0], edges[-1]), bins=edges)[0]
     return edges, counts
@@ -422,12 +419,14 @@ def format_summary(s: dict, width: int = 40) -> str:
 
 
 def plot_temporal_scales(scene: Scene, path) -> Path:
-    """PNG histogram of the temporal sigmas in frames (log axis, 4 bins per doubling), written atomically."""
+    """PNG histogram of the temporal sigmas in frames (log axis), written atomically (tomgs.plots)."""
+    from tomgs.plots import histogram_png
+
+    path = check_png_path(path)
     sigma = temporal_scales_in_frames(scene.model, scene.cameras)
-    edges, counts = log_histogram(sigma, per_octave=4, max_bins=64, min_bins=8)
     unit = "frames" if len(scene.cameras) > 1 else "clip time"
-    title = f"temporal sigma ({unit}) of {len(sigma):,} Gaussians, {len(scene.cameras)} frames"
-    return _histogram_png(edges, counts, path, title, f"sigma ({unit}), log scale")
+    title = f"temporal sigma of {len(sigma):,} Gaussians, {len(scene.cameras)} frames"
+    return histogram_png(path, sigma, bins=40, log_x=True, xlabel=f"sigma ({unit})", title=title)
 
 
 def check_png_path(path) -> Path:
@@ -437,50 +436,4 @@ def check_png_path(path) -> Path:
         raise InputError(f"{path}: the plot is a PNG; give a path ending in .png")
     if not path.parent.exists():
         raise InputError(f"{path}: folder {path.parent} does not exist; create it or choose another path")
-    return path
-
-
-def _histogram_png(edges: np.ndarray, counts: np.ndarray, path, title: str, xlabel: str,
-                   size: tuple[int, int] = (720, 420)) -> Path:
-    """Bars of `counts` between log-spaced `edges`, drawn with OpenCV (a private stand-in until a
-    shared plotting module lands)."""
-    import cv2
-
-    path = check_png_path(path)
-    w, h = size
-    left, right, top, bottom = 70, 20, 40, 60
-    img = np.full((h, w, 3), 255, np.uint8)
-    x0, x1, y0, y1 = left, w - right, top, h - bottom
-    lx = np.log10(edges)
-    span = max(lx[-1] - lx[0], 1e-12)
-    px = lambda v: int(round(x0 + (math.log10(v) - lx[0]) / span * (x1 - x0)))  # noqa: E731
-    peak = max(int(counts.max()) if len(counts) else 0, 1)
-    font, grey, black = cv2.FONT_HERSHEY_SIMPLEX, (200, 200, 200), (0, 0, 0)
-    for frac in (0.25, 0.5, 0.75, 1.0):  # horizontal grid with counts
-        y = int(round(y1 - frac * (y1 - y0)))
-        cv2.line(img, (x0, y), (x1, y), grey, 1)
-        cv2.putText(img, f"{frac * peak:,.0f}", (4, y + 4), font, 0.4, black, 1, cv2.LINE_AA)
-    for k, count in enumerate(counts):
-        a, b = px(edges[k]), px(edges[k + 1])
-        y = int(round(y1 - count / peak * (y1 - y0)))
-        if count:
-            cv2.rectangle(img, (a + 1, y), (b - 1, y1), (180, 110, 40), -1)  # BGR: a blue bar
-    step = max(1, len(edges) // 10)
-    for k in range(0, len(edges), step):
-        x = px(edges[k])
-        cv2.line(img, (x, y1), (x, y1 + 5), black, 1)
-        cv2.putText(img, f"{edges[k]:.3g}", (x - 14, y1 + 20), font, 0.4, black, 1, cv2.LINE_AA)
-    cv2.rectangle(img, (x0, y0), (x1, y1), black, 1)
-    cv2.putText(img, title, (x0, 25), font, 0.5, black, 1, cv2.LINE_AA)
-    cv2.putText(img, xlabel, (x0 + (x1 - x0) // 2 - 80, h - 15), font, 0.45, black, 1, cv2.LINE_AA)
-    ok, data = cv2.imencode(".png", img)
-    if not ok:
-        raise InputError(f"{path}: OpenCV could not encode the PNG")
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        tmp.write_bytes(data.tobytes())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
     return path
