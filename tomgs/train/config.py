@@ -41,6 +41,7 @@ class TrainConfig:
     log_interval: int = 50  # iterations between CSV rows
     eval_interval_s: float = 30.0  # seconds between full-clip PSNR measurements
     checkpoint_interval_s: float = 300.0
+    max_seconds: float = 0.0  # stop after this much wall-clock time (0: run all iterations)
     seed: int = 0
 
     def replace(self, **changes) -> "TrainConfig":

@@ -38,9 +38,12 @@ class Densifier:
         self.grad_sum += torch.where(visible, (grad * scale).norm(dim=-1), torch.zeros_like(self.grad_sum))
         self.seen += visible.float()
 
-    def due(self, iteration: int) -> bool:
+    def due(self, iteration: int, progress: float = 0.0) -> bool:
+        """Every `densify_interval` iterations from `densify_from` to `densify_until`, and never in
+        the last quarter of the run (by iterations or by wall-clock budget)."""
         c = self.config
-        return (c.densify_from <= iteration < c.densify_until and iteration % c.densify_interval == 0)
+        return (c.densify_from <= iteration < c.densify_until and progress < 0.75
+                and iteration % c.densify_interval == 0)
 
     def step(self, model: GaussianModel, optimizer: torch.optim.Optimizer) -> dict:
         """Clone small and split large Gaussians with high gradients (until the cap), then prune.

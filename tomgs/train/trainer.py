@@ -61,6 +61,7 @@ class Trainer:
         self.sampler = FrameSampler(self.num_frames, config.sampling, config.psnr_momentum, config.seed)
         self.densifier = Densifier(config, self.extent, len(self.model), device, config.seed)
         self.iteration = 0
+        self.progress = 0.0  # fraction of the run done: iterations or wall-clock budget, whichever is further
         self.elapsed = 0.0  # wall seconds of earlier sessions of a resumed run
         self.history: list[dict] = []
 
@@ -130,7 +131,7 @@ class Trainer:
 
     def _means_lr(self) -> float:
         c = self.config
-        frac = min(self.iteration / max(c.iterations, 1), 1.0)
+        frac = min(self.progress, 1.0)
         return self.extent * math.exp((1 - frac) * math.log(c.lr_means) + frac * math.log(c.lr_means_final))
 
     # -- the loop ------------------------------------------------------------------------------
@@ -151,7 +152,7 @@ class Trainer:
         loss = (1 - c.ssim_weight) * (image - target).abs().mean() + c.ssim_weight * (1 - ssim(image, target))
         loss.backward()
         self.sampler.update(k, float(psnr(image.detach(), target)))
-        if self.iteration < c.densify_until:
+        if self.iteration < c.densify_until and self.progress < 0.75:
             self.densifier.observe(meta)
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
@@ -159,7 +160,7 @@ class Trainer:
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         self.iteration += 1
-        if self.densifier.due(self.iteration) and not self.densifier.capped:
+        if self.densifier.due(self.iteration, self.progress) and not self.densifier.capped:
             self.densifier.step(self.model, self.optimizer)
         elif self.iteration % (10 * c.densify_interval) == 0:
             self.densifier.prune(self.model, self.optimizer)
@@ -180,11 +181,14 @@ class Trainer:
         next_eval = next_ckpt = 0.0
         try:
             while self.iteration < c.iterations:
+                now = time.perf_counter() - start
+                self.progress = max(self.iteration / c.iterations, now / c.max_seconds if c.max_seconds > 0 else 0.0)
                 self.step()
                 now = time.perf_counter() - start
-                if self.iteration % c.log_interval == 0 or self.iteration == c.iterations:
+                out_of_time = 0 < c.max_seconds <= now
+                if self.iteration % c.log_interval == 0 or self.iteration == c.iterations or out_of_time:
                     clip = None
-                    if now >= next_eval or self.iteration == c.iterations:
+                    if now >= next_eval or self.iteration == c.iterations or out_of_time:
                         clip = float(np.mean(self.clip_psnr()))
                         next_eval = now + c.eval_interval_s
                     row = self._row(now, clip)
@@ -197,6 +201,9 @@ class Trainer:
                     self.elapsed = now
                     self.save_checkpoint(checkpoint)
                     next_ckpt = now + c.checkpoint_interval_s
+                if out_of_time:
+                    self.notes.append(f"stopped at the {c.max_seconds:.0f} s budget after {self.iteration} iterations")
+                    break
         except KeyboardInterrupt:
             if checkpoint is not None:
                 self.elapsed = time.perf_counter() - start
