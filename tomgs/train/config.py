@@ -13,6 +13,7 @@ class TrainConfig:
     densify_from: int = 500
     densify_until: int = 9_000
     densify_interval: int = 100
+    densify_stop_fraction: float = 0.75  # no densification in the last quarter of the run (issue 4)
     grad_threshold: float = 2e-4  # view-space positional gradient, NDC units as in 3DGS
     percent_dense: float = 0.01  # clone below this fraction of the scene extent, split above
     max_gaussians: int = 10_000_000

@@ -39,10 +39,10 @@ class Densifier:
         self.seen += visible.float()
 
     def due(self, iteration: int, progress: float = 0.0) -> bool:
-        """Every `densify_interval` iterations from `densify_from` to `densify_until`, and never in
-        the last quarter of the run (by iterations or by wall-clock budget)."""
+        """Every `densify_interval` iterations from `densify_from` to `densify_until`, and only in the
+        first `densify_stop_fraction` of the run (by iterations or by wall-clock budget)."""
         c = self.config
-        return (c.densify_from <= iteration < c.densify_until and progress < 0.75
+        return (c.densify_from <= iteration < c.densify_until and progress < c.densify_stop_fraction
                 and iteration % c.densify_interval == 0)
 
     def step(self, model: GaussianModel, optimizer: torch.optim.Optimizer) -> dict:

@@ -152,7 +152,7 @@ class Trainer:
         loss = (1 - c.ssim_weight) * (image - target).abs().mean() + c.ssim_weight * (1 - ssim(image, target))
         loss.backward()
         self.sampler.update(k, float(psnr(image.detach(), target)))
-        if self.iteration < c.densify_until and self.progress < 0.75:
+        if self.iteration < c.densify_until and self.progress < c.densify_stop_fraction:
             self.densifier.observe(meta)
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
