@@ -47,12 +47,16 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from tomgs.cameras import Cameras
 from tomgs.io import InputError
+
+if TYPE_CHECKING:  # the model module pulls in torch-heavy code; scene files import it lazily
+    from tomgs.model import GaussianModel
 
 FORMAT = "tomgs-scene"
 VERSION = 1
@@ -78,7 +82,7 @@ def vertex_properties(max_sh_degree: int) -> list[str]:
 class Scene:
     """What a scene file holds: the Gaussians, the cameras (with frame times) and free-form info."""
 
-    model: "GaussianModel"  # noqa: F821  (tomgs.model, imported lazily)
+    model: GaussianModel
     cameras: Cameras
     info: dict = field(default_factory=dict)
 
@@ -226,7 +230,7 @@ def load_scene(path, device="cpu") -> Scene:
     if bad:
         raise InputError(f"{path}: non-finite values (NaN or infinity) in "
                          + ", ".join(f"{name} of {count} Gaussians" for name, count in bad.items())
-                         + f": the file is corrupt or came from a diverged fit; refit or remove those Gaussians")
+                         + ": the file is corrupt or came from a diverged fit; refit or remove those Gaussians")
 
     try:
         c2w = np.stack([np.asarray(camera[p], dtype=np.float64) for p in _C2W], axis=1).reshape(-1, 4, 4)
