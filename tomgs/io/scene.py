@@ -55,7 +55,7 @@ import torch
 from tomgs.cameras import Cameras
 from tomgs.io import InputError
 
-if TYPE_CHECKING:  # the model module pulls in torch-heavy code; scene files import it lazily
+if TYPE_CHECKING:  # for the annotation only; load_scene imports the model when it builds one
     from tomgs.model import GaussianModel
 
 FORMAT = "tomgs-scene"
