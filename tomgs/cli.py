@@ -207,34 +207,45 @@ def demo(output, num_frames, size, device):
       tomgs demo                        # demo.mp4, 48 frames at 320x180
       tomgs demo -o frames/ --size 854x480 --device cuda
     """
-    import time
-
-    import numpy as np
-
     from tomgs.demo import demo_scene
-    from tomgs.io import InputError, write_frames
-    from tomgs.render import RenderError, render_sequence, resolve_device
+    from tomgs.io import InputError
+    from tomgs.render import RenderError, resolve_device
 
     width, height = _parse_size(size)
     try:
         dev = resolve_device(device)
         gaussians, cams = demo_scene(num_frames, width, height)
-        alive = []
-        start = time.perf_counter()
-
-        def frames():
-            with click.progressbar(render_sequence(gaussians, cams, background=(0.05, 0.05, 0.08), device=dev),
-                                   length=num_frames, label="render") as bar:
-                for _, image, meta in bar:
-                    alive.append(int(meta["n_alive"]))
-                    yield (image.numpy() * 255.0 + 0.5).astype(np.uint8)
-
-        count = write_frames(frames(), output, fps=24.0)
+        _render_to(output, gaussians, cams, range(num_frames), background=(0.05, 0.05, 0.08), device=dev, fps=24.0,
+                   what=f"at {width}x{height}")
     except (InputError, RenderError) as e:
         raise UsageError(str(e)) from None
+
+
+def _render_to(output, gaussians, cams, positions, background, device, fps: float, what: str) -> None:
+    """Render frames `positions` of `cams` to `output` (video or PNG folder) with a progress bar,
+    then report the frame rate and how many Gaussians each frame skipped as dead."""
+    import time
+
+    import numpy as np
+
+    from tomgs.io import write_frames
+    from tomgs.render import render_sequence
+
+    positions = list(positions)
+    alive = []
+    start = time.perf_counter()
+
+    def images():
+        sequence = render_sequence(gaussians, cams, positions, background=background, device=device)
+        with click.progressbar(sequence, length=len(positions), label="render") as bar:
+            for _, image, meta in bar:
+                alive.append(int(meta["n_alive"]))
+                yield (image.numpy() * 255.0 + 0.5).astype(np.uint8)
+
+    count = write_frames(images(), output, fps=fps)
     seconds = time.perf_counter() - start
     total = gaussians["means"].shape[0]
-    click.echo(f"{output}: {count} frames at {width}x{height} on {dev} in {seconds:.1f} s ({count / seconds:.1f} fps)")
+    click.echo(f"{output}: {count} frames {what} on {device} in {seconds:.1f} s ({count / seconds:.1f} fps)")
     click.echo(f"  {total:,} Gaussians; alive per frame {min(alive):,}..{max(alive):,}: the rest were culled in "
                f"projection and cost no tile work")
 
@@ -270,13 +281,9 @@ def render(scene, frames, output, device, background, fps):
       tomgs render scene.ply -o scene.mp4
       tomgs render scene.ply --frames 0:80 -o frames/ --device cuda
     """
-    import time
-
-    import numpy as np
-
-    from tomgs.io import InputError, write_frames
+    from tomgs.io import InputError
     from tomgs.io.scene import load_scene, select_frames
-    from tomgs.render import RenderError, render_sequence, resolve_device
+    from tomgs.render import RenderError, resolve_device
 
     rgb = _parse_background(background)
     try:
@@ -284,29 +291,13 @@ def render(scene, frames, output, device, background, fps):
         loaded = load_scene(scene)
         cams = loaded.cameras
         positions = select_frames(cams, frames)
-        if rgb is None:
-            rgb = tuple(loaded.info.get("background", (0.0, 0.0, 0.0)))
-        rate = fps or float(loaded.info.get("fps", 25.0))
-        alive = []
-        start = time.perf_counter()
-
-        def images():
-            sequence = render_sequence(loaded.model.render_inputs(), cams, positions.tolist(), background=rgb,
-                                       device=dev)
-            with click.progressbar(sequence, length=len(positions), label="render") as bar:
-                for _, image, meta in bar:
-                    alive.append(int(meta["n_alive"]))
-                    yield (image.numpy() * 255.0 + 0.5).astype(np.uint8)
-
-        count = write_frames(images(), output, fps=rate)
+        numbers = cams.frame_indices[positions]
+        _render_to(output, loaded.model.render_inputs(), cams, positions.tolist(),
+                   background=rgb if rgb is not None else tuple(loaded.info.get("background", (0.0, 0.0, 0.0))),
+                   device=dev, fps=fps or float(loaded.info.get("fps", 25.0)),
+                   what=f"({numbers[0]}..{numbers[-1]}) at {cams.width}x{cams.height}")
     except (InputError, RenderError) as e:
         raise UsageError(str(e)) from None
-    seconds = time.perf_counter() - start
-    numbers = cams.frame_indices[positions]
-    click.echo(f"{output}: {count} frames ({numbers[0]}..{numbers[-1]}) at {cams.width}x{cams.height} on {dev} in "
-               f"{seconds:.1f} s ({count / seconds:.1f} fps)")
-    click.echo(f"  {len(loaded.model):,} Gaussians; alive per frame {min(alive):,}..{max(alive):,}: the rest were "
-               f"culled in projection and cost no tile work")
 
 
 @main.command()
