@@ -64,3 +64,18 @@ def test_demo_bad_input(tmp_path, args, message):
     assert result.exit_code == 2, result.output
     assert message in result.output
     assert list(tmp_path.iterdir()) == []
+
+
+def test_outputs_get_default_permissions(tmp_path):
+    """Atomic writes go through private temporary names; the published output must not stay private."""
+    import os
+
+    from tomgs.plots import line_plot_png
+
+    umask = os.umask(0)
+    os.umask(umask)
+    frames = tmp_path / "frames"
+    assert run("demo", "-o", str(frames), "--frames", "2", "--size", "32x18", "--device", "cpu").exit_code == 0
+    plot = line_plot_png(tmp_path / "p.png", {"a": ([0.0, 1.0], [0.0, 1.0])})
+    assert frames.stat().st_mode & 0o777 == 0o777 & ~umask
+    assert plot.stat().st_mode & 0o777 == 0o666 & ~umask

@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+from tomgs.io.atomic import publish
+
 WIDTH, HEIGHT = 800, 500
 MARGIN_LEFT, MARGIN_RIGHT, MARGIN_TOP, MARGIN_BOTTOM = 80, 24, 44, 58
 # BGR colours of successive series (matplotlib's tab10 order)
@@ -171,7 +173,7 @@ def _write_png(path, img: np.ndarray) -> Path:
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data.tobytes())
-        os.replace(tmp, path)
+        publish(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)

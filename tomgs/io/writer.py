@@ -6,7 +6,6 @@ interrupted or failed write never leaves a half-written output behind.
 
 from __future__ import annotations
 
-import os
 import shutil
 import tempfile
 from collections.abc import Iterable
@@ -15,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from tomgs.io import InputError
+from tomgs.io.atomic import publish
 
 VIDEO_SUFFIXES = {".mp4": "mp4v", ".avi": "MJPG", ".mov": "mp4v", ".mkv": "mp4v"}
 
@@ -59,7 +59,7 @@ def write_frames(frames: Iterable[np.ndarray], path, fps: float = 25.0) -> int:
             raise InputError(f"{path}: no frames to write")
         if path.is_dir() and not is_video:
             shutil.rmtree(path)
-        os.replace(target, path)
+        publish(target, path)
     finally:
         if writer is not None:
             writer.release()
