@@ -65,14 +65,16 @@ def poses(video, output, masks, frames, method, focal, max_side):
 @click.option("--focal", type=float, default=None, help="focal length in pixels, if known")
 @click.option("--device", default="auto", show_default=True, help="auto, cpu, cuda or cuda:N")
 @click.option("--cap", "max_gaussians", type=click.IntRange(1), default=None, help="most Gaussians (default 10M)")
+@click.option("--budget", "max_seconds", type=click.FloatRange(min=1.0), default=None,
+              help="stop after this many seconds of training (schedules follow the budget)")
 @click.option("--sampling", type=click.Choice(["inverse_psnr", "uniform"]), default=None)
 @click.option("--static", "static_3dgs", is_flag=True, help="ablation: no temporal opacity (static 3DGS)")
 @click.option("--opacity-reset", type=click.IntRange(0), default=None, help="ablation: reset opacities every N")
 @click.option("--sh-degree", type=click.IntRange(0, 3), default=None, help="view-dependent colour (default 0)")
 @click.option("--seed", type=int, default=None)
 @click.option("--resume", is_flag=True, help="continue from the checkpoint beside OUTPUT")
-def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal, device, max_gaussians, sampling,
-        static_3dgs, opacity_reset, sh_degree, seed, resume):
+def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal, device, max_gaussians, max_seconds,
+        sampling, static_3dgs, opacity_reset, sh_degree, seed, resume):
     """Fit a TOM-GS scene to VIDEO (a video file or a folder of frames).
 
     \b
@@ -87,7 +89,7 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
     from tomgs.train import output_paths
     from tomgs.train import preset as make_config
 
-    overrides = dict(iterations=iterations, max_gaussians=max_gaussians, sampling=sampling,
+    overrides = dict(iterations=iterations, max_gaussians=max_gaussians, max_seconds=max_seconds, sampling=sampling,
                      opacity_reset_interval=opacity_reset, sh_degree=sh_degree, seed=seed)
     overrides = {k: v for k, v in overrides.items() if v is not None}
     if static_3dgs:
