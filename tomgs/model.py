@@ -51,12 +51,14 @@ class GaussianModel(torch.nn.Module):
 
     @classmethod
     def from_points(cls, points: torch.Tensor, colors: torch.Tensor, t_means: torch.Tensor,
-                    t_scale: float, max_sh_degree: int = 3, opacity: float = 0.1) -> "GaussianModel":
+                    t_scale: float, max_sh_degree: int = 3, opacity: float = 0.1,
+                    sizes: torch.Tensor | None = None) -> "GaussianModel":
         """Isotropic Gaussians at `points` [P,3] with RGB `colors` [P,3] in [0,1], temporal centres
-        `t_means` [P] and a common temporal sigma; size from the 3 nearest neighbours (as 3DGS)."""
+        `t_means` [P] and a common temporal sigma; size `sizes` [P], or by default the distance to
+        the 3 nearest neighbours (as 3DGS; quadratic in P, so pass sizes for large clouds)."""
         points = points.float()
         n = points.shape[0]
-        dist = nearest_neighbour_distance(points, k=3).clamp_min(1e-7)
+        dist = (nearest_neighbour_distance(points, k=3) if sizes is None else sizes.float()).clamp_min(1e-7)
         rest = (max_sh_degree + 1) ** 2 - 1
         return cls(
             means=points,

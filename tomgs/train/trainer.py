@@ -20,7 +20,7 @@ import torch
 
 from tomgs.cameras import Cameras
 from tomgs.metrics import psnr, ssim
-from tomgs.model import GaussianModel
+from tomgs.model import GaussianModel, nearest_neighbour_distance
 from tomgs.render import rasterize
 from tomgs.train.config import TrainConfig
 from tomgs.train.densify import Densifier
@@ -89,17 +89,21 @@ class Trainer:
             ts.append(np.full(per_frame, self.times[k]))
         frame_sigma = c.init_t_scale_frames / max(self.num_frames - 1, 1)
         t_sigma = np.concatenate([np.full(len(points), 1.0), np.full(per_frame * self.num_frames, frame_sigma)])
+        # sizes: tracked points from their neighbours (few), per-frame points from one sample's
+        # share of the image (many: a neighbour search over them would be quadratic)
+        pixel_size = max(float(np.median(depth)) / float(fx) * math.sqrt(self.width * self.height / per_frame), 1e-6)
+        sizes = np.full(len(points) + per_frame * self.num_frames, pixel_size)
+        if len(points):
+            sizes[:len(points)] = nearest_neighbour_distance(torch.as_tensor(points, dtype=torch.float32)).numpy()
         all_points = np.concatenate([points, *xs]) if len(points) else np.concatenate(xs)
         all_colors = np.concatenate([colors, *cols]) if len(points) else np.concatenate(cols)
         t_means = np.concatenate([np.full(len(points), 0.5), *ts])
         model = GaussianModel.from_points(torch.as_tensor(all_points, dtype=torch.float32),
                                           torch.as_tensor(all_colors, dtype=torch.float32),
-                                          torch.as_tensor(t_means, dtype=torch.float32), 1.0, max_sh_degree=c.sh_degree)
+                                          torch.as_tensor(t_means, dtype=torch.float32), 1.0, max_sh_degree=c.sh_degree,
+                                          sizes=torch.as_tensor(sizes, dtype=torch.float32))
         with torch.no_grad():
             model.log_t_scales.copy_(torch.log(torch.as_tensor(t_sigma, dtype=torch.float32)))
-            # per-frame points: footprint of one sample's share of the image
-            pixel_size = float(np.median(depth)) / float(fx) * math.sqrt(self.width * self.height / per_frame)
-            model.log_scales[len(points):] = math.log(max(pixel_size, 1e-6))
             if not c.temporal:
                 model.log_t_scales.fill_(math.log(1e3))
         if c.sh_degree > 0:
