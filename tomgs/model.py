@@ -91,6 +91,8 @@ class GaussianModel(torch.nn.Module):
     def sh(self, degree: int | None = None) -> torch.Tensor:
         """SH coefficients [N,(d+1)^2,3] of the active degree (or `degree`)."""
         degree = self.sh_degree if degree is None else degree
+        if degree == 0:
+            return self.sh_dc  # no copy: most video scenes never leave degree 0
         return torch.cat([self.sh_dc, self.sh_rest[:, : (degree + 1) ** 2 - 1]], dim=1)
 
     def render_inputs(self) -> dict[str, torch.Tensor]:

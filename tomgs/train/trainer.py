@@ -131,7 +131,8 @@ class Trainer:
                   opacity_logits=c.lr_opacity, sh_dc=c.lr_sh_dc, sh_rest=c.lr_sh_rest,
                   t_means=c.lr_t_means if c.temporal else 0.0, log_t_scales=c.lr_t_scales if c.temporal else 0.0)
         groups = [dict(params=[p], lr=lr[name], name=name) for name, p in self.model.parameters_by_name().items()]
-        return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+        # fused: one kernel for all groups on the GPU (the foreach path took 2 ms at 4.5M Gaussians)
+        return torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=self.device.type == "cuda")
 
     def _means_lr(self) -> float:
         c = self.config
