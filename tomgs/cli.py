@@ -213,7 +213,7 @@ def render(scene, frames, output, device, background, fps):
     import numpy as np
 
     from tomgs.io import InputError, write_frames
-    from tomgs.io.scene import load_scene, select_frames
+    from tomgs.io.scene import load_scene, render_defaults, select_frames
     from tomgs.render import RenderError, render_sequence, resolve_device
 
     rgb = _parse_background(background)
@@ -222,9 +222,8 @@ def render(scene, frames, output, device, background, fps):
         loaded = load_scene(scene)
         cams = loaded.cameras
         positions = select_frames(cams, frames)
-        if rgb is None:
-            rgb = tuple(loaded.info.get("background", (0.0, 0.0, 0.0)))
-        rate = fps or float(loaded.info.get("fps", 25.0))
+        default_rgb, default_fps = render_defaults(loaded.info)
+        rgb, rate = rgb or default_rgb, fps or default_fps
         alive = []
         start = time.perf_counter()
 
