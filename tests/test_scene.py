@@ -12,8 +12,8 @@ from plyfile import PlyData, PlyElement
 import tomgs
 from tomgs.cameras import Cameras, intrinsics, look_at
 from tomgs.io import InputError
-from tomgs.io.scene import (alive_per_frame, load_scene, log_histogram, save_scene, select_frames, summarize,
-                            format_summary)
+from tomgs.io.scene import (alive_per_frame, format_summary, load_scene, log_histogram, render_defaults, save_scene,
+                            select_frames, summarize)
 from tomgs.model import PARAM_NAMES, GaussianModel
 
 # written out by hand from INRIA's GaussianModel.construct_list_of_attributes, not from tomgs
@@ -250,6 +250,13 @@ def test_select_frames_uses_the_scene_numbering():
     for spec in ("0:5", "12:40", "19", "13", "x:y", "::0", "-30:"):
         with pytest.raises(InputError):
             select_frames(cams, spec)
+
+
+def test_render_defaults_come_from_info_when_valid():
+    assert render_defaults({}) == ((0.0, 0.0, 0.0), 25.0)
+    assert render_defaults({"fps": 12, "background": [1, 0.5, 0]}) == ((1.0, 0.5, 0.0), 12.0)
+    assert render_defaults({"fps": "fast", "background": [2, 0, 0]}) == ((0.0, 0.0, 0.0), 25.0)
+    assert render_defaults({"fps": -1, "background": "white"}) == ((0.0, 0.0, 0.0), 25.0)
 
 
 def test_alive_per_frame_matches_the_renderer():

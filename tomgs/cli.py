@@ -284,7 +284,7 @@ def render(scene, frames, output, device, background, fps):
       tomgs render scene.ply --frames 0:80 -o frames/ --device cuda
     """
     from tomgs.io import InputError
-    from tomgs.io.scene import load_scene, select_frames
+    from tomgs.io.scene import load_scene, render_defaults, select_frames
     from tomgs.render import RenderError, resolve_device
 
     rgb = _parse_background(background)
@@ -294,10 +294,9 @@ def render(scene, frames, output, device, background, fps):
         cams = loaded.cameras
         positions = select_frames(cams, frames)
         numbers = cams.frame_indices[positions]
-        _render_to(output, loaded.model.render_inputs(), cams, positions.tolist(),
-                   background=rgb if rgb is not None else tuple(loaded.info.get("background", (0.0, 0.0, 0.0))),
-                   device=dev, fps=fps or float(loaded.info.get("fps", 25.0)),
-                   what=f"({numbers[0]}..{numbers[-1]}) at {cams.width}x{cams.height}")
+        default_rgb, default_fps = render_defaults(loaded.info)
+        _render_to(output, loaded.model.render_inputs(), cams, positions.tolist(), background=rgb or default_rgb,
+                   device=dev, fps=fps or default_fps, what=f"({numbers[0]}..{numbers[-1]}) at {cams.width}x{cams.height}")
     except (InputError, RenderError) as e:
         raise UsageError(str(e)) from None
 

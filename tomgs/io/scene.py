@@ -309,6 +309,25 @@ def select_frames(cameras: Cameras, spec) -> np.ndarray:
     return positions
 
 
+def render_defaults(info: dict) -> tuple[tuple[float, float, float], float]:
+    """(background RGB, frames per second) for rendering a scene: its info's `background` and `fps`
+    when they are valid, else black and 25."""
+    background, fps = (0.0, 0.0, 0.0), 25.0
+    try:
+        rgb = tuple(float(v) for v in info.get("background", ()))
+        if len(rgb) == 3 and all(0.0 <= v <= 1.0 for v in rgb):
+            background = rgb
+    except (TypeError, ValueError):
+        pass
+    try:
+        value = float(info.get("fps", fps))
+        if math.isfinite(value) and value > 0:
+            fps = value
+    except (TypeError, ValueError):
+        pass
+    return background, fps
+
+
 def alive_per_frame(model, cameras: Cameras, alpha_min: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(count [T] of Gaussians whose temporal opacity at frame k's time is >= 1/255 -- those the
     renderer does not cull --, bool [N]: alive in at least one frame). Float32, as the renderer."""
