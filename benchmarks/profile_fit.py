@@ -10,12 +10,15 @@ x frames Gaussians, so the loop runs in the regime a long fit reaches.
 from __future__ import annotations
 
 import argparse
+import sys
 import time
-from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from profile_raster import kernel_times  # noqa: E402
 
 from tomgs.cameras import Cameras, intrinsics
 from tomgs.io import read_video
@@ -44,15 +47,7 @@ def main() -> None:
         trainer.step()
     torch.cuda.synchronize()
     wall = (time.perf_counter() - start) / args.iters * 1e3
-    acts = [torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
-    with torch.profiler.profile(activities=acts) as prof:
-        for _ in range(args.iters):
-            trainer.step()
-        torch.cuda.synchronize()
-    per_kernel = defaultdict(float)
-    for evt in prof.key_averages():
-        if evt.device_type == torch.autograd.DeviceType.CUDA and evt.device_time_total > 0:
-            per_kernel[evt.key[:80]] += evt.device_time_total / args.iters / 1e3
+    per_kernel = kernel_times(trainer.step, args.iters)
     gpu = sum(per_kernel.values())
     print(f"wall {wall:.2f} ms per iteration, GPU kernels {gpu:.2f} ms (gap {wall - gpu:.2f} ms)")
     for name, ms in sorted(per_kernel.items(), key=lambda kv: -kv[1])[:22]:

@@ -20,6 +20,20 @@ from bench_raster import camera, make_scene, parse_count, parse_size, temporal_s
 import tomgs  # noqa: E402
 
 
+def kernel_times(step, iters: int) -> dict[str, float]:
+    """GPU milliseconds per call of `step`, by kernel name (torch profiler; Warp's kernels included)."""
+    acts = [torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
+    with torch.profiler.profile(activities=acts) as prof:
+        for _ in range(iters):
+            step()
+        torch.cuda.synchronize()
+    per_kernel = defaultdict(float)
+    for evt in prof.key_averages():
+        if evt.device_type == torch.autograd.DeviceType.CUDA and evt.device_time_total > 0:
+            per_kernel[evt.key[:80]] += evt.device_time_total / iters / 1e3
+    return dict(per_kernel)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--size", default="854x480")
@@ -53,15 +67,7 @@ def main() -> None:
     torch.cuda.synchronize()
     wall = (time.perf_counter() - t0) / args.iters * 1e3
 
-    acts = [torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
-    with torch.profiler.profile(activities=acts) as prof:
-        for _ in range(args.iters):
-            step()
-        torch.cuda.synchronize()
-    per_kernel = defaultdict(float)
-    for evt in prof.key_averages():
-        if evt.device_type == torch.autograd.DeviceType.CUDA and evt.device_time_total > 0:
-            per_kernel[evt.key[:70]] += evt.device_time_total / args.iters / 1e3
+    per_kernel = kernel_times(step, args.iters)
     gpu = sum(per_kernel.values())
     print(f"\n{args.size} N={n:,} {args.variant}: wall {wall:.3f} ms per fwd+bwd, GPU kernels {gpu:.3f} ms "
           f"(gap {wall - gpu:.3f} ms = host overhead and syncs)")
