@@ -148,6 +148,20 @@ def test_rigid_throw_follows_the_ballistic_parabola():
     np.testing.assert_allclose(angle - angle[0], spin * t, atol=0.02 * spin * t[-1])
 
 
+def test_friction_stops_a_slide():
+    vertices, tets = cube5()
+
+    def slide(friction: float) -> np.ndarray:
+        config = SimConfig(frames=24, edge_compliance=0.0, friction=friction, initial_velocity=(2.0, 0.0, 0.0))
+        return simulate(vertices, tets, config)[..., 0].mean(axis=1) - 0.5  # centre's travel along x
+
+    t = np.arange(24) / FPS
+    np.testing.assert_allclose(slide(0.0), 2.0 * t, atol=1e-3)  # no friction: slides on
+    stop = 2.0**2 / (2 * 0.5 * 9.81)  # Coulomb: v^2 / (2 mu g)
+    travel = slide(0.5)
+    assert abs(travel[-1] - stop) < 0.1 * stop and travel[-1] == pytest.approx(travel[-2], abs=1e-4)
+
+
 def test_stiffer_material_compresses_less():
     vertices, tets = box_tets((2, 2, 2))
 

@@ -54,7 +54,9 @@ class SimConfig:
     edge_compliance, volume_compliance: inverse stiffness (scale-free, 0 = rigid);
     damping: velocity damping rate (air drag), 1/s; viscosity: material damping, the relaxation
     time in seconds of the strain (damps wobble, not falling or spinning); friction: Coulomb coefficient at the floor;
-    restitution: bounce, 0..1; initial_velocity: scene units / s; initial_spin: rad/s about the
+    restitution: 0..1, the share of a vertex's approach speed it keeps when it hits the floor
+    (per vertex: the impulse does not reach the rest of the body within the substep, so a body's
+    bounce comes mostly from its elasticity, the compliances and viscosity); initial_velocity: scene units / s; initial_spin: rad/s about the
     centre of mass (axis = direction, world axes); drop_height: start raised this far against
     gravity, scene units.
     """
