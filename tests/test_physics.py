@@ -111,8 +111,8 @@ def test_frame_check_counts_inverted_tets():
     args = [wp.array(tets.astype(np.int32), dtype=wp.vec4i, device="cpu"),
             wp.array(signed_volumes(vertices, tets).astype(np.float32), dtype=float, device="cpu")]
     for f, x in enumerate((vertices, moved)):
-        wp.launch(xpbd.record_frame, dim=8, device="cpu",
-                  inputs=[wp.array(x.astype(np.float32), dtype=wp.vec3, device="cpu"), *args, f, frames, ratio, inverted])
+        positions = wp.array(x.astype(np.float32), dtype=wp.vec3, device="cpu")
+        wp.launch(xpbd.record_frame, dim=8, device="cpu", inputs=[positions, *args, f, frames, ratio, inverted])
     assert inverted.numpy().tolist() == [0, 1]
     np.testing.assert_allclose(ratio.numpy(), [1.0, volumes.min()], rtol=1e-5)
     np.testing.assert_allclose(frames.numpy()[1], moved, rtol=1e-6)

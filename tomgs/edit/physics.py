@@ -53,12 +53,12 @@ class SimConfig:
     along gravity); floor_normal: pointing up (None: against gravity);
     edge_compliance, volume_compliance: inverse stiffness (scale-free, 0 = rigid);
     damping: velocity damping rate (air drag), 1/s; viscosity: material damping, the relaxation
-    time in seconds of the strain (damps wobble, not falling or spinning); friction: Coulomb coefficient at the floor;
-    restitution: 0..1, the share of a vertex's approach speed it keeps when it hits the floor
-    (per vertex: the impulse does not reach the rest of the body within the substep, so a body's
-    bounce comes mostly from its elasticity, the compliances and viscosity); initial_velocity: scene units / s; initial_spin: rad/s about the
-    centre of mass (axis = direction, world axes); drop_height: start raised this far against
-    gravity, scene units.
+    time of the strain in seconds (damps wobble, not falling or spinning); friction: Coulomb
+    coefficient at the floor; restitution: 0..1, the share of a vertex's approach speed it keeps
+    when it hits the floor (per vertex: the impulse does not reach the rest of the body within the
+    substep, so a body's bounce comes mostly from its elasticity, the compliances and viscosity);
+    initial_velocity: scene units / s; initial_spin: rad/s about the centre of mass (axis =
+    direction, world axes); drop_height: start raised this far against gravity, scene units.
     """
 
     frames: int = 80
@@ -181,7 +181,8 @@ class _Solver:
         edge_volume = np.bincount(edge_tet, weights=np.repeat(volumes / 6.0, 6), minlength=len(edges))
         edge_colour, tet_colour = _colour(edges, len(rest)), _colour(tets, len(rest))
         edge_order, tet_order = np.argsort(edge_colour, kind="stable"), np.argsort(tet_colour, kind="stable")
-        edges, edge_volume, tets, volumes = edges[edge_order], edge_volume[edge_order], tets[tet_order], volumes[tet_order]
+        edges, edge_volume = edges[edge_order], edge_volume[edge_order]
+        tets, volumes = tets[tet_order], volumes[tet_order]
 
         n = len(rest)
         self.x = wp.array(rest.astype(f32), dtype=wp.vec3)
