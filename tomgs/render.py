@@ -322,14 +322,19 @@ def render_sequence(gaussians, cameras, indices=None, *, background=None, device
     """Yield (frame k, image [H,W,3] float32 in [0,1] on the CPU, meta) for frames `indices` of `cameras`.
 
     `gaussians`: mapping with means, quats, scales, opacities, colors (RGB or SH), t_means,
-    t_scales; `cameras`: a `tomgs.Cameras`; frame k renders at t = cameras.times[k]. No gradients.
+    t_scales; or a callable k -> such a mapping, a per-frame cloud (an edit over time, a simulated
+    shot). `cameras`: a `tomgs.Cameras`; frame k renders at t = cameras.times[k]. No gradients.
     """
-    device = torch.device(device) if device is not None else gaussians["means"].device
-    g = {k: gaussians[k].to(device) for k in ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales")}
-    viewmats, Ks = cameras.viewmats(device), cameras.Ks(device)
-    bg = None if background is None else torch.as_tensor(background, dtype=torch.float32, device=device)
+    names = ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales")
+    viewmats, Ks = cameras.viewmats(), cameras.Ks()  # float64 numpy, cast per frame on its device
     with torch.no_grad():
         for k in range(len(cameras)) if indices is None else indices:
-            image, _, meta = rasterize(**g, viewmat=viewmats[k], K=Ks[k], width=cameras.width, height=cameras.height,
-                                    t=float(cameras.times[k]), background=bg)
+            g = gaussians(k) if callable(gaussians) else gaussians
+            dev = torch.device(device) if device is not None else g["means"].device
+            g = {name: g[name].to(dev) for name in names}  # no copy when already there
+            f32 = dict(dtype=torch.float32, device=dev)
+            bg = None if background is None else torch.as_tensor(background, **f32)
+            image, _, meta = rasterize(**g, viewmat=torch.as_tensor(viewmats[k], **f32), K=torch.as_tensor(Ks[k], **f32),
+                                       width=cameras.width, height=cameras.height, t=float(cameras.times[k]),
+                                       background=bg)
             yield k, image.clamp(0.0, 1.0).cpu(), meta
