@@ -95,8 +95,6 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
     if static_3dgs:
         overrides["temporal"] = False
     config = make_config(preset, **overrides)
-    if config.densify_until > config.iterations:
-        config = config.replace(densify_until=int(0.75 * config.iterations))
     bar = click.progressbar(length=config.iterations, label="fit", show_eta=True, show_percent=True,
                             item_show_func=lambda row: row and (
                                 f"PSNR {row['train_psnr']} dB, {row['gaussians']:,} Gaussians, "
@@ -237,21 +235,28 @@ def _render_to(output, gaussians, cams, positions, background, device, fps: floa
     positions = list(positions)
     alive, totals = [], []
     start = time.perf_counter()
+    if callable(gaussians):  # a per-frame cloud: count each frame's Gaussians as it is made
+        def source(k):
+            cloud = gaussians(k)
+            totals.append(int(cloud["means"].shape[0]))
+            return cloud
+    else:
+        source = gaussians
+        totals.append(int(gaussians["means"].shape[0]))
 
     def images():
-        sequence = render_sequence(gaussians, cams, positions, background=background, device=device)
+        sequence = render_sequence(source, cams, positions, background=background, device=device)
         with click.progressbar(sequence, length=len(positions), label="render") as bar:
             for _, image, meta in bar:
                 alive.append(int(meta["n_alive"]))
-                totals.append(int(meta["radii"].shape[0]))
                 yield (image.numpy() * 255.0 + 0.5).astype(np.uint8)
 
     count = write_frames(images(), output, fps=fps)
     seconds = time.perf_counter() - start
     total = f"{min(totals):,}" if min(totals) == max(totals) else f"{min(totals):,}..{max(totals):,}"
     click.echo(f"{output}: {count} frames {what} on {device} in {seconds:.1f} s ({count / seconds:.1f} fps)")
-    click.echo(f"  {total} Gaussians; alive per frame {min(alive):,}..{max(alive):,}: the rest were culled in "
-               f"projection and cost no tile work")
+    click.echo(f"  {total} Gaussians; alive per frame {min(alive):,}..{max(alive):,}: only those alive near "
+               f"each frame's time were projected")
 
 
 def _parse_background(text: str | None):

@@ -318,23 +318,57 @@ def resolve_device(name: str | None = "auto") -> torch.device:
     return device
 
 
-def render_sequence(gaussians, cameras, indices=None, *, background=None, device=None):
-    """Yield (frame k, image [H,W,3] float32 in [0,1] on the CPU, meta) for frames `indices` of `cameras`.
+def alive_window(opacities: torch.Tensor, t_means: torch.Tensor, t_scales: torch.Tensor,
+                 alpha_min: float = ALPHA_MIN) -> tuple[torch.Tensor, torch.Tensor]:
+    """(first [N], last [N]): the times between which o_i(t) >= alpha_min, widened by a hair so that
+    float32 rounding in projection never finds a Gaussian alive outside; first > last when never."""
+    reach = torch.sqrt(2.0 * torch.log(opacities / alpha_min).clamp_min(0.0)) * (1.0 + 1e-3) + 1e-3
+    reach = torch.where(opacities >= alpha_min, reach * t_scales, torch.full_like(reach, -float("inf")))
+    return t_means - reach, t_means + reach
+
+
+# frames rendered from one gathered set of the Gaussians alive at any of their times
+FRAMES_PER_GATHER = 8
+
+
+def render_sequence(gaussians, cameras, indices=None, *, background=None, device=None, to_cpu: bool = True):
+    """Yield (frame k, image [H,W,3] float32 in [0,1], meta) for frames `indices` of `cameras`.
 
     `gaussians`: mapping with means, quats, scales, opacities, colors (RGB or SH), t_means,
     t_scales; or a callable k -> such a mapping, a per-frame cloud (an edit over time, a simulated
     shot). `cameras`: a `tomgs.Cameras`; frame k renders at t = cameras.times[k]. No gradients.
+    Every few frames (every frame for a per-frame cloud) only the Gaussians alive around those
+    frames' times are gathered and rendered, so a long clip pays per frame for what lives in it;
+    `meta` describes that subset. Images come back on the CPU unless `to_cpu` is False.
     """
     names = ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales")
-    viewmats, Ks = cameras.viewmats(), cameras.Ks()  # float64 numpy, cast per frame on its device
+
+    def prepared(g: dict):
+        dev = torch.device(device) if device is not None else g["means"].device
+        g = {name: g[name].detach().to(dev) for name in names}
+        return g, alive_window(g["opacities"], g["t_means"], g["t_scales"]), dev
+
+    static = None if callable(gaussians) else prepared(gaussians)
+    per_device = {}  # cameras and background on each device a frame lands on (one, in practice)
+
+    def frame_inputs(dev):
+        if dev not in per_device:
+            bg = None if background is None else torch.as_tensor(background, dtype=torch.float32, device=dev)
+            per_device[dev] = (cameras.viewmats(dev), cameras.Ks(dev), bg)
+        return per_device[dev]
+
+    order = list(range(len(cameras)) if indices is None else indices)
+    step = FRAMES_PER_GATHER if static else 1
     with torch.no_grad():
-        for k in range(len(cameras)) if indices is None else indices:
-            g = gaussians(k) if callable(gaussians) else gaussians
-            dev = torch.device(device) if device is not None else g["means"].device
-            g = {name: g[name].to(dev) for name in names}  # no copy when already there
-            f32 = dict(dtype=torch.float32, device=dev)
-            bg = None if background is None else torch.as_tensor(background, **f32)
-            image, _, meta = rasterize(**g, viewmat=torch.as_tensor(viewmats[k], **f32), K=torch.as_tensor(Ks[k], **f32),
-                                       width=cameras.width, height=cameras.height, t=float(cameras.times[k]),
-                                       background=bg)
-            yield k, image.clamp(0.0, 1.0).cpu(), meta
+        for start in range(0, len(order), step):
+            chunk = order[start:start + step]
+            times = [float(cameras.times[k]) for k in chunk]
+            g, (first, last), dev = static or prepared(gaussians(chunk[0]))
+            keep = (last >= min(times)) & (first <= max(times))
+            alive = g if bool(keep.all()) else {name: value[keep] for name, value in g.items()}
+            viewmats, Ks, bg = frame_inputs(dev)
+            for k, t in zip(chunk, times):
+                image, _, meta = rasterize(**alive, viewmat=viewmats[k], K=Ks[k], width=cameras.width,
+                                           height=cameras.height, t=t, background=bg)
+                image = image.clamp(0.0, 1.0)
+                yield k, image.cpu() if to_cpu else image, meta

@@ -157,7 +157,7 @@ class Trainer:
         loss = (1 - c.ssim_weight) * (image - target).abs().mean() + c.ssim_weight * (1 - ssim(image, target))
         loss.backward()
         self.sampler.update(k, float(psnr(image.detach(), target)))
-        if self.iteration < c.densify_until and self.progress < c.densify_stop_fraction:
+        if self.progress < c.densify_stop_fraction:
             self.densifier.observe(meta)
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
@@ -171,7 +171,7 @@ class Trainer:
             self.densifier.prune(self.model, self.optimizer)
             self.densifier.reset_stats(len(self.model), self.device)
         if c.opacity_reset_interval and self.iteration % c.opacity_reset_interval == 0 \
-                and self.iteration < c.densify_until:
+                and self.progress < c.densify_stop_fraction:
             self.densifier.reset_opacity(self.model, self.optimizer)
 
     @torch.no_grad()
