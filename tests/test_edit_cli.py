@@ -177,3 +177,66 @@ def test_bad_input_exits_2_and_writes_nothing(tmp_path, scene, case, args, messa
     assert result.exit_code == 2, (case, result.output)
     assert message in result.output, (case, result.output)
     assert list((tmp_path / "out").iterdir()) == []
+
+
+@pytest.fixture
+def rigid_fall(monkeypatch):
+    """A stand-in for tomgs.edit.physics (contract: simulate(rest [V,3], tets [T,4], SimConfig, device)
+    -> [F,V,3] world axes): the body falls rigidly under gravity; records the configs it was given."""
+    import dataclasses
+    import sys
+    import types
+
+    @dataclasses.dataclass
+    class SimConfig:
+        frames: int = 80
+        fps: float = 24.0
+        gravity: tuple = (0.0, 9.81, 0.0)
+        edge_compliance: float = 1e-3
+        damping: float = 0.0
+        initial_velocity: tuple = (0.0, 0.0, 0.0)
+        initial_spin: tuple = (0.0, 0.0, 0.0)
+        drop_height: float = 0.0
+
+    def simulate(rest_vertices, tets, config, device="cpu"):
+        calls.append((config, device, len(tets)))
+        t = np.arange(config.frames)[:, None, None] / config.fps
+        g = np.asarray(config.gravity)
+        return rest_vertices[None] - config.drop_height * g / np.linalg.norm(g) + 0.5 * g * t ** 2
+
+    calls = []
+    module = types.ModuleType("tomgs.edit.physics")
+    module.SimConfig, module.simulate = SimConfig, simulate
+    monkeypatch.setitem(sys.modules, "tomgs.edit.physics", module)
+    return calls
+
+
+def test_simulate_writes_a_replayable_shot(tmp_path, scene, rigid_fall):
+    out = tmp_path / "fall.npz"
+    result = run("simulate", scene, "--select", BALL, "--drop", "0.3", "--stiffness", "500", "--frames", "4",
+                 "--size", "2", "-o", out, "--render", tmp_path / "shot", "--device", "cpu")
+    assert result.exit_code == 0, result.output
+    assert "4 frames of 60 Gaussians" in result.output and "4 frames (0..3)" in result.output
+    config, device, _ = rigid_fall[0]
+    assert device == "cpu" and config.frames == 4 and config.fps == 10.0 and config.drop_height == 0.3
+    assert config.edge_compliance == pytest.approx(1 / 500)
+    extent = float(np.ptp(load_scene(scene).model.means[208:].detach().numpy(), axis=0).max())
+    assert config.gravity == pytest.approx((0.0, 9.81 * extent / 2, 0.0))  # a 2 m object's fall
+    cage = load_tets(tmp_path / "fall.cage.ply")
+    assert cage.kind == "cage" and cage.gaussians.tolist() == list(range(208, 268))
+    with np.load(out) as data:
+        assert data["vertices"].shape == (4, len(cage.vertices), 3) and data["frames"].tolist() == [0, 1, 2, 3]
+    shot = pngs(tmp_path / "shot")
+    assert len(shot) == 4 and np.abs(shot[3].astype(int) - shot[0]).max() > 60  # the ball fell
+    replay = run("tets", "import", scene, tmp_path / "fall.cage.ply", out, "-o", tmp_path / "replay", "--device", "cpu")
+    assert replay.exit_code == 0, replay.output
+    for a, b in zip(pngs(tmp_path / "replay"), shot, strict=True):
+        assert np.abs(a.astype(int) - b).max() <= 1  # float32 on disk
+
+
+def test_simulate_bad_input_writes_nothing(tmp_path, scene, rigid_fall):
+    for args, message in ((["--frames", "9"], "the scene has 5 frames"), (["--spin", "1,2"], "--spin"),
+                          (["--select", "sphere:9,9,9,0.1"], "matches nothing")):
+        result = run("simulate", scene, "-o", tmp_path / "s.npz", *args)
+        assert result.exit_code == 2 and message in result.output, (args, result.output)
+    assert list(tmp_path.iterdir()) == [] and rigid_fall == []

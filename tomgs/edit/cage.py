@@ -121,3 +121,12 @@ def make_tets(model, indices, kind: str = "gaussian", cell: float | None = None)
     if kind == "cage":
         return build_cage(tets, means, indices, cell)
     raise ValueError(f"kind must be 'gaussian' or 'cage', got {kind!r}")
+
+
+def simulate_selection(model, indices, config, cell: float | None = None, device: str = "cpu"):
+    """(cage Tets, vertices float64 [F,V,3] world axes): a cage over the Gaussians `indices` of
+    `model`, moved by `tomgs.edit.physics.simulate` with `config` (a SimConfig) on `device`."""
+    from tomgs.edit.physics import simulate
+
+    cage = make_tets(model, indices, "cage", cell)
+    return cage, simulate(cage.vertices, cage.tets, config, device=device)
