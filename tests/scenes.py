@@ -111,3 +111,29 @@ def rel_l2(a: torch.Tensor, b: torch.Tensor) -> float:
     if denom == 0:
         return float(a.norm())
     return float((a - b).norm() / denom)
+
+
+def object_scene(frames: int = 5, width: int = 32, height: int = 24):
+    """A small scene for editing tests: a wall of flat, opaque Gaussians at z = 4 and a ball of
+    Gaussians at z = 2.5 in front of it, both alive all clip long, seen by a camera that drifts
+    right. Returns (GaussianModel, Cameras, object indices int64 [n]); the ball comes last."""
+    import numpy as np
+
+    from tomgs.cameras import Cameras, intrinsics
+    from tomgs.cameras import look_at as c2w_look_at
+    from tomgs.model import GaussianModel
+
+    g = torch.Generator().manual_seed(SEED_BASE * 1000 + 11)
+    gx, gy = torch.meshgrid(torch.linspace(-2.6, 2.6, 16), torch.linspace(-2.0, 2.0, 13), indexing="ij")
+    wall = torch.stack([gx.flatten(), gy.flatten(), torch.full((gx.numel(),), 4.0)], 1)
+    ball = torch.randn(60, 3, generator=g) * 0.18 + torch.tensor([0.0, 0.0, 2.5])
+    colors = torch.cat([torch.rand(len(wall), 3, generator=g) * 0.5, torch.tensor([[0.9, 0.2, 0.1]]).repeat(60, 1)])
+    means = torch.cat([wall, ball])
+    model = GaussianModel.from_points(means, colors, torch.full((len(means),), 0.5), t_scale=5.0, max_sh_degree=0,
+                                      opacity=0.95, sizes=torch.cat([torch.full((len(wall),), 0.25),
+                                                                     torch.full((60,), 0.08)]))
+    with torch.no_grad():
+        model.log_scales[: len(wall), 2] = float(np.log(1e-4))  # the wall is flat: its tets must be thickened
+    c2w = np.stack([c2w_look_at([0.1 * k, 0.0, 0.0], [0.1 * k, 0.0, 3.0]) for k in range(frames)])
+    cams = Cameras.create(c2w, intrinsics(26.0, width, height), width, height)
+    return model, cams, np.arange(len(wall), len(means))

@@ -33,6 +33,14 @@ _EXPORTS = {
     "save_scene": "tomgs.io.scene",
     "load_scene": "tomgs.io.scene",
     "Scene": "tomgs.io.scene",
+    "gaussians_to_tets": "tomgs.edit.tets",
+    "tets_to_gaussians": "tomgs.edit.tets",
+    "deform": "tomgs.edit.tets",
+    "edit_model": "tomgs.edit.transforms",
+    "make_tets": "tomgs.edit.cage",
+    "Tets": "tomgs.io.tets",
+    "save_tets": "tomgs.io.tets",
+    "load_tets": "tomgs.io.tets",
 }
 
 __all__ = ["__version__", *_EXPORTS]

@@ -223,7 +223,8 @@ def demo(output, num_frames, size, device):
 
 def _render_to(output, gaussians, cams, positions, background, device, fps: float, what: str) -> None:
     """Render frames `positions` of `cams` to `output` (video or PNG folder) with a progress bar,
-    then report the frame rate and how many Gaussians each frame skipped as dead."""
+    then report the frame rate and how many Gaussians each frame skipped as dead. `gaussians`: the
+    rasterizer's inputs, or a callable frame -> inputs (`tomgs.render.render_sequence`)."""
     import time
 
     import numpy as np
@@ -232,11 +233,19 @@ def _render_to(output, gaussians, cams, positions, background, device, fps: floa
     from tomgs.render import render_sequence
 
     positions = list(positions)
-    alive = []
+    alive, totals = [], []
     start = time.perf_counter()
+    if callable(gaussians):  # a per-frame cloud: count each frame's Gaussians as it is made
+        def source(k):
+            cloud = gaussians(k)
+            totals.append(int(cloud["means"].shape[0]))
+            return cloud
+    else:
+        source = gaussians
+        totals.append(int(gaussians["means"].shape[0]))
 
     def images():
-        sequence = render_sequence(gaussians, cams, positions, background=background, device=device)
+        sequence = render_sequence(source, cams, positions, background=background, device=device)
         with click.progressbar(sequence, length=len(positions), label="render") as bar:
             for _, image, meta in bar:
                 alive.append(int(meta["n_alive"]))
@@ -244,9 +253,9 @@ def _render_to(output, gaussians, cams, positions, background, device, fps: floa
 
     count = write_frames(images(), output, fps=fps)
     seconds = time.perf_counter() - start
-    total = gaussians["means"].shape[0]
+    total = f"{min(totals):,}" if min(totals) == max(totals) else f"{min(totals):,}..{max(totals):,}"
     click.echo(f"{output}: {count} frames {what} on {device} in {seconds:.1f} s ({count / seconds:.1f} fps)")
-    click.echo(f"  {total:,} Gaussians; alive per frame {min(alive):,}..{max(alive):,}: only those alive near "
+    click.echo(f"  {total} Gaussians; alive per frame {min(alive):,}..{max(alive):,}: only those alive near "
                f"each frame's time were projected")
 
 
@@ -282,19 +291,13 @@ def render(scene, frames, output, device, background, fps):
       tomgs render scene.ply --frames 0:80 -o frames/ --device cuda
     """
     from tomgs.io import InputError
-    from tomgs.io.scene import load_scene, render_defaults, select_frames
-    from tomgs.render import RenderError, resolve_device
+    from tomgs.io.scene import load_scene
+    from tomgs.render import RenderError
 
-    rgb = _parse_background(background)
     try:
-        dev = resolve_device(device)
         loaded = load_scene(scene)
-        cams = loaded.cameras
-        positions = select_frames(cams, frames)
-        numbers = cams.frame_indices[positions]
-        default_rgb, default_fps = render_defaults(loaded.info)
-        _render_to(output, loaded.model.render_inputs(), cams, positions.tolist(), background=rgb or default_rgb,
-                   device=dev, fps=fps or default_fps, what=f"({numbers[0]}..{numbers[-1]}) at {cams.width}x{cams.height}")
+        plan = _render_plan(output, loaded.cameras, frames, device, background)
+        _render_scene(output, loaded, loaded.model.render_inputs(), plan, fps)
     except (InputError, RenderError) as e:
         raise UsageError(str(e)) from None
 
@@ -323,6 +326,314 @@ def info(scene, plot, as_json):
     click.echo(json.dumps(summary, indent=1) if as_json else format_summary(summary))
     if plot is not None and not as_json:
         click.echo(f"{plot}: histogram of temporal scales")
+
+
+def _floats(text: str | None, option: str, counts=(3,)):
+    """'a,b,c' -> tuple of floats (one of `counts` many), or None; UsageError naming `option` otherwise."""
+    import math
+
+    if text is None:
+        return None
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) not in counts or not all(math.isfinite(v) for v in values):
+        shape = " or ".join(",".join("xyz"[:n] if n > 1 else "s") for n in counts)
+        raise UsageError(f"{option} takes {' or '.join(map(str, counts))} comma-separated numbers ({shape}), got {text!r}")
+    return values
+
+
+_SELECT_HELP = ("pick Gaussians (repeat to intersect): box:x0,y0,z0,x1,y1,z1 | sphere:x,y,z,r | time:t0,t1 (clip "
+                "time 0..1) | index:FILE.txt | mask:FOLDER (world axes: x right, y down, z forward)")
+_OUTPUT_HELP = "an .mp4/.avi/.mov/.mkv file, or a folder (no suffix) for PNG frames"
+
+
+def _render_options(f):
+    """--frames, --device, --background and --fps, as `tomgs render` has them."""
+    for option in reversed([
+        click.option("--frames", default=None, help="frame range start:stop:step in the scene's frame numbers"),
+        click.option("--device", default="auto", show_default=True, help="auto, cpu, cuda or cuda:N"),
+        click.option("--background", default=None, help="r,g,b in [0, 1]; default: the scene's, else black"),
+        click.option("--fps", type=click.FloatRange(min=0.1), default=None,
+                     help="frame rate of a video output; default: the scene's, else 25"),
+    ]):
+        f = option(f)
+    return f
+
+
+def _render_plan(output, cams, frames, device, background, only=None):
+    """Everything a render needs, checked before any work or writing: (positions, background RGB or
+    None, torch device). `only`: camera positions that have something to render (a sequence's)."""
+    import numpy as np
+
+    from tomgs.io import InputError
+    from tomgs.io.scene import select_frames
+    from tomgs.io.writer import check_output
+    from tomgs.render import resolve_device
+
+    check_output(output)
+    rgb = _parse_background(background)
+    positions = select_frames(cams, frames)
+    if only is not None:
+        positions = np.array([k for k in positions.tolist() if k in only], dtype=np.int64)
+        if len(positions) == 0:
+            raise InputError(f"the sequence covers none of the frames {frames!r}: pick frames it covers")
+    return positions, rgb, resolve_device(device)
+
+
+def _render_scene(output, scene, gaussians, plan, fps) -> None:
+    """Render `gaussians` (inputs or a per-frame callable) of `scene` as `plan` (`_render_plan`) says."""
+    from tomgs.io.scene import render_defaults
+
+    positions, rgb, device = plan
+    cams = scene.cameras
+    numbers = cams.frame_indices[positions]
+    default_rgb, default_fps = render_defaults(scene.info)
+    _render_to(output, gaussians, cams, positions.tolist(), background=rgb or default_rgb, device=device,
+               fps=fps or default_fps, what=f"({numbers[0]}..{numbers[-1]}) at {cams.width}x{cams.height}")
+
+
+def _is_scene_path(path: str) -> bool:
+    return path.lower().endswith(".ply")
+
+
+@main.command()
+@click.argument("scene", type=click.Path(path_type=str))
+@click.option("-o", "--output", required=True, type=click.Path(path_type=str),
+              help="the edited scene (.ply), or a video / PNG folder to render the edit to")
+@click.option("--select", "selectors", multiple=True, help=_SELECT_HELP)
+@click.option("--translate", default=None, help="move the selection by dx,dy,dz")
+@click.option("--rotate", default=None, help="rotate the selection by rx,ry,rz degrees (about x, then y, then z)")
+@click.option("--scale", default=None, help="scale the selection by s or sx,sy,sz")
+@click.option("--centre", default=None, help="x,y,z that --rotate and --scale turn about; default: the "
+              "selection's bounding-box centre")
+@click.option("--duplicate", default=None, help="keep the selection and add a copy offset by dx,dy,dz (moved "
+              "by --translate/--rotate/--scale or --keyframes too)")
+@click.option("--remove", is_flag=True, help="delete the selection")
+@click.option("--keyframes", type=click.Path(path_type=str), default=None,
+              help="JSON of keyframed transforms over time (README \"Editing\"); -o is then a video or folder")
+@click.option("--render", "render_out", type=click.Path(path_type=str), default=None,
+              help="also render the edited scene here (" + _OUTPUT_HELP + ")")
+@_render_options
+def edit(scene, output, selectors, translate, rotate, scale, centre, duplicate, remove, keyframes, render_out,
+         frames, device, background, fps):
+    """Edit the Gaussians of SCENE that --select picks: move, rotate, scale, duplicate or remove
+    them, or move them over time with --keyframes. Edits move each Gaussian's tetrahedron and
+    rebuild the Gaussian from it; timing, opacity and colour are kept.
+
+    \b
+    Examples:
+      tomgs edit scene.ply -o moved.ply --select box:-1,-1,2,1,1,4 --translate 0.5,0,0
+      tomgs edit scene.ply -o two.ply --select sphere:0,0,3,0.5 --duplicate 1,0,0 --render two.mp4
+      tomgs edit scene.ply -o clean.ply --select mask:camel_masks/ --remove
+      tomgs edit scene.ply -o spin.mp4 --select sphere:0,0,3,0.5 --keyframes spin.json
+    """
+    from tomgs.edit.transforms import edit_scene, keyframed_clouds, load_keyframes
+    from tomgs.io import InputError
+    from tomgs.io.scene import load_scene, save_scene
+    from tomgs.render import RenderError
+
+    move = dict(translate=_floats(translate, "--translate"), rotate=_floats(rotate, "--rotate"),
+                scale=_floats(scale, "--scale", (1, 3)), centre=_floats(centre, "--centre"),
+                duplicate=_floats(duplicate, "--duplicate"))
+    if move["scale"] is not None and min(move["scale"]) <= 0:
+        raise UsageError(f"--scale must be positive, got {scale!r}")
+    rigid = any(move[k] is not None for k in ("translate", "rotate", "scale"))
+    if keyframes and (rigid or remove):
+        raise UsageError("--keyframes gives the motion: leave out --translate, --rotate, --scale and --remove")
+    if not (rigid or remove or keyframes or move["duplicate"]):
+        raise UsageError("nothing to do: give --translate, --rotate, --scale, --duplicate, --remove or --keyframes")
+    if _is_scene_path(output) == bool(keyframes):
+        raise UsageError(f"-o {output}: " + ("a time-varying edit (--keyframes) is rendered: give a video or a "
+                                             "folder, not a .ply" if keyframes else
+                                             "use a .ply to write the edited scene, or --keyframes to render"))
+    if render_out and not _is_scene_path(output):
+        raise UsageError("--render goes with a .ply output; -o already renders")
+    try:
+        loaded = load_scene(scene)
+        video = output if keyframes else render_out
+        plan = _render_plan(video, loaded.cameras, frames, device, background) if video else None
+        keys = load_keyframes(keyframes, loaded.cameras) if keyframes else None
+        edited, rows = edit_scene(loaded, selectors, remove=remove, **move)
+        if keys is not None:
+            _render_scene(output, edited, keyframed_clouds(edited.model, edited.cameras, rows, keys), plan, fps)
+            return
+        save_scene(output, edited.model, edited.cameras, edited.info)
+        what = "removed" if remove else ("duplicated" if move["duplicate"] else "edited")
+        click.echo(f"{output}: {edited.info['edits'][-1]['selected']:,} Gaussians {what}; {len(edited.model):,} "
+                   f"Gaussians, {len(edited.cameras)} frames")
+        if plan is not None:
+            _render_scene(render_out, edited, edited.model.render_inputs(), plan, fps)
+    except (InputError, RenderError) as e:
+        raise UsageError(str(e)) from None
+
+
+@main.group()
+def tets():
+    """Gaussians as tetrahedra: export them (for Blender or a simulator), import moved vertices."""
+
+
+@tets.command("export")
+@click.argument("scene", type=click.Path(path_type=str))
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=str),
+              help="tets file to write (.ply, Blender axes)")
+@click.option("--select", "selectors", multiple=True, help=_SELECT_HELP)
+@click.option("--cage", is_flag=True, help="a connected voxel cage with the Gaussians bound into it (for soft "
+              "bodies) instead of one tet per Gaussian")
+@click.option("--cell", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="cage cell size in scene units; default: 1/8 of the selection's largest extent")
+def tets_export(scene, output, selectors, cage, cell):
+    """Write the Gaussians of SCENE that --select picks as tetrahedra (a PLY Blender imports:
+    Z up, vertex order kept; README "Editing" has the format).
+
+    \b
+    Examples:
+      tomgs tets export scene.ply -o tets.ply --select sphere:0,0,3,0.5
+      tomgs tets export scene.ply -o cage.ply --select mask:camel_masks/ --cage --cell 0.05
+    """
+    from tomgs.edit.cage import make_tets
+    from tomgs.edit.selection import select
+    from tomgs.io import InputError
+    from tomgs.io.scene import load_scene
+    from tomgs.io.tets import save_tets
+
+    if cell is not None and not cage:
+        raise UsageError("--cell sets the cage's cell size: give --cage too")
+    if not _is_scene_path(output):
+        raise UsageError(f"-o {output}: a tets file is a .ply")
+    try:
+        loaded = load_scene(scene)
+        indices = select(loaded.model, loaded.cameras, selectors)
+        mesh = make_tets(loaded.model, indices, "cage" if cage else "gaussian", cell)
+        save_tets(output, mesh)
+    except InputError as e:
+        raise UsageError(str(e)) from None
+    click.echo(f"{output}: {len(indices):,} Gaussians as {len(mesh.tets):,} tets over {len(mesh.vertices):,} "
+               f"vertices ({mesh.kind})")
+
+
+@tets.command("import")
+@click.argument("scene", type=click.Path(path_type=str))
+@click.argument("tets_file", metavar="TETS", type=click.Path(path_type=str))
+@click.argument("sequence", type=click.Path(path_type=str))
+@click.option("-o", "--output", required=True, type=click.Path(path_type=str),
+              help=_OUTPUT_HELP + "; or a .ply scene when SEQUENCE has one frame")
+@_render_options
+def tets_import(scene, tets_file, sequence, output, frames, device, background, fps):
+    """Carry the Gaussians of SCENE bound in TETS (from `tomgs tets export`) along the moved
+    vertices of SEQUENCE (an .npz with vertices [F,V,3], a folder of PLY frames, or one PLY) and
+    render the result, frame f of the sequence with the scene's frame f (or the .npz's 'frames').
+
+    \b
+    Examples:
+      tomgs tets import scene.ply cage.ply sim.npz -o shot.mp4
+      tomgs tets import scene.ply tets.ply blender_frames/ -o shot/ --frames 0:40
+      tomgs tets import scene.ply tets.ply moved.ply -o edited.ply
+    """
+    from tomgs.edit.transforms import check_bound, deformed_model, sequence_clouds, sequence_rows
+    from tomgs.io import InputError
+    from tomgs.io.scene import load_scene, save_scene
+    from tomgs.io.tets import load_sequence, load_tets
+    from tomgs.render import RenderError
+
+    try:
+        loaded = load_scene(scene)
+        mesh = load_tets(tets_file)
+        check_bound(loaded.model, mesh, tets_file)
+        vertices, numbers = load_sequence(sequence, mesh)
+        if _is_scene_path(output):
+            if len(vertices) != 1:
+                raise InputError(f"-o {output}: a scene holds one pose but {sequence} has {len(vertices)} frames: "
+                                 f"render it to a video or folder instead")
+            info = {**loaded.info, "edits": [*loaded.info.get("edits", []),
+                                             {"tets": str(tets_file), "sequence": str(sequence)}]}
+            save_scene(output, deformed_model(loaded.model, mesh, vertices[0]), loaded.cameras, info)
+            click.echo(f"{output}: {len(mesh.gaussians):,} Gaussians moved by {sequence}")
+            return
+        rows = sequence_rows(loaded.cameras, len(vertices), numbers)
+        plan = _render_plan(output, loaded.cameras, frames, device, background, only=rows)
+        _render_scene(output, loaded, sequence_clouds(loaded.model, mesh, vertices, rows), plan, fps)
+    except (InputError, RenderError) as e:
+        raise UsageError(str(e)) from None
+
+
+@main.command()
+@click.argument("scene", type=click.Path(path_type=str))
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=str),
+              help="vertex sequence to write (.npz); its cage is written beside it as NAME.cage.ply")
+@click.option("--select", "selectors", multiple=True, help=_SELECT_HELP)
+@click.option("--render", "render_out", type=click.Path(path_type=str), default=None,
+              help="also render the shot here (" + _OUTPUT_HELP + ")")
+@click.option("--drop", type=float, default=0.0, show_default=True,
+              help="start raised this far against gravity (scene units)")
+@click.option("--spin", default=None, help="initial spin wx,wy,wz in rad/s about the centre of mass (world axes)")
+@click.option("--velocity", default=None, help="initial velocity vx,vy,vz in scene units per second")
+@click.option("--size", type=click.FloatRange(min=0, min_open=True), default=1.0, show_default=True,
+              help="real size in metres of the selection's largest side: gravity is scaled so it falls like that")
+@click.option("--stiffness", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="edge stiffness, the inverse of the XPBD compliance (1000: a stiff jelly, 100: a soft one)")
+@click.option("--damping", type=click.FloatRange(min=0), default=None, help="velocity damping rate, 1/s")
+@click.option("--frames", "num_frames", type=click.IntRange(1), default=None,
+              help="frames to simulate (default: the scene's frame count; frame f is the scene's frame f)")
+@click.option("--cell", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="cage cell size in scene units; default: 1/8 of the selection's largest extent")
+@click.option("--device", default="auto", show_default=True, help="auto, cpu, cuda or cuda:N")
+@click.option("--background", default=None, help="r,g,b in [0, 1] for --render; default: the scene's, else black")
+@click.option("--fps", type=click.FloatRange(min=0.1), default=None,
+              help="frames per second of the shot and the video; default: the scene's, else 25")
+def simulate(scene, output, selectors, render_out, drop, spin, velocity, size, stiffness, damping, num_frames, cell,
+             device, background, fps):
+    """Drop, throw or spin the Gaussians of SCENE that --select picks as a soft body: a tet cage is
+    built over them and simulated (XPBD, floor under the lowest point); frame f of the shot
+    replaces the selection in the scene's frame f. Replay or re-render it with `tomgs tets import`.
+
+    \b
+    Examples:
+      tomgs simulate scene.ply --select sphere:0,0,3,0.5 --drop 0.5 -o fall.npz --render fall.mp4
+      tomgs simulate scene.ply --select mask:camel_masks/ --spin 0,3,0 --velocity 0,-2,0 -o toss.npz
+      tomgs tets import scene.ply toss.cage.ply toss.npz -o toss.mp4
+    """
+    from tomgs.edit.cage import simulate_selection
+    from tomgs.edit.physics import SimConfig
+    from tomgs.edit.selection import select
+    from tomgs.edit.transforms import sequence_clouds
+    from tomgs.io import InputError
+    from tomgs.io.scene import load_scene, render_defaults
+    from tomgs.io.tets import save_sequence, save_tets
+    from tomgs.render import RenderError, resolve_device
+
+    spin, velocity = _floats(spin, "--spin"), _floats(velocity, "--velocity")
+    if not output.lower().endswith(".npz"):
+        raise UsageError(f"-o {output}: the shot is a vertex sequence, an .npz")
+    cage_path = output[:-4] + ".cage.ply"
+    try:
+        dev = resolve_device(device)
+        loaded = load_scene(scene)
+        cams = loaded.cameras
+        frames = len(cams) if num_frames is None else num_frames
+        if frames > len(cams):
+            raise InputError(f"--frames {frames}: the scene has {len(cams)} frames, and frame f of the shot is "
+                             f"rendered with the scene's frame f; simulate at most {len(cams)}")
+        plan = _render_plan(render_out, cams[:frames], None, device, background) if render_out else None
+        indices = select(loaded.model, cams, selectors)
+        means = loaded.model.means.detach().cpu().double().numpy()[indices]
+        extent = max(float((means.max(0) - means.min(0)).max()), 1e-9)
+        settings = dict(frames=frames, fps=fps or render_defaults(loaded.info)[1], drop_height=drop,
+                        gravity=(0.0, 9.81 * extent / size, 0.0))  # +y is down in OpenCV axes
+        optional = dict(initial_spin=spin, initial_velocity=velocity, damping=damping,
+                        edge_compliance=None if stiffness is None else 1.0 / stiffness)
+        config = SimConfig(**settings, **{k: v for k, v in optional.items() if v is not None})
+        cage, vertices = simulate_selection(loaded.model, indices, config, cell, device=str(dev))
+        save_tets(cage_path, cage)
+        save_sequence(output, vertices, frames=cams.frame_indices[:frames])
+        click.echo(f"{output}: {len(vertices)} frames of {len(indices):,} Gaussians on a cage of {len(cage.tets):,} "
+                   f"tets ({cage_path})")
+        if plan is not None:
+            clouds = sequence_clouds(loaded.model, cage, vertices, {k: k for k in range(frames)})
+            _render_scene(render_out, loaded, clouds, plan, fps)
+    except (InputError, RenderError) as e:
+        raise UsageError(str(e)) from None
 
 
 if __name__ == "__main__":

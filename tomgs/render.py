@@ -335,24 +335,38 @@ def render_sequence(gaussians, cameras, indices=None, *, background=None, device
     """Yield (frame k, image [H,W,3] float32 in [0,1], meta) for frames `indices` of `cameras`.
 
     `gaussians`: mapping with means, quats, scales, opacities, colors (RGB or SH), t_means,
-    t_scales; `cameras`: a `tomgs.Cameras`; frame k renders at t = cameras.times[k]. No gradients.
-    Every few frames only the Gaussians alive around those frames' times are gathered and
-    rendered, so a long clip pays per frame for what lives in it; `meta` describes that subset.
-    Images come back on the CPU unless `to_cpu` is False (timing, further GPU work).
+    t_scales; or a callable k -> such a mapping, a per-frame cloud (an edit over time, a simulated
+    shot). `cameras`: a `tomgs.Cameras`; frame k renders at t = cameras.times[k]. No gradients.
+    Every few frames (every frame for a per-frame cloud) only the Gaussians alive around those
+    frames' times are gathered and rendered, so a long clip pays per frame for what lives in it;
+    `meta` describes that subset. Images come back on the CPU unless `to_cpu` is False.
     """
-    device = torch.device(device) if device is not None else gaussians["means"].device
-    g = {k: gaussians[k].detach().to(device) for k in ("means", "quats", "scales", "opacities", "colors", "t_means",
-                                                       "t_scales")}
-    viewmats, Ks = cameras.viewmats(device), cameras.Ks(device)
-    bg = None if background is None else torch.as_tensor(background, dtype=torch.float32, device=device)
+    names = ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales")
+
+    def prepared(g: dict):
+        dev = torch.device(device) if device is not None else g["means"].device
+        g = {name: g[name].detach().to(dev) for name in names}
+        return g, alive_window(g["opacities"], g["t_means"], g["t_scales"]), dev
+
+    static = None if callable(gaussians) else prepared(gaussians)
+    per_device = {}  # cameras and background on each device a frame lands on (one, in practice)
+
+    def frame_inputs(dev):
+        if dev not in per_device:
+            bg = None if background is None else torch.as_tensor(background, dtype=torch.float32, device=dev)
+            per_device[dev] = (cameras.viewmats(dev), cameras.Ks(dev), bg)
+        return per_device[dev]
+
     order = list(range(len(cameras)) if indices is None else indices)
-    first, last = alive_window(g["opacities"], g["t_means"], g["t_scales"])
+    step = FRAMES_PER_GATHER if static else 1
     with torch.no_grad():
-        for start in range(0, len(order), FRAMES_PER_GATHER):
-            chunk = order[start:start + FRAMES_PER_GATHER]
+        for start in range(0, len(order), step):
+            chunk = order[start:start + step]
             times = [float(cameras.times[k]) for k in chunk]
+            g, (first, last), dev = static or prepared(gaussians(chunk[0]))
             keep = (last >= min(times)) & (first <= max(times))
             alive = g if bool(keep.all()) else {name: value[keep] for name, value in g.items()}
+            viewmats, Ks, bg = frame_inputs(dev)
             for k, t in zip(chunk, times):
                 image, _, meta = rasterize(**alive, viewmat=viewmats[k], K=Ks[k], width=cameras.width,
                                            height=cameras.height, t=t, background=bg)

@@ -19,19 +19,26 @@ from tomgs.io.atomic import publish
 VIDEO_SUFFIXES = {".mp4": "mp4v", ".avi": "MJPG", ".mov": "mp4v", ".mkv": "mp4v"}
 
 
+def check_output(path) -> Path:
+    """`path` as a Path when `write_frames` can write there (a video suffix or none, in an existing
+    folder), else InputError; lets a command check before any work."""
+    path = Path(path)
+    if not path.parent.exists():
+        raise InputError(f"{path}: folder {path.parent} does not exist; create it or choose another output path")
+    if path.suffix and path.suffix.lower() not in VIDEO_SUFFIXES:
+        raise InputError(f"{path}: unknown output type {path.suffix!r}; use one of "
+                         f"{', '.join(sorted(VIDEO_SUFFIXES))} or a folder name without a suffix for PNG frames")
+    return path
+
+
 def write_frames(frames: Iterable[np.ndarray], path, fps: float = 25.0) -> int:
     """Write RGB uint8 frames [H,W,3] to `path`: a video file by suffix, else a folder of PNGs
     (00000.png, ...). Returns the number of frames written. Existing output is replaced only on
     success."""
     import cv2
 
-    path = Path(path)
-    if not path.parent.exists():
-        raise InputError(f"{path}: folder {path.parent} does not exist; create it or choose another output path")
+    path = check_output(path)
     is_video = path.suffix.lower() in VIDEO_SUFFIXES
-    if path.suffix and not is_video:
-        raise InputError(f"{path}: unknown output type {path.suffix!r}; use one of "
-                         f"{', '.join(sorted(VIDEO_SUFFIXES))} or a folder name without a suffix for PNG frames")
     staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
     count = 0
     writer = None

@@ -1,0 +1,270 @@
+"""Tetrahedra files (PLY) and per-frame vertex sequences, the formats Blender and the simulator share.
+
+Tets file, binary little endian PLY, coordinates in Blender axes (Z up):
+    p_blender = W p_world, W = [[1,0,0],[0,0,1],[0,-1,0]] (det +1: orientation kept); loading
+    applies W^T. So world (0,-1,0), "up" in OpenCV axes, is z = +1 in the file.
+    comments: `tomgs tets 1`, `kind gaussian` or `kind cage`, `axes blender`
+    element vertex V      float x, y, z
+    element face 4T       list uchar int vertex_indices: 4 outward triangles per tet (Blender shows
+                          each tet as a closed surface; a cage lists shared faces twice)
+    element tet T         list uchar int vertex_indices: 4 each, positive volume
+    element gaussian G    int index: the scene index of each bound Gaussian, in order
+    element binding 4G    (cage only) int tet, float b0 b1 b2 b3: Gaussian-tet vertex r of Gaussian g
+                          (row 4g + r) = sum_j b_j * vertex[tet[tet_row][j]]
+Kind `gaussian`: V = 4G and Gaussian g owns vertices 4g..4g+3 in the order of
+`tomgs.edit.tets.DIRECTIONS`; its `tet` row lists them as 4g + (0, 1, 3, 2), the positive order.
+Kind `cage`: a connected tet mesh (what a soft body moves) with every Gaussian tet bound into it.
+Blender imports vertex + face and skips the rest; keep "merge vertices" off so the order survives.
+
+Sequence: an `.npz` with `vertices` float32 [F,V,3] (Blender axes) and optional `frames` int [F] (the
+scene frame numbers of the rows; default the scene's first F frames), or a folder of PLY files (any
+names, natural sort order) or a single PLY file, each with a `vertex` element of V vertices.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from tomgs.io import InputError
+from tomgs.io.atomic import publish
+
+W = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # world (OpenCV) -> Blender axes
+KINDS = ("gaussian", "cage")
+# outward triangles of a positively oriented tet (a, b, c, d), as positions into its 4 vertices
+FACES = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+
+
+def to_blender(points) -> np.ndarray:
+    """World (OpenCV) points [..., 3] -> Blender axes."""
+    return np.asarray(points, dtype=np.float64) @ W.T
+
+
+def from_blender(points) -> np.ndarray:
+    """Blender-axes points [..., 3] -> world (OpenCV) axes."""
+    return np.asarray(points, dtype=np.float64) @ W
+
+
+@dataclass
+class Tets:
+    """A tets file in memory, world axes. vertices float64 [V,3] (rest pose); tets int64 [T,4]
+    (positive volume); gaussians int64 [G] (scene indices); for a cage binding_tet int64 [4G] and
+    binding_weights float64 [4G,4] (rows sum to 1), else None."""
+
+    kind: str
+    vertices: np.ndarray
+    tets: np.ndarray
+    gaussians: np.ndarray
+    binding_tet: np.ndarray | None = None
+    binding_weights: np.ndarray | None = None
+
+    def gaussian_tets(self, vertices=None) -> np.ndarray:
+        """[G,4,3]: each bound Gaussian's tet for cage/mesh vertices [V,3] (default: the rest pose)."""
+        x = self.vertices if vertices is None else np.asarray(vertices, dtype=np.float64)
+        if self.kind == "gaussian":
+            return x.reshape(-1, 4, 3)
+        corners = x[self.tets[self.binding_tet]]  # [4G,4,3]
+        return np.einsum("nj,njc->nc", self.binding_weights, corners).reshape(-1, 4, 3)
+
+
+def gaussian_tet_indices(count: int) -> np.ndarray:
+    """[G,4]: the positive-volume `tet` rows of a `gaussian` tets file of G Gaussians."""
+    from tomgs.edit.tets import POSITIVE_ORDER
+
+    return 4 * np.arange(count, dtype=np.int64)[:, None] + np.array(POSITIVE_ORDER)
+
+
+def volumes(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Signed volumes [T] of tets [T,4] over vertices [V,3] (or [F,V,3] -> [F,T])."""
+    x = vertices[..., tets, :]  # [..., T, 4, 3]
+    d = x[..., 1:, :] - x[..., :1, :]
+    return np.linalg.det(d) / 6.0
+
+
+# ---- tets files --------------------------------------------------------------------------------
+
+def save_tets(path, tets: Tets) -> Path:
+    """Write `tets` to the PLY file `path` in Blender axes, atomically."""
+    from plyfile import PlyData, PlyElement
+
+    path = Path(path)
+    if tets.kind not in KINDS:
+        raise ValueError(f"kind must be one of {KINDS}, got {tets.kind!r}")
+    V, T, G = len(tets.vertices), len(tets.tets), len(tets.gaussians)
+    vertex = np.empty(V, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
+    blender = to_blender(tets.vertices)
+    for j, name in enumerate("xyz"):
+        vertex[name] = blender[:, j]
+    faces = np.empty(4 * T, dtype=[("vertex_indices", "<i4", (3,))])
+    faces["vertex_indices"] = tets.tets[:, FACES].reshape(-1, 3)
+    rows = np.empty(T, dtype=[("vertex_indices", "<i4", (4,))])
+    rows["vertex_indices"] = tets.tets
+    gaussian = np.empty(G, dtype=[("index", "<i4")])
+    gaussian["index"] = tets.gaussians
+    lists = dict(len_types={"vertex_indices": "u1"}, val_types={"vertex_indices": "i4"})
+    elements = [PlyElement.describe(vertex, "vertex"), PlyElement.describe(faces, "face", **lists),
+                PlyElement.describe(rows, "tet", **lists), PlyElement.describe(gaussian, "gaussian")]
+    if tets.kind == "cage":
+        binding = np.empty(4 * G, dtype=[("tet", "<i4")] + [(f"b{j}", "<f4") for j in range(4)])
+        binding["tet"] = tets.binding_tet
+        for j in range(4):
+            binding[f"b{j}"] = tets.binding_weights[:, j]
+        elements.append(PlyElement.describe(binding, "binding"))
+    ply = PlyData(elements, text=False, byte_order="<",
+                  comments=["tomgs tets 1", f"kind {tets.kind}", "axes blender"])
+    _write_atomic(path, lambda f: ply.write(f))
+    return path
+
+
+def _write_atomic(path: Path, write) -> None:
+    if not path.parent.exists():
+        raise InputError(f"{path}: folder {path.parent} does not exist; create it or choose another path")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+        publish(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _read_ply(path: Path, what: str):
+    from plyfile import PlyData, PlyParseError
+
+    if not path.is_file():
+        raise InputError(f"{what} {path} does not exist" + (" (it is a folder)" if path.is_dir() else ""))
+    try:
+        return PlyData.read(str(path))
+    except (PlyParseError, ValueError, EOFError, OSError) as e:
+        raise InputError(f"{path} is not a readable PLY file ({e})") from None
+
+
+def _xyz(ply, path: Path) -> np.ndarray:
+    """[V,3] float64 Blender-axes positions of the `vertex` element."""
+    try:
+        v = ply["vertex"].data
+        return np.stack([np.asarray(v[c], dtype=np.float64) for c in "xyz"], axis=1)
+    except (KeyError, ValueError) as e:
+        raise InputError(f"{path}: no vertex element with x, y, z ({e})") from None
+
+
+def load_tets(path) -> Tets:
+    """Read a tets file written by `save_tets` (world axes back); InputError when malformed."""
+    path = Path(path)
+    fix = "export one with `tomgs tets export`"
+    ply = _read_ply(path, "tets file")
+    comments = [c.strip() for c in ply.comments]
+    if "tomgs tets 1" not in comments:
+        raise InputError(f"{path} is not a tomgs tets file (no 'tomgs tets 1' comment): {fix}")
+    kinds = [c.split()[1] for c in comments if c.startswith("kind ") and len(c.split()) == 2]
+    if len(kinds) != 1 or kinds[0] not in KINDS or "axes blender" not in comments:
+        raise InputError(f"{path}: the comments must name one kind ({' or '.join(KINDS)}) and 'axes blender': {fix}")
+    kind = kinds[0]
+    names = {e.name for e in ply.elements}
+    need = {"vertex", "tet", "gaussian"} | ({"binding"} if kind == "cage" else set())
+    if need - names:
+        raise InputError(f"{path} lacks element(s) {', '.join(sorted(need - names))}: {fix}")
+    vertices = from_blender(_xyz(ply, path))
+    try:
+        tets = np.stack([np.asarray(r, dtype=np.int64) for r in ply["tet"].data["vertex_indices"]]) \
+            if len(ply["tet"].data) else np.zeros((0, 4), dtype=np.int64)
+        gaussians = np.asarray(ply["gaussian"].data["index"], dtype=np.int64)
+    except (ValueError, KeyError) as e:
+        raise InputError(f"{path}: bad tet or gaussian element ({e}): {fix}") from None
+    V, G = len(vertices), len(gaussians)
+    if tets.ndim != 2 or tets.shape[1] != 4 or len(tets) == 0 or tets.min() < 0 or tets.max() >= V:
+        raise InputError(f"{path}: tets must be rows of 4 vertex indices in 0..{V - 1}: {fix}")
+    if not np.isfinite(vertices).all():
+        raise InputError(f"{path}: non-finite vertex coordinates: {fix}")
+    bad = np.flatnonzero(volumes(vertices, tets) <= 0)
+    if len(bad):
+        raise InputError(f"{path}: tet {bad[0]} (and {len(bad) - 1} more) has non-positive volume: {fix}")
+    out = Tets(kind, vertices, tets, gaussians)
+    if kind == "gaussian":
+        if V != 4 * G or not np.array_equal(tets, gaussian_tet_indices(G)):
+            raise InputError(f"{path}: a 'gaussian' tets file holds 4 vertices and one tet per Gaussian "
+                             f"(has {V} vertices, {len(tets)} tets, {G} Gaussians): {fix}")
+        return out
+    b = ply["binding"].data
+    try:
+        out.binding_tet = np.asarray(b["tet"], dtype=np.int64)
+        weights = np.stack([np.asarray(b[f"b{j}"], dtype=np.float64) for j in range(4)], axis=1)
+    except (ValueError, KeyError) as e:
+        raise InputError(f"{path}: bad binding element ({e}): {fix}") from None
+    if len(out.binding_tet) != 4 * G or out.binding_tet.min() < 0 or out.binding_tet.max() >= len(tets) \
+            or not np.isfinite(weights).all() or (np.abs(weights.sum(1) - 1) > 1e-3).any():
+        raise InputError(f"{path}: the binding must have 4 rows per Gaussian ({4 * G}), tet indices below "
+                         f"{len(tets)} and weights summing to 1: {fix}")
+    out.binding_weights = weights / weights.sum(1, keepdims=True)  # float32 on disk: sum exactly 1 again
+    return out
+
+
+# ---- sequences ---------------------------------------------------------------------------------
+
+def save_sequence(path, vertices, frames=None) -> Path:
+    """Write per-frame vertices [F,V,3] (world axes) and optional scene frame numbers [F] as an .npz
+    (Blender axes, float32), atomically."""
+    path = Path(path)
+    if path.suffix.lower() != ".npz":
+        raise InputError(f"{path}: a vertex sequence is written as .npz; give a path ending in .npz")
+    arrays = {"vertices": to_blender(vertices).astype(np.float32)}
+    if frames is not None:
+        arrays["frames"] = np.asarray(frames, dtype=np.int64)
+    _write_atomic(path, lambda f: np.savez(f, **arrays))
+    return path
+
+
+def load_sequence(path, like: Tets) -> tuple[np.ndarray, np.ndarray | None]:
+    """(vertices float64 [F,V,3] in world axes, frames int64 [F] or None) from an .npz, a folder of
+    PLY files or one PLY file. Checked against `like` (the tets file the vertices move): the vertex
+    count, finite values and no inverted tet, else InputError naming the frame."""
+    from tomgs.io.video import natural_key
+
+    path = Path(path)
+    frames = None
+    if path.is_dir():
+        files = sorted((p for p in path.iterdir() if p.suffix.lower() == ".ply"), key=natural_key)
+        if not files:
+            raise InputError(f"sequence folder {path} holds no .ply files: give one PLY of moved vertices per frame")
+        names = [str(p) for p in files]
+        rows = [_xyz(_read_ply(p, "sequence frame"), p) for p in files]
+    elif path.suffix.lower() == ".ply":
+        names, rows = [str(path)], [_xyz(_read_ply(path, "sequence file"), path)]
+    elif path.suffix.lower() == ".npz":
+        if not path.is_file():
+            raise InputError(f"sequence file {path} does not exist")
+        try:
+            with np.load(path) as data:
+                rows = np.asarray(data["vertices"], dtype=np.float64)
+                frames = np.asarray(data["frames"], dtype=np.int64) if "frames" in data.files else None
+        except (KeyError, ValueError, OSError) as e:
+            raise InputError(f"{path}: an .npz sequence needs 'vertices' [F,V,3] (and optional 'frames' [F]): {e}") \
+                from None
+        if rows.ndim != 3 or rows.shape[2] != 3 or len(rows) == 0:
+            raise InputError(f"{path}: 'vertices' must have shape [F,V,3] with F >= 1, got {rows.shape}")
+        if frames is not None and frames.shape != (len(rows),):
+            raise InputError(f"{path}: 'frames' must have one scene frame number per row ({len(rows)}), "
+                             f"got shape {frames.shape}")
+        names = [f"{path} row {f}" for f in range(len(rows))]
+    else:
+        raise InputError(f"{path}: a vertex sequence is an .npz file, a folder of .ply files or one .ply file")
+    V = len(like.vertices)
+    for name, row in zip(names, rows):
+        if row.shape != (V, 3):
+            raise InputError(f"{name}: {row.shape[0]} vertices, but the tets file has {V}: "
+                             f"move the exported vertices without adding or removing any")
+        if not np.isfinite(row).all():
+            raise InputError(f"{name}: NaN or infinite vertex coordinates; re-export the frame")
+    vertices = from_blender(np.stack(rows))
+    inverted = volumes(vertices, like.tets) <= 0  # [F,T]
+    if inverted.any():
+        f, t = np.argwhere(inverted)[0]
+        raise InputError(f"{names[f]}: tet {t} is inverted (non-positive volume) with {int(inverted[f].sum())} "
+                         f"others in that frame; the motion turned tets inside out: simulate with smaller steps "
+                         f"or stiffer tets")
+    return vertices, frames
