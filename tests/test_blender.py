@@ -105,6 +105,9 @@ def test_softbody_drop(dropped):
     np.testing.assert_allclose(seq[0], rest + [0, 0, DROP], atol=1e-5)
     com_z = seq[:, :, 2].mean(1)
     assert (np.diff(com_z[:6]) < 0).all(), com_z  # falls from the start
+    # ... at the real rate: before it reaches the floor (t = 0.32 s) it has fallen g t^2 / 2.
+    t = np.arange(1, 7) / 24.0
+    np.testing.assert_allclose(com_z[0] - com_z[1:7], 9.81 * t**2 / 2, rtol=0.15)
     floor = rest[:, 2].min()
     lowest = seq[-1, :, 2].min()
     assert floor - 1e-3 <= lowest <= floor + 0.05, (lowest, floor)  # rests on the floor, not in it
