@@ -57,7 +57,8 @@ def signed_volumes(verts, tets):
 
 
 def write_cage_ply(path, world_verts, tets):
-    """Stand-in for tomgs.io.tets.save_tets (kind cage, no bound Gaussians), per the contract."""
+    """Stand-in for tomgs.io.tets.save_tets per the contract: kind cage with one bound Gaussian
+    whose tet is cage tet 0 (binding weights the identity)."""
     v = (world_verts @ W.T).astype("<f4")
     a, b, c, d = tets.T
     faces = np.stack([np.stack(f, 1) for f in ((a, c, b), (a, b, d), (a, d, c), (b, c, d))], 1).reshape(-1, 3)
@@ -65,8 +66,8 @@ def write_cage_ply(path, world_verts, tets):
               f"comment axes blender\nelement vertex {len(v)}\nproperty float x\nproperty float y\n"
               f"property float z\nelement face {len(faces)}\nproperty list uchar int vertex_indices\n"
               f"element tet {len(tets)}\nproperty list uchar int vertex_indices\n"
-              "element gaussian 0\nproperty int index\n"
-              "element binding 0\nproperty int tet\nproperty float b0\nproperty float b1\n"
+              "element gaussian 1\nproperty int index\n"
+              "element binding 4\nproperty int tet\nproperty float b0\nproperty float b1\n"
               "property float b2\nproperty float b3\nend_header\n")
 
     def rows(idx):
@@ -74,7 +75,10 @@ def write_cage_ply(path, world_verts, tets):
         r["n"], r["v"] = idx.shape[1], idx
         return r.tobytes()
 
-    Path(path).write_bytes(header.encode() + v.tobytes() + rows(faces) + rows(tets))
+    binding = np.zeros(4, [("tet", "<i4"), ("b", "<f4", (4,))])
+    binding["b"] = np.eye(4)
+    Path(path).write_bytes(header.encode() + v.tobytes() + rows(faces) + rows(tets)
+                           + np.zeros(1, "<i4").tobytes() + binding.tobytes())
 
 
 def run_blender(blender, *args, timeout=240):
@@ -91,11 +95,11 @@ def dropped(blender, tmp_path_factory):
     r = run_blender(blender, "--tets", str(ply), "--out", str(out), "--frames", str(FRAMES),
                     "--drop", str(DROP), "--substeps", "4")
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
-    return world @ W.T, tets, out, r.stdout
+    return world @ W.T, tets, out, r.stdout, ply
 
 
 def test_softbody_drop(dropped):
-    rest, tets, out, log = dropped
+    rest, tets, out, log, _ = dropped
     with np.load(out) as z:
         seq, frames = z["vertices"], z["frames"]
     assert seq.dtype == np.float32 and seq.shape == (FRAMES, len(rest), 3)
@@ -116,6 +120,16 @@ def test_softbody_drop(dropped):
     vol = signed_volumes(seq.astype(np.float64), tets)
     assert (vol > 0).all(), np.argwhere(vol <= 0)[:5]
     assert "blender_softbody:" in log
+
+
+def test_sequence_loads_back(dropped):
+    tets_io = pytest.importorskip("tomgs.io.tets", reason="tomgs.io.tets (edit branch) is not merged yet")
+    rest, _, out, _, ply = dropped
+    vertices, frames = tets_io.load_sequence(out, like=tets_io.load_tets(ply))
+    assert vertices.shape == (FRAMES, len(rest), 3)
+    np.testing.assert_array_equal(frames, np.arange(FRAMES))
+    # Back in world axes: frame 0 is the rest pose raised by --drop, i.e. moved along -y (up).
+    np.testing.assert_allclose(vertices[0], rest @ W + [0, -DROP, 0], atol=1e-5)
 
 
 @pytest.mark.parametrize("case", ["missing", "not_ply", "bad_frames"])
