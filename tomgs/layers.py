@@ -120,34 +120,33 @@ def foreground_inputs(clip, config, masks_path=None) -> LayerInputs:
 
 
 def planar_model(frames: np.ndarray, masks: np.ndarray, cameras: Cameras, config):
-    """PlanarGaussianModel with Gaussians at the object's pixels of every frame (at the trainer's
-    density, `init_points_per_frame` per full frame), on the plane where camera A sees them, each
-    alive around its frame's time. frames uint8 [T,H,W,3], masks bool [T,H,W]."""
+    """PlanarGaussianModel with `init_points_per_frame` Gaussians over the object in every frame where
+    it appears (the object is the layer's whole subject), each the size of its share of the mask, on
+    the plane where camera A sees its pixel and alive around its frame's time.
+    frames uint8 [T,H,W,3], masks bool [T,H,W]."""
     from tomgs.model import PlanarGaussianModel
 
     g = torch.Generator().manual_seed(config.seed)
     n, height, width = masks.shape
     per_frame = max(int(config.init_points_per_frame), 1)
     focal = float(cameras.K[0, 0])
-    points, colors, times = [], [], []
+    points, colors, times, sizes = [], [], [], []
     for k in range(n):
         pixels = torch.from_numpy(np.flatnonzero(masks[k]))
         if len(pixels) == 0:
             continue
-        count = math.ceil(per_frame * len(pixels) / (height * width))
-        chosen = pixels[torch.randint(len(pixels), (count,), generator=g)]
+        chosen = pixels[torch.randint(len(pixels), (per_frame,), generator=g)]
         v, u = chosen // width, chosen % width
-        jitter = torch.rand(2, count, generator=g, dtype=torch.float64)
+        jitter = torch.rand(2, per_frame, generator=g, dtype=torch.float64)
         x = (u + jitter[0] - cameras.K[0, 2]) / focal * PLANE_DISTANCE  # camera A: identity rotation, depth d
         y = (v + jitter[1] - cameras.K[1, 2]) / focal * PLANE_DISTANCE
         points.append(torch.stack([x, y, torch.zeros_like(x)], -1))
         colors.append(torch.from_numpy(frames[k][v.numpy(), u.numpy()]).double() / 255.0)
-        times.append(torch.full((count,), float(cameras.times[k]), dtype=torch.float64))
-    size = PLANE_DISTANCE / focal * math.sqrt(width * height / per_frame)  # one sample's share of the frame
-    points = torch.cat(points).float()
-    model = PlanarGaussianModel.from_points(points, torch.cat(colors).float(), torch.cat(times).float(),
-                                            config.init_t_scale_frames / max(n - 1, 1), max_sh_degree=config.sh_degree,
-                                            sizes=torch.full((len(points),), size))
+        times.append(torch.full((per_frame,), float(cameras.times[k]), dtype=torch.float64))
+        sizes.append(torch.full((per_frame,), PLANE_DISTANCE / focal * math.sqrt(len(pixels) / per_frame)))
+    model = PlanarGaussianModel.from_points(torch.cat(points).float(), torch.cat(colors).float(),
+                                            torch.cat(times).float(), config.init_t_scale_frames / max(n - 1, 1),
+                                            max_sh_degree=config.sh_degree, sizes=torch.cat(sizes).float())
     model.sh_degree = config.sh_degree
     return model
 
