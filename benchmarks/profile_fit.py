@@ -35,7 +35,7 @@ def main() -> None:
     video = read_video(source)
     T, H, W = video.frames.shape[:3]
     cams = Cameras.create(np.repeat(np.eye(4)[None], T, 0), intrinsics(1.2 * max(W, H), W, H), W, H)
-    config = preset("default", init_points_per_frame=args.points_per_frame, densify_from=10**9, log_interval=10**9,
+    config = preset("default", init_points_per_frame=args.points_per_frame, densify_start_fraction=2.0, log_interval=10**9,
                     eval_interval_s=1e9)
     trainer = Trainer(video.frames, cams, np.zeros((0, 3)), np.zeros((0, 3), np.float32), config, torch.device("cuda"))
     print(f"{len(trainer.model):,} Gaussians, {T} frames at {W}x{H}")

@@ -54,7 +54,8 @@ def write_clip(folder: Path, frames: np.ndarray, masks: np.ndarray) -> tuple[Pat
 
 def config(iterations: int):
     return preset("quick", iterations=iterations, log_interval=25, eval_interval_s=1e9, init_points_per_frame=60,
-                  max_gaussians=2500, densify_from=20, densify_until=int(0.75 * iterations), densify_interval=20)
+                  max_gaussians=2500, densify_start_fraction=20 / iterations, densify_stop_fraction=0.75,
+                  densify_interval=20)
 
 
 def run(*args):

@@ -5,10 +5,12 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import torch
 
 import tomgs
+from tomgs.constants import ALPHA_MIN
 from scenes import INPUT_NAMES, devices, random_scene, render_both, rel_l2
 
 IMAGE_TOL = 1e-4  # max abs error of image and alpha
@@ -128,3 +130,34 @@ def test_import_is_cheap():
     code = "import sys, tomgs; print(tomgs.__version__); assert 'warp' not in sys.modules, 'warp imported'; " \
            "assert 'tomgs.render' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True, capture_output=True)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_sequences_gather_only_what_is_alive_and_render_the_same(device):
+    """render_sequence renders each few frames from the Gaussians alive around their times: the
+    images equal a render of every Gaussian, and a Gaussian alive only at one frame is kept."""
+    from tomgs.cameras import Cameras
+    from tomgs.render import alive_window, render_sequence
+
+    scene = random_scene(11, n=300, width=40, height=30)
+    g = torch.Generator().manual_seed(3)
+    n = scene["means"].shape[0]
+    gaussians = {k: scene[k].float().to(device) for k in ("means", "quats", "scales", "opacities", "colors")}
+    gaussians["t_means"] = torch.rand(n, generator=g).to(device)
+    gaussians["t_scales"] = (10.0 ** (-3 + 3 * torch.rand(n, generator=g))).to(device)  # 1e-3 .. 1: mostly short
+    gaussians["opacities"][0] = ALPHA_MIN  # alive only at the instant t = t_mean
+    gaussians["t_means"][0] = 12 / 29
+    viewmat = scene["viewmat"].numpy()
+    cams = Cameras.create(np.repeat(np.linalg.inv(viewmat)[None], 30, 0), scene["K"].numpy(), 40, 30)
+    frames = list(range(30))[::-1]
+    alive_counts = []
+    for k, image, meta in render_sequence(gaussians, cams, frames, device=device, to_cpu=False):
+        full, _, full_meta = tomgs.rasterize(**gaussians, viewmat=scene["viewmat"].float().to(device),
+                                             K=scene["K"].float().to(device), width=40, height=30,
+                                             t=float(cams.times[k]))
+        assert torch.equal(image, full.clamp(0, 1)), k
+        assert int(meta["n_alive"]) == int(full_meta["n_alive"])
+        alive_counts.append(int(meta["radii"].shape[0]))
+    assert max(alive_counts) < n  # some frames really rendered a subset
+    first, last = alive_window(gaussians["opacities"], gaussians["t_means"], gaussians["t_scales"])
+    assert first[0] <= 12 / 29 <= last[0]

@@ -12,8 +12,8 @@ from test_train import synthetic_clip
 
 def fit(frames, cams, iterations=120):
     config = preset("quick", iterations=iterations, log_interval=20, eval_interval_s=0.0, init_points_per_frame=300,
-                    max_gaussians=3000, densify_from=40, densify_until=int(0.75 * iterations),
-                    densify_interval=20)
+                    max_gaussians=3000, densify_start_fraction=35 / iterations,
+                    densify_stop_fraction=0.75, densify_interval=20)
     result = Trainer(frames, cams, np.zeros((0, 3)), np.zeros((0, 3), np.float32), config, torch.device("cpu")).run()
     for name, value in result.model.parameters_by_name().items():
         assert torch.isfinite(value).all(), name

@@ -30,7 +30,7 @@ def synthetic_clip(frames: int, width: int, height: int):
 
 def small_config(iterations: int, **kw):
     return preset("quick", iterations=iterations, log_interval=25, eval_interval_s=1e9, init_points_per_frame=300,
-                  max_gaussians=4000, densify_from=50, densify_until=int(0.75 * iterations), densify_interval=50, **kw)
+                  max_gaussians=4000, densify_start_fraction=50 / iterations, densify_stop_fraction=0.75, densify_interval=50, **kw)
 
 
 def test_synthetic_clip_fits_to_30db():
@@ -82,6 +82,29 @@ def test_densification_never_exceeds_the_cap(cap):
             assert param.shape[0] == len(model)
             assert optimizer.state[param]["exp_avg"].shape == param.shape
     assert len(model) > 50  # it did densify, up to the cap
+
+
+
+def test_under_the_cap_the_largest_gradients_densify_first():
+    model = GaussianModel.from_points(torch.zeros(40, 3), torch.rand(40, 3), torch.rand(40), 0.5, max_sh_degree=0,
+                                      sizes=torch.full((40,), 1e-4))  # all small: clones
+    optimizer = torch.optim.Adam([dict(params=[p], lr=1e-3, name=n) for n, p in model.parameters_by_name().items()])
+    densifier = Densifier(preset("quick", max_gaussians=45), extent=1.0, num_gaussians=40, device=CPU)
+    densifier.grad_sum.copy_(torch.linspace(1.0, 2.0, 40))  # the last five are the hottest
+    densifier.seen.fill_(1.0)
+    with torch.no_grad():
+        model.t_means.copy_(torch.arange(40) / 40.0)  # a label that copies travel with
+    densifier.step(model, optimizer)
+    assert len(model) == 45
+    assert sorted(model.t_means[40:].tolist()) == pytest.approx((torch.arange(35, 40) / 40.0).tolist())
+
+
+@pytest.mark.parametrize("iteration, progress, due", [(100, 0.01, False), (100, 0.04, True), (101, 0.2, False),
+                                                      (1_000_000, 0.49, True), (100, 0.5, False)])
+def test_densification_follows_run_progress_not_iteration_counts(iteration, progress, due):
+    """Under a time budget a run may do few iterations: the window is a fraction of the run."""
+    config = preset("default", densify_interval=100, densify_start_fraction=0.04, densify_stop_fraction=0.5)
+    assert Densifier(config, 1.0, 1, CPU).due(iteration, progress) is due
 
 
 def run_clip(iterations, interrupt_at=None, checkpoint=None, resume_from=None):

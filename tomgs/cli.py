@@ -101,8 +101,6 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
     if static_3dgs:
         overrides["temporal"] = False
     config = make_config(preset, **overrides)
-    if config.densify_until > config.iterations:
-        config = config.replace(densify_until=int(0.75 * config.iterations))
     bar = click.progressbar(length=config.iterations, label="fit", show_eta=True, show_percent=True,
                             item_show_func=lambda row: row and (
                                 f"PSNR {row['train_psnr']} dB, {row['gaussians']:,} Gaussians, "
@@ -256,8 +254,8 @@ def _render_to(output, gaussians, cams, positions, background, device, fps: floa
     seconds = time.perf_counter() - start
     total = sum(g["means"].shape[0] for g in [gaussians, *(g for g, _ in layers)])
     click.echo(f"{output}: {count} frames {what} on {device} in {seconds:.1f} s ({count / seconds:.1f} fps)")
-    click.echo(f"  {total:,} Gaussians; alive per frame {min(alive):,}..{max(alive):,}: the rest were culled in "
-               f"projection and cost no tile work")
+    click.echo(f"  {total:,} Gaussians; alive per frame {min(alive):,}..{max(alive):,}: only those alive near "
+               f"each frame's time were projected")
 
 
 def _parse_background(text: str | None):

@@ -318,18 +318,43 @@ def resolve_device(name: str | None = "auto") -> torch.device:
     return device
 
 
-def render_sequence(gaussians, cameras, indices=None, *, background=None, device=None):
-    """Yield (frame k, image [H,W,3] float32 in [0,1] on the CPU, meta) for frames `indices` of `cameras`.
+def alive_window(opacities: torch.Tensor, t_means: torch.Tensor, t_scales: torch.Tensor,
+                 alpha_min: float = ALPHA_MIN) -> tuple[torch.Tensor, torch.Tensor]:
+    """(first [N], last [N]): the times between which o_i(t) >= alpha_min, widened by a hair so that
+    float32 rounding in projection never finds a Gaussian alive outside; first > last when never."""
+    reach = torch.sqrt(2.0 * torch.log(opacities / alpha_min).clamp_min(0.0)) * (1.0 + 1e-3) + 1e-3
+    reach = torch.where(opacities >= alpha_min, reach * t_scales, torch.full_like(reach, -float("inf")))
+    return t_means - reach, t_means + reach
+
+
+# frames rendered from one gathered set of the Gaussians alive at any of their times
+FRAMES_PER_GATHER = 8
+
+
+def render_sequence(gaussians, cameras, indices=None, *, background=None, device=None, to_cpu: bool = True):
+    """Yield (frame k, image [H,W,3] float32 in [0,1], meta) for frames `indices` of `cameras`.
 
     `gaussians`: mapping with means, quats, scales, opacities, colors (RGB or SH), t_means,
     t_scales; `cameras`: a `tomgs.Cameras`; frame k renders at t = cameras.times[k]. No gradients.
+    Every few frames only the Gaussians alive around those frames' times are gathered and
+    rendered, so a long clip pays per frame for what lives in it; `meta` describes that subset.
+    Images come back on the CPU unless `to_cpu` is False (timing, further GPU work).
     """
     device = torch.device(device) if device is not None else gaussians["means"].device
-    g = {k: gaussians[k].to(device) for k in ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales")}
+    g = {k: gaussians[k].detach().to(device) for k in ("means", "quats", "scales", "opacities", "colors", "t_means",
+                                                       "t_scales")}
     viewmats, Ks = cameras.viewmats(device), cameras.Ks(device)
     bg = None if background is None else torch.as_tensor(background, dtype=torch.float32, device=device)
+    order = list(range(len(cameras)) if indices is None else indices)
+    first, last = alive_window(g["opacities"], g["t_means"], g["t_scales"])
     with torch.no_grad():
-        for k in range(len(cameras)) if indices is None else indices:
-            image, _, meta = rasterize(**g, viewmat=viewmats[k], K=Ks[k], width=cameras.width, height=cameras.height,
-                                    t=float(cameras.times[k]), background=bg)
-            yield k, image.clamp(0.0, 1.0).cpu(), meta
+        for start in range(0, len(order), FRAMES_PER_GATHER):
+            chunk = order[start:start + FRAMES_PER_GATHER]
+            times = [float(cameras.times[k]) for k in chunk]
+            keep = (last >= min(times)) & (first <= max(times))
+            alive = g if bool(keep.all()) else {name: value[keep] for name, value in g.items()}
+            for k, t in zip(chunk, times):
+                image, _, meta = rasterize(**alive, viewmat=viewmats[k], K=Ks[k], width=cameras.width,
+                                           height=cameras.height, t=t, background=bg)
+                image = image.clamp(0.0, 1.0)
+                yield k, image.cpu() if to_cpu else image, meta

@@ -38,11 +38,11 @@ class Densifier:
         self.grad_sum += torch.where(visible, (grad * scale).norm(dim=-1), torch.zeros_like(self.grad_sum))
         self.seen += visible.float()
 
-    def due(self, iteration: int, progress: float = 0.0) -> bool:
-        """Every `densify_interval` iterations from `densify_from` to `densify_until`, and only in the
-        first `densify_stop_fraction` of the run (by iterations or by wall-clock budget)."""
+    def due(self, iteration: int, progress: float) -> bool:
+        """Every `densify_interval` iterations while the run's progress (by iterations or by
+        wall-clock budget) is inside [densify_start_fraction, densify_stop_fraction)."""
         c = self.config
-        return (c.densify_from <= iteration < c.densify_until and progress < c.densify_stop_fraction
+        return (c.densify_start_fraction <= progress < c.densify_stop_fraction
                 and iteration % c.densify_interval == 0)
 
     def step(self, model: GaussianModel, optimizer: torch.optim.Optimizer) -> dict:
@@ -56,7 +56,7 @@ class Densifier:
         room = max(c.max_gaussians - n, 0)
         clone = hot & (max_scale <= c.percent_dense * self.extent)
         split = hot & ~clone
-        clone, split = _limit(clone, split, room)
+        clone, split = _limit(clone, split, room, grads)
         self.capped = self.capped or room == 0 or bool((clone.sum() + 2 * split.sum()) >= room)
 
         params = {k: v.detach() for k, v in model.parameters_by_name().items()}
@@ -117,19 +117,23 @@ class Densifier:
         self.generator.set_state(state["generator"])
 
 
-def _limit(clone: torch.Tensor, split: torch.Tensor, room: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Keep clones and splits within `room` new Gaussians (a split adds one net): the cap is exact."""
+def _limit(clone: torch.Tensor, split: torch.Tensor, room: int, grads: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Keep clones and splits within `room` new Gaussians (a split adds one net): the cap is exact.
+    Under the cap, the candidates with the largest gradients go first."""
     n_clone, n_split = int(clone.sum()), int(split.sum())
     if n_clone + n_split <= room:
         return clone, split
     keep_split = min(n_split, room // 2)
     keep_clone = min(n_clone, room - keep_split)
-    return _first(clone, keep_clone), _first(split, keep_split)
+    return _largest(clone, keep_clone, grads), _largest(split, keep_split, grads)
 
 
-def _first(mask: torch.Tensor, k: int) -> torch.Tensor:
+def _largest(mask: torch.Tensor, k: int, score: torch.Tensor) -> torch.Tensor:
+    """The `k` entries of `mask` with the largest `score`."""
     out = torch.zeros_like(mask)
-    out[torch.nonzero(mask).squeeze(-1)[:k]] = True
+    if k > 0:
+        candidates = torch.nonzero(mask).squeeze(-1)
+        out[candidates[torch.topk(score[candidates], k).indices]] = True
     return out
 
 

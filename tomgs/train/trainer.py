@@ -219,7 +219,7 @@ class Trainer:
         meta["means2d"].retain_grad()
         self.loss(k, image, alpha).backward()
         self.sampler.update(k, self.measure(k, image))
-        if self.iteration < c.densify_until and self.progress < c.densify_stop_fraction:
+        if self.progress < c.densify_stop_fraction:
             self.densifier.observe(meta)
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
@@ -233,7 +233,7 @@ class Trainer:
             self.densifier.prune(self.model, self.optimizer)
             self.densifier.reset_stats(len(self.model), self.device)
         if c.opacity_reset_interval and self.iteration % c.opacity_reset_interval == 0 \
-                and self.iteration < c.densify_until:
+                and self.progress < c.densify_stop_fraction:
             self.densifier.reset_opacity(self.model, self.optimizer)
 
     @torch.no_grad()
