@@ -104,7 +104,7 @@ def test_background_fits_the_unmasked_pixels(fitted):
     target = torch.as_tensor(fitted["frames"]).float() / 255.0
     outside = torch.as_tensor(~fitted["masks"])
     mse = (images - target).square()[outside].mean()
-    assert -10 * torch.log10(mse) > 35.0  # measured 46.7 dB
+    assert -10 * torch.log10(mse) > 35.0  # measured 45.5-46.7 dB
 
 
 def test_foreground_stays_on_its_plane(fitted):
@@ -176,7 +176,7 @@ def test_a_layer_edited_alone_composites_again(fitted, tmp_path):
     assert -10 * torch.log10(error) > 17.0  # measured 21 dB (22 dB for the unmoved square)
     away = ~torch.as_tensor(np.stack([cv2.dilate((m | n).astype(np.uint8), np.ones((11, 11), np.uint8))
                                       for m, n in zip(masks, moved)]) > 0)  # 5 px from where it was or is
-    assert (after - before).abs()[away].max() < 0.01  # measured 0.003: faint temporal ghosts only
+    assert (after - before).abs()[away].max() < 0.03  # measured 0.003-0.008: faint temporal ghosts only
 
 
 def test_fit_layer_from_the_command_line(fitted, tmp_path):

@@ -28,7 +28,6 @@ import torch
 from tomgs.cameras import Cameras
 from tomgs.io import InputError
 
-LAYERS = ("background", "foreground")
 PLANE_DISTANCE = 1.0  # d: the cameras' distance from the foreground plane (scene units)
 
 
@@ -48,8 +47,6 @@ class LayerInputs:
 
 def check_masks(clip, layer: str, masks_path=None) -> np.ndarray:
     """The clip's masks, bool [T,H,W], checked for `layer`; raises InputError naming the fix."""
-    if layer not in LAYERS:
-        raise InputError(f"unknown layer {layer!r}: use background or foreground")
     where = f"masks in {masks_path}" if masks_path is not None else "the masks"
     if clip.masks is None:
         raise InputError(f"the {layer} layer needs masks: give --masks MASKS (masks= in Python), a folder with "
