@@ -73,8 +73,12 @@ def poses(video, output, masks, frames, method, focal, max_side):
 @click.option("--sh-degree", type=click.IntRange(0, 3), default=None, help="view-dependent colour (default 0)")
 @click.option("--seed", type=int, default=None)
 @click.option("--resume", is_flag=True, help="continue from the checkpoint beside OUTPUT")
+@click.option("--layer", type=click.Choice(["background", "foreground"]), default=None,
+              help="fit one layer (needs --masks): the pixels outside the masks, or the masked object on a plane")
+@click.option("--mask-dilation", type=click.IntRange(0), default=2, show_default=True,
+              help="background layer: grow the masks by this many pixels before leaving them out")
 def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal, device, max_gaussians, max_seconds,
-        sampling, static_3dgs, opacity_reset, sh_degree, seed, resume):
+        sampling, static_3dgs, opacity_reset, sh_degree, seed, resume, layer, mask_dilation):
     """Fit a TOM-GS scene to VIDEO (a video file or a folder of frames).
 
     \b
@@ -82,6 +86,8 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
       tomgs fit clip.mp4 -o scene.ply
       tomgs fit frames/ -o scene.ply --masks masks/ --frames 0:80 --max-side 854 --device cuda
       tomgs fit clip.mp4 -o scene.ply --resume          # after Ctrl-C
+      tomgs fit frames/ --masks masks/ --layer background -o bg.ply
+      tomgs fit frames/ --masks masks/ --layer foreground -o fg.ply
     """
     from tomgs.io import InputError
     from tomgs.render import RenderError
@@ -105,7 +111,8 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
                 bar.update(row["iteration"] - bar.pos, row)
 
             result = fit_scene(video, output, config, masks=masks, frames=frames, max_side=max_side, poses=poses,
-                               focal=focal, device=device, resume=resume, progress=progress)
+                               focal=focal, device=device, resume=resume, progress=progress, layer=layer,
+                               mask_dilation=mask_dilation)
     except (InputError, RenderError) as e:
         raise UsageError(str(e)) from None
     except KeyboardInterrupt:
@@ -221,16 +228,17 @@ def demo(output, num_frames, size, device):
         raise UsageError(str(e)) from None
 
 
-def _render_to(output, gaussians, cams, positions, background, device, fps: float, what: str) -> None:
+def _render_to(output, gaussians, cams, positions, background, device, fps: float, what: str, layers=()) -> None:
     """Render frames `positions` of `cams` to `output` (video or PNG folder) with a progress bar,
-    then report the frame rate and how many Gaussians each frame skipped as dead. `gaussians`: the
-    rasterizer's inputs, or a callable frame -> inputs (`tomgs.render.render_sequence`)."""
+    `layers` ((gaussians, cameras) pairs) composited over them, then report the frame rate and how
+    many Gaussians each frame skipped as dead. `gaussians`: the rasterizer's inputs, or a callable
+    frame -> inputs (`tomgs.render.render_sequence`)."""
     import time
 
     import numpy as np
 
     from tomgs.io import write_frames
-    from tomgs.render import render_sequence
+    from tomgs.layers import render_layers
 
     positions = list(positions)
     alive, totals = [], []
@@ -245,7 +253,7 @@ def _render_to(output, gaussians, cams, positions, background, device, fps: floa
         totals.append(int(gaussians["means"].shape[0]))
 
     def images():
-        sequence = render_sequence(source, cams, positions, background=background, device=device)
+        sequence = render_layers(source, cams, positions, layers, background=background, device=device)
         with click.progressbar(sequence, length=len(positions), label="render") as bar:
             for _, image, meta in bar:
                 alive.append(int(meta["n_alive"]))
@@ -253,7 +261,9 @@ def _render_to(output, gaussians, cams, positions, background, device, fps: floa
 
     count = write_frames(images(), output, fps=fps)
     seconds = time.perf_counter() - start
-    total = f"{min(totals):,}" if min(totals) == max(totals) else f"{min(totals):,}..{max(totals):,}"
+    in_layers = sum(int(g["means"].shape[0]) for g, _ in layers)
+    low, high = min(totals) + in_layers, max(totals) + in_layers
+    total = f"{low:,}" if low == high else f"{low:,}..{high:,}"
     click.echo(f"{output}: {count} frames {what} on {device} in {seconds:.1f} s ({count / seconds:.1f} fps)")
     click.echo(f"  {total} Gaussians; alive per frame {min(alive):,}..{max(alive):,}: only those alive near "
                f"each frame's time were projected")
@@ -282,22 +292,30 @@ def _parse_background(text: str | None):
               help="r,g,b in [0, 1]; default: the scene's (info \"background\"), else black")
 @click.option("--fps", type=click.FloatRange(min=0.1), default=None,
               help="frame rate of a video output; default: the scene's (info \"fps\"), else 25")
-def render(scene, frames, output, device, background, fps):
+@click.option("--layer", "layer_paths", multiple=True, type=click.Path(path_type=str),
+              help="a scene to composite over SCENE (e.g. a foreground from `fit --layer foreground`), each "
+                   "with its own cameras at the same frames; repeat for more, the last in front")
+def render(scene, frames, output, device, background, fps, layer_paths):
     """Render frames of SCENE (a .ply from `tomgs fit`) from its own cameras at their frame times.
 
     \b
     Examples:
       tomgs render scene.ply -o scene.mp4
       tomgs render scene.ply --frames 0:80 -o frames/ --device cuda
+      tomgs render bg.ply --layer fg.ply -o out.mp4     # foreground over background
     """
     from tomgs.io import InputError
     from tomgs.io.scene import load_scene
+    from tomgs.layers import check_layers
     from tomgs.render import RenderError
 
     try:
         loaded = load_scene(scene)
+        layers = [load_scene(path) for path in layer_paths]
+        check_layers(loaded.cameras, [layer.cameras for layer in layers], list(layer_paths))
         plan = _render_plan(output, loaded.cameras, frames, device, background)
-        _render_scene(output, loaded, loaded.model.render_inputs(), plan, fps)
+        _render_scene(output, loaded, loaded.model.render_inputs(), plan, fps,
+                      layers=[(layer.model.render_inputs(), layer.cameras) for layer in layers])
     except (InputError, RenderError) as e:
         raise UsageError(str(e)) from None
 
@@ -382,8 +400,9 @@ def _render_plan(output, cams, frames, device, background, only=None):
     return positions, rgb, resolve_device(device)
 
 
-def _render_scene(output, scene, gaussians, plan, fps) -> None:
-    """Render `gaussians` (inputs or a per-frame callable) of `scene` as `plan` (`_render_plan`) says."""
+def _render_scene(output, scene, gaussians, plan, fps, layers=()) -> None:
+    """Render `gaussians` (inputs or a per-frame callable) of `scene`, with `layers` composited over
+    them, as `plan` (`_render_plan`) says."""
     from tomgs.io.scene import render_defaults
 
     positions, rgb, device = plan
@@ -391,7 +410,8 @@ def _render_scene(output, scene, gaussians, plan, fps) -> None:
     numbers = cams.frame_indices[positions]
     default_rgb, default_fps = render_defaults(scene.info)
     _render_to(output, gaussians, cams, positions.tolist(), background=rgb or default_rgb, device=device,
-               fps=fps or default_fps, what=f"({numbers[0]}..{numbers[-1]}) at {cams.width}x{cams.height}")
+               fps=fps or default_fps, what=f"({numbers[0]}..{numbers[-1]}) at {cams.width}x{cams.height}",
+               layers=layers)
 
 
 def _is_scene_path(path: str) -> bool:

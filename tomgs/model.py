@@ -121,3 +121,41 @@ def nearest_neighbour_distance(points: torch.Tensor, k: int = 3, chunk: int = 40
         d2[torch.arange(d2.shape[0]), torch.arange(start, start + d2.shape[0])] = float("inf")
         out[start:start + chunk] = d2.topk(k, dim=1, largest=False).values.mean(1).sqrt()
     return out
+
+
+PLANE_NORMAL_SCALE = 1e-8  # MiraGe's flat Gaussians: their scale along the plane's normal
+
+
+def on_plane(means: torch.Tensor, quats: torch.Tensor, log_scales: torch.Tensor):
+    """Pin Gaussians to the plane z = 0: means [N,3] get z = 0, quats [N,4] keep only a rotation about
+    z (w and z; one in-plane angle theta = 2 atan2(q_z, q_w), stored as a pair so it never wraps), and
+    log_scales [N,3] get log(1e-8) along local z, the plane's normal. Differentiable: the pinned
+    components get zero gradient."""
+    keep = means.new_tensor([1.0, 1.0, 0.0])
+    return (means * keep, quats * quats.new_tensor([1.0, 0.0, 0.0, 1.0]),
+            log_scales * keep + log_scales.new_tensor([0.0, 0.0, math.log(PLANE_NORMAL_SCALE)]))
+
+
+class PlanarGaussianModel(GaussianModel):
+    """A MiraGe-style foreground: flat Gaussians on the plane z = 0 (`on_plane`), so each one has a
+    2D position, two in-plane scales and one in-plane angle, plus the usual opacity, colour and
+    temporal window. Same stored names and shapes as GaussianModel, so the trainer, the densifier,
+    checkpoints and scene files take it unchanged: the activations ignore the pinned components
+    (zero gradients, so Adam leaves them alone) and `replace` puts rows that densification added or
+    moved back on the plane. Saved, it is an ordinary scene of flat 3D Gaussians."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.replace(self.parameters_by_name())
+
+    @property
+    def scales(self) -> torch.Tensor:
+        return torch.exp(on_plane(self.means, self.quats, self.log_scales)[2])
+
+    def render_inputs(self) -> dict[str, torch.Tensor]:
+        means, quats, _ = on_plane(self.means, self.quats, self.log_scales)
+        return dict(super().render_inputs(), means=means, quats=quats)
+
+    def replace(self, tensors: dict[str, torch.Tensor]) -> None:
+        means, quats, log_scales = on_plane(tensors["means"], tensors["quats"], tensors["log_scales"])
+        super().replace(dict(tensors, means=means, quats=quats, log_scales=log_scales))

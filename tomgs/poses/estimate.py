@@ -97,7 +97,7 @@ def estimate_cameras(frames, masks=None, method="auto", focal=None, progress=Non
 
         K = intrinsics(focal if focal is not None else 1.2 * max(W, H), W, H)
         cams = Cameras.identity(T, K, W, H, indices)
-        pts, cols = unit_depth_points(frames, K)
+        pts, cols = unit_depth_points(frames, K, static=None if masks is None else ~masks)  # moving content left out
         rep = PoseReport("identity", "identity", T, cams.focal, False, float("nan"), 0.0, len(pts),
                          ["identity poses requested" + ("" if focal is not None else "; focal assumed 1.2 x image side")])
     else:

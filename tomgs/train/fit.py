@@ -26,11 +26,14 @@ def output_paths(scene_path) -> dict[str, Path]:
 
 
 def fit(video, output, config: TrainConfig | None = None, *, masks=None, frames=None, max_side=None,
-        poses="auto", focal=None, device=None, resume: bool = False, progress=None, pose_progress=None) -> FitResult:
+        poses="auto", focal=None, device=None, resume: bool = False, progress=None, pose_progress=None,
+        layer: str | None = None, mask_dilation: int = 2) -> FitResult:
     """Fit a TOM-GS scene to `video` (a file, a frame folder or a `tomgs.Video`) and save it to `output`.
 
     poses: "auto" (built-in tracker), "identity" (fixed camera, also the ablation), a cameras file,
     or anything `tomgs.estimate_cameras` takes. resume: continue from `output`'s checkpoint.
+    layer: None (the whole frame), "background" (the pixels outside the masks, dilated by
+    `mask_dilation` pixels) or "foreground" (the masked object on a plane, no poses); see tomgs.layers.
     """
     from tomgs.io import Video, read_video
     from tomgs.io.scene import save_scene
@@ -48,13 +51,19 @@ def fit(video, output, config: TrainConfig | None = None, *, masks=None, frames=
         raise InputError(f"{paths['checkpoint']}: no checkpoint to resume from; run without --resume")
 
     clip = video if isinstance(video, Video) else read_video(video, frames=frames, max_side=max_side, masks=masks)
+    inputs = _layer_inputs(clip, layer, config, mask_dilation, masks)  # checks the masks before any work
     t0 = time.perf_counter()
-    cameras, points, colors, report = estimate_cameras(clip, method=poses, focal=focal, progress=pose_progress)
+    if inputs.cameras is None:
+        cameras, points, colors, report = estimate_cameras(clip, method=poses, focal=focal, progress=pose_progress)
+        pose_notes = [f"poses: {report.summary()}", *report.notes]
+        views = cameras
+    else:  # the foreground layer's fixed cameras
+        cameras, views, points, colors, pose_notes = inputs.scene_cameras, inputs.cameras, (), (), []
     pose_seconds = time.perf_counter() - t0
 
     torch.manual_seed(config.seed)
-    trainer = Trainer(clip.frames, cameras, points, colors, config, device)
-    trainer.notes[:0] = [f"poses: {report.summary()}", *report.notes]
+    trainer = Trainer(inputs.frames, views, points, colors, config, device, **inputs.hooks)
+    trainer.notes[:0] = [*pose_notes, *inputs.notes]
     if resume:
         trainer.load_checkpoint(paths["checkpoint"])
         _rewrite_csv(paths["csv"], trainer.history)
@@ -67,10 +76,28 @@ def fit(video, output, config: TrainConfig | None = None, *, masks=None, frames=
                 pose_seconds=round(pose_seconds, 2), clip_psnr=round(result.clip_psnr, 3),
                 fps=clip.fps or 25.0, background=[0.0, 0.0, 0.0],
                 config={k: v for k, v in vars(config).items()}, notes=result.notes)
+    if layer is not None:
+        info["layer"] = layer
+    result.cameras = cameras
     save_scene(paths["scene"], result.model, cameras, info)
     _plot(paths["plot"], result.history)
     paths["checkpoint"].unlink(missing_ok=True)
     return result
+
+
+def _layer_inputs(clip, layer, config, mask_dilation, masks_path):
+    """tomgs.layers.LayerInputs for `layer`; for None, the whole clip with estimated cameras."""
+    if layer is None:
+        from tomgs.layers import LayerInputs
+
+        return LayerInputs(clip.frames, None, {})
+    from tomgs.layers import background_inputs, foreground_inputs
+
+    if layer == "background":
+        return background_inputs(clip, mask_dilation, masks_path)
+    if layer == "foreground":
+        return foreground_inputs(clip, config, masks_path)
+    raise InputError(f"unknown layer {layer!r}: use background or foreground")
 
 
 def _rewrite_csv(path: Path, history: list[dict]) -> None:

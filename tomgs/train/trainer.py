@@ -1,5 +1,9 @@
 """The TOM-GS trainer: sample a frame, render it at its time, 0.8 L1 + 0.2 D-SSIM, Adam, densify.
 
+Layers (tomgs.layers) use three hooks and nothing else: per-pixel loss `weights` (the background
+layer ignores the masked object), `alpha_targets` (the foreground layer is transparent outside its
+mask) and an `initial` model (the foreground's Gaussians pinned to a plane).
+
 Error against run time is part of the output: every `log_interval` iterations a CSV row
 (iteration, wall seconds, training PSNR, full-clip PSNR when measured, Gaussians, memory), and at
 the end a PNG of PSNR against wall-clock time. Checkpoints every few minutes and on Ctrl-C let
@@ -19,7 +23,7 @@ import numpy as np
 import torch
 
 from tomgs.cameras import Cameras
-from tomgs.metrics import psnr, ssim
+from tomgs.metrics import psnr, ssim, ssim_map
 from tomgs.model import GaussianModel, nearest_neighbour_distance
 from tomgs.render import rasterize
 from tomgs.train.config import TrainConfig
@@ -42,21 +46,34 @@ class FitResult:
 
 class Trainer:
     """frames uint8 [T,H,W,3]; cameras: Cameras of the clip; points [P,3], colors [P,3] in [0,1]
-    (the tracker's sparse cloud, may be empty)."""
+    (the tracker's sparse cloud, may be empty).
+
+    weights: None, or float [T,H,W] in [0,1], the loss weight of each pixel (0: not supervised; the
+    L1 + D-SSIM loss, the sampler's PSNR and the clip PSNR then cover the weighted pixels only,
+    and the initial Gaussians are drawn from pixels of weight > 0). alpha_targets: None, or float
+    [T,H,W] in [0,1]: adds L1 between the rendered alpha and it. initial: None, or (model, extent)
+    to train instead of the trainer's own initialisation (extent: the scene size for learning rates
+    and densification)."""
 
     def __init__(self, frames: np.ndarray, cameras: Cameras, points: np.ndarray, colors: np.ndarray,
-                 config: TrainConfig, device: torch.device):
+                 config: TrainConfig, device: torch.device, *, weights: np.ndarray | None = None,
+                 alpha_targets: np.ndarray | None = None, initial: tuple[GaussianModel, float] | None = None):
         self.config = config
         self.device = device
         self.cameras = cameras
         self.frames = torch.as_tensor(np.ascontiguousarray(frames), device=device)  # uint8, converted per step
+        self.weights, self.alpha_targets = (None if a is None else _as_uint8(a, self.frames.shape[:3], name, device)
+                                            for a, name in ((weights, "weights"), (alpha_targets, "alpha_targets")))
         self.num_frames, self.height, self.width = self.frames.shape[:3]
         self.viewmats = cameras.viewmats(device)
         self.K = torch.as_tensor(cameras.K, dtype=torch.float32, device=device)
         self.times = [float(t) for t in cameras.times]
         self.notes: list[str] = []
-        self.model, self.extent = self._initial_model(np.asarray(points, dtype=np.float64).reshape(-1, 3),
-                                                      np.asarray(colors, dtype=np.float32).reshape(-1, 3))
+        if initial is None:
+            self.model, self.extent = self._initial_model(np.asarray(points, dtype=np.float64).reshape(-1, 3),
+                                                          np.asarray(colors, dtype=np.float32).reshape(-1, 3))
+        else:
+            self.model, self.extent = initial[0].to(device), float(initial[1])
         self.optimizer = self._optimizer()
         self.sampler = FrameSampler(self.num_frames, config.sampling, config.psnr_momentum, config.seed)
         self.densifier = Densifier(config, self.extent, len(self.model), device, config.seed)
@@ -78,21 +95,20 @@ class Trainer:
         xs, cols, ts = [], [], []
         fx, fy, cx, cy = self.cameras.K[0, 0], self.cameras.K[1, 1], self.cameras.K[0, 2], self.cameras.K[1, 2]
         for k in range(self.num_frames):
-            u = torch.rand(per_frame, generator=g, dtype=torch.float64) * self.width
-            v = torch.rand(per_frame, generator=g, dtype=torch.float64) * self.height
-            z = depth[k] * torch.exp(0.1 * torch.randn(per_frame, generator=g, dtype=torch.float64))
+            u, v = self._initial_pixels(k, per_frame, g)
+            z = depth[k] * torch.exp(0.1 * torch.randn(len(u), generator=g, dtype=torch.float64))
             cam = torch.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], -1).numpy()
             c2w = self.cameras.c2w[k]
             xs.append(cam @ c2w[:3, :3].T + c2w[:3, 3])
             pix = self.frames[k, v.long().clamp(max=self.height - 1), u.long().clamp(max=self.width - 1)]
             cols.append(pix.float().cpu().numpy() / 255.0)
-            ts.append(np.full(per_frame, self.times[k]))
+            ts.append(np.full(len(u), self.times[k]))
         frame_sigma = c.init_t_scale_frames / max(self.num_frames - 1, 1)
-        t_sigma = np.concatenate([np.full(len(points), 1.0), np.full(per_frame * self.num_frames, frame_sigma)])
+        t_sigma = np.concatenate([np.full(len(points), 1.0), np.full(sum(map(len, ts)), frame_sigma)])
         # sizes: tracked points from their neighbours (few), per-frame points from one sample's
         # share of the image (many: a neighbour search over them would be quadratic)
         pixel_size = max(float(np.median(depth)) / float(fx) * math.sqrt(self.width * self.height / per_frame), 1e-6)
-        sizes = np.full(len(points) + per_frame * self.num_frames, pixel_size)
+        sizes = np.full(len(points) + sum(map(len, ts)), pixel_size)
         if len(points):
             sizes[:len(points)] = nearest_neighbour_distance(torch.as_tensor(points, dtype=torch.float32)).numpy()
         all_points = np.concatenate([points, *xs]) if len(points) else np.concatenate(xs)
@@ -111,6 +127,18 @@ class Trainer:
         else:
             self.notes.append("SH degree 0: view-dependent colour left out (ask for it with sh_degree)")
         return model.to(self.device), float(np.median(depth))
+
+    def _initial_pixels(self, k: int, n: int, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+        """n pixel positions (u, v) float64 [n] in frame k: uniform, or only where the weight is > 0."""
+        if self.weights is None:
+            return (torch.rand(n, generator=g, dtype=torch.float64) * self.width,
+                    torch.rand(n, generator=g, dtype=torch.float64) * self.height)
+        allowed = (self.weights[k] > 0).flatten().double().cpu()
+        if not allowed.any():
+            return torch.zeros(0, dtype=torch.float64), torch.zeros(0, dtype=torch.float64)
+        pixel = torch.multinomial(allowed, n, replacement=True, generator=g)
+        jitter = torch.rand(2, n, generator=g, dtype=torch.float64)
+        return (pixel % self.width).double() + jitter[0], (pixel // self.width).double() + jitter[1]
 
     @staticmethod
     def _median_depth(points: np.ndarray, w2c: np.ndarray) -> np.ndarray:
@@ -141,8 +169,44 @@ class Trainer:
 
     # -- the loop ------------------------------------------------------------------------------
 
-    def target(self, k: int) -> torch.Tensor:
-        return self.frames[k].float() / 255.0
+    def target(self, k: int, image: torch.Tensor | None = None) -> torch.Tensor:
+        """Frame k [H,W,3] in [0,1]. With weights and the render `image`, the unsupervised pixels show
+        the render itself (detached): no L1 there, and SSIM windows reaching into them compare the
+        render with itself, so masked content never pulls on the model."""
+        target = self.frames[k].float() / 255.0
+        if self.weights is None or image is None:
+            return target
+        w = self._weight(k)
+        return w * target + (1 - w) * image.detach()
+
+    def _weight(self, k: int) -> torch.Tensor:
+        return self.weights[k, :, :, None].float() / 255.0  # [H,W,1]
+
+    def loss(self, k: int, image: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+        """(1 - w) L1 + w D-SSIM of the render image [H,W,3] against frame k over its weighted pixels,
+        plus L1 of alpha [H,W,1] against its target when there is one."""
+        c = self.config
+        target = self.target(k, image)
+        if self.weights is None:
+            l1, similarity = (image - target).abs().mean(), ssim(image, target)
+        else:
+            w = self._weight(k)
+            total = 3 * w.sum().clamp_min(1e-12)
+            l1 = (image - target).abs().sum() / total
+            similarity = (ssim_map(image[None], target[None])[0] * w.permute(2, 0, 1)).sum() / total
+        loss = (1 - c.ssim_weight) * l1 + c.ssim_weight * (1 - similarity)
+        if self.alpha_targets is not None:
+            loss = loss + (alpha[..., 0] - self.alpha_targets[k].float() / 255.0).abs().mean()
+        return loss
+
+    def measure(self, k: int, image: torch.Tensor) -> float:
+        """PSNR of the render image [H,W,3] against frame k over its weighted pixels."""
+        image = image.detach()
+        target = self.target(k, image)
+        if self.weights is None:
+            return float(psnr(image, target))
+        mse = float((image - target).square().sum() / (3 * self._weight(k).sum().clamp_min(1e-12)))
+        return -10.0 * math.log10(mse) if mse > 0 else math.inf
 
     def render(self, k: int, **kw):
         return rasterize(**self.model.render_inputs(), viewmat=self.viewmats[k], K=self.K, width=self.width,
@@ -151,12 +215,10 @@ class Trainer:
     def step(self) -> None:
         c = self.config
         k = self.sampler.sample()
-        image, _, meta = self.render(k)
+        image, alpha, meta = self.render(k)
         meta["means2d"].retain_grad()
-        target = self.target(k)
-        loss = (1 - c.ssim_weight) * (image - target).abs().mean() + c.ssim_weight * (1 - ssim(image, target))
-        loss.backward()
-        self.sampler.update(k, float(psnr(image.detach(), target)))
+        self.loss(k, image, alpha).backward()
+        self.sampler.update(k, self.measure(k, image))
         if self.progress < c.densify_stop_fraction:
             self.densifier.observe(meta)
         for group in self.optimizer.param_groups:
@@ -176,8 +238,8 @@ class Trainer:
 
     @torch.no_grad()
     def clip_psnr(self) -> list[float]:
-        """PSNR of every frame, rendered at its time: [T] floats."""
-        return [float(psnr(self.render(k)[0], self.target(k))) for k in range(self.num_frames)]
+        """PSNR of every frame (of its weighted pixels), rendered at its time: [T] floats."""
+        return [self.measure(k, self.render(k)[0]) for k in range(self.num_frames)]
 
     def run(self, checkpoint: Path | None = None, log_csv: Path | None = None, progress=None) -> FitResult:
         """Train to `config.iterations`. `progress(dict)` is called every log interval."""
@@ -261,6 +323,14 @@ class Trainer:
         self.densifier.load_state_dict(densifier)
         self.iteration, self.elapsed = state["iteration"], state["elapsed"]
         self.history, self.notes, self.extent = state["history"], state["notes"], state["extent"]
+
+
+def _as_uint8(values, shape, name: str, device) -> torch.Tensor:
+    """float [T,H,W] in [0,1] -> uint8 [T,H,W] on `device` (stored like the frames, converted per step)."""
+    values = np.asarray(values, dtype=np.float32)
+    if values.shape != tuple(shape):
+        raise ValueError(f"{name} must have shape {tuple(shape)} like the frames, got {values.shape}")
+    return torch.as_tensor(np.rint(np.clip(values, 0.0, 1.0) * 255.0).astype(np.uint8), device=device)
 
 
 def _append_csv(path: Path, row: dict) -> None:
