@@ -14,6 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tomgs.io.tets import Tets, load_sequence, load_tets, save_tets
+
 SCRIPT = Path(__file__).resolve().parents[1] / "assets" / "blender_softbody.py"
 W = np.array([[1, 0, 0], [0, 0, 1], [0, -1, 0]], np.float64)  # world (OpenCV) -> Blender axes
 FRAMES, DROP = 24, 0.5
@@ -57,28 +59,8 @@ def signed_volumes(verts, tets):
 
 
 def write_cage_ply(path, world_verts, tets):
-    """Stand-in for tomgs.io.tets.save_tets per the contract: kind cage with one bound Gaussian
-    whose tet is cage tet 0 (binding weights the identity)."""
-    v = (world_verts @ W.T).astype("<f4")
-    a, b, c, d = tets.T
-    faces = np.stack([np.stack(f, 1) for f in ((a, c, b), (a, b, d), (a, d, c), (b, c, d))], 1).reshape(-1, 3)
-    header = ("ply\nformat binary_little_endian 1.0\ncomment tomgs tets 1\ncomment kind cage\n"
-              f"comment axes blender\nelement vertex {len(v)}\nproperty float x\nproperty float y\n"
-              f"property float z\nelement face {len(faces)}\nproperty list uchar int vertex_indices\n"
-              f"element tet {len(tets)}\nproperty list uchar int vertex_indices\n"
-              "element gaussian 1\nproperty int index\n"
-              "element binding 4\nproperty int tet\nproperty float b0\nproperty float b1\n"
-              "property float b2\nproperty float b3\nend_header\n")
-
-    def rows(idx):
-        r = np.zeros(len(idx), [("n", "u1"), ("v", "<i4", (idx.shape[1],))])
-        r["n"], r["v"] = idx.shape[1], idx
-        return r.tobytes()
-
-    binding = np.zeros(4, [("tet", "<i4"), ("b", "<f4", (4,))])
-    binding["b"] = np.eye(4)
-    Path(path).write_bytes(header.encode() + v.tobytes() + rows(faces) + rows(tets)
-                           + np.zeros(1, "<i4").tobytes() + binding.tobytes())
+    """A `cage` tets file (tomgs.io.tets.save_tets) bound to no Gaussian: the script needs only the mesh."""
+    save_tets(path, Tets("cage", world_verts, tets, np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 4))))
 
 
 def run_blender(blender, *args, timeout=240):
@@ -123,9 +105,8 @@ def test_softbody_drop(dropped):
 
 
 def test_sequence_loads_back(dropped):
-    tets_io = pytest.importorskip("tomgs.io.tets", reason="tomgs.io.tets (edit branch) is not merged yet")
     rest, _, out, _, ply = dropped
-    vertices, frames = tets_io.load_sequence(out, like=tets_io.load_tets(ply))
+    vertices, frames = load_sequence(out, like=load_tets(ply))
     assert vertices.shape == (FRAMES, len(rest), 3)
     np.testing.assert_array_equal(frames, np.arange(FRAMES))
     # Back in world axes: frame 0 is the rest pose raised by --drop, i.e. moved along -y (up).

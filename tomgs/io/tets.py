@@ -196,7 +196,8 @@ def load_tets(path) -> Tets:
         weights = np.stack([np.asarray(b[f"b{j}"], dtype=np.float64) for j in range(4)], axis=1)
     except (ValueError, KeyError) as e:
         raise InputError(f"{path}: bad binding element ({e}): {fix}") from None
-    if len(out.binding_tet) != 4 * G or out.binding_tet.min() < 0 or out.binding_tet.max() >= len(tets) \
+    in_range = len(out.binding_tet) == 0 or (out.binding_tet.min() >= 0 and out.binding_tet.max() < len(tets))
+    if len(out.binding_tet) != 4 * G or not in_range \
             or not np.isfinite(weights).all() or (np.abs(weights.sum(1) - 1) > 1e-3).any():
         raise InputError(f"{path}: the binding must have 4 rows per Gaussian ({4 * G}), tet indices below "
                          f"{len(tets)} and weights summing to 1: {fix}")
