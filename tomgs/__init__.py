@@ -6,7 +6,7 @@ Public names are resolved lazily from the module that owns them.
 
 from __future__ import annotations
 
-import importlib
+from tomgs._lazy import lazy_exports
 
 __version__ = "0.1.0"
 
@@ -44,16 +44,4 @@ _EXPORTS = {
 }
 
 __all__ = ["__version__", *_EXPORTS]
-
-
-def __getattr__(name: str):
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module 'tomgs' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted(__all__)
+__getattr__, __dir__ = lazy_exports(__name__, globals(), _EXPORTS)

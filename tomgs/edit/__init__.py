@@ -11,7 +11,7 @@ Public names are resolved lazily, as in `tomgs`.
 
 from __future__ import annotations
 
-import importlib
+from tomgs._lazy import lazy_exports
 
 _EXPORTS = {
     "Selector": "tomgs.edit.selection",
@@ -32,16 +32,4 @@ _EXPORTS = {
 }
 
 __all__ = list(_EXPORTS)
-
-
-def __getattr__(name: str):
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module 'tomgs.edit' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted(__all__)
+__getattr__, __dir__ = lazy_exports(__name__, globals(), _EXPORTS)
