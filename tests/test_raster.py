@@ -161,3 +161,20 @@ def test_sequences_gather_only_what_is_alive_and_render_the_same(device):
     assert max(alive_counts) < n  # some frames really rendered a subset
     first, last = alive_window(gaussians["opacities"], gaussians["t_means"], gaussians["t_scales"])
     assert first[0] <= 12 / 29 <= last[0]
+
+
+def test_an_unfinished_sequence_leaves_gradients_on():
+    """render_sequence renders without gradients, but a caller that stops early (or between frames)
+    must find autograd as it left it."""
+    from tomgs.cameras import Cameras
+    from tomgs.render import render_sequence
+
+    scene = random_scene(5, n=40, width=16, height=12)
+    gaussians = {k: scene[k].float() for k in ("means", "quats", "scales", "opacities", "colors")}
+    gaussians["t_means"], gaussians["t_scales"] = torch.zeros(40), torch.ones(40)
+    cams = Cameras.create(np.repeat(np.linalg.inv(scene["viewmat"].numpy())[None], 3, 0), scene["K"].numpy(), 16, 12)
+    frames = render_sequence(gaussians, cams)
+    next(frames)
+    assert torch.is_grad_enabled()
+    del frames
+    assert torch.is_grad_enabled()

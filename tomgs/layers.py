@@ -182,13 +182,16 @@ def render_layers(gaussians, cameras: Cameras, positions=None, layers=(), *, bac
     prepared = [({k: g[k].to(device) for k in ("means", "quats", "scales", "opacities", "colors", "t_means",
                                                "t_scales")}, cams, cams.viewmats(device), cams.Ks(device))
                 for g, cams in layers]
-    with torch.no_grad():
-        for k, image, meta in base:
-            image = image.to(device)
-            alive = int(meta["n_alive"])
-            for g, cams, viewmats, Ks in prepared:
-                colour, alpha, layer_meta = rasterize(**g, viewmat=viewmats[k], K=Ks[k], width=cams.width,
-                                                      height=cams.height, t=float(cams.times[k]))
-                image = colour + (1.0 - alpha) * image
-                alive += int(layer_meta["n_alive"])
-            yield k, image.clamp(0.0, 1.0).cpu(), dict(meta, n_alive=alive)
+    @torch.no_grad()  # inside a helper: a no_grad block around `yield` would leak into the caller
+    def composite(k: int, image: torch.Tensor, meta: dict):
+        image = image.to(device)
+        alive = int(meta["n_alive"])
+        for g, cams, viewmats, Ks in prepared:
+            colour, alpha, layer_meta = rasterize(**g, viewmat=viewmats[k], K=Ks[k], width=cams.width,
+                                                  height=cams.height, t=float(cams.times[k]))
+            image = colour + (1.0 - alpha) * image
+            alive += int(layer_meta["n_alive"])
+        return k, image.clamp(0.0, 1.0).cpu(), dict(meta, n_alive=alive)
+
+    for k, image, meta in base:
+        yield composite(k, image, meta)

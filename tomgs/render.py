@@ -357,18 +357,22 @@ def render_sequence(gaussians, cameras, indices=None, *, background=None, device
             per_device[dev] = (cameras.viewmats(dev), cameras.Ks(dev), bg)
         return per_device[dev]
 
+    @torch.no_grad()  # inside a helper: a no_grad block around `yield` would leak into the caller
+    def render_chunk(chunk: list) -> list:
+        times = [float(cameras.times[k]) for k in chunk]
+        g, (first, last), dev = static or prepared(gaussians(chunk[0]))
+        keep = (last >= min(times)) & (first <= max(times))
+        alive = g if bool(keep.all()) else {name: value[keep] for name, value in g.items()}
+        viewmats, Ks, bg = frame_inputs(dev)
+        out = []
+        for k, t in zip(chunk, times):
+            image, _, meta = rasterize(**alive, viewmat=viewmats[k], K=Ks[k], width=cameras.width,
+                                       height=cameras.height, t=t, background=bg)
+            image = image.clamp(0.0, 1.0)
+            out.append((k, image.cpu() if to_cpu else image, meta))
+        return out
+
     order = list(range(len(cameras)) if indices is None else indices)
     step = FRAMES_PER_GATHER if static else 1
-    with torch.no_grad():
-        for start in range(0, len(order), step):
-            chunk = order[start:start + step]
-            times = [float(cameras.times[k]) for k in chunk]
-            g, (first, last), dev = static or prepared(gaussians(chunk[0]))
-            keep = (last >= min(times)) & (first <= max(times))
-            alive = g if bool(keep.all()) else {name: value[keep] for name, value in g.items()}
-            viewmats, Ks, bg = frame_inputs(dev)
-            for k, t in zip(chunk, times):
-                image, _, meta = rasterize(**alive, viewmat=viewmats[k], K=Ks[k], width=cameras.width,
-                                           height=cameras.height, t=t, background=bg)
-                image = image.clamp(0.0, 1.0)
-                yield k, image.cpu() if to_cpu else image, meta
+    for start in range(0, len(order), step):
+        yield from render_chunk(order[start:start + step])
