@@ -204,9 +204,15 @@ def rigid_fall(monkeypatch):
         g = np.asarray(config.gravity)
         return rest_vertices[None] - config.drop_height * g / np.linalg.norm(g) + 0.5 * g * t ** 2
 
+    def simulate_with_stats(rest_vertices, tets, config, device="cpu"):
+        vertices = simulate(rest_vertices, tets, config, device)
+        inverted = list(range(config.frames)) if config.edge_compliance > 0.1 else []  # "too soft": inverts
+        return types.SimpleNamespace(vertices=vertices, inverted_frames=inverted,
+                                     min_volume_ratio=-0.5 if inverted else 1.0)
+
     calls = []
     module = types.ModuleType("tomgs.edit.physics")
-    module.SimConfig, module.simulate = SimConfig, simulate
+    module.SimConfig, module.simulate, module.simulate_with_stats = SimConfig, simulate, simulate_with_stats
     monkeypatch.setitem(sys.modules, "tomgs.edit.physics", module)
     return calls
 
@@ -240,3 +246,11 @@ def test_simulate_bad_input_writes_nothing(tmp_path, scene, rigid_fall):
         result = run("simulate", scene, "-o", tmp_path / "s.npz", *args)
         assert result.exit_code == 2 and message in result.output, (args, result.output)
     assert list(tmp_path.iterdir()) == [] and rigid_fall == []
+
+
+def test_simulate_with_inverted_tets_fails_and_writes_nothing(tmp_path, scene, rigid_fall):
+    # a shot whose cage turned a tet inside out would mirror the Gaussians bound to it: exit 2, no files
+    result = run("simulate", scene, "--select", BALL, "--stiffness", "5", "--frames", "4", "-o", tmp_path / "s.npz",
+                 "--render", tmp_path / "shot", "--device", "cpu")
+    assert result.exit_code == 2 and "inside out in 4 frame(s), first frame 0" in result.output, result.output
+    assert list(tmp_path.iterdir()) == [] and len(rigid_fall) == 1

@@ -125,8 +125,17 @@ def make_tets(model, indices, kind: str = "gaussian", cell: float | None = None)
 
 def simulate_selection(model, indices, config, cell: float | None = None, device: str = "cpu"):
     """(cage Tets, vertices float64 [F,V,3] world axes): a cage over the Gaussians `indices` of
-    `model`, moved by `tomgs.edit.physics.simulate` with `config` (a SimConfig) on `device`."""
-    from tomgs.edit.physics import simulate
+    `model`, moved by `tomgs.edit.physics.simulate_with_stats` with `config` (a SimConfig) on `device`.
+    Raises InputError when a cage tet turned inside out in some frame: the Gaussians bound to it would
+    be mirrored, so the shot would be broken rather than merely soft."""
+    from tomgs.edit.physics import simulate_with_stats
+    from tomgs.io import InputError
 
     cage = make_tets(model, indices, "cage", cell)
-    return cage, simulate(cage.vertices, cage.tets, config, device=device)
+    result = simulate_with_stats(cage.vertices, cage.tets, config, device=device)
+    if result.inverted_frames:
+        frames = result.inverted_frames
+        raise InputError(f"the simulation turned cage tets inside out in {len(frames)} frame(s), first frame "
+                         f"{frames[0]} (smallest volume ratio {result.min_volume_ratio:.3g}): use a larger --cell, "
+                         "a larger --stiffness or a smaller --drop/--spin/--velocity")
+    return cage, result.vertices

@@ -196,6 +196,8 @@ class _Solver:
         self.v = wp.array(velocity.astype(f32), dtype=wp.vec3)
         self.x_prev = wp.zeros(n, dtype=wp.vec3)
         self.contact = wp.zeros(n, dtype=int)
+        self.pushed = wp.zeros(n, dtype=float)
+        self.lift = wp.zeros(n, dtype=wp.vec2)
         w = wp.array(inv_mass.astype(f32), dtype=float)
         self.lams = [wp.zeros(len(edges), dtype=float), wp.zeros(len(tets), dtype=float)]
         edge_alpha = wp.array((config.edge_compliance / (edge_volume * h * h)).astype(f32), dtype=float)
@@ -206,9 +208,12 @@ class _Solver:
             return wp.launch(kernel, dim=dim, inputs=list(args), record_cmd=True)
 
         up32 = wp.vec3(*up.astype(f32))
-        self.predict = record(xpbd.predict, n, self.x, self.v, self.x_prev, self.contact,
-                              wp.vec3(*gravity.astype(f32)), h, math.exp(-config.damping * h))
+        self.predict = record(xpbd.predict, n, self.x, self.v, self.x_prev, self.contact, self.pushed,
+                              self.lift, wp.vec3(*gravity.astype(f32)), h, math.exp(-config.damping * h))
         self.solve = []
+        if config.floor:  # first the floor, so that the constraints know which vertices it holds
+            self.solve.append(record(xpbd.touch_ground, n, self.x, self.contact, self.pushed,
+                                     wp.vec3(*floor_point.astype(f32)), up32))
         for colours, kernel, items, rest_measure, alpha, lam, compliance in (
                 (edge_colour, xpbd.solve_edges, self.edges, self.rest_length, edge_alpha, self.lams[0],
                  config.edge_compliance),
@@ -219,10 +224,11 @@ class _Solver:
             offsets = np.concatenate([[0], np.cumsum(np.bincount(colours))])
             for first, end in zip(offsets[:-1], offsets[1:]):
                 self.solve.append(record(kernel, int(end - first), self.x, w, items, rest_measure, alpha, lam,
-                                         self.x_prev, gamma, int(first)))
+                                         self.x_prev, self.contact, self.lift, up32, gamma,
+                                         int(first)))
         if config.floor:
-            self.solve.append(record(xpbd.collide_ground, n, self.x, self.x_prev, self.contact,
-                                     wp.vec3(*floor_point.astype(f32)), up32, float(config.friction)))
+            self.solve.append(record(xpbd.collide_ground, n, self.x, self.x_prev, self.contact, self.pushed,
+                                     self.lift, wp.vec3(*floor_point.astype(f32)), up32, float(config.friction)))
         rest_speed = 2.0 * float(np.linalg.norm(gravity)) * h  # Mueller et al. 2020: slower contacts do not bounce
         self.update = record(xpbd.update_velocity, n, self.x, self.x_prev, self.v, self.contact, up32, 1.0 / h,
                              float(config.restitution), rest_speed)
