@@ -1,7 +1,11 @@
 """Foreground and background layers from masks, and rendering layers together.
 
     background  the clip's scene fitted on the pixels outside the masks (dilated a little), with the
-                clip's cameras: the masked object never enters it (Trainer `weights`).
+                clip's cameras: the masked object never enters it (Trainer `weights`). It fills the
+                object's place: half its initial Gaussians start alive over the whole clip
+                (Trainer `wide_fraction`), so what other frames saw behind the object stays alive
+                where the object covers it, and its alpha is pulled to 1 everywhere
+                (`alpha_targets`), so a spot never seen is filled from its surroundings.
     foreground  the masked object alone, MiraGe-style: flat Gaussians pinned to the plane z = 0
                 (`tomgs.model.PlanarGaussianModel`) seen by two fixed cameras, A at z = -d looking
                 along +z and B at z = +d looking back, B seeing the horizontally mirrored frame. No
@@ -29,6 +33,11 @@ from tomgs.cameras import Cameras
 from tomgs.io import InputError
 
 PLANE_DISTANCE = 1.0  # d: the cameras' distance from the foreground plane (scene units)
+# the share of the background's initial Gaussians that start alive over the whole clip (the rest
+# around their own frame, for moving content): without them nothing is alive behind the object in
+# the frames where it covers a spot, since no supervised pixel there asks for it, and the layer
+# shows a hole; with them, the spot is filled from the frames that saw it
+BACKGROUND_WIDE_FRACTION = 0.5
 
 
 @dataclass
@@ -78,7 +87,9 @@ def background_inputs(clip, dilation: int = 2, masks_path=None) -> LayerInputs:
                          f"frame: the background layer needs pixels outside the mask in every frame; drop the frame "
                          f"with --frames or use a smaller --mask-dilation")
     weights = (~covered).astype(np.float32)
-    return LayerInputs(clip.frames, None, dict(weights=weights), notes=[
+    hooks = dict(weights=weights, wide_fraction=BACKGROUND_WIDE_FRACTION,
+                 alpha_targets=np.ones(weights.shape, np.float32))
+    return LayerInputs(clip.frames, None, hooks, notes=[
         f"background layer: loss on the {100 * weights.mean():.1f}% of pixels outside the masks "
         f"(dilated by {dilation} px); PSNR measured there"])
 

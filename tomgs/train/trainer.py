@@ -1,8 +1,10 @@
 """The TOM-GS trainer: sample a frame, render it at its time, 0.8 L1 + 0.2 D-SSIM, Adam, densify.
 
-Layers (tomgs.layers) use three hooks and nothing else: per-pixel loss `weights` (the background
-layer ignores the masked object), `alpha_targets` (the foreground layer is transparent outside its
-mask) and an `initial` model (the foreground's Gaussians pinned to a plane).
+Layers (tomgs.layers) use four hooks and nothing else: per-pixel loss `weights` (the background
+layer ignores the masked object), `wide_fraction` (some of the background's Gaussians start alive
+over the whole clip, so they fill the object's place in the frames where it covers them),
+`alpha_targets` (the foreground layer is transparent outside its mask) and an `initial` model (the
+foreground's Gaussians pinned to a plane).
 
 Error against run time is part of the output: every `log_interval` iterations a CSV row
 (iteration, wall seconds, training PSNR, full-clip PSNR when measured, Gaussians, memory), and at
@@ -53,11 +55,15 @@ class Trainer:
     and the initial Gaussians are drawn from pixels of weight > 0). alpha_targets: None, or float
     [T,H,W] in [0,1]: adds L1 between the rendered alpha and it. initial: None, or (model, extent)
     to train instead of the trainer's own initialisation (extent: the scene size for learning rates
-    and densification)."""
+    and densification). wide_fraction: the fraction of each frame's initial Gaussians that start
+    alive over the whole clip (temporal sigma 1.0, like the tracked points) instead of around their
+    frame (`config.init_t_scale_frames`); the optimiser narrows the windows where the supervised
+    pixels change."""
 
     def __init__(self, frames: np.ndarray, cameras: Cameras, points: np.ndarray, colors: np.ndarray,
                  config: TrainConfig, device: torch.device, *, weights: np.ndarray | None = None,
-                 alpha_targets: np.ndarray | None = None, initial: tuple[GaussianModel, float] | None = None):
+                 alpha_targets: np.ndarray | None = None, initial: tuple[GaussianModel, float] | None = None,
+                 wide_fraction: float = 0.0):
         self.config = config
         self.device = device
         self.cameras = cameras
@@ -69,6 +75,7 @@ class Trainer:
         self.K = torch.as_tensor(cameras.K, dtype=torch.float32, device=device)
         self.times = [float(t) for t in cameras.times]
         self.notes: list[str] = []
+        self.wide_fraction = float(wide_fraction)
         if initial is None:
             self.model, self.extent = self._initial_model(np.asarray(points, dtype=np.float64).reshape(-1, 3),
                                                           np.asarray(colors, dtype=np.float32).reshape(-1, 3))
@@ -86,7 +93,8 @@ class Trainer:
 
     def _initial_model(self, points: np.ndarray, colors: np.ndarray) -> tuple[GaussianModel, float]:
         """Tracked points (static, alive over the whole clip) plus points unprojected from every
-        frame at the scene depth, each alive around its frame's time."""
+        frame at the scene depth, each alive around its frame's time (`wide_fraction` of them over
+        the whole clip)."""
         c = self.config
         g = torch.Generator().manual_seed(c.seed)
         w2c = self.cameras.viewmats()
@@ -104,7 +112,9 @@ class Trainer:
             cols.append(pix.float().cpu().numpy() / 255.0)
             ts.append(np.full(len(u), self.times[k]))
         frame_sigma = c.init_t_scale_frames / max(self.num_frames - 1, 1)
-        t_sigma = np.concatenate([np.full(len(points), 1.0), np.full(sum(map(len, ts)), frame_sigma)])
+        wide = int(round(self.wide_fraction * per_frame))  # the first `wide` of each frame's points (random)
+        t_sigma = np.concatenate([np.full(len(points), 1.0),
+                                  *(np.where(np.arange(len(t)) < wide, 1.0, frame_sigma) for t in ts)])
         # sizes: tracked points from their neighbours (few), per-frame points from one sample's
         # share of the image (many: a neighbour search over them would be quadratic)
         pixel_size = max(float(np.median(depth)) / float(fx) * math.sqrt(self.width * self.height / per_frame), 1e-6)
@@ -113,7 +123,8 @@ class Trainer:
             sizes[:len(points)] = nearest_neighbour_distance(torch.as_tensor(points, dtype=torch.float32)).numpy()
         all_points = np.concatenate([points, *xs]) if len(points) else np.concatenate(xs)
         all_colors = np.concatenate([colors, *cols]) if len(points) else np.concatenate(cols)
-        t_means = np.concatenate([np.full(len(points), 0.5), *ts])
+        t_means = np.concatenate([np.full(len(points), 0.5),
+                                  *(np.where(np.arange(len(t)) < wide, 0.5, t) for t in ts)])
         model = GaussianModel.from_points(torch.as_tensor(all_points, dtype=torch.float32),
                                           torch.as_tensor(all_colors, dtype=torch.float32),
                                           torch.as_tensor(t_means, dtype=torch.float32), 1.0, max_sh_degree=c.sh_degree,
