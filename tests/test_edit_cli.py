@@ -254,3 +254,80 @@ def test_simulate_with_inverted_tets_fails_and_writes_nothing(tmp_path, scene, r
                  "--render", tmp_path / "shot", "--device", "cpu")
     assert result.exit_code == 2 and "inside out in 4 frame(s), first frame 0" in result.output, result.output
     assert list(tmp_path.iterdir()) == [] and len(rigid_fall) == 1
+
+
+@pytest.fixture(scope="module")
+def layered(tmp_path_factory):
+    """The ball alone (front.ply) and the wall alone (back.ply), the same cameras; back4.ply: the
+    wall at 4 of the 5 frames, back_small.ply: at half size."""
+    from tomgs.model import GaussianModel
+
+    model, cams, ball = object_scene()
+    folder = tmp_path_factory.mktemp("layered")
+    params = model.parameters_by_name()
+    paths = {}
+    for name, rows, cameras in (("front", ball, cams), ("back", np.arange(ball[0]), cams),
+                                ("back4", np.arange(ball[0]), cams[:4]),
+                                ("back_small", np.arange(ball[0]), cams.resized(16, 12))):
+        part = GaussianModel(**{k: v.detach()[torch.as_tensor(rows)].clone() for k, v in params.items()})
+        paths[name] = folder / f"{name}.ply"
+        save_scene(paths[name], part, cameras, {"fps": 10.0})
+    return paths
+
+
+def _check_over(shot, over, back):
+    """`over`: the shot rendered --over the back scene; `shot`: alone (over black); `back`: the back
+    scene alone. Where the shot is transparent the composite is the back scene; where it is opaque,
+    not."""
+    assert len(over) == len(shot) == len(back)
+    clear = [s.max(-1) == 0 for s in shot]
+    solid = [s[..., 0] > 150 for s in shot]
+    assert sum(int(m.sum()) for m in clear) > 100 and sum(int(m.sum()) for m in solid) > 20
+    for o, b, c, s in zip(over, back, clear, solid):
+        assert np.abs(o.astype(int) - b)[c].max() <= 1
+        if s.any():
+            assert np.abs(o.astype(int) - b)[s].max(-1).mean() > 40
+
+
+def test_over_composites_shots_over_a_background(tmp_path, layered, rigid_fall):
+    front, back = layered["front"], layered["back"]
+    assert run("render", back, "-o", tmp_path / "back", "--device", "cpu").exit_code == 0
+    background = pngs(tmp_path / "back")
+    for rendered in ("shot", "over"):
+        extra = ["--over", back] if rendered == "over" else []
+        result = run("simulate", front, "--select", BALL, "--drop", "0.3", "-o", tmp_path / f"{rendered}.npz",
+                     "--render", tmp_path / f"sim_{rendered}", "--device", "cpu", *extra)
+        assert result.exit_code == 0, result.output
+    _check_over(pngs(tmp_path / "sim_shot"), pngs(tmp_path / "sim_over"), background)
+
+    result = run("tets", "import", front, tmp_path / "shot.cage.ply", tmp_path / "shot.npz", "-o",
+                 tmp_path / "imported", "--over", back, "--device", "cpu")
+    assert result.exit_code == 0, result.output
+    for a, b in zip(pngs(tmp_path / "imported"), pngs(tmp_path / "sim_over"), strict=True):
+        assert np.abs(a.astype(int) - b).max() <= 1  # the replay, composited the same way
+
+    for rendered in ("shot", "over"):
+        extra = ["--over", back] if rendered == "over" else []
+        result = run("edit", front, "-o", tmp_path / f"e_{rendered}.ply", "--select", BALL, "--translate",
+                     "0.3,0,0", "--render", tmp_path / f"edit_{rendered}", "--device", "cpu", *extra)
+        assert result.exit_code == 0, result.output
+    _check_over(pngs(tmp_path / "edit_shot"), pngs(tmp_path / "edit_over"), background)
+
+
+@pytest.mark.parametrize("back, message", [("back4", "has 5 frames (numbered 0..4) but the base scene has 4"),
+                                           ("back_small", "is 32x24 but the base scene is 16x12")])
+def test_over_mismatch_exits_2_and_writes_nothing(tmp_path, layered, rigid_fall, back, message):
+    front, over = layered["front"], layered[back]
+    out = tmp_path / "out"
+    out.mkdir()
+    tets = tmp_path / "cage.ply"
+    assert run("tets", "export", front, "-o", tets, "--select", BALL, "--cage").exit_code == 0
+    save_sequence(tmp_path / "seq.npz", np.stack([load_tets(tets).vertices] * 5))
+    for args in (["simulate", front, "--select", BALL, "-o", out / "s.npz", "--render", out / "s"],
+                 ["tets", "import", front, tets, tmp_path / "seq.npz", "-o", out / "t.mp4"],
+                 ["edit", front, "-o", out / "e.ply", "--select", BALL, "--scale", "2", "--render", out / "e"]):
+        result = run(*args, "--over", over, "--device", "cpu")
+        assert result.exit_code == 2, (args, result.output)
+        assert message in result.output and str(over) in result.output, result.output
+        assert list(out.iterdir()) == [], args
+    assert rigid_fall == []

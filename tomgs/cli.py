@@ -231,8 +231,8 @@ def demo(output, num_frames, size, device):
 def _render_to(output, gaussians, cams, positions, background, device, fps: float, what: str, layers=()) -> None:
     """Render frames `positions` of `cams` to `output` (video or PNG folder) with a progress bar,
     `layers` ((gaussians, cameras) pairs) composited over them, then report the frame rate and how
-    many Gaussians each frame skipped as dead. `gaussians`: the rasterizer's inputs, or a callable
-    frame -> inputs (`tomgs.render.render_sequence`)."""
+    many Gaussians each frame skipped as dead. `gaussians` and each layer's: the rasterizer's inputs,
+    or a callable frame -> inputs (`tomgs.render.render_sequence`)."""
     import time
 
     import numpy as np
@@ -241,16 +241,24 @@ def _render_to(output, gaussians, cams, positions, background, device, fps: floa
     from tomgs.layers import render_layers
 
     positions = list(positions)
-    alive, totals = [], []
+    alive, fixed, varying = [], [], []  # Gaussians: in the fixed clouds; per frame in each per-frame one
     start = time.perf_counter()
-    if callable(gaussians):  # a per-frame cloud: count each frame's Gaussians as it is made
-        def source(k):
-            cloud = gaussians(k)
-            totals.append(int(cloud["means"].shape[0]))
+
+    def counted(cloud):
+        if not callable(cloud):
+            fixed.append(int(cloud["means"].shape[0]))
             return cloud
-    else:
-        source = gaussians
-        totals.append(int(gaussians["means"].shape[0]))
+        sizes = []  # a per-frame cloud: count each frame's Gaussians as it is made
+        varying.append(sizes)
+
+        def source(k):
+            made = cloud(k)
+            sizes.append(int(made["means"].shape[0]))
+            return made
+        return source
+
+    source = counted(gaussians)
+    layers = [(counted(g), layer_cams) for g, layer_cams in layers]
 
     def images():
         sequence = render_layers(source, cams, positions, layers, background=background, device=device)
@@ -261,8 +269,8 @@ def _render_to(output, gaussians, cams, positions, background, device, fps: floa
 
     count = write_frames(images(), output, fps=fps)
     seconds = time.perf_counter() - start
-    in_layers = sum(int(g["means"].shape[0]) for g, _ in layers)
-    low, high = min(totals) + in_layers, max(totals) + in_layers
+    low = sum(fixed) + sum(min(sizes) for sizes in varying)
+    high = sum(fixed) + sum(max(sizes) for sizes in varying)
     total = f"{low:,}" if low == high else f"{low:,}..{high:,}"
     click.echo(f"{output}: {count} frames {what} on {device} in {seconds:.1f} s ({count / seconds:.1f} fps)")
     click.echo(f"  {total} Gaussians; alive per frame {min(alive):,}..{max(alive):,}: only those alive near "
@@ -380,35 +388,51 @@ def _render_options(f):
     return f
 
 
-def _render_plan(output, cams, frames, device, background, only=None):
+_OVER_HELP = ("a scene to render behind (e.g. a background from `fit --layer background`), with its own cameras "
+              "at the same frames; the rendered scene is composited over it as `render --layer` does")
+
+
+def _render_plan(output, cams, frames, device, background, only=None, over=None, name="the scene"):
     """Everything a render needs, checked before any work or writing: (positions, background RGB or
-    None, torch device). `only`: camera positions that have something to render (a sequence's)."""
+    None, torch device, the --over scene or None). `only`: camera positions that have something to
+    render (a sequence's). `over`: the path of a scene to render behind, checked against `cams` (the
+    scene called `name`) like a `render --layer` layer."""
     import numpy as np
 
     from tomgs.io import InputError
-    from tomgs.io.scene import select_frames
+    from tomgs.io.scene import load_scene, select_frames
     from tomgs.io.writer import check_output
+    from tomgs.layers import check_layers
     from tomgs.render import resolve_device
 
     check_output(output)
     rgb = _parse_background(background)
+    behind = None
+    if over is not None:
+        behind = load_scene(over)
+        check_layers(behind.cameras, [cams], [f"{name} (in front of --over {over})"])
     positions = select_frames(cams, frames)
     if only is not None:
         positions = np.array([k for k in positions.tolist() if k in only], dtype=np.int64)
         if len(positions) == 0:
             raise InputError(f"the sequence covers none of the frames {frames!r}: pick frames it covers")
-    return positions, rgb, resolve_device(device)
+    return positions, rgb, resolve_device(device), behind
 
 
 def _render_scene(output, scene, gaussians, plan, fps, layers=()) -> None:
     """Render `gaussians` (inputs or a per-frame callable) of `scene`, with `layers` composited over
-    them, as `plan` (`_render_plan`) says."""
+    them, as `plan` (`_render_plan`) says; with the plan's --over scene, that scene is the base and
+    `gaussians` are composited over it (then `layers`)."""
     from tomgs.io.scene import render_defaults
 
-    positions, rgb, device = plan
+    positions, rgb, device, behind = plan
     cams = scene.cameras
     numbers = cams.frame_indices[positions]
     default_rgb, default_fps = render_defaults(scene.info)
+    if behind is not None:
+        layers = [(gaussians, cams), *layers]
+        gaussians, cams = behind.model.render_inputs(), behind.cameras
+        default_rgb = render_defaults(behind.info)[0]
     _render_to(output, gaussians, cams, positions.tolist(), background=rgb or default_rgb, device=device,
                fps=fps or default_fps, what=f"({numbers[0]}..{numbers[-1]}) at {cams.width}x{cams.height}",
                layers=layers)
@@ -435,8 +459,9 @@ def _is_scene_path(path: str) -> bool:
               help="JSON of keyframed transforms over time (README \"Editing\"); -o is then a video or folder")
 @click.option("--render", "render_out", type=click.Path(path_type=str), default=None,
               help="also render the edited scene here (" + _OUTPUT_HELP + ")")
+@click.option("--over", type=click.Path(path_type=str), default=None, help="when rendering: " + _OVER_HELP)
 @_render_options
-def edit(scene, output, selectors, translate, rotate, scale, centre, duplicate, remove, keyframes, render_out,
+def edit(scene, output, selectors, translate, rotate, scale, centre, duplicate, remove, keyframes, render_out, over,
          frames, device, background, fps):
     """Edit the Gaussians of SCENE that --select picks: move, rotate, scale, duplicate or remove
     them, or move them over time with --keyframes. Edits move each Gaussian's tetrahedron and
@@ -448,6 +473,7 @@ def edit(scene, output, selectors, translate, rotate, scale, centre, duplicate, 
       tomgs edit scene.ply -o two.ply --select sphere:0,0,3,0.5 --duplicate 1,0,0 --render two.mp4
       tomgs edit scene.ply -o clean.ply --select mask:camel_masks/ --remove
       tomgs edit scene.ply -o spin.mp4 --select sphere:0,0,3,0.5 --keyframes spin.json
+      tomgs edit fg.ply -o big.ply --scale 1.3 --render big.mp4 --over bg.ply
     """
     from tomgs.edit.transforms import edit_scene, keyframed_clouds, load_keyframes
     from tomgs.io import InputError
@@ -470,10 +496,12 @@ def edit(scene, output, selectors, translate, rotate, scale, centre, duplicate, 
                                              "use a .ply to write the edited scene, or --keyframes to render"))
     if render_out and not _is_scene_path(output):
         raise UsageError("--render goes with a .ply output; -o already renders")
+    if over and not (render_out or keyframes):
+        raise UsageError("--over is what the render goes over: give --render (or --keyframes with a video -o)")
     try:
         loaded = load_scene(scene)
         video = output if keyframes else render_out
-        plan = _render_plan(video, loaded.cameras, frames, device, background) if video else None
+        plan = _render_plan(video, loaded.cameras, frames, device, background, over=over, name=scene) if video else None
         keys = load_keyframes(keyframes, loaded.cameras) if keyframes else None
         edited, rows = edit_scene(loaded, selectors, remove=remove, **move)
         if keys is not None:
@@ -539,8 +567,9 @@ def tets_export(scene, output, selectors, cage, cell):
 @click.argument("sequence", type=click.Path(path_type=str))
 @click.option("-o", "--output", required=True, type=click.Path(path_type=str),
               help=_OUTPUT_HELP + "; or a .ply scene when SEQUENCE has one frame")
+@click.option("--over", type=click.Path(path_type=str), default=None, help="when rendering: " + _OVER_HELP)
 @_render_options
-def tets_import(scene, tets_file, sequence, output, frames, device, background, fps):
+def tets_import(scene, tets_file, sequence, output, over, frames, device, background, fps):
     """Carry the Gaussians of SCENE bound in TETS (from `tomgs tets export`) along the moved
     vertices of SEQUENCE (an .npz with vertices [F,V,3], a folder of PLY frames, or one PLY) and
     render the result, frame f of the sequence with the scene's frame f (or the .npz's 'frames').
@@ -550,6 +579,7 @@ def tets_import(scene, tets_file, sequence, output, frames, device, background, 
       tomgs tets import scene.ply cage.ply sim.npz -o shot.mp4
       tomgs tets import scene.ply tets.ply blender_frames/ -o shot/ --frames 0:40
       tomgs tets import scene.ply tets.ply moved.ply -o edited.ply
+      tomgs tets import fg.ply cage.ply sim.npz -o shot.mp4 --over bg.ply
     """
     from tomgs.edit.transforms import check_bound, deformed_model, sequence_clouds, sequence_rows
     from tomgs.io import InputError
@@ -563,6 +593,9 @@ def tets_import(scene, tets_file, sequence, output, frames, device, background, 
         check_bound(loaded.model, mesh, tets_file)
         vertices, numbers = load_sequence(sequence, mesh)
         if _is_scene_path(output):
+            if over is not None:
+                raise InputError(f"--over is what a render goes over, but -o {output} writes a scene: render "
+                                 f"to a video or folder, or leave --over out")
             if len(vertices) != 1:
                 raise InputError(f"-o {output}: a scene holds one pose but {sequence} has {len(vertices)} frames: "
                                  f"render it to a video or folder instead")
@@ -572,7 +605,7 @@ def tets_import(scene, tets_file, sequence, output, frames, device, background, 
             click.echo(f"{output}: {len(mesh.gaussians):,} Gaussians moved by {sequence}")
             return
         rows = sequence_rows(loaded.cameras, len(vertices), numbers)
-        plan = _render_plan(output, loaded.cameras, frames, device, background, only=rows)
+        plan = _render_plan(output, loaded.cameras, frames, device, background, only=rows, over=over, name=scene)
         _render_scene(output, loaded, sequence_clouds(loaded.model, mesh, vertices, rows), plan, fps)
     except (InputError, RenderError) as e:
         raise UsageError(str(e)) from None
@@ -585,6 +618,7 @@ def tets_import(scene, tets_file, sequence, output, frames, device, background, 
 @click.option("--select", "selectors", multiple=True, help=_SELECT_HELP)
 @click.option("--render", "render_out", type=click.Path(path_type=str), default=None,
               help="also render the shot here (" + _OUTPUT_HELP + ")")
+@click.option("--over", type=click.Path(path_type=str), default=None, help="for --render: " + _OVER_HELP)
 @click.option("--drop", type=float, default=0.0, show_default=True,
               help="start raised this far against gravity (scene units)")
 @click.option("--spin", default=None, help="initial spin wx,wy,wz in rad/s about the centre of mass (world axes)")
@@ -602,7 +636,7 @@ def tets_import(scene, tets_file, sequence, output, frames, device, background, 
 @click.option("--background", default=None, help="r,g,b in [0, 1] for --render; default: the scene's, else black")
 @click.option("--fps", type=click.FloatRange(min=0.1), default=None,
               help="frames per second of the shot and the video; default: the scene's, else 25")
-def simulate(scene, output, selectors, render_out, drop, spin, velocity, size, stiffness, damping, num_frames, cell,
+def simulate(scene, output, selectors, render_out, over, drop, spin, velocity, size, stiffness, damping, num_frames, cell,
              device, background, fps):
     """Drop, throw or spin the Gaussians of SCENE that --select picks as a soft body: a tet cage is
     built over them and simulated (XPBD, floor under the lowest point); frame f of the shot
@@ -613,6 +647,7 @@ def simulate(scene, output, selectors, render_out, drop, spin, velocity, size, s
       tomgs simulate scene.ply --select sphere:0,0,3,0.5 --drop 0.5 -o fall.npz --render fall.mp4
       tomgs simulate scene.ply --select mask:camel_masks/ --spin 0,3,0 --velocity 0,-2,0 -o toss.npz
       tomgs tets import scene.ply toss.cage.ply toss.npz -o toss.mp4
+      tomgs simulate fg.ply --drop 0.25 -o drop.npz --render drop.mp4 --over bg.ply
     """
     from tomgs.edit.cage import simulate_selection
     from tomgs.edit.physics import SimConfig
@@ -626,6 +661,8 @@ def simulate(scene, output, selectors, render_out, drop, spin, velocity, size, s
     spin, velocity = _floats(spin, "--spin"), _floats(velocity, "--velocity")
     if not output.lower().endswith(".npz"):
         raise UsageError(f"-o {output}: the shot is a vertex sequence, an .npz")
+    if over and not render_out:
+        raise UsageError("--over is what the render goes over: give --render too")
     cage_path = output[:-4] + ".cage.ply"
     try:
         dev = resolve_device(device)
@@ -635,7 +672,8 @@ def simulate(scene, output, selectors, render_out, drop, spin, velocity, size, s
         if frames > len(cams):
             raise InputError(f"--frames {frames}: the scene has {len(cams)} frames, and frame f of the shot is "
                              f"rendered with the scene's frame f; simulate at most {len(cams)}")
-        plan = _render_plan(render_out, cams[:frames], None, device, background) if render_out else None
+        plan = _render_plan(render_out, cams, None, device, background, only=set(range(frames)), over=over,
+                            name=scene) if render_out else None
         indices = select(loaded.model, cams, selectors)
         means = loaded.model.means.detach().cpu().double().numpy()[indices]
         extent = max(float((means.max(0) - means.min(0)).max()), 1e-9)

@@ -178,10 +178,11 @@ def check_layers(base: Cameras, layers, names=None) -> None:
 def render_layers(gaussians, cameras: Cameras, positions=None, layers=(), *, background=None, device=None):
     """Yield (k, image [H,W,3] float32 in [0,1] on the CPU, meta) for frames `positions` of the base
     (`gaussians`, `cameras`, as `tomgs.render.render_sequence` takes them) with `layers`, a sequence
-    of (gaussians, cameras) composited over it in order (the last in front): frame k of a layer is
-    rendered with its own camera k at its time k, colour premultiplied by alpha, then
-    image = colour + (1 - alpha) * image. Without layers, exactly `render_sequence`. meta: the base
-    frame's, with `n_alive` summed over the layers."""
+    of (gaussians, cameras) composited over it in order (the last in front); a layer's gaussians are
+    the rasterizer's inputs or, like the base's, a callable k -> inputs (a per-frame cloud: an edit
+    over time, a simulated shot). Frame k of a layer is rendered with its own camera k at its time
+    k, colour premultiplied by alpha, then image = colour + (1 - alpha) * image. Without layers,
+    exactly `render_sequence`. meta: the base frame's, with `n_alive` summed over the layers."""
     from tomgs.render import rasterize, render_sequence
 
     check_layers(cameras, [cams for _, cams in layers])
@@ -189,15 +190,20 @@ def render_layers(gaussians, cameras: Cameras, positions=None, layers=(), *, bac
     if not layers:
         yield from base
         return
-    device = torch.device(device) if device is not None else gaussians["means"].device
-    prepared = [({k: g[k].to(device) for k in ("means", "quats", "scales", "opacities", "colors", "t_means",
-                                               "t_scales")}, cams, cams.viewmats(device), cams.Ks(device))
-                for g, cams in layers]
+    names = ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales")
+    where = torch.device(device) if device is not None else None if callable(gaussians) else gaussians["means"].device
+    views = {}  # (layer, device) -> (viewmats, Ks)
+
     @torch.no_grad()  # inside a helper: a no_grad block around `yield` would leak into the caller
     def composite(k: int, image: torch.Tensor, meta: dict):
-        image = image.to(device)
+        dev = where or image.device
+        image = image.to(dev)
         alive = int(meta["n_alive"])
-        for g, cams, viewmats, Ks in prepared:
+        for i, (g, cams) in enumerate(layers):
+            g = {name: value.detach().to(dev) for name, value in (g(k) if callable(g) else g).items() if name in names}
+            if (i, dev) not in views:
+                views[i, dev] = cams.viewmats(dev), cams.Ks(dev)
+            viewmats, Ks = views[i, dev]
             colour, alpha, layer_meta = rasterize(**g, viewmat=viewmats[k], K=Ks[k], width=cams.width,
                                                   height=cams.height, t=float(cams.times[k]))
             image = colour + (1.0 - alpha) * image
