@@ -42,6 +42,18 @@ def test_fit_then_eval_then_render(clip, tmp_path):
     assert run("render", scene, "--frames", "0:5", "-o", tmp_path / "out", "--device", "cpu").exit_code == 0
 
 
+def test_fit_on_every_kth_frame_records_their_rate(clip, tmp_path):
+    """The demo clip plays at 24 fps; every second frame of it, at 12, so its video plays in real time."""
+    from tomgs.io.scene import load_scene
+
+    scene = tmp_path / "scene.ply"
+    result = run("fit", clip, "-o", scene, "--frames", "0:5:2", "--preset", "quick", "--iterations", "5",
+                 "--device", "cpu", "--poses", "identity")
+    assert result.exit_code == 0, result.output
+    loaded = load_scene(scene)
+    assert loaded.cameras.frame_indices.tolist() == [0, 2, 4] and loaded.info["fps"] == pytest.approx(12.0)
+
+
 @pytest.mark.parametrize("setup, args, message", [
     ("corrupt", ["{video}", "-o", "{tmp}/s.ply"], "cannot open video"),
     ("clip", ["{clip}", "-o", "{tmp}/s.ply", "--device", "tpu"], "device"),

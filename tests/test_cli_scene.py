@@ -74,7 +74,7 @@ def test_render_png_frames_match_the_renderer(tmp_path, scene):
     assert result.exit_code == 0, result.output
     assert "3 frames (22..24)" in result.output and "fps)" in result.output
     names = sorted(p.name for p in out.iterdir())
-    assert names == ["00000.png", "00001.png", "00002.png"]
+    assert names == ["00022.png", "00023.png", "00024.png"]  # the scene's frame numbers
     loaded = load_scene(scene)
     expected = [(img.numpy() * 255 + 0.5).astype(np.uint8)
                 for _, img, _ in render_sequence(loaded.model.render_inputs(), loaded.cameras, [2, 3, 4],
@@ -84,6 +84,15 @@ def test_render_png_frames_match_the_renderer(tmp_path, scene):
         np.testing.assert_array_equal(got, want)
     first, last = (cv2.imread(str(out / n)).astype(float) for n in (names[0], names[-1]))
     assert abs(first - last).mean() > 2.0  # the Gaussians' windows differ over time
+
+
+def test_render_a_stepped_range_past_the_end(tmp_path, scene):
+    """A stop past the last frame is clamped like a Python slice; PNGs are named by frame number."""
+    out = tmp_path / "frames"
+    result = run("render", scene, "--frames", "20:90:2", "-o", out, "--device", "cpu")
+    assert result.exit_code == 0, result.output
+    assert "3 frames (20..24)" in result.output
+    assert sorted(p.name for p in out.iterdir()) == ["00020.png", "00022.png", "00024.png"]
 
 
 def test_info_text_json_and_plot(tmp_path, scene):
@@ -126,7 +135,8 @@ def _missing_property(tmp_path, scene):
     ("missing", ["render", "{inputs}/nope.ply", "-o", "{out}/x.mp4"], "does not exist"),
     ("not ply", ["render", "{inputs}/text.ply", "-o", "{out}/x.mp4"], "not a PLY file"),
     ("property", ["render", "{noscale}", "-o", "{out}/x.mp4"], "lacks properties scale_1"),
-    ("past end", ["render", "{scene}", "--frames", "20:40", "-o", "{out}/x.mp4"], "outside the scene's frames"),
+    ("past end", ["render", "{scene}", "--frames", "26:40", "-o", "{out}/x.mp4"], "outside the scene's frames"),
+    ("empty", ["render", "{scene}", "--frames", "24:22", "-o", "{out}/x.mp4"], "holds none of the scene's frames"),
     ("before", ["render", "{scene}", "--frames", "0:22", "-o", "{out}/frames"], "outside the scene's frames"),
     ("malformed", ["render", "{scene}", "--frames", "a:b", "-o", "{out}/x.mp4"], "bad frame range"),
     ("device", ["render", "{scene}", "--device", "tpu", "-o", "{out}/x.mp4"], "device"),

@@ -247,7 +247,9 @@ def test_select_frames_uses_the_scene_numbering():
     assert select_frames(cams, "14").tolist() == [2]
     assert select_frames(cams, "-1").tolist() == [4]
     assert select_frames(cams, "12:").tolist() == [1, 2, 3, 4]
-    for spec in ("0:5", "12:40", "19", "13", "x:y", "::0", "-30:"):
+    assert select_frames(cams, "12:40").tolist() == [1, 2, 3, 4]  # a stop past the end is clamped, as slicing does
+    assert select_frames(cams, "10:90:4").tolist() == [0, 2, 4]  # 10, 14, 18
+    for spec in ("0:5", "19", "19:40", "13", "13:40:2", "x:y", "::0", "-30:"):
         with pytest.raises(InputError):
             select_frames(cams, spec)
 

@@ -228,8 +228,10 @@ def demo(output, num_frames, size, device):
         raise UsageError(str(e)) from None
 
 
-def _render_to(output, gaussians, cams, positions, background, device, fps: float, what: str, layers=()) -> None:
-    """Render frames `positions` of `cams` to `output` (video or PNG folder) with a progress bar,
+def _render_to(output, gaussians, cams, positions, background, device, fps: float, what: str, layers=(),
+               numbers=None) -> None:
+    """Render frames `positions` of `cams` to `output` (video or PNG folder, its PNGs named by
+    `numbers`, the frames' numbers: default the positions) with a progress bar,
     `layers` ((gaussians, cameras) pairs) composited over them, then report the frame rate and how
     many Gaussians each frame skipped as dead. `gaussians` and each layer's: the rasterizer's inputs,
     or a callable frame -> inputs (`tomgs.render.render_sequence`)."""
@@ -267,7 +269,7 @@ def _render_to(output, gaussians, cams, positions, background, device, fps: floa
                 alive.append(int(meta["n_alive"]))
                 yield (image.numpy() * 255.0 + 0.5).astype(np.uint8)
 
-    count = write_frames(images(), output, fps=fps)
+    count = write_frames(images(), output, fps=fps, numbers=positions if numbers is None else numbers)
     seconds = time.perf_counter() - start
     low = sum(fixed) + sum(min(sizes) for sizes in varying)
     high = sum(fixed) + sum(max(sizes) for sizes in varying)
@@ -435,7 +437,7 @@ def _render_scene(output, scene, gaussians, plan, fps, layers=()) -> None:
         default_rgb = render_defaults(behind.info)[0]
     _render_to(output, gaussians, cams, positions.tolist(), background=rgb or default_rgb, device=device,
                fps=fps or default_fps, what=f"({numbers[0]}..{numbers[-1]}) at {cams.width}x{cams.height}",
-               layers=layers)
+               layers=layers, numbers=numbers.tolist())
 
 
 def _is_scene_path(path: str) -> bool:

@@ -283,8 +283,10 @@ def select_frames(cameras: Cameras, spec) -> np.ndarray:
     """Positions (into `cameras`) of the frames that `spec` ('a:b', 'a:b:c', 'k', None = all) picks, in
     the scene's frame numbering (`cameras.frame_indices`, the source video's frame numbers).
 
-    Numbers follow Python slices over 0 .. last frame number (negative counts from the end); a start
-    or stop outside the scene's frames, or a range that holds none of them, raises InputError.
+    Numbers follow Python slices over 0 .. last frame number (negative counts from the end): a stop
+    past the last frame is clamped to it, as slicing does (`0:90:3` picks frames 0..87 of a scene
+    fitted on every third of 90 frames); a start outside the scene's frames, a stop before its
+    first, or a range that holds none of them, raises InputError.
     """
     from tomgs.io.video import parse_frames
 
@@ -296,7 +298,7 @@ def select_frames(cameras: Cameras, spec) -> np.ndarray:
     if spec is None or sel == slice(None):
         return np.arange(len(cameras))
     for value, what, hi in ((sel.start, "start", last), (sel.stop, "stop", last + 1)):
-        if value is None:
+        if value is None or (what == "stop" and value > hi):  # a stop past the end: clamped by the slice
             continue
         absolute = value + last + 1 if value < 0 else value
         if not first <= absolute <= hi:

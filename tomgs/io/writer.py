@@ -31,10 +31,11 @@ def check_output(path) -> Path:
     return path
 
 
-def write_frames(frames: Iterable[np.ndarray], path, fps: float = 25.0) -> int:
+def write_frames(frames: Iterable[np.ndarray], path, fps: float = 25.0, numbers: Iterable[int] | None = None) -> int:
     """Write RGB uint8 frames [H,W,3] to `path`: a video file by suffix, else a folder of PNGs
-    (00000.png, ...). Returns the number of frames written. Existing output is replaced only on
-    success."""
+    named by `numbers` (the frames' numbers, e.g. the scene's frame numbers; default 0, 1, ...),
+    zero-padded to five digits: 00000.png, .... Returns the number of frames written. Existing
+    output is replaced only on success."""
     import cv2
 
     path = check_output(path)
@@ -42,6 +43,7 @@ def write_frames(frames: Iterable[np.ndarray], path, fps: float = 25.0) -> int:
     staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
     count = 0
     writer = None
+    names = None if numbers is None else iter(numbers)
     try:
         target = staging / f"out{path.suffix}" if is_video else staging
         for frame in frames:
@@ -56,8 +58,10 @@ def write_frames(frames: Iterable[np.ndarray], path, fps: float = 25.0) -> int:
                     if not writer.isOpened():
                         raise InputError(f"{path}: OpenCV cannot write {path.suffix} here; write PNG frames to a folder")
                 writer.write(np.ascontiguousarray(bgr))
-            elif not cv2.imwrite(str(target / f"{count:05d}.png"), bgr):
-                raise InputError(f"{path}: could not write PNG frame {count}")
+            else:
+                number = count if names is None else int(next(names))
+                if not cv2.imwrite(str(target / f"{number:05d}.png"), bgr):
+                    raise InputError(f"{path}: could not write PNG frame {number}")
             count += 1
         if writer is not None:
             writer.release()

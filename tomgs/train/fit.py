@@ -74,7 +74,7 @@ def fit(video, output, config: TrainConfig | None = None, *, masks=None, frames=
     info = dict(source=str(getattr(video, "path", video)) if not isinstance(video, Video) else "<Video>",
                 iterations=result.iterations, train_seconds=round(result.seconds, 2),
                 pose_seconds=round(pose_seconds, 2), clip_psnr=round(result.clip_psnr, 3),
-                fps=clip.fps or 25.0, background=[0.0, 0.0, 0.0],
+                fps=_fps(clip), background=[0.0, 0.0, 0.0],
                 config={k: v for k, v in vars(config).items()}, notes=result.notes)
     if layer is not None:
         info["layer"] = layer
@@ -83,6 +83,16 @@ def fit(video, output, config: TrainConfig | None = None, *, masks=None, frames=
     _plot(paths["plot"], result.history)
     paths["checkpoint"].unlink(missing_ok=True)
     return result
+
+
+def _fps(clip) -> float:
+    """The fitted frames' rate: the source's (25 when unknown) over the step between them, so a fit on
+    every k-th frame plays at the source's speed."""
+    fps = clip.fps or 25.0
+    steps = np.diff(np.asarray(clip.indices))
+    if len(steps) and steps[0] > 1 and np.all(steps == steps[0]):
+        fps /= int(steps[0])
+    return float(fps)
 
 
 def _layer_inputs(clip, layer, config, mask_dilation, masks_path):
