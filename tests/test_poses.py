@@ -134,3 +134,26 @@ def test_pose_file_methods(orbit_clip, tmp_path):
     assert np.allclose(cams.c2w, clip.c2w) and cams.focal == 300.0
     with pytest.raises(InputError, match="gives 24 cameras for 3 frames"):
         estimate_cameras(clip.frames[:3], method=tmp_path / "gt.json")
+
+
+def test_points_carry_the_frames_that_tracked_them(orbit_clip):
+    """Each point's first..last tracked frame: inside the clip, and the point projects into the
+    image (in front of the camera) at both ends."""
+    clip = orbit_clip
+    cams, pts, _, rep = estimate_cameras(clip.frames, clip.masks)
+    spans = rep.point_frames
+    assert spans.shape == (len(pts), 2) and (0 <= spans[:, 0]).all() and (spans[:, 0] <= spans[:, 1]).all()
+    assert spans[:, 1].max() == len(cams) - 1 and (spans[:, 1] - spans[:, 0] < len(cams) - 1).any()
+    w2c = cams.viewmats()
+    for end in (0, 1):
+        m = w2c[spans[:, end]]
+        cam = np.einsum("nij,nj->ni", m[:, :3, :3], pts) + m[:, :3, 3]
+        uv = cam[:, :2] / cam[:, 2:3] @ cams.K[:2, :2].T + cams.K[:2, 2]
+        inside = (cam[:, 2] > 0) & (uv >= -2).all(1) & (uv[:, 0] <= cams.width + 2) & (uv[:, 1] <= cams.height + 2)
+        assert inside.mean() > 0.98, inside.mean()
+
+
+def test_fixed_camera_points_have_no_spans():
+    clip = make_clip(np.repeat(np.eye(4)[None], 4, 0), mover=False, seed=2)
+    _, _, _, rep = estimate_cameras(clip.frames)
+    assert rep.mode == "fixed" and rep.point_frames is None

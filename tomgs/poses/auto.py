@@ -37,6 +37,7 @@ class Solution:
     timings: dict = field(default_factory=dict)
     reproj_all_px: float = float("nan")  # the same median over every observation of those tracks
     rejected: float = 0.0  # fraction of those observations rejected as outliers
+    point_frames: np.ndarray | None = None  # int [P,2]: first and last frame a point was tracked in
 
 
 def static_masks(masks: np.ndarray | None, gray: np.ndarray, notes: list) -> np.ndarray:
@@ -497,9 +498,20 @@ class Tracker:
         c2w[:, :3, :3] = np.transpose(self.Rw, (0, 2, 1))
         c2w[:, :3, 3] = -np.einsum("nji,nj->ni", self.Rw, self.tw)
         sol = Solution(c2w, self.K, self.X[pts], self._point_colors(pts), "general",
-                       float(np.median(err)) if len(err) else float("nan"), self.notes, self.timings)
+                       float(np.median(err)) if len(err) else float("nan"), self.notes, self.timings,
+                       point_frames=self._point_frames(pts))
         self._all_errors(sol, pts)
         return sol
+
+    def _point_frames(self, pts: np.ndarray) -> np.ndarray:
+        """int [len(pts),2]: the first and last frame of each track's observations kept."""
+        tr = self.tracks
+        kept = self.obs_ok & np.isin(tr.track, pts)
+        first = np.full(tr.n_tracks, self.T - 1)
+        last = np.zeros(tr.n_tracks, dtype=np.int64)
+        np.minimum.at(first, tr.track[kept], tr.frame[kept])
+        np.maximum.at(last, tr.track[kept], tr.frame[kept])
+        return np.stack([first[pts], last[pts]], axis=1)
 
     def _all_errors(self, sol: Solution, pts: np.ndarray):
         """Median error over every observation of the solution's tracks, outliers included."""
@@ -559,7 +571,8 @@ class Tracker:
         c2w = np.tile(np.eye(4), (T, 1, 1))
         c2w[:, :3, :3] = np.transpose(self.Rw, (0, 2, 1))
         sol = Solution(c2w, self.K, X, self._point_colors(pts), "rotation",
-                       float(np.median(err)) if len(err) else float("nan"), self.notes, self.timings)
+                       float(np.median(err)) if len(err) else float("nan"), self.notes, self.timings,
+                       point_frames=self._point_frames(pts))
         self.X[pts] = X
         self._all_errors(sol, pts)
         return sol

@@ -23,7 +23,9 @@ class PoseReport:
     reproj_px: median reprojection error of the background track observations kept by the final
     adjustment (nan if not measured); reproj_all_px: the same over all observations of those
     tracks, rejected outliers included; rejected: the fraction rejected;
-    seconds: wall time; points: P; notes: what was detected, skipped or assumed.
+    seconds: wall time; points: P; notes: what was detected, skipped or assumed;
+    point_frames: int [P,2], the first and last frame each point was tracked in (None: points not
+    from tracks, such as a fixed camera's or known cameras', taken as seen throughout).
     """
 
     method: str
@@ -38,6 +40,7 @@ class PoseReport:
     timings: dict = field(default_factory=dict)
     reproj_all_px: float = float("nan")
     rejected: float = float("nan")
+    point_frames: np.ndarray | None = None
 
     def summary(self) -> str:
         err = "n/a" if not np.isfinite(self.reproj_px) else f"{self.reproj_px:.2f} px"
@@ -84,13 +87,15 @@ def estimate_cameras(frames, masks=None, method="auto", focal=None, progress=Non
         sol = Tracker(frames, masks, focal, progress).solve()
         cams = Cameras.create(sol.c2w, sol.K, W, H, indices)
         rep = PoseReport("auto", sol.mode, T, cams.focal, focal is None and sol.mode != "fixed", sol.reproj_px,
-                         0.0, len(sol.points), list(sol.notes), dict(sol.timings), sol.reproj_all_px, sol.rejected)
+                         0.0, len(sol.points), list(sol.notes), dict(sol.timings), sol.reproj_all_px, sol.rejected,
+                         sol.point_frames)
         pts, cols = sol.points, sol.colors
         if len(pts) == 0:  # nothing trackable (blank frames): still give the trainer something
             from tomgs.poses.auto import unit_depth_points
 
             pts, cols = unit_depth_points(frames, cams.K)
             rep.notes.append("no trackable texture: points placed at depth 1 in front of frame 0")
+            rep.point_frames = None
             rep.points = len(pts)
     elif isinstance(method, (str, Path)) and str(method) == "identity":
         from tomgs.poses.auto import unit_depth_points

@@ -53,16 +53,17 @@ def fit(video, output, config: TrainConfig | None = None, *, masks=None, frames=
     clip = video if isinstance(video, Video) else read_video(video, frames=frames, max_side=max_side, masks=masks)
     inputs = _layer_inputs(clip, layer, config, mask_dilation, masks)  # checks the masks before any work
     t0 = time.perf_counter()
+    point_frames = None
     if inputs.cameras is None:
         cameras, points, colors, report = estimate_cameras(clip, method=poses, focal=focal, progress=pose_progress)
         pose_notes = [f"poses: {report.summary()}", *report.notes]
-        views = cameras
+        views, point_frames = cameras, report.point_frames
     else:  # the foreground layer's fixed cameras
         cameras, views, points, colors, pose_notes = inputs.scene_cameras, inputs.cameras, (), (), []
     pose_seconds = time.perf_counter() - t0
 
     torch.manual_seed(config.seed)
-    trainer = Trainer(inputs.frames, views, points, colors, config, device, **inputs.hooks)
+    trainer = Trainer(inputs.frames, views, points, colors, config, device, point_frames=point_frames, **inputs.hooks)
     trainer.notes[:0] = [*pose_notes, *inputs.notes]
     if resume:
         trainer.load_checkpoint(paths["checkpoint"])

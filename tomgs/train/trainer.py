@@ -58,12 +58,14 @@ class Trainer:
     and densification). wide_fraction: the fraction of each frame's initial Gaussians that start
     alive over the whole clip (temporal sigma 1.0, like the tracked points) instead of around their
     frame (`config.init_t_scale_frames`); the optimiser narrows the windows where the supervised
-    pixels change."""
+    pixels change. point_frames: None, or int [P,2], the first and last frame the tracker saw each
+    point in: its Gaussian starts alive over those frames (centred on them, sigma half their span,
+    at least `config.init_t_scale_frames`), not over the whole clip."""
 
     def __init__(self, frames: np.ndarray, cameras: Cameras, points: np.ndarray, colors: np.ndarray,
                  config: TrainConfig, device: torch.device, *, weights: np.ndarray | None = None,
                  alpha_targets: np.ndarray | None = None, initial: tuple[GaussianModel, float] | None = None,
-                 wide_fraction: float = 0.0):
+                 wide_fraction: float = 0.0, point_frames: np.ndarray | None = None):
         self.config = config
         self.device = device
         self.cameras = cameras
@@ -76,6 +78,7 @@ class Trainer:
         self.times = [float(t) for t in cameras.times]
         self.notes: list[str] = []
         self.wide_fraction = float(wide_fraction)
+        self.point_frames = None if point_frames is None else np.asarray(point_frames, dtype=np.int64).reshape(-1, 2)
         if initial is None:
             self.model, self.extent = self._initial_model(np.asarray(points, dtype=np.float64).reshape(-1, 3),
                                                           np.asarray(colors, dtype=np.float32).reshape(-1, 3))
@@ -92,9 +95,9 @@ class Trainer:
     # -- set-up --------------------------------------------------------------------------------
 
     def _initial_model(self, points: np.ndarray, colors: np.ndarray) -> tuple[GaussianModel, float]:
-        """Tracked points (static, alive over the whole clip) plus points unprojected from every
-        frame at the scene depth, each alive around its frame's time (`wide_fraction` of them over
-        the whole clip)."""
+        """Tracked points (alive over the frames that saw them, or the whole clip) plus points
+        unprojected from every frame at the scene depth, each alive around its frame's time
+        (`wide_fraction` of them over the whole clip)."""
         c = self.config
         g = torch.Generator().manual_seed(c.seed)
         w2c = self.cameras.viewmats()
@@ -113,8 +116,8 @@ class Trainer:
             ts.append(np.full(len(u), self.times[k]))
         frame_sigma = c.init_t_scale_frames / max(self.num_frames - 1, 1)
         wide = int(round(self.wide_fraction * per_frame))  # the first `wide` of each frame's points (random)
-        t_sigma = np.concatenate([np.full(len(points), 1.0),
-                                  *(np.where(np.arange(len(t)) < wide, 1.0, frame_sigma) for t in ts)])
+        tracked_means, tracked_sigma = self._tracked_windows(len(points), frame_sigma)
+        t_sigma = np.concatenate([tracked_sigma, *(np.where(np.arange(len(t)) < wide, 1.0, frame_sigma) for t in ts)])
         # sizes: tracked points from their neighbours (few), per-frame points from one sample's
         # share of the image (many: a neighbour search over them would be quadratic)
         pixel_size = max(float(np.median(depth)) / float(fx) * math.sqrt(self.width * self.height / per_frame), 1e-6)
@@ -123,8 +126,7 @@ class Trainer:
             sizes[:len(points)] = nearest_neighbour_distance(torch.as_tensor(points, dtype=torch.float32)).numpy()
         all_points = np.concatenate([points, *xs]) if len(points) else np.concatenate(xs)
         all_colors = np.concatenate([colors, *cols]) if len(points) else np.concatenate(cols)
-        t_means = np.concatenate([np.full(len(points), 0.5),
-                                  *(np.where(np.arange(len(t)) < wide, 0.5, t) for t in ts)])
+        t_means = np.concatenate([tracked_means, *(np.where(np.arange(len(t)) < wide, 0.5, t) for t in ts)])
         model = GaussianModel.from_points(torch.as_tensor(all_points, dtype=torch.float32),
                                           torch.as_tensor(all_colors, dtype=torch.float32),
                                           torch.as_tensor(t_means, dtype=torch.float32), 1.0, max_sh_degree=c.sh_degree,
@@ -138,6 +140,15 @@ class Trainer:
         else:
             self.notes.append("SH degree 0: view-dependent colour left out (ask for it with sh_degree)")
         return model.to(self.device), float(np.median(depth))
+
+    def _tracked_windows(self, count: int, min_sigma: float) -> tuple[np.ndarray, np.ndarray]:
+        """(t_means [P], t_sigmas [P]) of the tracked points: centred on the frames that saw each one,
+        sigma half their time span (at least `min_sigma`); the whole clip without `point_frames`."""
+        if self.point_frames is None or len(self.point_frames) != count:
+            return np.full(count, 0.5), np.full(count, 1.0)
+        times = np.asarray(self.times)
+        first, last = times[self.point_frames[:, 0]], times[self.point_frames[:, 1]]
+        return (first + last) / 2, np.maximum((last - first) / 2, min_sigma)
 
     def _initial_pixels(self, k: int, n: int, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
         """n pixel positions (u, v) float64 [n] in frame k: uniform, or only where the weight is > 0."""
