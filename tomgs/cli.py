@@ -279,14 +279,19 @@ def _render_to(output, gaussians, cams, positions, background, device, fps: floa
                f"each frame's time were projected")
 
 
+def _split_floats(text: str) -> tuple[float, ...]:
+    """'a,b,c' -> (a, b, c); () when any part is not a number."""
+    try:
+        return tuple(float(v) for v in text.split(","))
+    except ValueError:
+        return ()
+
+
 def _parse_background(text: str | None):
     """'r,g,b' in [0, 1] -> tuple, or None."""
     if text is None:
         return None
-    try:
-        rgb = tuple(float(v) for v in text.split(","))
-    except ValueError:
-        rgb = ()
+    rgb = _split_floats(text)
     if len(rgb) != 3 or not all(0.0 <= v <= 1.0 for v in rgb):
         raise UsageError(f"--background must be three numbers in [0, 1] like 0,0,0 or 1,1,1, got {text!r}")
     return rgb
@@ -362,10 +367,7 @@ def _floats(text: str | None, option: str, counts=(3,)):
 
     if text is None:
         return None
-    try:
-        values = tuple(float(v) for v in text.split(","))
-    except ValueError:
-        values = ()
+    values = _split_floats(text)
     if len(values) not in counts or not all(math.isfinite(v) for v in values):
         shape = " or ".join(",".join("xyz"[:n] if n > 1 else "s") for n in counts)
         raise UsageError(f"{option} takes {' or '.join(map(str, counts))} comma-separated numbers ({shape}), got {text!r}")

@@ -204,11 +204,10 @@ class Trainer:
     def _weight(self, k: int) -> torch.Tensor:
         return self.weights[k, :, :, None].float() / 255.0  # [H,W,1]
 
-    def loss(self, k: int, image: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
-        """(1 - w) L1 + w D-SSIM of the render image [H,W,3] against frame k over its weighted pixels,
-        plus L1 of alpha [H,W,1] against its target when there is one."""
+    def loss(self, k: int, image: torch.Tensor, alpha: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """(1 - w) L1 + w D-SSIM of the render image [H,W,3] against `target` (`self.target(k, image)`)
+        over frame k's weighted pixels, plus L1 of alpha [H,W,1] against its target when there is one."""
         c = self.config
-        target = self.target(k, image)
         if self.weights is None:
             l1, similarity = (image - target).abs().mean(), ssim(image, target)
         else:
@@ -221,10 +220,11 @@ class Trainer:
             loss = loss + (alpha[..., 0] - self.alpha_targets[k].float() / 255.0).abs().mean()
         return loss
 
-    def measure(self, k: int, image: torch.Tensor) -> float:
-        """PSNR of the render image [H,W,3] against frame k over its weighted pixels."""
+    def measure(self, k: int, image: torch.Tensor, target: torch.Tensor | None = None) -> float:
+        """PSNR of the render image [H,W,3] against frame k (or its `target`, already made) over its
+        weighted pixels."""
         image = image.detach()
-        target = self.target(k, image)
+        target = self.target(k, image) if target is None else target.detach()
         if self.weights is None:
             return float(psnr(image, target))
         mse = float((image - target).square().sum() / (3 * self._weight(k).sum().clamp_min(1e-12)))
@@ -239,8 +239,9 @@ class Trainer:
         k = self.sampler.sample()
         image, alpha, meta = self.render(k)
         meta["means2d"].retain_grad()
-        self.loss(k, image, alpha).backward()
-        self.sampler.update(k, self.measure(k, image))
+        target = self.target(k, image)  # once per step: the loss and the sampler's PSNR share it
+        self.loss(k, image, alpha, target).backward()
+        self.sampler.update(k, self.measure(k, image, target))
         if self.progress < c.densify_stop_fraction:
             self.densifier.observe(meta)
         for group in self.optimizer.param_groups:
