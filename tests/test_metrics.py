@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from tomgs.metrics import LPIPS, evaluate, psnr, ssim
+from tomgs.metrics import LPIPS, evaluate, psnr, ssim, ssim_map, ssim_map_conv
 
 LPIPS_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "lpips"
 
@@ -93,6 +93,47 @@ def test_ssim_is_differentiable():
     loss = 1 - ssim(a, b)
     loss.backward()
     assert a.grad is not None and torch.isfinite(a.grad).all() and a.grad.abs().sum() > 0
+
+
+def _ssim_cases(seed: int):
+    """Fresh random [B,H,W,3] pairs in [0,1], extremes included: images smaller than the window, a
+    single pixel, constant (zero-variance) and saturated images, and near-identical pairs."""
+    g = torch.Generator().manual_seed(seed)
+    for shape in ((1, 19, 26, 3), (2, 12, 9, 3), (1, 4, 3, 3), (1, 1, 1, 3)):
+        a = torch.rand(shape, generator=g, dtype=torch.float64)
+        yield a, (a + 0.2 * torch.randn(shape, generator=g, dtype=torch.float64)).clamp(0, 1)
+    shape = (1, 14, 15, 3)
+    noise = torch.randn(shape, generator=g, dtype=torch.float64)
+    yield torch.zeros(shape, dtype=torch.float64), torch.ones(shape, dtype=torch.float64)  # constant, opposite
+    yield torch.ones(shape, dtype=torch.float64), (1 - 0.05 * noise.abs()).clamp(0, 1)  # saturated
+    a = torch.rand(shape, generator=g, dtype=torch.float64)
+    yield a, (a + 1e-4 * noise).clamp(0, 1)  # almost identical: S near 1, gradients near 0
+
+
+def test_warp_ssim_matches_the_float64_reference():
+    """The float32 Warp passes (values and gradient to the image) against float64 convolutions."""
+    for seed in (5, 6):
+        for a, b in _ssim_cases(seed):
+            x = a.float().requires_grad_(True)
+            upstream = torch.randn(a.shape[0], 3, *a.shape[1:3], generator=torch.Generator().manual_seed(seed),
+                                   dtype=torch.float64)
+            got = ssim_map(x, b.float())
+            (got * upstream.float()).sum().backward()
+            ref64 = a.clone().requires_grad_(True)
+            want = ssim_map_conv(ref64, b)
+            (want * upstream).sum().backward()
+            assert got.shape == want.shape
+            assert torch.isfinite(got).all() and torch.isfinite(x.grad).all()
+            # float32 bound: the torch convolutions in float32 (cancellation in e11 - mu1^2 on bright
+            # flat patches costs both about 1e-4), or 2e-5 where they do better than that
+            x32 = a.float().requires_grad_(True)
+            conv32 = ssim_map_conv(x32, b.float())
+            (conv32 * upstream.float()).sum().backward()
+            value_tol = max(2e-5, 2 * float((conv32.double() - want).abs().max()))
+            grad_tol = max(2e-5 * float(ref64.grad.abs().max().clamp_min(1.0)),
+                           2 * float((x32.grad.double() - ref64.grad).abs().max()))
+            assert (got.double() - want).abs().max() <= value_tol, a.shape
+            assert (x.grad.double() - ref64.grad).abs().max() <= grad_tol, a.shape
 
 
 def test_metrics_reject_bad_shapes():

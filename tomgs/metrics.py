@@ -6,8 +6,11 @@ returns one value per image (a 0-d tensor for [H,W,3], [B] for a batch). Protoco
 
 SSIM follows the 3DGS implementation exactly: 11x11 Gaussian window (sigma 1.5), C1 = 0.01^2,
 C2 = 0.03^2, per channel, zero "same" padding (conv2d padding=5), mean over all pixels and
-channels. It is differentiable (the trainer's loss uses 1 - ssim); the window is separable, so it
-runs as two 1D convolutions over the five moments at once, and is built once per device/dtype.
+channels. It is differentiable (the trainer's loss uses 1 - ssim). Two implementations of one
+formula: float32 images with a constant reference go through four Warp passes that also give the
+gradient (tomgs/kernels/ssim.py: a training step's SSIM in one pass each way instead of a dozen
+torch ops); anything else (float64, a reference that needs a gradient) through two separable
+convolutions of the five moments, which the tests hold the Warp passes against.
 
 LPIPS needs its weights as an npz file (no downloads): pass the path, or set TOMGS_LPIPS_WEIGHTS.
 """
@@ -67,6 +70,13 @@ def _gaussian_1d(device, dtype) -> torch.Tensor:
 
 def ssim_map(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
     """Per-pixel SSIM [B,3,H,W] of [B,H,W,3] images (zero padding, 3DGS formula)."""
+    if img.dtype == torch.float32 and ref.dtype == torch.float32 and not ref.requires_grad:
+        return _WarpSSIM.apply(img, ref).permute(0, 3, 1, 2)
+    return ssim_map_conv(img, ref)
+
+
+def ssim_map_conv(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    """`ssim_map` as separable convolutions in torch: any dtype, gradients to both images."""
     x = img.permute(0, 3, 1, 2)
     y = ref.permute(0, 3, 1, 2)
     b, c, h, w = x.shape
@@ -82,6 +92,47 @@ def ssim_map(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
     sigma1_sq, sigma2_sq, sigma12 = e11 - mu1_sq, e22 - mu2_sq, e12 - mu12
     return ((2 * mu12 + SSIM_C1) * (2 * sigma12 + SSIM_C2)) / \
         ((mu1_sq + mu2_sq + SSIM_C1) * (sigma1_sq + sigma2_sq + SSIM_C2))
+
+
+class _WarpSSIM(torch.autograd.Function):
+    """Per-pixel SSIM [B,H,W,3] of float32 [B,H,W,3] images; gradient to the first only."""
+
+    @staticmethod
+    def forward(ctx, img, ref):
+        from tomgs.kernels import ssim as kernels
+        from tomgs.render import _launch, _on, _wp
+
+        x, y = img.contiguous(), ref.contiguous()
+        n, (_, height, width, _) = x.numel(), x.shape
+        window = _gaussian_1d(x.device, torch.float32)
+        moments = torch.empty(5, n, device=x.device, dtype=torch.float32)
+        partials = torch.empty(3, n, device=x.device, dtype=torch.float32)
+        out = torch.empty_like(x)
+        flat = (_wp(x.view(-1)), _wp(y.view(-1)), _wp(window))
+        with _on(x.device) as device:
+            _launch(kernels.moments_rows, n, device=device, args=[*flat, width, _wp(moments)])
+            _launch(kernels.ssim_cols, n, device=device, args=[
+                _wp(moments), flat[2], width, height, SSIM_C1, SSIM_C2, _wp(out.view(-1)), _wp(partials)])
+        ctx.save_for_backward(x, y, partials)
+        return out
+
+    @staticmethod
+    def backward(ctx, v_out):
+        from tomgs.kernels import ssim as kernels
+        from tomgs.render import _launch, _on, _wp
+
+        x, y, partials = ctx.saved_tensors
+        n, (_, height, width, _) = x.numel(), x.shape
+        window = _gaussian_1d(x.device, torch.float32)
+        v_out = v_out.contiguous()
+        blurred = torch.empty_like(partials)
+        v_x = torch.empty_like(x)
+        with _on(x.device) as device:
+            _launch(kernels.grad_rows, n, device=device, args=[
+                _wp(v_out.view(-1)), _wp(partials), _wp(window), width, _wp(blurred)])
+            _launch(kernels.grad_cols, n, device=device, args=[
+                _wp(blurred), _wp(x.view(-1)), _wp(y.view(-1)), _wp(window), width, height, _wp(v_x.view(-1))])
+        return v_x, None
 
 
 def ssim(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
@@ -257,4 +308,4 @@ def evaluate(model, cameras, frames, indices=None, lpips: LPIPS | None = None, d
     return report
 
 
-__all__ = ["psnr", "ssim", "ssim_map", "LPIPS", "EvalReport", "evaluate", "default_lpips_weights"]
+__all__ = ["psnr", "ssim", "ssim_map", "ssim_map_conv", "LPIPS", "EvalReport", "evaluate", "default_lpips_weights"]

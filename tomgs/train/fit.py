@@ -74,7 +74,7 @@ def fit(video, output, config: TrainConfig | None = None, *, masks=None, frames=
 
     info = dict(source=str(getattr(video, "path", video)) if not isinstance(video, Video) else "<Video>",
                 iterations=result.iterations, train_seconds=round(result.seconds, 2),
-                pose_seconds=round(pose_seconds, 2), clip_psnr=round(result.clip_psnr, 3),
+                pose_seconds=round(pose_seconds, 2), clip_psnr=round(result.clip_psnr, 3), extent=trainer.extent,
                 fps=_fps(clip), background=[0.0, 0.0, 0.0],
                 config={k: v for k, v in vars(config).items()}, notes=result.notes)
     if layer is not None:

@@ -32,6 +32,9 @@ from tomgs.train.config import TrainConfig
 from tomgs.train.densify import Densifier
 from tomgs.train.sampler import FrameSampler
 
+# The sampler hears each step's PSNR up to this many steps late: reading it back every step made the
+# host wait for the device once more per step than the rasterizer needs.
+SAMPLER_LAG = 8
 CSV_FIELDS = ("iteration", "wall_s", "train_psnr", "clip_psnr", "gaussians", "memory_mb")
 
 
@@ -91,6 +94,7 @@ class Trainer:
         self.progress = 0.0  # fraction of the run done: iterations or wall-clock budget, whichever is further
         self.elapsed = 0.0  # wall seconds of earlier sessions of a resumed run
         self.history: list[dict] = []
+        self._measured: list[tuple[int, torch.Tensor]] = []  # (frame, PSNR) not yet given to the sampler
 
     # -- set-up --------------------------------------------------------------------------------
 
@@ -223,12 +227,16 @@ class Trainer:
     def measure(self, k: int, image: torch.Tensor, target: torch.Tensor | None = None) -> float:
         """PSNR of the render image [H,W,3] against frame k (or its `target`, already made) over its
         weighted pixels."""
+        return float(self._psnr(k, image, target))
+
+    def _psnr(self, k: int, image: torch.Tensor, target: torch.Tensor | None = None) -> torch.Tensor:
+        """`measure` as a 0-d tensor where the image lives (no wait for the device)."""
         image = image.detach()
         target = self.target(k, image) if target is None else target.detach()
         if self.weights is None:
-            return float(psnr(image, target))
-        mse = float((image - target).square().sum() / (3 * self._weight(k).sum().clamp_min(1e-12)))
-        return -10.0 * math.log10(mse) if mse > 0 else math.inf
+            return psnr(image, target)
+        mse = (image - target).square().sum() / (3 * self._weight(k).sum().clamp_min(1e-12))
+        return -10.0 * torch.log10(mse)
 
     def render(self, k: int, **kw):
         return rasterize(**self.model.render_inputs(), viewmat=self.viewmats[k], K=self.K, width=self.width,
@@ -238,11 +246,15 @@ class Trainer:
         c = self.config
         k = self.sampler.sample()
         image, alpha, meta = self.render(k)
-        meta["means2d"].retain_grad()
+        densifying = self.progress < c.densify_stop_fraction and not self.densifier.capped
+        if densifying:
+            meta["means2d"].retain_grad()
         target = self.target(k, image)  # once per step: the loss and the sampler's PSNR share it
         self.loss(k, image, alpha, target).backward()
-        self.sampler.update(k, self.measure(k, image, target))
-        if self.progress < c.densify_stop_fraction:
+        self._measured.append((k, self._psnr(k, image, target)))
+        if len(self._measured) >= SAMPLER_LAG:
+            self.flush_measurements()
+        if densifying:
             self.densifier.observe(meta)
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
@@ -258,6 +270,14 @@ class Trainer:
         if c.opacity_reset_interval and self.iteration % c.opacity_reset_interval == 0 \
                 and self.progress < c.densify_stop_fraction:
             self.densifier.reset_opacity(self.model, self.optimizer)
+
+    def flush_measurements(self) -> None:
+        """Hand the PSNRs measured since the last flush to the sampler, in order (one device read)."""
+        if self._measured:
+            values = torch.stack([v for _, v in self._measured]).tolist()
+            for (k, _), value in zip(self._measured, values):
+                self.sampler.update(k, value)
+            self._measured.clear()
 
     @torch.no_grad()
     def clip_psnr(self) -> list[float]:
@@ -306,6 +326,7 @@ class Trainer:
                          list(self.notes))
 
     def _row(self, now: float, clip: float | None) -> dict:
+        self.flush_measurements()
         seen = self.sampler.psnr[self.sampler.psnr > 0]
         if self.device.type == "cuda":
             memory = torch.cuda.max_memory_allocated(self.device) / 2**20
@@ -321,6 +342,7 @@ class Trainer:
     # -- checkpoints ---------------------------------------------------------------------------
 
     def save_checkpoint(self, path: Path) -> None:
+        self.flush_measurements()
         state = dict(
             iteration=self.iteration, elapsed=self.elapsed, history=self.history, notes=self.notes,
             params={k: v.detach().cpu() for k, v in self.model.parameters_by_name().items()},
