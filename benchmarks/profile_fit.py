@@ -42,7 +42,7 @@ def main() -> None:
     video = read_video(source)
     T, H, W = video.frames.shape[:3]
     device = torch.device(args.device)
-    config = preset("default", init_points_per_frame=args.points_per_frame, densify_start_fraction=2.0,
+    config = preset("default", init_points_per_frame=args.points_per_frame, max_gaussians=10**9, densify_start_fraction=2.0,
                     log_interval=10**9, eval_interval_s=1e9)
     no_points = np.zeros((0, 3)), np.zeros((0, 3), np.float32)
     if args.scene is not None:

@@ -13,6 +13,7 @@ from tomgs.model import GaussianModel
 from tomgs.render import render_sequence
 from tomgs.train import Trainer, preset
 from tomgs.train.densify import Densifier
+from tomgs.train.optim import SeenAdam
 from tomgs.train.sampler import FrameSampler
 
 CPU = torch.device("cpu")
@@ -33,13 +34,58 @@ def small_config(iterations: int, **kw):
                   max_gaussians=4000, densify_start_fraction=50 / iterations, densify_stop_fraction=0.75, densify_interval=50, **kw)
 
 
-def test_synthetic_clip_fits_to_30db():
+@pytest.mark.parametrize("sparse_adam", [False, True])
+def test_synthetic_clip_fits_to_30db(sparse_adam):
     images, cams, points, colors = synthetic_clip(4, 48, 27)
-    result = Trainer(images, cams, points, colors, small_config(400), CPU).run()
+    result = Trainer(images, cams, points, colors, small_config(400, sparse_adam=sparse_adam), CPU).run()
     assert result.clip_psnr >= 30.0, result.history[-3:]
     assert len(result.model) <= 4000
     psnrs = [row["train_psnr"] for row in result.history]
     assert psnrs[-1] > psnrs[0] + 10  # it learned, it did not start there
+
+
+def test_seen_adam_is_adam_on_the_rows_in_view():
+    """SeenAdam against torch's Adam in float64 on fresh random gradients: seen rows take Adam's
+    step, unseen rows keep their values and moments; parameters of 1-3 axes and an empty one."""
+    g = torch.Generator().manual_seed(7)
+    n = 40
+    params = [torch.randn(n, 3, generator=g), torch.randn(n, generator=g), torch.randn(n, 1, 3, generator=g),
+              torch.zeros(n, 0, 3)]
+    ours = [p.clone().requires_grad_(True) for p in params]
+    ref = [p.double().requires_grad_(True) for p in params]
+    opt = SeenAdam([dict(params=[p], lr=0.01 * (i + 1)) for i, p in enumerate(ours)], eps=1e-15)
+    adam = torch.optim.Adam([dict(params=[p], lr=0.01 * (i + 1)) for i, p in enumerate(ref)], eps=1e-15)
+    for step in range(6):
+        seen = torch.ones(n, dtype=torch.bool) if step == 0 else torch.rand(n, generator=g) < 0.4
+        scale = 1e4 if step == 3 else 1.0  # a spike: Adam's normalisation must hold it
+        for p, q in zip(ours, ref):
+            grad = torch.randn(p.shape, generator=g, dtype=torch.float64) * scale
+            grad *= seen.view(-1, *([1] * (p.dim() - 1)))
+            p.grad, q.grad = grad.float(), grad
+        kept = [(q.detach().clone(), {k: v.clone() for k, v in adam.state[q].items()}) for q in ref]
+        adam.step()
+        with torch.no_grad():  # Adam on the seen rows only: put the unseen rows back
+            for q, (value, state) in zip(ref, kept):
+                q[~seen] = value[~seen]
+                for key in ("exp_avg", "exp_avg_sq"):
+                    if key in state:
+                        adam.state[q][key][~seen] = state[key][~seen]
+        opt.step(seen)
+    for p, q in zip(ours, ref):
+        assert torch.isfinite(p).all()
+        assert torch.allclose(p.double(), q, atol=1e-5)
+        if p.numel():
+            assert torch.allclose(opt.state[p]["exp_avg"].double(), adam.state[q]["exp_avg"], atol=1e-5)
+    with pytest.raises(ValueError, match="rows"):
+        opt.step(torch.ones(n + 1, dtype=torch.bool))
+
+
+def test_initial_points_per_frame_respect_frame_size_and_cap():
+    config = preset("default")
+    assert config.points_per_frame(854 * 480, 90) == 8000
+    assert config.points_per_frame(128 * 72, 32) == 128 * 72 // 4  # small frames: one per 4 pixels
+    assert config.points_per_frame(854 * 480, 1000) == 2500  # long clips: a quarter of the 10M cap
+    assert config.replace(max_gaussians=10).points_per_frame(100, 90) == 1
 
 
 def test_sampler_favours_low_psnr_frames():

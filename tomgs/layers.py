@@ -128,7 +128,7 @@ def foreground_inputs(clip, config, masks_path=None) -> LayerInputs:
 
 
 def planar_model(frames: np.ndarray, masks: np.ndarray, cameras: Cameras, config):
-    """PlanarGaussianModel with `init_points_per_frame` Gaussians over the object in every frame where
+    """PlanarGaussianModel with `config.points_per_frame` Gaussians over the object in every frame where
     it appears (the object is the layer's whole subject), each the size of its share of the mask, on
     the plane where camera A sees its pixel and alive around its frame's time.
     frames uint8 [T,H,W,3], masks bool [T,H,W]."""
@@ -136,7 +136,7 @@ def planar_model(frames: np.ndarray, masks: np.ndarray, cameras: Cameras, config
 
     g = torch.Generator().manual_seed(config.seed)
     n, height, width = masks.shape
-    per_frame = max(int(config.init_points_per_frame), 1)
+    per_frame = config.points_per_frame(int(masks.sum(axis=(1, 2)).max()), n)
     focal = float(cameras.K[0, 0])
     points, colors, times, sizes = [], [], [], []
     for k in range(n):

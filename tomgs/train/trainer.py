@@ -30,6 +30,7 @@ from tomgs.model import GaussianModel, nearest_neighbour_distance
 from tomgs.render import rasterize
 from tomgs.train.config import TrainConfig
 from tomgs.train.densify import Densifier
+from tomgs.train.optim import SeenAdam
 from tomgs.train.sampler import FrameSampler
 
 # The sampler hears each step's PSNR up to this many steps late: reading it back every step made the
@@ -106,7 +107,7 @@ class Trainer:
         g = torch.Generator().manual_seed(c.seed)
         w2c = self.cameras.viewmats()
         depth = self._median_depth(points, w2c)
-        per_frame = max(int(c.init_points_per_frame), 1)
+        per_frame = c.points_per_frame(self.width * self.height, self.num_frames)
         xs, cols, ts = [], [], []
         fx, fy, cx, cy = self.cameras.K[0, 0], self.cameras.K[1, 1], self.cameras.K[0, 2], self.cameras.K[1, 2]
         for k in range(self.num_frames):
@@ -185,6 +186,8 @@ class Trainer:
                   opacity_logits=c.lr_opacity, sh_dc=c.lr_sh_dc, sh_rest=c.lr_sh_rest,
                   t_means=c.lr_t_means if c.temporal else 0.0, log_t_scales=c.lr_t_scales if c.temporal else 0.0)
         groups = [dict(params=[p], lr=lr[name], name=name) for name, p in self.model.parameters_by_name().items()]
+        if c.sparse_adam:
+            return SeenAdam(groups, lr=0.0, eps=1e-15)
         # fused: one kernel for all groups on the GPU (the foreach path took 2 ms at 4.5M Gaussians)
         return torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=self.device.type == "cuda")
 
@@ -259,7 +262,10 @@ class Trainer:
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
                 group["lr"] = self._means_lr()
-        self.optimizer.step()
+        if c.sparse_adam:
+            self.optimizer.step((meta["radii"] > 0).any(-1))
+        else:
+            self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         self.iteration += 1
         if self.densifier.due(self.iteration, self.progress) and not self.densifier.capped:
