@@ -84,7 +84,8 @@ def test_initial_points_per_frame_respect_frame_size_and_cap():
     config = preset("default")
     assert config.points_per_frame(854 * 480, 90) == 8000
     assert config.points_per_frame(128 * 72, 32) == 128 * 72 // 4  # small frames: one per 4 pixels
-    assert config.points_per_frame(854 * 480, 1000) == 2500  # long clips: a quarter of the 10M cap
+    assert config.points_per_frame(854 * 480, 2000) == 2500  # long clips: half of the 10M cap
+    assert config.replace(init_points_per_frame=300).points_per_frame(100, 5) == 300  # asked for: as given
     assert config.replace(max_gaussians=10).points_per_frame(100, 90) == 1
 
 
