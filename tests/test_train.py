@@ -83,7 +83,7 @@ def test_seen_adam_is_adam_on_the_rows_in_view():
 def test_initial_points_per_frame_respect_frame_size_and_cap():
     config = preset("default")
     assert config.points_per_frame(854 * 480, 90) == 8000
-    assert config.points_per_frame(128 * 72, 32) == 128 * 72 // 4  # small frames: one per 4 pixels
+    assert config.points_per_frame(128 * 72, 32) == 128 * 72 // 5  # small frames: one per 5 pixels
     assert config.points_per_frame(854 * 480, 2000) == 2500  # long clips: half of the 10M cap
     assert config.replace(init_points_per_frame=300).points_per_frame(100, 5) == 300  # asked for: as given
     assert config.replace(max_gaussians=10).points_per_frame(100, 90) == 1

@@ -41,7 +41,7 @@ class TrainConfig:
     lr_t_scales: float = 1e-2
     ssim_weight: float = 0.2  # loss = (1 - w) L1 + w (1 - SSIM)
     # initialisation: points unprojected from every frame, alive around that frame's time; None:
-    # 8000, or one per 4 pixels on smaller frames (8000 at 854x480 reached camel's 7-minute PSNR
+    # 8000, or one per 5 pixels on smaller frames (8000 at 854x480 reached camel's 7-minute PSNR
     # 0.5 dB sooner than 2000: the growth phase starts nearer the cap); see `points_per_frame`
     init_points_per_frame: int | None = None
     init_t_scale_frames: float = 2.0  # sigma of per-frame points, in frames
@@ -54,9 +54,9 @@ class TrainConfig:
 
     def points_per_frame(self, pixels: int, frames: int) -> int:
         """Initial Gaussians per frame of `pixels` pixels in a clip of `frames` frames:
-        `init_points_per_frame` (None: 8000, at most one per 4 pixels), and at most half of the cap
+        `init_points_per_frame` (None: 8000, at most one per 5 pixels), and at most half of the cap
         over the whole clip, so that densification always has room to work."""
-        wanted = min(8000, pixels // 4) if self.init_points_per_frame is None else int(self.init_points_per_frame)
+        wanted = min(8000, pixels // 5) if self.init_points_per_frame is None else int(self.init_points_per_frame)
         return max(min(wanted, self.max_gaussians // (2 * max(frames, 1))), 1)
 
     def replace(self, **changes) -> "TrainConfig":
