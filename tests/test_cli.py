@@ -29,6 +29,22 @@ def test_console_script_entry_point():
     assert tomgs.__version__ in out.stdout
 
 
+def test_cpu_only_machine_gets_no_cuda_driver_warning(tmp_path):
+    """Warp's native library warns about the missing CUDA driver on fd 2; where torch sees no GPU the
+    commands keep that noise out of their output (and still print their own errors there)."""
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("a GPU machine: the warning is not printed there")
+    out = subprocess.run([sys.executable, "-m", "tomgs.cli", "demo", "-o", str(tmp_path / "d.mp4"), "--frames", "2",
+                          "--size", "32x18", "--device", "cpu"], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert "CUDA driver" not in out.stderr + out.stdout
+    bad = subprocess.run([sys.executable, "-m", "tomgs.cli", "demo", "-o", str(tmp_path / "e.mp4"), "--frames", "0"],
+                         capture_output=True, text=True)
+    assert bad.returncode == 2 and "frames" in bad.stderr
+
+
 def test_demo_writes_a_video(tmp_path):
     out = tmp_path / "demo.mp4"
     result = run("demo", "-o", str(out), "--frames", "6", "--size", "96x54", "--device", "cpu")

@@ -9,6 +9,8 @@ statistics see the whole frame; kernels run on torch's current stream, where the
 from __future__ import annotations
 
 import contextlib
+import os
+import sys
 from dataclasses import dataclass
 
 import torch
@@ -27,9 +29,27 @@ def _init_warp() -> None:
     global _warp_ready
     if not _warp_ready:
         wp.config.log_level = max(wp.config.log_level, wp.LOG_ERROR)
-        wp.init()
+        # Warp's native library prints "Could not find or load the NVIDIA CUDA driver" straight to
+        # file descriptor 2 on machines without one, whatever the log level: on a CPU-only machine
+        # (torch sees no GPU) that line is noise in every command's output
+        with contextlib.nullcontext() if torch.cuda.is_available() else _native_stderr_silenced():
+            wp.init()
         wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
         _warp_ready = True
+
+
+@contextlib.contextmanager
+def _native_stderr_silenced():
+    """Send what native code writes to file descriptor 2 to /dev/null for the duration."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+            yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 # The radix sort needs 2 x count slots and counts in int32: 2^30 keeps both inside int32.
 MAX_INTERSECTIONS = 2**30
