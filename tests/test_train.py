@@ -44,6 +44,14 @@ def test_synthetic_clip_fits_to_30db(sparse_adam):
     assert psnrs[-1] > psnrs[0] + 10  # it learned, it did not start there
 
 
+def test_adam_is_sparse_on_a_gpu_and_dense_on_a_cpu_unless_asked():
+    images, cams, points, colors = synthetic_clip(2, 24, 14)
+    for asked, want in ((None, torch.optim.Adam), (True, SeenAdam), (False, torch.optim.Adam)):
+        trainer = Trainer(images, cams, points, colors, small_config(10, sparse_adam=asked), CPU)
+        assert type(trainer.optimizer) is want
+        trainer.step()
+
+
 def test_seen_adam_is_adam_on_the_rows_in_view():
     """SeenAdam against torch's Adam in float64 on fresh random gradients: seen rows take Adam's
     step, unseen rows keep their values and moments; parameters of 1-3 axes and an empty one."""
@@ -80,11 +88,12 @@ def test_seen_adam_is_adam_on_the_rows_in_view():
         opt.step(torch.ones(n + 1, dtype=torch.bool))
 
 
-def test_initial_points_per_frame_respect_frame_size_and_cap():
+def test_initial_points_per_frame_respect_device_frame_size_and_cap():
     config = preset("default")
-    assert config.points_per_frame(854 * 480, 90) == 8000
-    assert config.points_per_frame(128 * 72, 32) == 128 * 72 // 5  # small frames: one per 5 pixels
-    assert config.points_per_frame(854 * 480, 2000) == 2500  # long clips: half of the 10M cap
+    assert config.points_per_frame(854 * 480, 90, "cuda") == 8000
+    assert config.points_per_frame(854 * 480, 90, "cpu") == 2000  # serial kernels: fewer, more steps
+    assert config.points_per_frame(128 * 72, 32, "cuda") == 128 * 72 // 5  # small frames: one per 5 pixels
+    assert config.points_per_frame(854 * 480, 2000, "cuda") == 2500  # long clips: half of the 10M cap
     assert config.replace(init_points_per_frame=300).points_per_frame(100, 5) == 300  # asked for: as given
     assert config.replace(max_gaussians=10).points_per_frame(100, 90) == 1
 

@@ -109,7 +109,7 @@ def plane_cameras(n: int, width: int, height: int, times=None, frame_indices=Non
     return tuple(Cameras(np.tile(c2w, (n, 1, 1)), K, width, height, times, indices) for c2w in (front, back))
 
 
-def foreground_inputs(clip, config, masks_path=None) -> LayerInputs:
+def foreground_inputs(clip, config, masks_path=None, device_type: str = "cpu") -> LayerInputs:
     """The two views of every frame (A: the frame, B: mirrored), black outside the mask, alpha targets
     the mask, and the planar model initialised from the object's pixels."""
     masks = check_masks(clip, "foreground", masks_path)
@@ -120,14 +120,14 @@ def foreground_inputs(clip, config, masks_path=None) -> LayerInputs:
     alpha = np.concatenate([masks, masks[:, :, ::-1]]).astype(np.float32)
     views = Cameras(np.concatenate([front.c2w, back.c2w]), front.K, width, height,
                     np.concatenate([front.times, back.times]), np.concatenate([front.frame_indices] * 2))
-    model = planar_model(cutout, masks, front, config)
+    model = planar_model(cutout, masks, front, config, device_type)
     return LayerInputs(frames, views, dict(alpha_targets=alpha, initial=(model, PLANE_DISTANCE)), front, [
         f"foreground layer: {len(model):,} flat Gaussians on the plane z = 0 from the masked pixels, two fixed "
         "cameras (the second sees the mirrored frame), no estimated poses; PSNR against the frames cut out by "
         "the masks"])
 
 
-def planar_model(frames: np.ndarray, masks: np.ndarray, cameras: Cameras, config):
+def planar_model(frames: np.ndarray, masks: np.ndarray, cameras: Cameras, config, device_type: str = "cpu"):
     """PlanarGaussianModel with `config.points_per_frame` Gaussians over the object in every frame where
     it appears (the object is the layer's whole subject), each the size of its share of the mask, on
     the plane where camera A sees its pixel and alive around its frame's time.
@@ -136,7 +136,7 @@ def planar_model(frames: np.ndarray, masks: np.ndarray, cameras: Cameras, config
 
     g = torch.Generator().manual_seed(config.seed)
     n, height, width = masks.shape
-    per_frame = config.points_per_frame(int(masks.sum(axis=(1, 2)).max()), n)
+    per_frame = config.points_per_frame(int(masks.sum(axis=(1, 2)).max()), n, device_type)
     focal = float(cameras.K[0, 0])
     points, colors, times, sizes = [], [], [], []
     for k in range(n):

@@ -6,6 +6,13 @@ import dataclasses
 from dataclasses import dataclass
 
 
+# Initial points per frame by device. On a GPU a step costs little more for more Gaussians and a
+# denser start shortens the growth phase (camel, 7 min, H200: 8000 per frame 34.50 dB against 34.02
+# with 2000); on a CPU the serial kernels' cost grows with every Gaussian, and a short fit gets
+# fewer steps (DAVIS camel's background layer at 240x135, 3 minutes: 51 steps with 6480 per frame).
+AUTO_POINTS_PER_FRAME = {"cuda": 8000, "cpu": 2000}
+
+
 @dataclass
 class TrainConfig:
     iterations: int = 12_000
@@ -26,9 +33,12 @@ class TrainConfig:
     temporal: bool = True  # False: static 3DGS, no temporal opacity (ablation)
     sh_degree: int = 0  # view-dependent colour is rare in video: left out unless asked
     # Adam on the Gaussians in view only (tomgs/train/optim.py): the others keep their values and
-    # moments. On DAVIS at 7.5 minutes (H200): camel 34.4 -> 36.4 dB, kite-surf 43.2 -> 47.8 dB against
-    # dense Adam, whose stale momentum kept moving the 85% of Gaussians dead at the frame's time
-    sparse_adam: bool = True
+    # moments. None: on a GPU, dense on a CPU. GPU fits run tens of thousands of steps, and there
+    # dense Adam's stale momentum keeps moving the ~85% of Gaussians dead at the frame's time (DAVIS,
+    # 7.5 min, H200: camel 34.4 -> 36.4 dB, kite-surf 43.2 -> 47.8 dB with sparse). CPU fits run
+    # hundreds, where that momentum acts as extra steps (the bundled clip in 4 min: 29.57 dense,
+    # 29.09 sparse; camel's background layer in 3 min: 22.44 dense, 21.99 sparse)
+    sparse_adam: bool | None = None
     # learning rates (3DGS; means scaled by the scene extent and decayed exponentially)
     lr_means: float = 1.6e-4
     lr_means_final: float = 1.6e-6
@@ -41,8 +51,7 @@ class TrainConfig:
     lr_t_scales: float = 1e-2
     ssim_weight: float = 0.2  # loss = (1 - w) L1 + w (1 - SSIM)
     # initialisation: points unprojected from every frame, alive around that frame's time; None:
-    # 8000, or one per 5 pixels on smaller frames (8000 at 854x480 reached camel's 7-minute PSNR
-    # 0.5 dB sooner than 2000: the growth phase starts nearer the cap); see `points_per_frame`
+    # by device, see `points_per_frame` and AUTO_POINTS_PER_FRAME
     init_points_per_frame: int | None = None
     init_t_scale_frames: float = 2.0  # sigma of per-frame points, in frames
     # logging
@@ -52,11 +61,15 @@ class TrainConfig:
     max_seconds: float = 0.0  # stop after this much wall-clock time (0: run all iterations)
     seed: int = 0
 
-    def points_per_frame(self, pixels: int, frames: int) -> int:
-        """Initial Gaussians per frame of `pixels` pixels in a clip of `frames` frames:
-        `init_points_per_frame` (None: 8000, at most one per 5 pixels), and at most half of the cap
-        over the whole clip, so that densification always has room to work."""
-        wanted = min(8000, pixels // 5) if self.init_points_per_frame is None else int(self.init_points_per_frame)
+    def points_per_frame(self, pixels: int, frames: int, device_type: str = "cpu") -> int:
+        """Initial Gaussians per frame of `pixels` pixels in a clip of `frames` frames, trained on a
+        `device_type` device: `init_points_per_frame`, or when it is None AUTO_POINTS_PER_FRAME's
+        count for the device, at most one per 5 pixels; and never more than half of the cap over
+        the whole clip, so that densification always has room to work."""
+        if self.init_points_per_frame is None:
+            wanted = min(AUTO_POINTS_PER_FRAME.get(device_type, AUTO_POINTS_PER_FRAME["cpu"]), pixels // 5)
+        else:
+            wanted = int(self.init_points_per_frame)
         return max(min(wanted, self.max_gaussians // (2 * max(frames, 1))), 1)
 
     def replace(self, **changes) -> "TrainConfig":

@@ -51,7 +51,7 @@ def fit(video, output, config: TrainConfig | None = None, *, masks=None, frames=
         raise InputError(f"{paths['checkpoint']}: no checkpoint to resume from; run without --resume")
 
     clip = video if isinstance(video, Video) else read_video(video, frames=frames, max_side=max_side, masks=masks)
-    inputs = _layer_inputs(clip, layer, config, mask_dilation, masks)  # checks the masks before any work
+    inputs = _layer_inputs(clip, layer, config, mask_dilation, masks, device)  # checks the masks before any work
     t0 = time.perf_counter()
     point_frames = None
     if inputs.cameras is None:
@@ -96,7 +96,7 @@ def _fps(clip) -> float:
     return float(fps)
 
 
-def _layer_inputs(clip, layer, config, mask_dilation, masks_path):
+def _layer_inputs(clip, layer, config, mask_dilation, masks_path, device):
     """tomgs.layers.LayerInputs for `layer`; for None, the whole clip with estimated cameras."""
     if layer is None:
         from tomgs.layers import LayerInputs
@@ -107,7 +107,7 @@ def _layer_inputs(clip, layer, config, mask_dilation, masks_path):
     if layer == "background":
         return background_inputs(clip, mask_dilation, masks_path)
     if layer == "foreground":
-        return foreground_inputs(clip, config, masks_path)
+        return foreground_inputs(clip, config, masks_path, device.type)
     raise InputError(f"unknown layer {layer!r}: use background or foreground")
 
 

@@ -83,6 +83,7 @@ class Trainer:
         self.notes: list[str] = []
         self.wide_fraction = float(wide_fraction)
         self.point_frames = None if point_frames is None else np.asarray(point_frames, dtype=np.int64).reshape(-1, 2)
+        self.sparse_adam = device.type == "cuda" if config.sparse_adam is None else bool(config.sparse_adam)
         if initial is None:
             self.model, self.extent = self._initial_model(np.asarray(points, dtype=np.float64).reshape(-1, 3),
                                                           np.asarray(colors, dtype=np.float32).reshape(-1, 3))
@@ -107,7 +108,7 @@ class Trainer:
         g = torch.Generator().manual_seed(c.seed)
         w2c = self.cameras.viewmats()
         depth = self._median_depth(points, w2c)
-        per_frame = c.points_per_frame(self.width * self.height, self.num_frames)
+        per_frame = c.points_per_frame(self.width * self.height, self.num_frames, self.device.type)
         xs, cols, ts = [], [], []
         fx, fy, cx, cy = self.cameras.K[0, 0], self.cameras.K[1, 1], self.cameras.K[0, 2], self.cameras.K[1, 2]
         for k in range(self.num_frames):
@@ -186,7 +187,7 @@ class Trainer:
                   opacity_logits=c.lr_opacity, sh_dc=c.lr_sh_dc, sh_rest=c.lr_sh_rest,
                   t_means=c.lr_t_means if c.temporal else 0.0, log_t_scales=c.lr_t_scales if c.temporal else 0.0)
         groups = [dict(params=[p], lr=lr[name], name=name) for name, p in self.model.parameters_by_name().items()]
-        if c.sparse_adam:
+        if self.sparse_adam:
             return SeenAdam(groups, lr=0.0, eps=1e-15)
         # fused: one kernel for all groups on the GPU (the foreach path took 2 ms at 4.5M Gaussians)
         return torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=self.device.type == "cuda")
@@ -262,7 +263,7 @@ class Trainer:
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
                 group["lr"] = self._means_lr()
-        if c.sparse_adam:
+        if self.sparse_adam:
             self.optimizer.step((meta["radii"] > 0).any(-1))
         else:
             self.optimizer.step()
