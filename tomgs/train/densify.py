@@ -27,12 +27,12 @@ class Densifier:
         self.grad_sum = torch.zeros(n, device=device)
         self.seen = torch.zeros(n, device=device)
 
-    def observe(self, meta: dict) -> None:
-        """Accumulate the view-space positional gradient of the Gaussians visible in this frame."""
+    def observe(self, meta: dict, visible: torch.Tensor) -> None:
+        """Accumulate the view-space positional gradient of the Gaussians visible in this frame
+        (`visible`: bool [N], the rasterizer's radii > 0)."""
         grad = meta["means2d"].grad
         if grad is None:
             return
-        visible = (meta["radii"] > 0).any(-1)
         # pixels -> NDC units, the scale the 3DGS threshold is defined in
         scale = torch.tensor([meta["width"] / 2.0, meta["height"] / 2.0], device=grad.device)
         self.grad_sum += torch.where(visible, (grad * scale).norm(dim=-1), torch.zeros_like(self.grad_sum))

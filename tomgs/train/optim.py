@@ -25,24 +25,24 @@ class SeenAdam(torch.optim.Optimizer):
 
         seen_bytes = seen.to(torch.uint8)  # held until the launches are queued: the descriptor does not own it
         seen_d = _wp(seen_bytes)
-        for group in self.param_groups:
-            beta1, beta2 = group["betas"]
-            for p in group["params"]:
-                if p.grad is None or p.numel() == 0:
-                    continue
-                if p.shape[0] != seen.shape[0]:
-                    raise ValueError(f"seen has {seen.shape[0]} rows but the parameter has {p.shape[0]}")
-                state = self.state[p]
-                if not state:
-                    state["step"] = torch.tensor(0.0)
-                    state["exp_avg"] = torch.zeros_like(p)
-                    state["exp_avg_sq"] = torch.zeros_like(p)
-                state["step"] += 1
-                step = float(state["step"])
-                rows = p.shape[0]
-                grad = p.grad.contiguous()
-                views = [_wp(t.view(rows, -1)) for t in (p, grad, state["exp_avg"], state["exp_avg_sq"])]
-                with _on(p.device) as device:
+        with _on(seen.device) as device:
+            for group in self.param_groups:
+                beta1, beta2 = group["betas"]
+                for p in group["params"]:
+                    if p.grad is None or p.numel() == 0:
+                        continue
+                    if p.shape[0] != seen.shape[0]:
+                        raise ValueError(f"seen has {seen.shape[0]} rows but the parameter has {p.shape[0]}")
+                    state = self.state[p]
+                    if not state:
+                        state["step"] = torch.tensor(0.0)
+                        state["exp_avg"] = torch.zeros_like(p)
+                        state["exp_avg_sq"] = torch.zeros_like(p)
+                    state["step"] += 1
+                    step = float(state["step"])  # a CPU tensor: no wait for the device
+                    rows = p.shape[0]
+                    grad = p.grad.contiguous()
+                    views = [_wp(t.view(rows, -1)) for t in (p, grad, state["exp_avg"], state["exp_avg_sq"])]
                     _launch(adam.adam_seen_rows, p.numel(), device=device, args=[
                         *views, seen_d, group["lr"], beta1, beta2, group["eps"], 1.0 - beta1 ** step,
                         math.sqrt(1.0 - beta2 ** step)])

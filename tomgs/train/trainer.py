@@ -258,13 +258,14 @@ class Trainer:
         self._measured.append((k, self._psnr(k, image, target)))
         if len(self._measured) >= SAMPLER_LAG:
             self.flush_measurements()
+        in_view = (meta["radii"] > 0).any(-1)  # bool [N]: the Gaussians this step's gradient reaches
         if densifying:
-            self.densifier.observe(meta)
+            self.densifier.observe(meta, in_view)
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
                 group["lr"] = self._means_lr()
         if self.sparse_adam:
-            self.optimizer.step((meta["radii"] > 0).any(-1))
+            self.optimizer.step(in_view)
         else:
             self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
