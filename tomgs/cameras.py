@@ -26,13 +26,13 @@ at 0); `time` is the frame time in [0, 1].
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from tomgs.io import InputError
+from tomgs.errors import InputError
+from tomgs.outputs import write_text
 
 FORMAT = "tomgs-cameras"
 VERSION = 1
@@ -182,15 +182,7 @@ class Cameras:
         """Write JSON atomically (temporary file in the same folder, then rename)."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")  # plain open: the umask applies
-        try:
-            with open(tmp, "w") as f:
-                json.dump(self.to_dict(), f, indent=1)
-            os.replace(tmp, path)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
-        return path
+        return write_text(path, json.dumps(self.to_dict(), indent=1))
 
     @classmethod
     def load(cls, path) -> "Cameras":

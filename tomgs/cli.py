@@ -89,7 +89,7 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
       tomgs fit frames/ --masks masks/ --layer background -o bg.ply
       tomgs fit frames/ --masks masks/ --layer foreground -o fg.ply
     """
-    from tomgs.io import InputError
+    from tomgs.errors import InputError
     from tomgs.render import RenderError
     from tomgs.train import fit as fit_scene
     from tomgs.train import output_paths
@@ -147,7 +147,7 @@ def evaluate_command(scene, video, lpips_weights, json_out, device):
     """
     import json
 
-    from tomgs.io import InputError
+    from tomgs.errors import InputError
     from tomgs.io.scene import load_scene
     from tomgs.io.video import read_video_for
     from tomgs.metrics import LPIPS, default_lpips_weights, evaluate
@@ -215,7 +215,7 @@ def demo(output, num_frames, size, device):
       tomgs demo -o frames/ --size 854x480 --device cuda
     """
     from tomgs.demo import demo_scene
-    from tomgs.io import InputError
+    from tomgs.errors import InputError
     from tomgs.render import RenderError, resolve_device
 
     width, height = _parse_size(size)
@@ -319,7 +319,7 @@ def render(scene, frames, output, device, background, fps, layer_paths):
       tomgs render scene.ply --frames 0:80 -o frames/ --device cuda
       tomgs render bg.ply --layer fg.ply -o out.mp4     # foreground over background
     """
-    from tomgs.io import InputError
+    from tomgs.errors import InputError
     from tomgs.io.scene import load_scene
     from tomgs.layers import check_layers
     from tomgs.render import RenderError
@@ -344,7 +344,7 @@ def info(scene, plot, as_json):
     """Counts, time coverage, temporal scales and opacities of SCENE (a .ply from `tomgs fit`)."""
     import json
 
-    from tomgs.io import InputError
+    from tomgs.errors import InputError
     from tomgs.io.scene import check_png_path, format_summary, load_scene, plot_temporal_scales, summarize
 
     try:
@@ -403,7 +403,7 @@ def _render_plan(output, cams, frames, device, background, only=None, over=None,
     scene called `name`) like a `render --layer` layer."""
     import numpy as np
 
-    from tomgs.io import InputError
+    from tomgs.errors import InputError
     from tomgs.io.scene import load_scene, select_frames
     from tomgs.io.writer import check_output
     from tomgs.layers import check_layers
@@ -480,7 +480,7 @@ def edit(scene, output, selectors, translate, rotate, scale, centre, duplicate, 
       tomgs edit fg.ply -o big.ply --scale 1.3 --render big.mp4 --over bg.ply
     """
     from tomgs.edit.transforms import edit_scene, keyframed_clouds, load_keyframes
-    from tomgs.io import InputError
+    from tomgs.errors import InputError
     from tomgs.io.scene import load_scene, save_scene
     from tomgs.render import RenderError
 
@@ -546,7 +546,7 @@ def tets_export(scene, output, selectors, cage, cell):
     """
     from tomgs.edit.cage import make_tets
     from tomgs.edit.selection import select
-    from tomgs.io import InputError
+    from tomgs.errors import InputError
     from tomgs.io.scene import load_scene
     from tomgs.io.tets import save_tets
 
@@ -586,7 +586,7 @@ def tets_import(scene, tets_file, sequence, output, over, frames, device, backgr
       tomgs tets import fg.ply cage.ply sim.npz -o shot.mp4 --over bg.ply
     """
     from tomgs.edit.transforms import check_bound, deformed_model, sequence_clouds, sequence_rows
-    from tomgs.io import InputError
+    from tomgs.errors import InputError
     from tomgs.io.scene import load_scene, save_scene
     from tomgs.io.tets import load_sequence, load_tets
     from tomgs.render import RenderError
@@ -657,7 +657,7 @@ def simulate(scene, output, selectors, render_out, over, drop, spin, velocity, s
     from tomgs.edit.physics import SimConfig
     from tomgs.edit.selection import select
     from tomgs.edit.transforms import sequence_clouds
-    from tomgs.io import InputError
+    from tomgs.errors import InputError
     from tomgs.io.scene import load_scene, render_defaults
     from tomgs.io.tets import save_sequence, save_tets
     from tomgs.render import RenderError, resolve_device

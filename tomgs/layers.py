@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from tomgs.cameras import Cameras
-from tomgs.io import InputError
+from tomgs.errors import InputError
 
 PLANE_DISTANCE = 1.0  # d: the cameras' distance from the foreground plane (scene units)
 # the share of the background's initial Gaussians that start alive over the whole clip (the rest

@@ -8,13 +8,11 @@ OpenCV is imported inside the functions so that `import tomgs` stays cheap.
 from __future__ import annotations
 
 import math
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from tomgs.io.atomic import publish
+from tomgs.outputs import write_bytes
 
 WIDTH, HEIGHT = 800, 500
 MARGIN_LEFT, MARGIN_RIGHT, MARGIN_TOP, MARGIN_BOTTOM = 80, 24, 44, 58
@@ -169,15 +167,7 @@ def _write_png(path, img: np.ndarray) -> Path:
     ok, data = cv2.imencode(".png", img)
     if not ok:
         raise ValueError(f"{path}: could not encode the plot as PNG")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data.tobytes())
-        publish(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    write_bytes(path, data.tobytes())
     return path
 
 

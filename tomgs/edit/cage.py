@@ -129,7 +129,7 @@ def simulate_selection(model, indices, config, cell: float | None = None, device
     Raises InputError when a cage tet turned inside out in some frame: the Gaussians bound to it would
     be mirrored, so the shot would be broken rather than merely soft."""
     from tomgs.edit.physics import simulate_with_stats
-    from tomgs.io import InputError
+    from tomgs.errors import InputError
 
     cage = make_tets(model, indices, "cage", cell)
     result = simulate_with_stats(cage.vertices, cage.tets, config, device=device)

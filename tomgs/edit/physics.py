@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from tomgs.io import InputError
+from tomgs.errors import InputError
 from tomgs.kernels import xpbd
 from tomgs.render import _init_warp
 

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tomgs.io import InputError
+from tomgs.errors import InputError
 
 SYNTAX = "box:x0,y0,z0,x1,y1,z1, sphere:x,y,z,r, time:t0,t1, index:FILE.txt or mask:FOLDER"
 _NUMBERS = {"box": 6, "sphere": 4, "time": 2}

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from tomgs.edit.tets import THICKEN, deform, gaussians_to_tets
-from tomgs.io import InputError
+from tomgs.errors import InputError
 
 # ---- affine maps -------------------------------------------------------------------------------
 

@@ -44,7 +44,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -53,7 +52,8 @@ import numpy as np
 import torch
 
 from tomgs.cameras import Cameras
-from tomgs.io import InputError
+from tomgs.errors import InputError
+from tomgs.outputs import atomic_file
 
 if TYPE_CHECKING:  # for the annotation only; load_scene imports the model when it builds one
     from tomgs.model import GaussianModel
@@ -149,16 +149,8 @@ def save_scene(path, model, cameras: Cameras, info: dict | None = None) -> Path:
                   text=False, byte_order="<", comments=[f"{COMMENT_TAG} {text}"])
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as f:
-            ply.write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    with atomic_file(path, durable=True) as tmp, open(tmp, "wb") as f:
+        ply.write(f)
     return path
 
 

@@ -23,15 +23,13 @@ names, natural sort order) or a single PLY file, each with a `vertex` element of
 
 from __future__ import annotations
 
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from tomgs.io import InputError
-from tomgs.io.atomic import publish
+from tomgs.errors import InputError
+from tomgs.outputs import atomic_file
 
 W = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # world (OpenCV) -> Blender axes
 KINDS = ("gaussian", "cage")
@@ -116,21 +114,9 @@ def save_tets(path, tets: Tets) -> Path:
         elements.append(PlyElement.describe(binding, "binding"))
     ply = PlyData(elements, text=False, byte_order="<",
                   comments=["tomgs tets 1", f"kind {tets.kind}", "axes blender"])
-    _write_atomic(path, lambda f: ply.write(f))
+    with atomic_file(path) as tmp, open(tmp, "wb") as f:
+        ply.write(f)
     return path
-
-
-def _write_atomic(path: Path, write) -> None:
-    if not path.parent.exists():
-        raise InputError(f"{path}: folder {path.parent} does not exist; create it or choose another path")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-        publish(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def _read_ply(path: Path, what: str):
@@ -216,7 +202,8 @@ def save_sequence(path, vertices, frames=None) -> Path:
     arrays = {"vertices": to_blender(vertices).astype(np.float32)}
     if frames is not None:
         arrays["frames"] = np.asarray(frames, dtype=np.int64)
-    _write_atomic(path, lambda f: np.savez(f, **arrays))
+    with atomic_file(path) as tmp, open(tmp, "wb") as f:
+        np.savez(f, **arrays)
     return path
 
 

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tomgs.io import InputError
+from tomgs.errors import InputError
 
 VIDEO_EXTS = {".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v"}
 IMAGE_EXTS = {".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff"}

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tomgs.io import InputError
+from tomgs.errors import InputError
 from tomgs.io.atomic import publish
 
 VIDEO_SUFFIXES = {".mp4": "mp4v", ".avi": "MJPG", ".mov": "mp4v", ".mkv": "mp4v"}

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from tomgs.cameras import Cameras, intrinsics
-from tomgs.io import InputError
+from tomgs.errors import InputError
 
 METHODS = ("auto", "identity", "a .json/.npy pose file, a COLMAP text folder, or an .onnx model")
 

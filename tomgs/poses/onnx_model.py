@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from tomgs.cameras import Cameras
-from tomgs.io import InputError
+from tomgs.errors import InputError
 
 
 def run_onnx(path, frames: np.ndarray, indices=None) -> Cameras:

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tomgs.io import InputError
+from tomgs.errors import InputError
 from tomgs.train.config import TrainConfig
 from tomgs.train.trainer import FitResult, Trainer
 
