@@ -1,11 +1,15 @@
 """Frames out: an MP4/AVI/MOV/MKV file or a folder of numbered PNGs, written atomically.
 
-Everything is written under a temporary name next to the target and renamed at the end, so an
-interrupted or failed write never leaves a half-written output behind.
+Everything is written under a temporary name next to the target and moved into place at the end,
+so an interrupted or failed write never leaves a half-written output behind. An existing output
+is replaced only with `overwrite=True`; in a folder, that replaces and removes only numbered frame
+PNGs (`00012.png`, the files tomgs writes there) and keeps every other file.
 """
 
 from __future__ import annotations
 
+import os
+import re
 import shutil
 import tempfile
 from collections.abc import Iterable
@@ -14,33 +18,41 @@ from pathlib import Path
 import numpy as np
 
 from tomgs.errors import InputError
-from tomgs.io.atomic import publish
+from tomgs.outputs import check_file_output, check_folder_output, publish
 
 VIDEO_SUFFIXES = {".mp4": "mp4v", ".avi": "MJPG", ".mov": "mp4v", ".mkv": "mp4v"}
+_FRAME_PNG = re.compile(r"\d{5,}\.png")
 
 
-def check_output(path) -> Path:
-    """`path` as a Path when `write_frames` can write there (a video suffix or none, in an existing
-    folder), else InputError; lets a command check before any work."""
+def is_frame_png(name: str) -> bool:
+    """True for the names tomgs gives PNG frames in an output folder (00000.png, ...)."""
+    return bool(_FRAME_PNG.fullmatch(name))
+
+
+def check_output(path, overwrite: bool = False) -> Path:
+    """`path` as a Path when `write_frames` can write there now (a video suffix, or none for a
+    folder of PNGs, in an existing writable folder; an existing output only with `overwrite`),
+    else InputError saying how to proceed; lets a command check before any work."""
     path = Path(path)
-    if not path.parent.exists():
-        raise InputError(f"{path}: folder {path.parent} does not exist; create it or choose another output path")
     if path.suffix and path.suffix.lower() not in VIDEO_SUFFIXES:
         raise InputError(f"{path}: unknown output type {path.suffix!r}; use one of "
                          f"{', '.join(sorted(VIDEO_SUFFIXES))} or a folder name without a suffix for PNG frames")
-    return path
+    if path.suffix:
+        return check_file_output(path, overwrite, what="video")
+    return check_folder_output(path, is_frame_png, overwrite)
 
 
-def write_frames(frames: Iterable[np.ndarray], path, fps: float = 25.0, numbers: Iterable[int] | None = None) -> int:
+def write_frames(frames: Iterable[np.ndarray], path, fps: float = 25.0, numbers: Iterable[int] | None = None,
+                 overwrite: bool = False) -> int:
     """Write RGB uint8 frames [H,W,3] to `path`: a video file by suffix, else a folder of PNGs
     named by `numbers` (the frames' numbers, e.g. the scene's frame numbers; default 0, 1, ...),
     zero-padded to five digits: 00000.png, .... Returns the number of frames written. Existing
-    output is replaced only on success."""
+    output is refused unless `overwrite`, and then replaced only on success."""
     import cv2
 
-    path = check_output(path)
-    is_video = path.suffix.lower() in VIDEO_SUFFIXES
-    staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
+    path = check_output(path, overwrite)
+    is_video = bool(path.suffix)
+    staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
     count = 0
     writer = None
     names = None if numbers is None else iter(numbers)
@@ -68,11 +80,24 @@ def write_frames(frames: Iterable[np.ndarray], path, fps: float = 25.0, numbers:
             writer = None
         if count == 0:
             raise InputError(f"{path}: no frames to write")
-        if path.is_dir() and not is_video:
-            shutil.rmtree(path)
-        publish(target, path)
+        if is_video or not path.exists():
+            publish(target, path)
+        else:
+            _merge_frames(staging, path)
     finally:
         if writer is not None:
             writer.release()
         shutil.rmtree(staging, ignore_errors=True)
     return count
+
+
+def _merge_frames(staging: Path, folder: Path) -> None:
+    """Move the staged frames into the existing `folder`, then remove its other frame PNGs (an
+    earlier render's, which would otherwise mix with this one); other files are kept."""
+    written = set()
+    for entry in os.scandir(staging):
+        publish(entry.path, folder / entry.name)
+        written.add(entry.name)
+    for entry in os.scandir(folder):
+        if is_frame_png(entry.name) and entry.name not in written and entry.is_file(follow_symlinks=False):
+            os.unlink(entry.path)
