@@ -6,11 +6,8 @@ from dataclasses import dataclass
 
 import torch
 
+from tomgs.errors import RenderError
 from tomgs.sh import sh_degree_of, sh_to_colors
-
-
-class RenderError(ValueError):
-    """Invalid rasterizer input or a frame too large to bin; the message says what to change."""
 
 
 @dataclass
