@@ -87,7 +87,9 @@ def test_keyframes_render_a_time_varying_edit(tmp_path, scene):
 def test_tets_export_and_import_equal_the_same_edit(tmp_path, scene):
     """Moving exported tets (as Blender would) and importing them gives the scene `tomgs edit` gives."""
     for flags in ([], ["--cage"]):
-        tets = tmp_path / "tets.ply"
+        out = tmp_path / ("cage" if flags else "gaussian")  # each variant writes its own files
+        out.mkdir()
+        tets = out / "tets.ply"
         result = run("tets", "export", scene, "-o", tets, "--select", BALL, *flags)
         assert result.exit_code == 0, result.output
         mesh = load_tets(tets)
@@ -96,12 +98,13 @@ def test_tets_export_and_import_equal_the_same_edit(tmp_path, scene):
         c, s = np.cos(np.pi / 6), np.sin(np.pi / 6)
         R = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])  # 30 degrees about y
         moved = (mesh.vertices - centre) @ R.T + centre + [0.2, 0.0, 0.0]
-        save_sequence(tmp_path / "one.npz", moved[None])
-        result = run("tets", "import", scene, tets, tmp_path / "one.npz", "-o", tmp_path / "imported.ply")
+        save_sequence(out / "one.npz", moved[None])
+        result = run("tets", "import", scene, tets, out / "one.npz", "-o", out / "imported.ply")
         assert result.exit_code == 0, result.output
-        run("edit", scene, "-o", tmp_path / "edited.ply", "--select", BALL, "--rotate", "0,30,0",
-            "--translate", "0.2,0,0")
-        a, b = load_scene(tmp_path / "imported.ply").model, load_scene(tmp_path / "edited.ply").model
+        result = run("edit", scene, "-o", out / "edited.ply", "--select", BALL, "--rotate", "0,30,0",
+                     "--translate", "0.2,0,0")
+        assert result.exit_code == 0, result.output
+        a, b = load_scene(out / "imported.ply").model, load_scene(out / "edited.ply").model
         assert torch.allclose(a.means, b.means, atol=1e-4)
         ra, rb = (render_sequence(m.render_inputs(), load_scene(scene).cameras, [2]) for m in (a, b))
         assert (next(ra)[1] - next(rb)[1]).abs().max() < 0.02

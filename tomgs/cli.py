@@ -2,15 +2,44 @@
 
 from __future__ import annotations
 
+import functools
+from typing import NamedTuple
+
 import click
+import numpy as np
 
 from tomgs import __version__
+from tomgs.errors import InputError, RenderError
 
 
 class UsageError(click.ClickException):
     """A bad input: clear message, exit code 2, nothing written."""
 
     exit_code = 2
+
+
+def _user_errors(command):
+    """Bad input found by the library (InputError, RenderError): exit 2 with its message. An OS
+    error while reading or writing (disk full, a file removed under us): exit 1 naming the file.
+    Never a traceback."""
+    @functools.wraps(command)
+    def wrapper(*args, **kwargs):
+        try:
+            return command(*args, **kwargs)
+        except (InputError, RenderError) as e:
+            raise UsageError(str(e)) from None
+        except OSError as e:
+            where = f"{e.filename}: " if e.filename else ""
+            raise click.ClickException(f"{where}{e.strerror or e}") from None
+    return wrapper
+
+
+MAX_SIDE = 16384  # the largest frame side a command renders (a 16K frame is 3 GB as float32 RGBA)
+
+_device_option = click.option("--device", default="auto", show_default=True, help="auto, cpu, cuda or cuda:N")
+_overwrite_option = click.option(
+    "-y", "--overwrite", is_flag=True,
+    help="replace existing outputs (in a folder of frames only its numbered PNGs; other files are kept)")
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -30,21 +59,22 @@ def main() -> None:
               help="auto, identity, a cameras .json / AnyCam c2w .npy / COLMAP text folder, or an .onnx model")
 @click.option("--focal", type=float, default=None, help="focal length in pixels of the (resized) frames")
 @click.option("--max-side", type=int, default=None, help="resize frames so that max(W, H) <= N")
-def poses(video, output, masks, frames, method, focal, max_side):
+@_overwrite_option
+@_user_errors
+def poses(video, output, masks, frames, method, focal, max_side, overwrite):
     """Estimate per-frame cameras of VIDEO (a video file or a folder of frames)."""
-    from tomgs.io import InputError, read_video
+    from tomgs.io import read_video
+    from tomgs.outputs import check_file_output
     from tomgs.poses import estimate_cameras
 
-    try:
-        clip = read_video(video, frames=frames, max_side=max_side, masks=masks)
-        with click.progressbar(length=2 * len(clip), label="poses", show_eta=True, show_percent=True) as bar:
-            def progress(done, total):
-                bar.update(done - bar.pos)
+    check_file_output(output, overwrite, what="cameras file")
+    clip = read_video(video, frames=frames, max_side=max_side, masks=masks)
+    with click.progressbar(length=2 * len(clip), label="poses", show_eta=True, show_percent=True) as bar:
+        def progress(done, total):
+            bar.update(done - bar.pos)
 
-            cams, _, _, report = estimate_cameras(clip, method=method, focal=focal, progress=progress)
-        cams.save(output)
-    except InputError as e:
-        raise UsageError(str(e)) from None
+        cams, _, _, report = estimate_cameras(clip, method=method, focal=focal, progress=progress)
+    cams.save(output)
     for note in report.notes:
         click.echo(f"  note: {note}")
     click.echo(f"{output}: {report.summary()}")
@@ -63,7 +93,7 @@ def poses(video, output, masks, frames, method, focal, max_side):
 @click.option("--poses", default="auto", show_default=True,
               help="auto, identity, or a cameras .json / AnyCam .npy / COLMAP folder / .onnx model")
 @click.option("--focal", type=float, default=None, help="focal length in pixels, if known")
-@click.option("--device", default="auto", show_default=True, help="auto, cpu, cuda or cuda:N")
+@_device_option
 @click.option("--cap", "max_gaussians", type=click.IntRange(1), default=None, help="most Gaussians (default 10M)")
 @click.option("--budget", "max_seconds", type=click.FloatRange(min=1.0), default=None,
               help="stop after this many seconds of training (schedules follow the budget)")
@@ -77,8 +107,10 @@ def poses(video, output, masks, frames, method, focal, max_side):
               help="fit one layer (needs --masks): the pixels outside the masks, or the masked object on a plane")
 @click.option("--mask-dilation", type=click.IntRange(0), default=2, show_default=True,
               help="background layer: grow the masks by this many pixels before leaving them out")
+@_overwrite_option
+@_user_errors
 def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal, device, max_gaussians, max_seconds,
-        sampling, static_3dgs, opacity_reset, sh_degree, seed, resume, layer, mask_dilation):
+        sampling, static_3dgs, opacity_reset, sh_degree, seed, resume, layer, mask_dilation, overwrite):
     """Fit a TOM-GS scene to VIDEO (a video file or a folder of frames).
 
     \b
@@ -89,8 +121,6 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
       tomgs fit frames/ --masks masks/ --layer background -o bg.ply
       tomgs fit frames/ --masks masks/ --layer foreground -o fg.ply
     """
-    from tomgs.errors import InputError
-    from tomgs.render import RenderError
     from tomgs.train import fit as fit_scene
     from tomgs.train import output_paths
     from tomgs.train import preset as make_config
@@ -113,8 +143,6 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
             result = fit_scene(video, output, config, masks=masks, frames=frames, max_side=max_side, poses=poses,
                                focal=focal, device=device, resume=resume, progress=progress, layer=layer,
                                mask_dilation=mask_dilation)
-    except (InputError, RenderError) as e:
-        raise UsageError(str(e)) from None
     except KeyboardInterrupt:
         click.echo(f"\ninterrupted: checkpoint kept at {output_paths(output)['checkpoint']}; "
                    f"continue with --resume", err=True)
@@ -134,8 +162,10 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
               help="LPIPS AlexNet weights (.npz); default $TOMGS_LPIPS_WEIGHTS, else LPIPS is left out")
 @click.option("--json", "json_out", type=click.Path(path_type=str), default=None,
               help="also write per-frame and mean metrics as JSON to this file ('-' for stdout)")
-@click.option("--device", default="auto", show_default=True, help="auto, cpu, cuda or cuda:N")
-def evaluate_command(scene, video, lpips_weights, json_out, device):
+@_device_option
+@_overwrite_option
+@_user_errors
+def evaluate_command(scene, video, lpips_weights, json_out, device, overwrite):
     """Compare SCENE, rendered at every frame it was fitted on, with VIDEO: PSNR and SSIM per frame
     and on average, as the peers compute them (float renders, 11x11 Gaussian SSIM); LPIPS when its
     weights are given.
@@ -144,15 +174,19 @@ def evaluate_command(scene, video, lpips_weights, json_out, device):
     Examples:
       tomgs eval scene.ply clip.mp4
       tomgs eval scene.ply frames/ --lpips alexnet-lpips-v0.1.npz --json metrics.json
+      tomgs eval scene.ply clip.mp4 --json - | jq .mean     # JSON alone on stdout
     """
     import json
 
-    from tomgs.errors import InputError
     from tomgs.io.scene import load_scene
     from tomgs.io.video import read_video_for
     from tomgs.metrics import LPIPS, default_lpips_weights, evaluate
-    from tomgs.render import RenderError, resolve_device
+    from tomgs.outputs import check_file_output, write_text
+    from tomgs.render import resolve_device
 
+    to_stdout = json_out == "-"
+    if json_out and not to_stdout:
+        check_file_output(json_out, overwrite, what="JSON report")
     try:
         dev = resolve_device(device)
         loaded = load_scene(scene, device=dev)
@@ -160,20 +194,19 @@ def evaluate_command(scene, video, lpips_weights, json_out, device):
         weights = lpips_weights or default_lpips_weights()
         lpips = LPIPS(weights, device=dev) if weights else None
         report = evaluate(loaded.model, loaded.cameras, frames, lpips=lpips, device=dev)
-    except (InputError, RenderError) as e:
-        raise UsageError(str(e)) from None
     except ValueError as e:  # LPIPS weights that do not load
         raise UsageError(str(e)) from None
-    for k, p, s in zip(report.frames, report.psnr, report.ssim):
-        click.echo(f"  frame {int(loaded.cameras.frame_indices[k]):5d}: PSNR {p:6.2f} dB  SSIM {s:.4f}")
-    click.echo(f"{scene}: {report.summary()}" + ("" if lpips else " (LPIPS left out: no weights given)"))
+    for k, p, s in zip(report.frames, report.psnr, report.ssim):  # on stderr when stdout carries the JSON
+        click.echo(f"  frame {int(loaded.cameras.frame_indices[k]):5d}: PSNR {p:6.2f} dB  SSIM {s:.4f}",
+                   err=to_stdout)
+    click.echo(f"{scene}: {report.summary()}" + ("" if lpips else " (LPIPS left out: no weights given)"),
+               err=to_stdout)
     if json_out:
         text = json.dumps(_finite_or_null(report.to_dict()), indent=1)  # a perfect frame's PSNR is inf
-        if json_out == "-":
+        if to_stdout:
             click.echo(text)
         else:
-            with open(json_out, "w") as f:
-                f.write(text)
+            write_text(json_out, text)
 
 
 def _finite_or_null(value):
@@ -194,8 +227,8 @@ def _parse_size(text: str) -> tuple[int, int]:
         width, height = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise UsageError(f"--size must look like 320x180, got {text!r}") from None
-    if width < 1 or height < 1:
-        raise UsageError(f"--size must be positive, got {text!r}")
+    if not (1 <= width <= MAX_SIDE and 1 <= height <= MAX_SIDE):
+        raise UsageError(f"--size sides must be 1..{MAX_SIDE} pixels, got {text!r}")
     return width, height
 
 
@@ -204,8 +237,10 @@ def _parse_size(text: str) -> tuple[int, int]:
               help="an .mp4/.avi/.mov/.mkv file, or a folder (no suffix) for PNG frames")
 @click.option("--frames", "num_frames", default=48, show_default=True, type=click.IntRange(1, 10000))
 @click.option("--size", default="320x180", show_default=True, help="WIDTHxHEIGHT in pixels")
-@click.option("--device", default="auto", show_default=True, help="auto, cpu, cuda or cuda:N")
-def demo(output, num_frames, size, device):
+@_device_option
+@_overwrite_option
+@_user_errors
+def demo(output, num_frames, size, device, overwrite):
     """Render the bundled example scene: static Gaussians whose opacity fades in and out over
     time, so a ball travels across a room although no Gaussian moves.
 
@@ -215,21 +250,19 @@ def demo(output, num_frames, size, device):
       tomgs demo -o frames/ --size 854x480 --device cuda
     """
     from tomgs.demo import demo_scene
-    from tomgs.errors import InputError
-    from tomgs.render import RenderError, resolve_device
+    from tomgs.io.writer import check_output
+    from tomgs.render import resolve_device
 
     width, height = _parse_size(size)
-    try:
-        dev = resolve_device(device)
-        gaussians, cams = demo_scene(num_frames, width, height)
-        _render_to(output, gaussians, cams, range(num_frames), background=(0.05, 0.05, 0.08), device=dev, fps=24.0,
-                   what=f"at {width}x{height}")
-    except (InputError, RenderError) as e:
-        raise UsageError(str(e)) from None
+    check_output(output, overwrite)
+    dev = resolve_device(device)
+    gaussians, cams = demo_scene(num_frames, width, height)
+    _render_to(output, gaussians, cams, range(num_frames), background=(0.05, 0.05, 0.08), device=dev, fps=24.0,
+               what=f"at {width}x{height}", overwrite=overwrite)
 
 
 def _render_to(output, gaussians, cams, positions, background, device, fps: float, what: str, layers=(),
-               numbers=None) -> None:
+               numbers=None, overwrite: bool = False) -> None:
     """Render frames `positions` of `cams` to `output` (video or PNG folder, its PNGs named by
     `numbers`, the frames' numbers: default the positions) with a progress bar,
     `layers` ((gaussians, cameras) pairs) composited over them, then report the frame rate and how
@@ -269,7 +302,8 @@ def _render_to(output, gaussians, cams, positions, background, device, fps: floa
                 alive.append(int(meta["n_alive"]))
                 yield (image.numpy() * 255.0 + 0.5).astype(np.uint8)
 
-    count = write_frames(images(), output, fps=fps, numbers=positions if numbers is None else numbers)
+    count = write_frames(images(), output, fps=fps, numbers=positions if numbers is None else numbers,
+                         overwrite=overwrite)
     seconds = time.perf_counter() - start
     low = sum(fixed) + sum(min(sizes) for sizes in varying)
     high = sum(fixed) + sum(max(sizes) for sizes in varying)
@@ -302,7 +336,7 @@ def _parse_background(text: str | None):
 @click.option("--frames", default=None, help="frame range start:stop:step in the scene's frame numbers, e.g. 0:80")
 @click.option("-o", "--output", required=True, type=click.Path(path_type=str),
               help="an .mp4/.avi/.mov/.mkv file, or a folder (no suffix) for PNG frames")
-@click.option("--device", default="auto", show_default=True, help="auto, cpu, cuda or cuda:N")
+@_device_option
 @click.option("--background", default=None,
               help="r,g,b in [0, 1]; default: the scene's (info \"background\"), else black")
 @click.option("--fps", type=click.FloatRange(min=0.1), default=None,
@@ -310,7 +344,9 @@ def _parse_background(text: str | None):
 @click.option("--layer", "layer_paths", multiple=True, type=click.Path(path_type=str),
               help="a scene to composite over SCENE (e.g. a foreground from `fit --layer foreground`), each "
                    "with its own cameras at the same frames; repeat for more, the last in front")
-def render(scene, frames, output, device, background, fps, layer_paths):
+@_overwrite_option
+@_user_errors
+def render(scene, frames, output, device, background, fps, layer_paths, overwrite):
     """Render frames of SCENE (a .ply from `tomgs fit`) from its own cameras at their frame times.
 
     \b
@@ -319,20 +355,15 @@ def render(scene, frames, output, device, background, fps, layer_paths):
       tomgs render scene.ply --frames 0:80 -o frames/ --device cuda
       tomgs render bg.ply --layer fg.ply -o out.mp4     # foreground over background
     """
-    from tomgs.errors import InputError
     from tomgs.io.scene import load_scene
     from tomgs.layers import check_layers
-    from tomgs.render import RenderError
 
-    try:
-        loaded = load_scene(scene)
-        layers = [load_scene(path) for path in layer_paths]
-        check_layers(loaded.cameras, [layer.cameras for layer in layers], list(layer_paths))
-        plan = _render_plan(output, loaded.cameras, frames, device, background)
-        _render_scene(output, loaded, loaded.model.render_inputs(), plan, fps,
-                      layers=[(layer.model.render_inputs(), layer.cameras) for layer in layers])
-    except (InputError, RenderError) as e:
-        raise UsageError(str(e)) from None
+    loaded = load_scene(scene)
+    layers = [load_scene(path) for path in layer_paths]
+    check_layers(loaded.cameras, [layer.cameras for layer in layers], list(layer_paths))
+    plan = _render_plan(output, loaded.cameras, frames, device, background, overwrite)
+    _render_scene(loaded, loaded.model.render_inputs(), plan, fps,
+                  layers=[(layer.model.render_inputs(), layer.cameras) for layer in layers])
 
 
 @main.command()
@@ -340,22 +371,21 @@ def render(scene, frames, output, device, background, fps, layer_paths):
 @click.option("--plot", type=click.Path(dir_okay=False, path_type=str), default=None,
               help="write a PNG histogram of temporal scales (log axis) here")
 @click.option("--json", "as_json", is_flag=True, help="print the numbers as JSON instead of text")
-def info(scene, plot, as_json):
+@_overwrite_option
+@_user_errors
+def info(scene, plot, as_json, overwrite):
     """Counts, time coverage, temporal scales and opacities of SCENE (a .ply from `tomgs fit`)."""
     import json
 
-    from tomgs.errors import InputError
     from tomgs.io.scene import check_png_path, format_summary, load_scene, plot_temporal_scales, summarize
+    from tomgs.outputs import check_file_output
 
-    try:
-        if plot is not None:
-            check_png_path(plot)
-        loaded = load_scene(scene)
-        summary = summarize(loaded, scene)
-        if plot is not None:
-            plot_temporal_scales(loaded, plot)
-    except InputError as e:
-        raise UsageError(str(e)) from None
+    if plot is not None:
+        check_file_output(check_png_path(plot), overwrite, what="plot")
+    loaded = load_scene(scene)
+    summary = summarize(loaded, scene)
+    if plot is not None:
+        plot_temporal_scales(loaded, plot)
     click.echo(json.dumps(summary, indent=1) if as_json else format_summary(summary))
     if plot is not None and not as_json:
         click.echo(f"{plot}: histogram of temporal scales")
@@ -380,13 +410,14 @@ _OUTPUT_HELP = "an .mp4/.avi/.mov/.mkv file, or a folder (no suffix) for PNG fra
 
 
 def _render_options(f):
-    """--frames, --device, --background and --fps, as `tomgs render` has them."""
+    """--frames, --device, --background, --fps and --overwrite, as `tomgs render` has them."""
     for option in reversed([
         click.option("--frames", default=None, help="frame range start:stop:step in the scene's frame numbers"),
-        click.option("--device", default="auto", show_default=True, help="auto, cpu, cuda or cuda:N"),
+        _device_option,
         click.option("--background", default=None, help="r,g,b in [0, 1]; default: the scene's, else black"),
         click.option("--fps", type=click.FloatRange(min=0.1), default=None,
                      help="frame rate of a video output; default: the scene's, else 25"),
+        _overwrite_option,
     ]):
         f = option(f)
     return f
@@ -396,20 +427,26 @@ _OVER_HELP = ("a scene to render behind (e.g. a background from `fit --layer bac
               "at the same frames; the rendered scene is composited over it as `render --layer` does")
 
 
-def _render_plan(output, cams, frames, device, background, only=None, over=None, name="the scene"):
-    """Everything a render needs, checked before any work or writing: (positions, background RGB or
-    None, torch device, the --over scene or None). `only`: camera positions that have something to
-    render (a sequence's). `over`: the path of a scene to render behind, checked against `cams` (the
-    scene called `name`) like a `render --layer` layer."""
-    import numpy as np
+class _RenderPlan(NamedTuple):
+    output: str  # video file or PNG folder, checked writable
+    positions: np.ndarray  # [F] int64 camera positions to render
+    background: tuple | None  # RGB in [0, 1], None: the scene's
+    device: object  # torch.device
+    behind: object  # the --over scene (tomgs.io.scene.Scene) or None
+    overwrite: bool
 
-    from tomgs.errors import InputError
+
+def _render_plan(output, cams, frames, device, background, overwrite, only=None, over=None,
+                 name="the scene") -> _RenderPlan:
+    """Everything a render needs, checked before any work or writing. `only`: camera positions that
+    have something to render (a sequence's). `over`: the path of a scene to render behind, checked
+    against `cams` (the scene called `name`) like a `render --layer` layer."""
     from tomgs.io.scene import load_scene, select_frames
     from tomgs.io.writer import check_output
     from tomgs.layers import check_layers
     from tomgs.render import resolve_device
 
-    check_output(output)
+    check_output(output, overwrite)
     rgb = _parse_background(background)
     behind = None
     if over is not None:
@@ -420,16 +457,16 @@ def _render_plan(output, cams, frames, device, background, only=None, over=None,
         positions = np.array([k for k in positions.tolist() if k in only], dtype=np.int64)
         if len(positions) == 0:
             raise InputError(f"the sequence covers none of the frames {frames!r}: pick frames it covers")
-    return positions, rgb, resolve_device(device), behind
+    return _RenderPlan(output, positions, rgb, resolve_device(device), behind, overwrite)
 
 
-def _render_scene(output, scene, gaussians, plan, fps, layers=()) -> None:
+def _render_scene(scene, gaussians, plan: _RenderPlan, fps, layers=()) -> None:
     """Render `gaussians` (inputs or a per-frame callable) of `scene`, with `layers` composited over
     them, as `plan` (`_render_plan`) says; with the plan's --over scene, that scene is the base and
     `gaussians` are composited over it (then `layers`)."""
     from tomgs.io.scene import render_defaults
 
-    positions, rgb, device, behind = plan
+    positions, behind = plan.positions, plan.behind
     cams = scene.cameras
     numbers = cams.frame_indices[positions]
     default_rgb, default_fps = render_defaults(scene.info)
@@ -437,9 +474,10 @@ def _render_scene(output, scene, gaussians, plan, fps, layers=()) -> None:
         layers = [(gaussians, cams), *layers]
         gaussians, cams = behind.model.render_inputs(), behind.cameras
         default_rgb = render_defaults(behind.info)[0]
-    _render_to(output, gaussians, cams, positions.tolist(), background=rgb or default_rgb, device=device,
-               fps=fps or default_fps, what=f"({numbers[0]}..{numbers[-1]}) at {cams.width}x{cams.height}",
-               layers=layers, numbers=numbers.tolist())
+    _render_to(plan.output, gaussians, cams, positions.tolist(), background=plan.background or default_rgb,
+               device=plan.device, fps=fps or default_fps,
+               what=f"({numbers[0]}..{numbers[-1]}) at {cams.width}x{cams.height}", layers=layers,
+               numbers=numbers.tolist(), overwrite=plan.overwrite)
 
 
 def _is_scene_path(path: str) -> bool:
@@ -465,8 +503,9 @@ def _is_scene_path(path: str) -> bool:
               help="also render the edited scene here (" + _OUTPUT_HELP + ")")
 @click.option("--over", type=click.Path(path_type=str), default=None, help="when rendering: " + _OVER_HELP)
 @_render_options
+@_user_errors
 def edit(scene, output, selectors, translate, rotate, scale, centre, duplicate, remove, keyframes, render_out, over,
-         frames, device, background, fps):
+         frames, device, background, fps, overwrite):
     """Edit the Gaussians of SCENE that --select picks: move, rotate, scale, duplicate or remove
     them, or move them over time with --keyframes. Edits move each Gaussian's tetrahedron and
     rebuild the Gaussian from it; timing, opacity and colour are kept.
@@ -480,9 +519,8 @@ def edit(scene, output, selectors, translate, rotate, scale, centre, duplicate, 
       tomgs edit fg.ply -o big.ply --scale 1.3 --render big.mp4 --over bg.ply
     """
     from tomgs.edit.transforms import edit_scene, keyframed_clouds, load_keyframes
-    from tomgs.errors import InputError
     from tomgs.io.scene import load_scene, save_scene
-    from tomgs.render import RenderError
+    from tomgs.outputs import check_file_output
 
     move = dict(translate=_floats(translate, "--translate"), rotate=_floats(rotate, "--rotate"),
                 scale=_floats(scale, "--scale", (1, 3)), centre=_floats(centre, "--centre"),
@@ -502,23 +540,23 @@ def edit(scene, output, selectors, translate, rotate, scale, centre, duplicate, 
         raise UsageError("--render goes with a .ply output; -o already renders")
     if over and not (render_out or keyframes):
         raise UsageError("--over is what the render goes over: give --render (or --keyframes with a video -o)")
-    try:
-        loaded = load_scene(scene)
-        video = output if keyframes else render_out
-        plan = _render_plan(video, loaded.cameras, frames, device, background, over=over, name=scene) if video else None
-        keys = load_keyframes(keyframes, loaded.cameras) if keyframes else None
-        edited, rows = edit_scene(loaded, selectors, remove=remove, **move)
-        if keys is not None:
-            _render_scene(output, edited, keyframed_clouds(edited.model, edited.cameras, rows, keys), plan, fps)
-            return
-        save_scene(output, edited.model, edited.cameras, edited.info)
-        what = "removed" if remove else ("duplicated" if move["duplicate"] else "edited")
-        click.echo(f"{output}: {edited.info['edits'][-1]['selected']:,} Gaussians {what}; {len(edited.model):,} "
-                   f"Gaussians, {len(edited.cameras)} frames")
-        if plan is not None:
-            _render_scene(render_out, edited, edited.model.render_inputs(), plan, fps)
-    except (InputError, RenderError) as e:
-        raise UsageError(str(e)) from None
+    if not keyframes:
+        check_file_output(output, overwrite, what="edited scene")
+    loaded = load_scene(scene)
+    video = output if keyframes else render_out
+    plan = _render_plan(video, loaded.cameras, frames, device, background, overwrite, over=over,
+                        name=scene) if video else None
+    keys = load_keyframes(keyframes, loaded.cameras) if keyframes else None
+    edited, rows = edit_scene(loaded, selectors, remove=remove, **move)
+    if keys is not None:
+        _render_scene(edited, keyframed_clouds(edited.model, edited.cameras, rows, keys), plan, fps)
+        return
+    save_scene(output, edited.model, edited.cameras, edited.info)
+    what = "removed" if remove else ("duplicated" if move["duplicate"] else "edited")
+    click.echo(f"{output}: {edited.info['edits'][-1]['selected']:,} Gaussians {what}; {len(edited.model):,} "
+               f"Gaussians, {len(edited.cameras)} frames")
+    if plan is not None:
+        _render_scene(edited, edited.model.render_inputs(), plan, fps)
 
 
 @main.group()
@@ -535,7 +573,9 @@ def tets():
               "bodies) instead of one tet per Gaussian")
 @click.option("--cell", type=click.FloatRange(min=0, min_open=True), default=None,
               help="cage cell size in scene units; default: 1/8 of the selection's largest extent")
-def tets_export(scene, output, selectors, cage, cell):
+@_overwrite_option
+@_user_errors
+def tets_export(scene, output, selectors, cage, cell, overwrite):
     """Write the Gaussians of SCENE that --select picks as tetrahedra (a PLY Blender imports:
     Z up, vertex order kept; README "Editing" has the format).
 
@@ -546,21 +586,19 @@ def tets_export(scene, output, selectors, cage, cell):
     """
     from tomgs.edit.cage import make_tets
     from tomgs.edit.selection import select
-    from tomgs.errors import InputError
     from tomgs.io.scene import load_scene
     from tomgs.io.tets import save_tets
+    from tomgs.outputs import check_file_output
 
     if cell is not None and not cage:
         raise UsageError("--cell sets the cage's cell size: give --cage too")
     if not _is_scene_path(output):
         raise UsageError(f"-o {output}: a tets file is a .ply")
-    try:
-        loaded = load_scene(scene)
-        indices = select(loaded.model, loaded.cameras, selectors)
-        mesh = make_tets(loaded.model, indices, "cage" if cage else "gaussian", cell)
-        save_tets(output, mesh)
-    except InputError as e:
-        raise UsageError(str(e)) from None
+    check_file_output(output, overwrite, what="tets file")
+    loaded = load_scene(scene)
+    indices = select(loaded.model, loaded.cameras, selectors)
+    mesh = make_tets(loaded.model, indices, "cage" if cage else "gaussian", cell)
+    save_tets(output, mesh)
     click.echo(f"{output}: {len(indices):,} Gaussians as {len(mesh.tets):,} tets over {len(mesh.vertices):,} "
                f"vertices ({mesh.kind})")
 
@@ -573,7 +611,8 @@ def tets_export(scene, output, selectors, cage, cell):
               help=_OUTPUT_HELP + "; or a .ply scene when SEQUENCE has one frame")
 @click.option("--over", type=click.Path(path_type=str), default=None, help="when rendering: " + _OVER_HELP)
 @_render_options
-def tets_import(scene, tets_file, sequence, output, over, frames, device, background, fps):
+@_user_errors
+def tets_import(scene, tets_file, sequence, output, over, frames, device, background, fps, overwrite):
     """Carry the Gaussians of SCENE bound in TETS (from `tomgs tets export`) along the moved
     vertices of SEQUENCE (an .npz with vertices [F,V,3], a folder of PLY frames, or one PLY) and
     render the result, frame f of the sequence with the scene's frame f (or the .npz's 'frames').
@@ -586,33 +625,32 @@ def tets_import(scene, tets_file, sequence, output, over, frames, device, backgr
       tomgs tets import fg.ply cage.ply sim.npz -o shot.mp4 --over bg.ply
     """
     from tomgs.edit.transforms import check_bound, deformed_model, sequence_clouds, sequence_rows
-    from tomgs.errors import InputError
     from tomgs.io.scene import load_scene, save_scene
     from tomgs.io.tets import load_sequence, load_tets
-    from tomgs.render import RenderError
+    from tomgs.outputs import check_file_output
 
-    try:
-        loaded = load_scene(scene)
-        mesh = load_tets(tets_file)
-        check_bound(loaded.model, mesh, tets_file)
-        vertices, numbers = load_sequence(sequence, mesh)
-        if _is_scene_path(output):
-            if over is not None:
-                raise InputError(f"--over is what a render goes over, but -o {output} writes a scene: render "
-                                 f"to a video or folder, or leave --over out")
-            if len(vertices) != 1:
-                raise InputError(f"-o {output}: a scene holds one pose but {sequence} has {len(vertices)} frames: "
-                                 f"render it to a video or folder instead")
-            info = {**loaded.info, "edits": [*loaded.info.get("edits", []),
-                                             {"tets": str(tets_file), "sequence": str(sequence)}]}
-            save_scene(output, deformed_model(loaded.model, mesh, vertices[0]), loaded.cameras, info)
-            click.echo(f"{output}: {len(mesh.gaussians):,} Gaussians moved by {sequence}")
-            return
-        rows = sequence_rows(loaded.cameras, len(vertices), numbers)
-        plan = _render_plan(output, loaded.cameras, frames, device, background, only=rows, over=over, name=scene)
-        _render_scene(output, loaded, sequence_clouds(loaded.model, mesh, vertices, rows), plan, fps)
-    except (InputError, RenderError) as e:
-        raise UsageError(str(e)) from None
+    if _is_scene_path(output):
+        check_file_output(output, overwrite, what="scene")
+    loaded = load_scene(scene)
+    mesh = load_tets(tets_file)
+    check_bound(loaded.model, mesh, tets_file)
+    vertices, numbers = load_sequence(sequence, mesh)
+    if _is_scene_path(output):
+        if over is not None:
+            raise InputError(f"--over is what a render goes over, but -o {output} writes a scene: render "
+                             f"to a video or folder, or leave --over out")
+        if len(vertices) != 1:
+            raise InputError(f"-o {output}: a scene holds one pose but {sequence} has {len(vertices)} frames: "
+                             f"render it to a video or folder instead")
+        info = {**loaded.info, "edits": [*loaded.info.get("edits", []),
+                                         {"tets": str(tets_file), "sequence": str(sequence)}]}
+        save_scene(output, deformed_model(loaded.model, mesh, vertices[0]), loaded.cameras, info)
+        click.echo(f"{output}: {len(mesh.gaussians):,} Gaussians moved by {sequence}")
+        return
+    rows = sequence_rows(loaded.cameras, len(vertices), numbers)
+    plan = _render_plan(output, loaded.cameras, frames, device, background, overwrite, only=rows, over=over,
+                        name=scene)
+    _render_scene(loaded, sequence_clouds(loaded.model, mesh, vertices, rows), plan, fps)
 
 
 @main.command()
@@ -636,12 +674,14 @@ def tets_import(scene, tets_file, sequence, output, over, frames, device, backgr
               help="frames to simulate (default: the scene's frame count; frame f is the scene's frame f)")
 @click.option("--cell", type=click.FloatRange(min=0, min_open=True), default=None,
               help="cage cell size in scene units; default: 1/8 of the selection's largest extent")
-@click.option("--device", default="auto", show_default=True, help="auto, cpu, cuda or cuda:N")
+@_device_option
 @click.option("--background", default=None, help="r,g,b in [0, 1] for --render; default: the scene's, else black")
 @click.option("--fps", type=click.FloatRange(min=0.1), default=None,
               help="frames per second of the shot and the video; default: the scene's, else 25")
+@_overwrite_option
+@_user_errors
 def simulate(scene, output, selectors, render_out, over, drop, spin, velocity, size, stiffness, damping, num_frames, cell,
-             device, background, fps):
+             device, background, fps, overwrite):
     """Drop, throw or spin the Gaussians of SCENE that --select picks as a soft body: a tet cage is
     built over them and simulated (XPBD, floor under the lowest point); frame f of the shot
     replaces the selection in the scene's frame f. Replay or re-render it with `tomgs tets import`.
@@ -657,10 +697,10 @@ def simulate(scene, output, selectors, render_out, over, drop, spin, velocity, s
     from tomgs.edit.physics import SimConfig
     from tomgs.edit.selection import select
     from tomgs.edit.transforms import sequence_clouds
-    from tomgs.errors import InputError
     from tomgs.io.scene import load_scene, render_defaults
     from tomgs.io.tets import save_sequence, save_tets
-    from tomgs.render import RenderError, resolve_device
+    from tomgs.outputs import check_file_output
+    from tomgs.render import resolve_device
 
     spin, velocity = _floats(spin, "--spin"), _floats(velocity, "--velocity")
     if not output.lower().endswith(".npz"):
@@ -668,34 +708,33 @@ def simulate(scene, output, selectors, render_out, over, drop, spin, velocity, s
     if over and not render_out:
         raise UsageError("--over is what the render goes over: give --render too")
     cage_path = output[:-4] + ".cage.ply"
-    try:
-        dev = resolve_device(device)
-        loaded = load_scene(scene)
-        cams = loaded.cameras
-        frames = len(cams) if num_frames is None else num_frames
-        if frames > len(cams):
-            raise InputError(f"--frames {frames}: the scene has {len(cams)} frames, and frame f of the shot is "
-                             f"rendered with the scene's frame f; simulate at most {len(cams)}")
-        plan = _render_plan(render_out, cams, None, device, background, only=set(range(frames)), over=over,
-                            name=scene) if render_out else None
-        indices = select(loaded.model, cams, selectors)
-        means = loaded.model.means.detach().cpu().double().numpy()[indices]
-        extent = max(float((means.max(0) - means.min(0)).max()), 1e-9)
-        settings = dict(frames=frames, fps=fps or render_defaults(loaded.info)[1], drop_height=drop,
-                        gravity=(0.0, 9.81 * extent / size, 0.0))  # +y is down in OpenCV axes
-        optional = dict(initial_spin=spin, initial_velocity=velocity, damping=damping,
-                        edge_compliance=None if stiffness is None else 1.0 / stiffness)
-        config = SimConfig(**settings, **{k: v for k, v in optional.items() if v is not None})
-        cage, vertices = simulate_selection(loaded.model, indices, config, cell, device=str(dev))
-        save_tets(cage_path, cage)
-        save_sequence(output, vertices, frames=cams.frame_indices[:frames])
-        click.echo(f"{output}: {len(vertices)} frames of {len(indices):,} Gaussians on a cage of {len(cage.tets):,} "
-                   f"tets ({cage_path})")
-        if plan is not None:
-            clouds = sequence_clouds(loaded.model, cage, vertices, {k: k for k in range(frames)})
-            _render_scene(render_out, loaded, clouds, plan, fps)
-    except (InputError, RenderError) as e:
-        raise UsageError(str(e)) from None
+    check_file_output(output, overwrite, what="vertex sequence")
+    check_file_output(cage_path, overwrite, what="cage")
+    dev = resolve_device(device)
+    loaded = load_scene(scene)
+    cams = loaded.cameras
+    frames = len(cams) if num_frames is None else num_frames
+    if frames > len(cams):
+        raise InputError(f"--frames {frames}: the scene has {len(cams)} frames, and frame f of the shot is "
+                         f"rendered with the scene's frame f; simulate at most {len(cams)}")
+    plan = _render_plan(render_out, cams, None, device, background, overwrite, only=set(range(frames)),
+                        over=over, name=scene) if render_out else None
+    indices = select(loaded.model, cams, selectors)
+    means = loaded.model.means.detach().cpu().double().numpy()[indices]
+    extent = max(float((means.max(0) - means.min(0)).max()), 1e-9)
+    settings = dict(frames=frames, fps=fps or render_defaults(loaded.info)[1], drop_height=drop,
+                    gravity=(0.0, 9.81 * extent / size, 0.0))  # +y is down in OpenCV axes
+    optional = dict(initial_spin=spin, initial_velocity=velocity, damping=damping,
+                    edge_compliance=None if stiffness is None else 1.0 / stiffness)
+    config = SimConfig(**settings, **{k: v for k, v in optional.items() if v is not None})
+    cage, vertices = simulate_selection(loaded.model, indices, config, cell, device=str(dev))
+    save_tets(cage_path, cage)
+    save_sequence(output, vertices, frames=cams.frame_indices[:frames])
+    click.echo(f"{output}: {len(vertices)} frames of {len(indices):,} Gaussians on a cage of {len(cage.tets):,} "
+               f"tets ({cage_path})")
+    if plan is not None:
+        clouds = sequence_clouds(loaded.model, cage, vertices, {k: k for k in range(frames)})
+        _render_scene(loaded, clouds, plan, fps)
 
 
 if __name__ == "__main__":
