@@ -64,21 +64,23 @@ def _project(p: RasterInputs) -> dict[str, torch.Tensor]:
     return dict(means2d=means2d, conics=conics, opac_t=opac_t, depth=depth, depth_ok=depth_ok, cov_a=a, cov_c=c)
 
 
-def _radii_and_valid(proj: dict[str, torch.Tensor], width: int, height: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Integer radii [N,2] and the visibility mask [N] (no gradients)."""
+def _radii_and_valid(proj: dict[str, torch.Tensor], width: int, height: int
+                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Integer radii [N,2], the visibility mask [N] and the radii before rounding up [N,2] (no gradients)."""
     finite = torch.stack([proj[k].isfinite().all(-1) if proj[k].dim() == 2 else proj[k].isfinite()
                           for k in ("means2d", "conics", "opac_t", "depth")]).all(0)
     alive = proj["opac_t"] >= ALPHA_MIN
     valid = proj["depth_ok"] & finite & alive
     opac = torch.where(valid, proj["opac_t"], torch.ones_like(proj["opac_t"]))
     extend = torch.clamp(torch.sqrt(2.0 * torch.log(opac / ALPHA_MIN).clamp_min(0)), max=RADIUS_SIGMAS)
-    rx = torch.ceil(extend * proj["cov_a"].sqrt())
-    ry = torch.ceil(extend * proj["cov_c"].sqrt())
+    extent = torch.stack([extend * proj["cov_a"].sqrt(), extend * proj["cov_c"].sqrt()], -1)
+    rx, ry = torch.ceil(extent).unbind(-1)
     mx, my = proj["means2d"].unbind(-1)
     on_screen = (mx + rx > 0) & (mx - rx < width) & (my + ry > 0) & (my - ry < height) & ((rx > 0) | (ry > 0))
     valid = valid & on_screen & rx.isfinite() & ry.isfinite()
     radii = torch.where(valid[:, None], torch.stack([rx, ry], -1), torch.zeros_like(proj["means2d"]))
-    return radii.clamp(max=2**30).long(), valid
+    extent = torch.where(valid[:, None], extent, torch.zeros_like(extent))
+    return radii.clamp(max=2**30).long(), valid, extent
 
 
 def rasterize_reference(
@@ -90,7 +92,7 @@ def rasterize_reference(
                        background, near, far, dtype)
     with torch.no_grad():
         full = _project(p)
-        radii, valid = _radii_and_valid(full, p.width, p.height)
+        radii, valid, extent = _radii_and_valid(full, p.width, p.height)
     # differentiate only the visible subset: culled Gaussians get exactly zero gradient, never NaN
     idx = torch.nonzero(valid).squeeze(-1)
     idx = idx[torch.argsort(full["depth"][idx], stable=True)]
@@ -117,8 +119,9 @@ def rasterize_reference(
         color = color + t_final * p.background
     image = color.reshape(p.height, p.width, 3)
     alpha_out = (1.0 - t_final).reshape(p.height, p.width, 1)
+    # extent: the radii before rounding up, so that a test can tell a float32 tie at an integer
     meta = dict(radii=radii, means2d=full["means2d"], depths=full["depth"], conics=full["conics"],
-                opacities_t=full["opac_t"], n_visible=int(valid.sum()))
+                opacities_t=full["opac_t"], n_visible=int(valid.sum()), extent=extent)
     return image, alpha_out, meta
 
 

@@ -9,7 +9,9 @@ statistics see the whole frame; kernels run on torch's current stream, where the
 from __future__ import annotations
 
 import contextlib
+import math
 import os
+import struct
 import sys
 from dataclasses import dataclass
 
@@ -53,13 +55,70 @@ def _native_stderr_silenced():
 
 # The radix sort needs 2 x count slots and counts in int32: 2^30 keeps both inside int32.
 MAX_INTERSECTIONS = 2**30
+# one raster thread per pixel of the tile-padded image, counted in int32
+MAX_THREADS = 2**31 - 1
+
+
+def _check_scalars(width, height, t, near, far) -> tuple[float, float]:
+    """Refuse non-finite or non-integer sizes and a non-finite time or plane; return t as float32
+    (t_hi, t_lo) with t_hi + t_lo = t to ~48 bits, so (t - m) keeps the precision of a float64 t."""
+    for name, value in (("width", width), ("height", height)):
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool) or hasattr(value, "__index__")
+        if not ok or not math.isfinite(value) or value != int(value) or value < 1:
+            raise RenderError(f"{name} must be a positive integer, got {value!r}")
+    try:
+        t = float(t)
+        t_hi = struct.unpack("f", struct.pack("f", t))[0]  # OverflowError beyond float32
+    except (TypeError, ValueError, OverflowError):
+        raise RenderError(f"t must be a finite time within float32's range, got {t!r}") from None
+    if not math.isfinite(t_hi):
+        raise RenderError(f"t must be a finite time within float32's range, got {t!r}")
+    t_lo = struct.unpack("f", struct.pack("f", t - t_hi))[0]
+    for name, value in (("near", near), ("far", far)):
+        try:
+            value = float(value)
+        except (TypeError, ValueError):
+            raise RenderError(f"{name} must be a number, got {value!r}") from None
+        if math.isnan(value) or (name == "near" and not math.isfinite(value)):
+            raise RenderError(f"need 0 < near < far (near finite, far may be inf), got near={near}, far={far}")
+    return t_hi, t_lo
+
+
+def _first_bad(name: str, rule: str, bad: torch.Tensor, values: torch.Tensor) -> str:
+    """'<name> <rule>: k of N do not, the first at index i (value)' for bool `bad` [N] or [N, C]."""
+    rows = bad.reshape(bad.shape[0], -1).any(-1)
+    first = int(torch.nonzero(rows)[0, 0])
+    value = values[first].tolist()
+    return f"{name} {rule}: {int(rows.sum())} of {rows.shape[0]} do not, the first at index {first} ({value})"
+
+
+def _contract_error(stats: list[int], p) -> RenderError:
+    """The message for the contract flags the kernels raised (slow path: only on bad input)."""
+    problems = []
+    if stats[project.FLAG_OPACITIES]:
+        o = p.opacities
+        problems.append(_first_bad("opacities", "must lie in [0, 1] (base opacity, not a logit)",
+                                   ~((o >= 0) & (o <= 1)), o))
+    if stats[project.FLAG_SCALES]:
+        problems.append(_first_bad("scales", "must be >= 0 (scales, not log scales)", p.scales < 0, p.scales))
+    if stats[project.FLAG_T_SCALES]:
+        problems.append(_first_bad("t_scales", "must be >= 0 (temporal sigma, not its log)", p.t_scales < 0,
+                                   p.t_scales))
+    if stats[project.FLAG_K]:
+        problems.append(f"K must be finite with fx = K[0, 0] > 0 and fy = K[1, 1] > 0, got {p.K.tolist()}")
+    if stats[project.FLAG_VIEWMAT]:
+        problems.append(f"viewmat must be finite, got {p.viewmat.tolist()}")
+    if stats[project.FLAG_BACKGROUND]:
+        problems.append(f"background must be finite, got {p.background.tolist()}")
+    return RenderError("; ".join(problems))
 
 
 @dataclass(frozen=True)
 class _Frame:
     width: int
     height: int
-    t: float
+    t_hi: float  # t = t_hi + t_lo: t rounded to float32, and the rest rounded to float32
+    t_lo: float
     near: float
     far: float
 
@@ -130,6 +189,8 @@ class _Launches:
     def __call__(self, kernel, dim: int, args: list, device: str, block_dim: int = 256) -> None:
         key = (kernel.key, device, block_dim)
         entry = self._recorded.get(key)
+        if dim == 0:
+            return  # nothing to run, and Warp records no command for an empty launch
         if entry is None:
             cmd = wp.launch(kernel, dim=dim, inputs=args, device=device, block_dim=block_dim, record_cmd=True)
             self._recorded[key] = entry = (cmd, dim)
@@ -140,8 +201,7 @@ class _Launches:
                 self._recorded[key] = (cmd, dim)
             for i, arg in enumerate(args):
                 cmd.set_param_at_index_from_ctype(i, arg)
-        if dim > 0:
-            cmd.launch(wp.get_stream(device) if device != "cpu" else None)
+        cmd.launch(wp.get_stream(device) if device != "cpu" else None)
 
 
 _launch = _Launches()
@@ -158,7 +218,7 @@ def _dense(grad: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor:
 
 class _Project(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means, quats, scales, opacities, t_means, t_scales, viewmat, K, frame: _Frame):
+    def forward(ctx, means, quats, scales, opacities, t_means, t_scales, viewmat, K, flags, frame: _Frame):
         n = means.shape[0]
         f32 = dict(device=means.device, dtype=torch.float32)
         means2d = torch.empty(n, 2, **f32)
@@ -173,8 +233,9 @@ class _Project(torch.autograd.Function):
         radii_d, conics_d = _wp(radii, wp.vec2i), _wp(conics, wp.vec3)
         with _on(means.device) as device:
             _launch(project.project_forward, n, device=device, args=[
-                *inputs, frame.width, frame.height, frame.t, frame.near, frame.far, frame.tiles_x, frame.tiles_y,
-                _wp(means2d, wp.vec2), conics_d, _wp(depths), radii_d, _wp(opacities_t), _wp(tiles_touched),
+                *inputs, frame.width, frame.height, frame.t_hi, frame.t_lo, frame.near, frame.far, frame.tiles_x,
+                frame.tiles_y, _wp(means2d, wp.vec2), conics_d, _wp(depths), radii_d, _wp(opacities_t),
+                _wp(tiles_touched), _wp(flags),
             ])
         ctx.frame = frame
         ctx.descriptors = (inputs, radii_d, conics_d)
@@ -197,7 +258,7 @@ class _Project(torch.autograd.Function):
         inputs, radii_d, conics_d = ctx.descriptors
         with _on(means.device) as device:
             _launch(project.project_backward, n, device=device, args=[
-                *inputs, frame.width, frame.height, frame.t, radii_d, conics_d,
+                *inputs, frame.width, frame.height, frame.t_hi, frame.t_lo, radii_d, conics_d,
                 _wp(_dense(v_means2d, conics[:, :2]), wp.vec2), _wp(_dense(v_conics, conics), wp.vec3),
                 _wp(_dense(v_opacities_t, opacities)), int(camera_grads),
                 _wp(v_means, wp.vec3), _wp(v_quats, wp.vec4), _wp(v_scales, wp.vec3), _wp(v_opacities),
@@ -209,7 +270,7 @@ class _Project(torch.autograd.Function):
             fx, fy, cx, cy = v_K_parts.sum(0).unbind()
             zero = torch.zeros_like(fx)
             v_K = torch.stack([fx, zero, cx, zero, fy, cy, zero, zero, zero]).reshape(3, 3)
-        return v_means, v_quats, v_scales, v_opacities, v_t_means, v_t_scales, v_viewmat, v_K, None
+        return v_means, v_quats, v_scales, v_opacities, v_t_means, v_t_scales, v_viewmat, v_K, None, None
 
 
 def _bin(means2d, radii, depths, ends, frame: _Frame, total: int):
@@ -297,16 +358,32 @@ def rasterize(
     `means2d` [N,2] (call `.retain_grad()` on it for screen-space gradients), `depths`, `conics`,
     `opacities_t`, and counts `n_visible`, `n_alive` (alive at t), `n_intersections`.
     """
+    t_hi, t_lo = _check_scalars(width, height, t, near, far)
     p = prepare_inputs(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width, height, t,
                        background, near, far, torch.float32)
-    frame = _Frame(p.width, p.height, p.t, p.near, p.far)
+    frame = _Frame(p.width, p.height, t_hi, t_lo, p.near, p.far)
+    if frame.num_tiles * TILE_SIZE * TILE_SIZE > MAX_THREADS:
+        raise RenderError(f"a {frame.width}x{frame.height} image is too large to render in one piece: keep "
+                          f"width x height below {MAX_THREADS:,} pixels")
+    viewmat, K = p.viewmat.contiguous(), p.K.contiguous()
+    # contract flags and the intersection count, written on the device and read back together below
+    flags = torch.zeros(project.NUM_FLAGS, device=p.means.device, dtype=torch.int64)
     means2d, conics, depths, radii, opacities_t, tiles_touched = _Project.apply(
         p.means.contiguous(), p.quats.contiguous(), p.scales.contiguous(), p.opacities.contiguous(),
-        p.t_means.contiguous(), p.t_scales.contiguous(), p.viewmat.contiguous(), p.K.contiguous(), frame)
-
-    # the one host sync per frame: the intersection count sizes the sort buffers
+        p.t_means.contiguous(), p.t_scales.contiguous(), viewmat, K, flags, frame)
     ends = torch.cumsum(tiles_touched, 0, dtype=torch.int64)  # [N] inclusive scan
-    total = int(ends[-1]) if ends.numel() else 0
+    bg = p.background if p.background is not None else viewmat.reshape(-1)[:3]  # unread stand-in
+    with _on(p.means.device) as device:
+        _launch(project.check_frame, 1, device=device, args=[
+            _wp(ends), ends.shape[0], _wp(viewmat.reshape(1, 4, 4), wp.mat44), _wp(K.reshape(1, 3, 3), wp.mat33),
+            _wp(bg.reshape(1, 3), wp.vec3), int(p.background is not None), _wp(flags)])
+
+    # the one host sync per frame: the intersection count sizes the sort buffers; the contract
+    # flags travel with it, so checking the inputs costs no extra wait
+    stats = flags.tolist()
+    if any(stats[1:]):
+        raise _contract_error(stats, p)
+    total = stats[project.FLAG_TOTAL]
     if total > MAX_INTERSECTIONS:
         raise RenderError(
             f"this frame needs {total:,} Gaussian-tile intersections, more than the {MAX_INTERSECTIONS:,} the "

@@ -3,6 +3,12 @@
 Forward writes, per Gaussian i: means2d (px), conic (inverse 2D covariance, upper triangle),
 depth (camera z), radii (px per axis; 0 = culled), temporal opacity o_i(t), and tiles touched.
 Culled: depth outside (near, far), anything non-finite, o_i(t) < 1/255, or off screen.
+Out of contract (opacity outside [0, 1], a negative scale or temporal scale, a camera that is not
+finite or has fx, fy <= 0): flagged in `flags` for the caller to refuse, never silently drawn.
+
+Time: t arrives as two float32s, t_hi + t_lo (t_hi = t rounded), and t - m is formed as
+(t_hi - m) + t_lo, exact to float32 rounding of the difference, so temporal scales far below
+float32's resolution of t itself (6e-8 near t = 0.5) are honoured.
 """
 
 import warp as wp
@@ -21,10 +27,35 @@ MAX_RADIUS = wp.constant(float(2**30))  # keeps radii inside int32; tiles are cl
 
 mat23 = wp.types.matrix(shape=(2, 3), dtype=wp.float32)
 
+# slots of the int64 `flags` array shared by project_forward and check_frame (tomgs.render reads it)
+FLAG_TOTAL = wp.constant(0)  # the frame's Gaussian-tile intersection count
+FLAG_OPACITIES = wp.constant(1)  # an opacity outside [0, 1] (NaN included)
+FLAG_SCALES = wp.constant(2)  # a negative scale
+FLAG_T_SCALES = wp.constant(3)  # a negative temporal scale
+FLAG_K = wp.constant(4)  # K not finite, or fx <= 0 or fy <= 0
+FLAG_VIEWMAT = wp.constant(5)  # viewmat not finite
+FLAG_BACKGROUND = wp.constant(6)  # background not finite
+NUM_FLAGS = 7
+
 
 @wp.func
-def quat_norm(q: wp.vec4) -> float:
-    return wp.max(wp.length(q), QUAT_EPS)
+def quat_max_abs(q: wp.vec4) -> float:
+    return wp.max(wp.max(wp.abs(q[0]), wp.abs(q[1])), wp.max(wp.abs(q[2]), wp.abs(q[3])))
+
+
+@wp.func
+def unit_quat(q: wp.vec4) -> wp.vec4:
+    # q / max(|q|, QUAT_EPS) without squaring q: |q|^2 overflows float32 from |q| ~ 1.8e19 (that
+    # quaternion rendered as the identity) and loses precision below |q| ~ 1e-19
+    m = quat_max_abs(q)
+    if m >= 1.0e-18 and m <= 1.0e18:  # |q|^2 is safe: the plain formula, as always
+        return q / wp.max(wp.length(q), QUAT_EPS)
+    if m > 0.0:
+        qs = q / m
+        ls = wp.length(qs)  # in [1, 2]
+        if m * ls >= QUAT_EPS:
+            return qs / ls
+    return q / QUAT_EPS
 
 
 @wp.func
@@ -42,9 +73,9 @@ def rotation_from_unit_quat(q: wp.vec4) -> wp.mat33:
 
 
 @wp.func
-def temporal_opacity(base: float, t: float, t_mean: float, t_scale: float) -> float:
-    z = (t - t_mean) / t_scale
-    return base * wp.exp(-0.5 * z * z)
+def temporal_z(t_hi: float, t_lo: float, t_mean: float, t_scale: float) -> float:
+    # (t - m) / sigma with t = t_hi + t_lo: t_hi - m is exact when m is near t (Sterbenz)
+    return ((t_hi - t_mean) + t_lo) / t_scale
 
 
 @wp.func
@@ -75,6 +106,29 @@ def conic_of(A: mat23) -> wp.vec3:
 
 
 @wp.func
+def conic_vjp(A: mat23, vc: wp.vec3) -> mat23:
+    # gradient of conic_of(A) given dL/d(conic) = vc, through the same stable pieces: the squared row
+    # norms a0, c0, the row product b and the minors m = A0 x A1 (Cauchy-Binet); every term is a plain
+    # product, so nothing cancels for thin Gaussians
+    A0 = wp.vec3(A[0, 0], A[0, 1], A[0, 2])
+    A1 = wp.vec3(A[1, 0], A[1, 1], A[1, 2])
+    a = wp.dot(A0, A0) + EPS2D
+    c = wp.dot(A1, A1) + EPS2D
+    b = wp.dot(A0, A1)
+    m = wp.cross(A0, A1)
+    det = wp.dot(m, m) + EPS2D * (a + c) - EPS2D * EPS2D
+    inv = 1.0 / det
+    v_det = -(vc[0] * c - vc[1] * b + vc[2] * a) * inv * inv  # conic = (c, -b, a) / det
+    v_a = vc[2] * inv + EPS2D * v_det
+    v_c = vc[0] * inv + EPS2D * v_det
+    v_b = -vc[1] * inv
+    v_m = 2.0 * v_det * m
+    v_A0 = 2.0 * v_a * A0 + v_b * A1 + wp.cross(A1, v_m)
+    v_A1 = 2.0 * v_c * A1 + v_b * A0 + wp.cross(v_m, A0)
+    return mat23(v_A0[0], v_A0[1], v_A0[2], v_A1[0], v_A1[1], v_A1[2])
+
+
+@wp.func
 def world_to_camera(viewmat: wp.mat44, x: wp.vec3) -> wp.vec3:
     return wp.vec3(
         viewmat[0, 0] * x[0] + viewmat[0, 1] * x[1] + viewmat[0, 2] * x[2] + viewmat[0, 3],
@@ -95,7 +149,7 @@ def view_rotation(viewmat: wp.mat44) -> wp.mat33:
 @wp.func
 def scaled_rotation(q: wp.vec4, s: wp.vec3) -> wp.mat33:
     # M = R diag(s), so that the 3D covariance is M M^T
-    R = rotation_from_unit_quat(q / quat_norm(q))
+    R = rotation_from_unit_quat(unit_quat(q))
     return wp.mat33(
         R[0, 0] * s[0], R[0, 1] * s[1], R[0, 2] * s[2],
         R[1, 0] * s[0], R[1, 1] * s[1], R[1, 2] * s[2],
@@ -115,7 +169,8 @@ def project_forward(
     Ks: wp.array(dtype=wp.mat33),  # [1]
     width: int,
     height: int,
-    t: float,
+    t_hi: float,  # t = t_hi + t_lo
+    t_lo: float,
     near: float,
     far: float,
     tiles_x: int,
@@ -126,15 +181,25 @@ def project_forward(
     radii: wp.array(dtype=wp.vec2i),  # out [N], (0, 0) when culled
     opacities_t: wp.array(dtype=float),  # out [N] o_i(t)
     tiles_touched: wp.array(dtype=wp.int32),  # out [N]
+    flags: wp.array(dtype=wp.int64),  # [NUM_FLAGS] zeroed by the caller; set to 1 on a contract violation
 ):
     i = wp.tid()
+    base = opacities[i]
+    s = scales[i]
+    if not (base >= 0.0 and base <= 1.0):
+        flags[FLAG_OPACITIES] = wp.int64(1)
+    if s[0] < 0.0 or s[1] < 0.0 or s[2] < 0.0:
+        flags[FLAG_SCALES] = wp.int64(1)
+    if t_scales[i] < 0.0:
+        flags[FLAG_T_SCALES] = wp.int64(1)
     radii[i] = wp.vec2i(0, 0)
     tiles_touched[i] = 0
     means2d[i] = wp.vec2(0.0, 0.0)
     conics[i] = wp.vec3(0.0, 0.0, 0.0)
 
     # temporal cull first: a Gaussian dead at t costs one exp and no more
-    opac = temporal_opacity(opacities[i], t, t_means[i], t_scales[i])
+    z = temporal_z(t_hi, t_lo, t_means[i], t_scales[i])
+    opac = base * wp.exp(-0.5 * z * z)
     opacities_t[i] = opac
     viewmat = viewmats[0]
     p = world_to_camera(viewmat, means[i])
@@ -146,7 +211,7 @@ def project_forward(
 
     K = Ks[0]
     J = ewa_jacobian(p, K, fov_limits(K, width, height))
-    A = J * view_rotation(viewmat) * scaled_rotation(quats[i], scales[i])
+    A = J * view_rotation(viewmat) * scaled_rotation(quats[i], s)
     conic = conic_of(A)
     a = A[0, 0] * A[0, 0] + A[0, 1] * A[0, 1] + A[0, 2] * A[0, 2] + EPS2D
     c = A[1, 0] * A[1, 0] + A[1, 1] * A[1, 1] + A[1, 2] * A[1, 2] + EPS2D
@@ -199,7 +264,8 @@ def project_backward(
     Ks: wp.array(dtype=wp.mat33),
     width: int,
     height: int,
-    t: float,
+    t_hi: float,
+    t_lo: float,
     radii: wp.array(dtype=wp.vec2i),  # [N] from the forward; (0, 0) = culled, no gradient
     conics: wp.array(dtype=wp.vec3),  # [N] from the forward
     v_means2d: wp.array(dtype=wp.vec2),  # [N] incoming gradients
@@ -231,7 +297,7 @@ def project_backward(
 
     # temporal window: o = a g, g = exp(-z^2 / 2), z = (t - m) / sigma
     sigma = t_scales[i]
-    z = (t - t_means[i]) / sigma
+    z = temporal_z(t_hi, t_lo, t_means[i], sigma)
     g = wp.exp(-0.5 * z * z)
     v_o = v_opacities_t[i]
     o = opacities[i] * g
@@ -249,8 +315,7 @@ def project_backward(
     lim = fov_limits(K, width, height)
     J = ewa_jacobian(p, K, lim)
     q = quats[i]
-    qn_len = quat_norm(q)
-    qn = q / qn_len
+    qn = unit_quat(q)
     R = rotation_from_unit_quat(qn)
     s = scales[i]
     M = wp.mat33(
@@ -261,13 +326,9 @@ def project_backward(
     B = W * M
     A = J * B
 
-    # conic = Sigma2d^-1: dL/dSigma2d = -Q V Q, V the symmetric gradient of the stored (Q00, Q01, Q11)
-    con = conics[i]
-    vc = v_conics[i]
-    Q = wp.mat22(con[0], con[1], con[1], con[2])
-    V = wp.mat22(vc[0], 0.5 * vc[1], 0.5 * vc[1], vc[2])
-    G = -(Q * V * Q)
-    v_A = 2.0 * G * A  # Sigma2d = A A^T + eps I
+    # differentiate the forward's own formulas (conic_of), never dL/dSigma2d = -Q V Q: for a needle
+    # that matrix needs an absolute accuracy far below float32's on its entries (error ~ eps cond)
+    v_A = conic_vjp(A, v_conics[i])
     v_J = v_A * wp.transpose(B)
     v_B = wp.transpose(J) * v_A
     v_M = wp.transpose(W) * v_B
@@ -284,8 +345,10 @@ def project_backward(
         v_M[0, 2] * R[0, 2] + v_M[1, 2] * R[1, 2] + v_M[2, 2] * R[2, 2],
     )
     v_qn = rotation_vjp(qn, v_R)
-    if wp.length(q) >= QUAT_EPS:
-        v_quats[i] = (v_qn - qn * wp.dot(qn, v_qn)) / qn_len
+    q_max = quat_max_abs(q)
+    q_len = wp.length(q / q_max)  # |q| = q_max q_len, never formed: it may overflow
+    if q_max > 0.0 and q_max * q_len >= QUAT_EPS:
+        v_quats[i] = (v_qn - qn * wp.dot(qn, v_qn)) / q_len / q_max
     else:
         v_quats[i] = v_qn / QUAT_EPS
 
@@ -330,3 +393,32 @@ def project_backward(
             0.0, 0.0, 0.0, 0.0,
         )
         v_K_parts[i] = wp.vec4(v_fx, v_fy, vm2[0], vm2[1])
+
+
+@wp.kernel
+def check_frame(
+    ends: wp.array(dtype=wp.int64),  # [N] inclusive scan of tiles touched
+    n: int,
+    viewmats: wp.array(dtype=wp.mat44),  # [1]
+    Ks: wp.array(dtype=wp.mat33),  # [1]
+    background: wp.array(dtype=wp.vec3),  # [1], read when has_background
+    has_background: int,
+    flags: wp.array(dtype=wp.int64),  # [NUM_FLAGS]: FLAG_TOTAL and the camera's flags written here
+):
+    # one thread: gathers what the host reads back in one transfer, the intersection count and flags
+    if n > 0:
+        flags[FLAG_TOTAL] = ends[n - 1]
+    V = viewmats[0]
+    for r in range(4):
+        for c in range(4):
+            if not wp.isfinite(V[r, c]):
+                flags[FLAG_VIEWMAT] = wp.int64(1)
+    K = Ks[0]
+    for r in range(3):
+        for c in range(3):
+            if not wp.isfinite(K[r, c]):
+                flags[FLAG_K] = wp.int64(1)
+    if not (K[0, 0] > 0.0 and K[1, 1] > 0.0):
+        flags[FLAG_K] = wp.int64(1)
+    if has_background != 0 and not wp.isfinite(background[0]):
+        flags[FLAG_BACKGROUND] = wp.int64(1)
