@@ -63,6 +63,59 @@ def look_at(eye, target, up=(0.0, -1.0, 0.0)) -> np.ndarray:
     return c2w
 
 
+MAX_SIDE = 16384
+"""The largest image side in pixels, for width and height read from files. Nothing in a cameras
+file or a scene header bounds these numbers, and renders allocate width x height x 3 floats (a
+65536 side asks for 51 GB): 16384 (16K) is above what video codecs encode (H.264 and HEVC levels
+stop at 8192) and what GPUs take as a texture side, and one float RGB frame of it is 3.2 GB."""
+
+MAX_FRAME_NUMBER = 2**31 - 1
+"""Frame numbers are source frame numbers, stored as int32 in scene files."""
+
+
+def short_repr(value, limit: int = 60) -> str:
+    """repr(value) cut to `limit` characters; never RecursionError on deeply nested file content."""
+    try:
+        text = repr(value)
+    except RecursionError:
+        return "<nested too deeply to show>"
+    return text if len(text) <= limit else text[:limit] + "..."
+
+
+def _side(value, what: str) -> int:
+    """An image side: an integer (not a bool) in 1..MAX_SIDE, else InputError."""
+    try:
+        ok = not isinstance(value, (bool, np.bool_, str, bytes)) and float(value) == int(value)
+        side = int(value) if ok else None
+    except (TypeError, ValueError, OverflowError):
+        side = None
+    if side is None or not 1 <= side <= MAX_SIDE:
+        raise InputError(f"Cameras: {what} {short_repr(value)} is not a whole number of pixels in 1..{MAX_SIDE}")
+    return side
+
+
+def _frame_numbers(values) -> np.ndarray:
+    """int64 [T] frame numbers in 0..MAX_FRAME_NUMBER, else InputError (never OverflowError)."""
+    try:
+        raw = np.asarray(values)
+        if raw.dtype.kind == "f":
+            if not (np.isfinite(raw).all() and (raw == np.round(raw)).all()):
+                raise ValueError
+        elif raw.dtype.kind == "O":  # Python ints too large for int64 (or anything else)
+            raw = np.array([int(v) if isinstance(v, (int, np.integer)) and not isinstance(v, bool) else None
+                            for v in raw.ravel()], dtype=object).reshape(raw.shape)
+            if any(v is None or not 0 <= v <= MAX_FRAME_NUMBER for v in raw.ravel()):
+                raise ValueError
+        elif raw.dtype.kind not in "iub":
+            raise ValueError
+        if raw.size and (raw.min() < 0 or raw.max() > MAX_FRAME_NUMBER):
+            raise ValueError
+        return raw.astype(np.int64)
+    except (TypeError, ValueError, OverflowError):
+        raise InputError(f"Cameras: every frame number (frame_indices) must be a whole number in "
+                         f"0..{MAX_FRAME_NUMBER} (the source frame it came from)") from None
+
+
 @dataclass
 class Cameras:
     """c2w float64 [T,4,4]; K float64 [3,3]; width, height in pixels; times float64 [T] in [0,1];
@@ -76,18 +129,42 @@ class Cameras:
     frame_indices: np.ndarray
 
     def __post_init__(self):
-        self.c2w = np.asarray(self.c2w, dtype=np.float64)
-        self.K = np.asarray(self.K, dtype=np.float64)
-        self.times = np.asarray(self.times, dtype=np.float64)
-        self.frame_indices = np.asarray(self.frame_indices, dtype=np.int64)
-        self.width, self.height = int(self.width), int(self.height)
-        T = len(self.c2w)
+        self.width, self.height = _side(self.width, "width"), _side(self.height, "height")
+        try:
+            self.c2w = np.asarray(self.c2w, dtype=np.float64)
+            self.K = np.asarray(self.K, dtype=np.float64)
+            self.times = np.asarray(self.times, dtype=np.float64)
+        except (TypeError, ValueError, OverflowError) as e:
+            raise InputError(f"Cameras: c2w, K and times must be arrays of numbers ({e})") from None
+        T = len(self.c2w) if self.c2w.ndim else 0
+        indices = _frame_numbers(self.frame_indices)
         if self.c2w.shape != (T, 4, 4) or self.K.shape != (3, 3) or self.times.shape != (T,) \
-                or self.frame_indices.shape != (T,):
-            raise ValueError(f"Cameras: expected c2w [T,4,4], K [3,3], times [T], frame_indices [T]; got "
-                             f"{self.c2w.shape}, {self.K.shape}, {self.times.shape}, {self.frame_indices.shape}")
+                or indices.shape != (T,):
+            raise InputError(f"Cameras: expected c2w [T,4,4], K [3,3], times [T], frame_indices [T]; got "
+                             f"{self.c2w.shape}, {self.K.shape}, {self.times.shape}, {indices.shape}")
+        self.frame_indices = indices
         if not (np.isfinite(self.c2w).all() and np.isfinite(self.K).all()):
-            raise ValueError("Cameras: c2w and K must be finite")
+            raise InputError("Cameras: c2w and K must be finite")
+        if not np.isfinite(self.times).all():
+            k = int(np.flatnonzero(~np.isfinite(self.times))[0])
+            raise InputError(f"Cameras: frame {k} has time {self.times[k]}; frame times must be finite numbers in [0, 1]")
+        bottom = np.abs(self.c2w[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1) if T else np.zeros(0)
+        if (bottom > 1e-6).any():
+            k = int(np.argmax(bottom > 1e-6))
+            raise InputError(f"Cameras: c2w of frame {k} has bottom row {self.c2w[k, 3].tolist()}; a camera-to-world "
+                             "matrix ends in [0, 0, 0, 1]")
+        if T:  # the rotation part must be invertible: relative to its largest, the smallest singular value
+            s = np.linalg.svd(self.c2w[:, :3, :3], compute_uv=False)  # [T,3], descending
+            bad = ~(s[:, 2] > 1e-9 * s[:, 0])
+            if bad.any():
+                k = int(np.argmax(bad))
+                raise InputError(f"Cameras: c2w of frame {k} is singular (its 3x3 rotation part has singular values "
+                                 f"{s[k].tolist()}); give a rotation and a translation")
+        fx, fy = self.K[0, 0], self.K[1, 1]
+        if not (fx > 0 and fy > 0):
+            raise InputError(f"Cameras: focal lengths fx = {fx}, fy = {fy}; both must be positive (pixels)")
+        if np.abs(self.K[2] - [0.0, 0.0, 1.0]).max() > 1e-9 or self.K[1, 0] != 0:
+            raise InputError(f"Cameras: K = {self.K.tolist()} is not [[fx, s, cx], [0, fy, cy], [0, 0, 1]]")
 
     @classmethod
     def create(cls, c2w, K, width: int, height: int, frame_indices=None) -> "Cameras":
@@ -163,20 +240,27 @@ class Cameras:
 
     @classmethod
     def from_dict(cls, d: dict, source="<dict>") -> "Cameras":
+        fix = "see the schema in tomgs.cameras, or write the file with Cameras.save"
         if not isinstance(d, dict) or d.get("format") != FORMAT:
             raise InputError(f"{source} is not a tomgs cameras file (missing \"format\": \"{FORMAT}\")")
         if d.get("version") != VERSION:
-            raise InputError(f"{source} has cameras version {d.get('version')!r}; this tomgs reads version {VERSION}")
+            raise InputError(f"{source} has cameras version {short_repr(d.get('version'))}; this tomgs reads version "
+                             f"{VERSION}")
         try:
             frames = d["frames"]
+            if not isinstance(frames, list) or not all(isinstance(f, dict) for f in frames):
+                raise TypeError("'frames' must be a list of objects")
             if not frames:
                 raise InputError(f"{source} holds zero frames")
             return cls(np.array([f["c2w"] for f in frames]), np.array(d["K"]), d["width"], d["height"],
-                       np.array([f["time"] for f in frames]), np.array([f["index"] for f in frames]))
-        except (KeyError, TypeError, ValueError) as e:
-            if isinstance(e, InputError):
-                raise
-            raise InputError(f"{source} does not follow the tomgs cameras schema ({e}); see tomgs.cameras") from None
+                       np.array([f["time"] for f in frames]), np.array([f["index"] for f in frames], dtype=object))
+        except InputError as e:
+            message = str(e)
+            raise InputError(message if message.startswith(str(source)) else
+                             f"{source}: {message.removeprefix('Cameras: ')}; {fix}") from None
+        except (KeyError, TypeError, ValueError, OverflowError, RecursionError, IndexError) as e:
+            raise InputError(f"{source} does not follow the tomgs cameras schema ({type(e).__name__}: "
+                             f"{str(e)[:200]}); {fix}") from None
 
     def save(self, path) -> Path:
         """Write JSON atomically (temporary file in the same folder, then rename)."""
@@ -186,29 +270,30 @@ class Cameras:
 
     @classmethod
     def load(cls, path) -> "Cameras":
+        """Read a cameras JSON file (InputError naming the file for anything it holds)."""
         path = Path(path)
         if not path.is_file():
-            raise InputError(f"cameras file {path} does not exist")
-        try:
-            d = json.loads(path.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as e:
-            raise InputError(f"{path} is not valid JSON ({e}): write it with Cameras.save") from None
-        return cls.from_dict(d, path)
+            raise InputError(f"cameras file {path} does not exist" + (" (it is a folder)" if path.is_dir() else ""))
+        return cls.from_dict(load_json(path, "write it with Cameras.save"), path)
 
     @classmethod
     def from_anycam(cls, c2w, K, width: int, height: int) -> "Cameras":
         """AnyCam output: c2w [T,4,4] camera-to-world in OpenCV axes (array or .npy path) and K
         [3,3] or [T,3,3] in pixels (array or .npy/.txt path; per-frame K are averaged). Scale is
         kept as given; poses are re-anchored so that frame 0 is the identity."""
+        source = " and ".join(str(a) for a in (c2w, K) if isinstance(a, (str, Path))) or "AnyCam arrays"
         c2w = _load_array(c2w, "c2w")
         K = _load_array(K, "K")
         if c2w.ndim != 3 or c2w.shape[1:] != (4, 4) or len(c2w) == 0:
-            raise InputError(f"AnyCam c2w must have shape [T,4,4], got {c2w.shape}")
+            raise InputError(f"{source}: AnyCam c2w must have shape [T,4,4], got {c2w.shape}")
         if K.shape == (len(c2w), 3, 3):
             K = K.mean(axis=0)
         if K.shape != (3, 3):
-            raise InputError(f"AnyCam K must have shape [3,3] or [T,3,3], got {K.shape}")
-        return cls.create(c2w, K, width, height).rebased()
+            raise InputError(f"{source}: AnyCam K must have shape [3,3] or [T,3,3], got {K.shape}")
+        try:
+            return cls.create(c2w, K, width, height).rebased()
+        except InputError as e:
+            raise InputError(f"{source}: {str(e).removeprefix('Cameras: ')}") from None
 
     @classmethod
     def from_colmap(cls, folder) -> "Cameras":
@@ -230,8 +315,8 @@ class Cameras:
             cams, entries = _parse_colmap(cams_txt, imgs_txt)
         except InputError:
             raise
-        except (ValueError, IndexError) as e:
-            raise InputError(f"{folder}: cannot parse the COLMAP text model ({e}); export it with "
+        except (ValueError, IndexError, OverflowError) as e:
+            raise InputError(f"{folder}: cannot parse the COLMAP text model ({str(e)[:200]}); export it with "
                              "colmap model_converter --output_type TXT") from None
         if not entries:
             raise InputError(f"{imgs_txt} lists no images")
@@ -244,7 +329,10 @@ class Cameras:
         for k, (_, _, R, t) in enumerate(entries):
             c2w[k, :3, :3] = R.T
             c2w[k, :3, 3] = -R.T @ t
-        return cls.create(c2w, K, w, h).rebased()
+        try:
+            return cls.create(c2w, K, w, h).rebased()
+        except InputError as e:
+            raise InputError(f"{folder}: {str(e).removeprefix('Cameras: ')}") from None
 
 
 def _parse_colmap(cams_txt: Path, imgs_txt: Path):
@@ -278,7 +366,10 @@ def _parse_colmap(cams_txt: Path, imgs_txt: Path):
 
 def _quat_to_R(q: np.ndarray) -> np.ndarray:
     """Unit quaternion (w, x, y, z) -> rotation matrix [3,3]."""
-    w, x, y, z = q / np.linalg.norm(q)
+    norm = np.linalg.norm(q)
+    if not (np.isfinite(norm) and norm > 0):
+        raise ValueError(f"quaternion {q.tolist()} is not a rotation")
+    w, x, y, z = q / norm
     return np.array([
         [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
         [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
@@ -291,8 +382,67 @@ def _load_array(a, what: str) -> np.ndarray:
         p = Path(a)
         if not p.is_file():
             raise InputError(f"{what} file {p} does not exist")
-        try:
-            a = np.load(p) if p.suffix == ".npy" else np.loadtxt(p)
-        except ValueError as e:
-            raise InputError(f"cannot read {what} from {p} ({e})") from None
-    return np.asarray(a, dtype=np.float64)
+        if p.suffix == ".npy":
+            a = load_npy(p, what)
+        else:
+            try:
+                a = np.loadtxt(p, dtype=np.float64, ndmin=1)
+            except (ValueError, OverflowError, IndexError) as e:
+                raise InputError(f"cannot read {what} from {p} ({str(e)[:200]}): write it as numbers, "
+                                 "one matrix row per line") from None
+    try:
+        return np.asarray(a, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError) as e:
+        raise InputError(f"{what} must be an array of numbers ({e})") from None
+
+
+def load_json(path: Path, fix: str):
+    """The JSON value in file `path`; InputError naming the file for bad text, bad JSON or nesting too
+    deep for Python (never RecursionError). Memory follows the file's size (Python objects)."""
+    try:
+        return json.loads(Path(path).read_bytes())
+    except RecursionError:
+        raise InputError(f"{path}: the JSON is nested too deeply to read: {fix}") from None
+    except (ValueError, UnicodeDecodeError) as e:  # JSONDecodeError, more than 4300 digits in a number
+        raise InputError(f"{path} is not valid JSON ({str(e)[:200]}): {fix}") from None
+    except OSError as e:
+        raise InputError(f"cannot read {path} ({e})") from None
+
+
+def load_npy(path: Path, what: str) -> np.ndarray:
+    """A numeric array from an .npy file, its header checked first: the shape and dtype it declares
+    must take exactly the bytes that follow the header (so nothing is allocated that the file does
+    not hold), no pickled objects. InputError otherwise."""
+    path = Path(path)
+    fix = f"save the {what} array with numpy.save"
+    size = path.stat().st_size
+    try:
+        with open(path, "rb") as f:
+            shape, dtype, fortran, offset = npy_header(f, path)
+            nbytes = int(np.prod(shape, dtype=object)) * dtype.itemsize
+            if offset + nbytes != size:
+                raise InputError(f"{path}: its header declares a {dtype} array of shape {list(shape)} "
+                                 f"({nbytes:,} bytes) but {size - offset:,} bytes follow: {fix}")
+            data = np.fromfile(f, dtype=dtype, count=int(np.prod(shape)))
+            return data.reshape(shape, order="F" if fortran else "C")
+    except InputError:
+        raise
+    except (ValueError, OSError) as e:
+        raise InputError(f"cannot read {what} from {path} ({e}): {fix}") from None
+
+
+def npy_header(stream, source) -> tuple[tuple[int, ...], np.dtype, bool, int]:
+    """(shape, dtype, Fortran order, bytes read) of the .npy header at the start of `stream`;
+    InputError unless it is an array of numbers (bool, int, float). Reads at most the header
+    (numpy refuses headers over 10,000 bytes)."""
+    from numpy.lib import format as npformat
+
+    try:
+        major, _ = npformat.read_magic(stream)
+        read = npformat.read_array_header_1_0 if major == 1 else npformat.read_array_header_2_0
+        shape, fortran, dtype = read(stream)
+    except (ValueError, OSError, EOFError, SyntaxError, TypeError) as e:
+        raise InputError(f"{source} is not a .npy array ({str(e)[:200]})") from None
+    if dtype.kind not in "biuf" or dtype.hasobject or dtype.shape or dtype.names:
+        raise InputError(f"{source} holds a {dtype} array; an array of numbers is expected")
+    return tuple(int(n) for n in shape), dtype, bool(fortran), stream.tell()

@@ -12,7 +12,6 @@ arguments for scene frame k, which `tomgs.render.render_sequence` renders with f
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -178,14 +177,20 @@ def load_keyframes(path, cameras) -> Keyframes:
            '"rotate": [0, 90, 0], "scale": 1.0}]}')
     if not path.is_file():
         raise InputError(f"keyframes file {path} does not exist: {fix}")
+    from tomgs.cameras import load_json
+
+    data = load_json(path, fix)
     try:
-        data = json.loads(path.read_text())
+        if not isinstance(data, dict):
+            raise ValueError("the file must hold a JSON object")
         keys = data["keyframes"]
         if not isinstance(keys, list) or not keys:
             raise ValueError("'keyframes' must be a non-empty list")
         frame_time = {int(n): float(t) for n, t in zip(cameras.frame_indices, cameras.times)}
         times, moves, rots, scales = [], [], [], []
         for key in keys:
+            if not isinstance(key, dict):
+                raise ValueError(f"each keyframe is an object, got {str(key)[:40]!r}")
             if "t" in key:
                 times.append(float(key["t"]))
             elif int(key["frame"]) in frame_time:
@@ -201,8 +206,8 @@ def load_keyframes(path, cameras) -> Keyframes:
         hold = data.get("hold", False)
         if not isinstance(hold, bool):
             raise ValueError("'hold' must be true or false")
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError) as e:
-        raise InputError(f"{path}: bad keyframes ({e}): {fix}") from None
+    except (KeyError, TypeError, ValueError, AttributeError, OverflowError, RecursionError) as e:
+        raise InputError(f"{path}: bad keyframes ({type(e).__name__}: {str(e)[:200]}): {fix}") from None
     order = np.argsort(times, kind="stable")
     times = np.asarray(times)[order]
     if np.any(np.diff(times) <= 0):

@@ -110,7 +110,11 @@ def estimate_cameras(frames, masks=None, method="auto", focal=None, progress=Non
         if path.suffix.lower() == ".onnx":
             from tomgs.poses.onnx_model import run_onnx
 
-            cams = run_onnx(path, frames, indices)
+            try:
+                cams = run_onnx(path, frames, indices)
+            except InputError as e:  # Cameras' own checks do not know the file
+                raise InputError(str(e) if str(path) in str(e) else f"{path}: {str(e).removeprefix('Cameras: ')}") \
+                    from None
             kind = "onnx"
         else:
             cams = load_cameras(path, W, H, focal, indices)
@@ -132,7 +136,11 @@ def load_cameras(path: Path, width: int, height: int, focal=None, indices=None) 
     """Cameras from a file: tomgs .json, AnyCam c2w .npy (with K from `focal`, or an npy/txt K
     file next to it named K.npy / K.txt / intrinsics.npy), or a COLMAP text model folder."""
     if not path.exists():
-        raise InputError(f"unknown method {str(path)!r}: use {', '.join(METHODS)}")
+        text = str(path)
+        if path.suffix or "/" in text or "\\" in text:  # names a file or folder: say which is missing
+            raise InputError(f"pose file {path} does not exist: give the path of a cameras .json, an AnyCam "
+                             "c2w .npy, a COLMAP text folder or an .onnx model, or --poses auto")
+        raise InputError(f"unknown method {text!r}: use {', '.join(METHODS)}")
     if path.is_dir():
         return Cameras.from_colmap(path)
     suffix = path.suffix.lower()
