@@ -161,6 +161,19 @@ def default_lpips_weights() -> Path | None:
     return path / "alexnet-lpips-v0.1.npz" if path.is_dir() else path
 
 
+def lpips_shapes() -> dict[str, tuple[int, ...]]:
+    """The array shapes of LPIPS v0.1 AlexNet weights: conv{i}.weight/bias and lin{i}.weight ([C], or
+    [1,C,1,1] as LPIPS saves its 1x1 convolutions: any shape of C values is taken)."""
+    channels, kernels = (3, 64, 192, 384, 256, 256), (11, 5, 3, 3, 3)
+    shapes = {}
+    for i in range(5):
+        c_in, c_out, k = channels[i], channels[i + 1], kernels[i]
+        shapes[f"conv{i}.weight"] = (c_out, c_in, k, k)
+        shapes[f"conv{i}.bias"] = (c_out,)
+        shapes[f"lin{i}.weight"] = (c_out,)
+    return shapes
+
+
 class LPIPS:
     """LPIPS distance (AlexNet features, linear heads v0.1) from an npz of weights; no downloads.
 
@@ -170,24 +183,34 @@ class LPIPS:
     """
 
     def __init__(self, weights_path=None, device=None):
+        from tomgs.errors import InputError
+        from tomgs.io.tets import read_npz
+
         path = Path(weights_path) if weights_path is not None else default_lpips_weights()
         if path is None:
-            raise ValueError(f"LPIPS needs its weights: pass the path of alexnet-lpips-v0.1.npz or set {LPIPS_ENV}")
+            raise InputError(f"LPIPS needs its weights: pass the path of alexnet-lpips-v0.1.npz or set {LPIPS_ENV}")
         if path.is_dir():
             path = path / "alexnet-lpips-v0.1.npz"
         if not path.is_file():
-            raise ValueError(f"{path}: LPIPS weights not found; give the path of alexnet-lpips-v0.1.npz "
+            raise InputError(f"{path}: LPIPS weights not found; give the path of alexnet-lpips-v0.1.npz "
                              f"(conv0..4 weight/bias, lin0..4 weight)")
         self.path = path
         self.device = torch.device(device) if device is not None else torch.device("cpu")
-        try:
-            with np.load(path) as data:
-                arrays = {k: torch.as_tensor(np.asarray(data[k], dtype=np.float32), device=self.device)
-                          for k in [f"{p}{i}.{q}" for i in range(5) for p, q in (("conv", "weight"), ("conv", "bias"),
-                                                                              ("lin", "weight"))]}
-        except (KeyError, OSError, ValueError) as exc:
-            raise ValueError(f"{path}: not an LPIPS weights file ({exc}); expected conv0..4 weight/bias and "
-                             f"lin0..4 weight") from None
+        fix = "expected conv0..4 weight/bias and lin0..4 weight of LPIPS v0.1 AlexNet (alexnet-lpips-v0.1.npz)"
+        shapes = lpips_shapes()
+
+        def check(name, shape, dtype):  # before the member is decompressed: its shape is known in advance
+            want = shapes[name]
+            if (shape != want and not (name.startswith("lin") and int(np.prod(shape)) == want[0])) \
+                    or dtype.kind != "f":
+                raise InputError(f"{path}: {name} is {dtype} {list(shape)}, LPIPS AlexNet needs float {list(want)}; "
+                                 f"{fix}")
+
+        data = read_npz(path, check, list(shapes), f"not an LPIPS weights file; {fix}", required=list(shapes))
+        arrays = {k: torch.as_tensor(np.asarray(v, dtype=np.float32), device=self.device) for k, v in data.items()}
+        bad = [k for k, v in arrays.items() if not bool(torch.isfinite(v).all())]
+        if bad:
+            raise InputError(f"{path}: non-finite values in {', '.join(bad)}; {fix}")
         self.convs = [(arrays[f"conv{i}.weight"], arrays[f"conv{i}.bias"]) for i in range(5)]
         self.lins = [arrays[f"lin{i}.weight"].view(1, -1, 1, 1) for i in range(5)]
         self.shift = torch.tensor(_LPIPS_SHIFT, device=self.device).view(1, 3, 1, 1)

@@ -51,7 +51,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from tomgs.cameras import Cameras
+from tomgs.cameras import Cameras, short_repr
 from tomgs.errors import InputError
 from tomgs.outputs import atomic_file
 
@@ -159,8 +159,7 @@ def save_scene(path, model, cameras: Cameras, info: dict | None = None) -> Path:
 def load_scene(path, device="cpu") -> Scene:
     """Read a scene written by `save_scene`; the model's parameters are put on `device`.
     Raises `tomgs.InputError` naming the file and the fix when it is missing or malformed."""
-    from plyfile import PlyData, PlyParseError
-
+    from tomgs.io.tets import read_ply
     from tomgs.model import GaussianModel
 
     path = Path(path)
@@ -168,14 +167,9 @@ def load_scene(path, device="cpu") -> Scene:
     if not path.is_file():
         raise InputError(f"scene file {path} does not exist" + (" (it is a folder)" if path.is_dir() else "")
                          + f": give the path of a .ply scene ({fix})")
-    with open(path, "rb") as f:
-        magic = f.read(4)
-    if magic not in (b"ply\n", b"ply\r"):
-        raise InputError(f"{path} is not a PLY file (it does not start with 'ply'): {fix}")
-    try:
-        ply = PlyData.read(str(path))  # memory-mapped: each column is copied out once below
-    except (PlyParseError, ValueError, UnicodeDecodeError, EOFError) as e:
-        raise InputError(f"{path} is a damaged or truncated PLY file ({e}): {fix}") from None
+    # header read with a byte cap, element counts checked against the file's size, then memory-mapped:
+    # each column is copied out once below
+    ply = read_ply(path, "scene file", fix)
 
     header = _header(ply, path, fix)
     names = [e.name for e in ply.elements]
@@ -184,6 +178,11 @@ def load_scene(path, device="cpu") -> Scene:
                          f"(a tool that re-saved it may have dropped the cameras): {fix}")
     degree = header["max_sh_degree"]
     vertex = ply["vertex"].data
+    not_numbers = [p for e in (vertex, ply["camera"].data) for p in (e.dtype.names or ())
+                   if e.dtype[p].kind not in "iuf"]
+    if not_numbers:
+        raise InputError(f"{path}: properties {', '.join(not_numbers[:6])} are lists; a scene's vertex and camera "
+                         f"properties are numbers: {fix}")
     missing = [p for p in vertex_properties(degree) if p not in (vertex.dtype.names or ())]
     if missing:
         shown = ", ".join(missing[:6]) + (f" and {len(missing) - 6} more" if len(missing) > 6 else "")
@@ -224,16 +223,12 @@ def load_scene(path, device="cpu") -> Scene:
                          + ", ".join(f"{name} of {count} Gaussians" for name, count in bad.items())
                          + ": the file is corrupt or came from a diverged fit; refit or remove those Gaussians")
 
-    try:
+    try:  # Cameras checks sizes, poses, K, times and frame numbers
         c2w = np.stack([np.asarray(camera[p], dtype=np.float64) for p in _C2W], axis=1).reshape(-1, 4, 4)
         cameras = Cameras(c2w, np.asarray(header["K"], dtype=np.float64), header["width"], header["height"],
-                          np.array(camera["time"], dtype=np.float64), np.array(camera["index"], dtype=np.int64))
-    except (ValueError, TypeError) as e:
-        raise InputError(f"{path}: bad cameras ({e}): {fix}") from None
-    if cameras.width < 1 or cameras.height < 1:
-        raise InputError(f"{path}: bad image size {cameras.width}x{cameras.height}: {fix}")
-    if not np.isfinite(cameras.times).all():
-        raise InputError(f"{path}: non-finite frame times: {fix}")
+                          np.array(camera["time"], dtype=np.float64), np.array(camera["index"]))
+    except (ValueError, TypeError, OverflowError) as e:  # InputError from Cameras, or a K it cannot hold
+        raise InputError(f"{path}: bad cameras ({str(e).removeprefix('Cameras: ')}): {fix}") from None
 
     tensors = {name: torch.from_numpy(np.ascontiguousarray(a)).to(device) for name, a in arrays.items()}
     model = GaussianModel(**tensors, sh_degree=header["sh_degree"])
@@ -248,25 +243,60 @@ def _header(ply, path: Path, fix: str) -> dict:
                          f"a plain 3DGS PLY has no cameras or frame times): {fix}")
     try:
         header = json.loads(tagged[0].split(None, 1)[1])
-    except (IndexError, json.JSONDecodeError) as e:
-        raise InputError(f"{path}: the '{COMMENT_TAG}' header comment is not valid JSON ({e}): {fix}") from None
+    except RecursionError:
+        raise InputError(f"{path}: the '{COMMENT_TAG}' header comment nests too deeply to read: {fix}") from None
+    except (IndexError, ValueError) as e:  # JSONDecodeError, or a number of more than 4300 digits
+        raise InputError(f"{path}: the '{COMMENT_TAG}' header comment is not valid JSON ({str(e)[:200]}): {fix}") \
+            from None
     if not isinstance(header, dict) or header.get("format") != FORMAT:
         raise InputError(f"{path}: the '{COMMENT_TAG}' header comment lacks \"format\": \"{FORMAT}\": {fix}")
     if header.get("version") != VERSION:
-        raise InputError(f"{path} is tomgs scene version {header.get('version')!r}; this tomgs reads version "
-                         f"{VERSION}: install the tomgs that wrote it, or refit")
+        raise InputError(f"{path} is tomgs scene version {short_repr(header.get('version'))}; this tomgs reads "
+                         f"version {VERSION}: install the tomgs that wrote it, or refit")
+    if _depth(header) > MAX_HEADER_DEPTH:
+        raise InputError(f"{path}: the '{COMMENT_TAG}' header comment nests deeper than {MAX_HEADER_DEPTH} levels; "
+                         f"what tomgs writes there is a few levels deep: {fix}")
+
+    def integer(v):
+        return isinstance(v, int) and not isinstance(v, bool)
+
+    def number(v):
+        return isinstance(v, (int, float)) and not isinstance(v, bool)
+
     checks = {
-        "width": lambda v: isinstance(v, int),
-        "height": lambda v: isinstance(v, int),
-        "K": lambda v: np.asarray(v, dtype=object).shape == (3, 3),
-        "max_sh_degree": lambda v: isinstance(v, int) and 0 <= v <= 3,
-        "sh_degree": lambda v: isinstance(v, int) and 0 <= v <= header.get("max_sh_degree", -1),
+        "width": integer,
+        "height": integer,
+        "K": lambda v: isinstance(v, list) and len(v) == 3 and all(
+            isinstance(row, list) and len(row) == 3 and all(number(x) for x in row) for row in v),
+        "max_sh_degree": lambda v: integer(v) and 0 <= v <= 3,
+        "sh_degree": lambda v: integer(v) and 0 <= v <= header.get("max_sh_degree", -1),
         "info": lambda v: isinstance(v, dict),
     }
     for key, ok in checks.items():
         if key not in header or not ok(header[key]):
-            raise InputError(f"{path}: header field {key!r} is missing or invalid ({header.get(key)!r}): {fix}")
+            raise InputError(f"{path}: header field {key!r} is missing or invalid ({short_repr(header.get(key), 80)}): "
+                             f"{fix}")
     return header
+
+
+MAX_HEADER_DEPTH = 64
+"""Deepest nesting of the header JSON: its info holds settings, notes and edits, a few levels deep;
+64 keeps every later json.dumps and repr of it far from Python's recursion limit."""
+
+
+def _depth(value) -> int:
+    """Nesting depth of a JSON value (0 for a scalar), without recursion."""
+    deepest, stack = 0, [(value, 0)]
+    while stack:
+        item, depth = stack.pop()
+        deepest = max(deepest, depth)
+        if deepest > MAX_HEADER_DEPTH:
+            break
+        if isinstance(item, dict):
+            stack.extend((v, depth + 1) for v in item.values())
+        elif isinstance(item, list):
+            stack.extend((v, depth + 1) for v in item)
+    return deepest
 
 
 # ---- frames and summaries ----------------------------------------------------------------------
@@ -296,8 +326,9 @@ def select_frames(cameras: Cameras, spec) -> np.ndarray:
         if not first <= absolute <= hi:
             raise InputError(f"frame range {spec!r}: {what} {value} is outside the scene's frames ({span}); "
                              f"pick a range inside {first}:{last + 1}")
-    wanted = set(np.arange(last + 1)[sel].tolist())
-    positions = np.array([k for k, num in enumerate(numbers.tolist()) if num in wanted], dtype=np.int64)
+    # the numbers that range(last + 1)[sel] holds, by arithmetic: no array as long as the largest number
+    picked = range(last + 1)[sel]
+    positions = np.array([k for k, num in enumerate(numbers.tolist()) if num in picked], dtype=np.int64)
     if len(positions) == 0:
         raise InputError(f"frame range {spec!r} holds none of the scene's frames ({span})")
     return positions

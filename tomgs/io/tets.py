@@ -23,6 +23,7 @@ names, natural sort order) or a single PLY file, each with a `vertex` element of
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -119,31 +120,102 @@ def save_tets(path, tets: Tets) -> Path:
     return path
 
 
-def _read_ply(path: Path, what: str):
+PLY_HEADER_CAP = 1 << 20
+"""Bytes read to find a PLY header's end before any parsing: 1 MiB, about 700 times the header of a
+fitted scene (1.4 kB: 70 property lines and the JSON comment with the fit's settings) and far above
+a tets file's or a Blender export's; a 50 MB comment is refused at once instead of parsed."""
+
+# bytes per value of each PLY scalar type (plyfile's names and the spec's)
+_PLY_SIZES = {name: size for size, names in ((1, "char uchar int8 uint8"), (2, "short ushort int16 uint16"),
+                                             (4, "int uint int32 uint32 float float32"), (8, "double float64"))
+              for name in names.split()}
+
+
+def ply_layout(path: Path, what: str = "PLY file", fix: str = "") -> list[tuple[str, int]]:
+    """[(element name, row count)] of the PLY file `path`, from a header read with a byte cap
+    (PLY_HEADER_CAP), checked against the file before anything is allocated: each element's rows take
+    at least their scalar sizes (a list at least its count; in ASCII two characters per value), and
+    all rows together must fit in the bytes after the header. InputError otherwise."""
+    path = Path(path)
+    fix = f": {fix}" if fix else ""
+    if not path.is_file():
+        raise InputError(f"{what} {path} does not exist" + (" (it is a folder)" if path.is_dir() else "") + fix)
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        head = f.read(min(size, PLY_HEADER_CAP))
+    if not head.startswith((b"ply\n", b"ply\r")):
+        raise InputError(f"{path} is not a PLY file (it does not start with 'ply'){fix}")
+    end = re.search(rb"^end_header[ \t]*\r?\n", head, re.MULTILINE)
+    if end is None:
+        if size > PLY_HEADER_CAP:
+            raise InputError(f"{path}: the PLY header is longer than {PLY_HEADER_CAP:,} bytes (no 'end_header' "
+                             f"line in them); a header of that size is not one tomgs wrote or reads{fix}")
+        raise InputError(f"{path} is a damaged or truncated PLY file (its header has no 'end_header' line){fix}")
+    body = size - end.end()
+    ascii_format = False
+    elements: list[list] = []  # [name, count, least bytes per row]
+    for line in head[:end.start()].decode("latin-1").splitlines()[1:]:
+        words = line.split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        if words[0] == "format":
+            ascii_format = len(words) > 1 and words[1] == "ascii"
+        elif words[0] == "element":
+            if len(words) != 3 or not words[2].isascii() or not words[2].isdigit():
+                raise InputError(f"{path}: bad PLY element line {line[:80]!r} (want 'element NAME COUNT'){fix}")
+            elements.append([words[1], int(words[2]), 0])
+        elif words[0] == "property" and elements:
+            kind = words[2] if len(words) > 2 and words[1] == "list" else words[1] if len(words) > 1 else ""
+            elements[-1][2] += 2 if ascii_format else _PLY_SIZES.get(kind, 1)
+    for name, count, row in elements:
+        least = count * max(row, 1)
+        if least > body:
+            raise InputError(f"{path} is a damaged or truncated PLY file: element {name!r} declares {count:,} rows, "
+                             f"at least {least:,} bytes, but only {body:,} bytes are left for it{fix}")
+        body -= least
+    return [(name, count) for name, count, _ in elements]
+
+
+def read_ply(path, what: str = "PLY file", fix: str = "", known_list_len=None):
+    """PlyData of `path` after `ply_layout`'s checks; every parse error is an InputError naming the
+    file. `known_list_len` ({element: {list property: length}}) memory-maps fixed-length lists."""
     from plyfile import PlyData, PlyParseError
 
-    if not path.is_file():
-        raise InputError(f"{what} {path} does not exist" + (" (it is a folder)" if path.is_dir() else ""))
+    path = Path(path)
+    ply_layout(path, what, fix)
     try:
-        return PlyData.read(str(path))
-    except (PlyParseError, ValueError, EOFError, OSError) as e:
-        raise InputError(f"{path} is not a readable PLY file ({e})") from None
+        return PlyData.read(str(path), known_list_len=known_list_len or {})
+    except (PlyParseError, ValueError, EOFError, OSError, IndexError, KeyError, TypeError, OverflowError) as e:
+        raise InputError(f"{path} is a damaged or truncated PLY file ({str(e)[:200]})" + (f": {fix}" if fix else "")) \
+            from None
 
 
 def _xyz(ply, path: Path) -> np.ndarray:
     """[V,3] float64 Blender-axes positions of the `vertex` element."""
     try:
         v = ply["vertex"].data
+        if any(v.dtype[c].kind not in "iuf" for c in "xyz"):
+            raise ValueError("x, y and z must be numbers, not lists")
         return np.stack([np.asarray(v[c], dtype=np.float64) for c in "xyz"], axis=1)
-    except (KeyError, ValueError) as e:
+    except (KeyError, ValueError, TypeError) as e:
         raise InputError(f"{path}: no vertex element with x, y, z ({e})") from None
+
+
+def _integers(values, what: str) -> np.ndarray:
+    """int64 copy of an integer column (a list property's rows stacked); ValueError for anything else."""
+    values = np.asarray(values)
+    if values.dtype == object:  # a variable-length list property: one array per row
+        values = np.stack([np.asarray(r) for r in values]) if len(values) else np.zeros((0, 4), np.int64)
+    if values.dtype.kind not in "iu":
+        raise ValueError(f"{what} must be integers, got {values.dtype}")
+    return values.astype(np.int64)
 
 
 def load_tets(path) -> Tets:
     """Read a tets file written by `save_tets` (world axes back); InputError when malformed."""
     path = Path(path)
     fix = "export one with `tomgs tets export`"
-    ply = _read_ply(path, "tets file")
+    ply = read_ply(path, "tets file", fix, known_list_len={"face": {"vertex_indices": 3}, "tet": {"vertex_indices": 4}})
     comments = [c.strip() for c in ply.comments]
     if "tomgs tets 1" not in comments:
         raise InputError(f"{path} is not a tomgs tets file (no 'tomgs tets 1' comment): {fix}")
@@ -157,10 +229,11 @@ def load_tets(path) -> Tets:
         raise InputError(f"{path} lacks element(s) {', '.join(sorted(need - names))}: {fix}")
     vertices = from_blender(_xyz(ply, path))
     try:
-        tets = np.stack([np.asarray(r, dtype=np.int64) for r in ply["tet"].data["vertex_indices"]]) \
-            if len(ply["tet"].data) else np.zeros((0, 4), dtype=np.int64)
-        gaussians = np.asarray(ply["gaussian"].data["index"], dtype=np.int64)
-    except (ValueError, KeyError) as e:
+        tets = _integers(ply["tet"].data["vertex_indices"], "tet vertex indices")
+        gaussians = _integers(ply["gaussian"].data["index"], "gaussian indices")
+        if gaussians.ndim != 1:
+            raise ValueError("gaussian indices must be one integer per row")
+    except (ValueError, KeyError, TypeError) as e:
         raise InputError(f"{path}: bad tet or gaussian element ({e}): {fix}") from None
     V, G = len(vertices), len(gaussians)
     if tets.ndim != 2 or tets.shape[1] != 4 or len(tets) == 0 or tets.min() < 0 or tets.max() >= V:
@@ -178,9 +251,11 @@ def load_tets(path) -> Tets:
         return out
     b = ply["binding"].data
     try:
-        out.binding_tet = np.asarray(b["tet"], dtype=np.int64)
+        out.binding_tet = _integers(b["tet"], "binding tets")
+        if out.binding_tet.ndim != 1 or any(b.dtype[f"b{j}"].kind not in "iuf" for j in range(4)):
+            raise ValueError("the binding has one tet index and four numbers b0..b3 per row")
         weights = np.stack([np.asarray(b[f"b{j}"], dtype=np.float64) for j in range(4)], axis=1)
-    except (ValueError, KeyError) as e:
+    except (ValueError, KeyError, TypeError) as e:
         raise InputError(f"{path}: bad binding element ({e}): {fix}") from None
     in_range = len(out.binding_tet) == 0 or (out.binding_tet.min() >= 0 and out.binding_tet.max() < len(tets))
     if len(out.binding_tet) != 4 * G or not in_range \
@@ -207,48 +282,133 @@ def save_sequence(path, vertices, frames=None) -> Path:
     return path
 
 
-def load_sequence(path, like: Tets) -> tuple[np.ndarray, np.ndarray | None]:
+DEFLATE_MAX_RATIO = 1032
+"""Deflate codes at most 258 bytes in a match of at least 2 bits: no deflated member expands to more
+than about 1032 times its compressed size, so a zip directory that says more is lying."""
+
+
+def read_npz(path, check, names, fix: str, required=()) -> dict:
+    """{name: array} for each of `names` that the .npz at `path` holds (those in `required` must be
+    there), read without trusting any size in the file: the zip directory's uncompressed size of a
+    member must be what its compressed bytes can hold (stored: equal; deflated: DEFLATE_MAX_RATIO
+    times) and exactly the .npy header plus the array that header declares; `check(name, shape,
+    dtype)` sees the declared shape and dtype (and raises InputError) before any data is decompressed.
+    InputError naming the file for anything else: not a zip, a bad CRC, pickled objects, ..."""
+    import zipfile
+    import zlib
+
+    from tomgs.cameras import npy_header
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path} does not exist" + (" (it is a folder)" if path.is_dir() else "") + f": {fix}")
+    out = {}
+    try:
+        with zipfile.ZipFile(path) as z:
+            members = {info.filename: info for info in z.infolist()}
+            for name in names:
+                info = members.get(name + ".npy")
+                if info is None:
+                    if name in required:
+                        raise InputError(f"{path} has no array {name!r} (it holds "
+                                         f"{', '.join(sorted(members))[:200] or 'nothing'}): {fix}")
+                    continue
+                where = f"{path}, array {name!r}"
+                if info.compress_type == zipfile.ZIP_STORED:
+                    can_hold = info.compress_size
+                elif info.compress_type == zipfile.ZIP_DEFLATED:
+                    can_hold = DEFLATE_MAX_RATIO * info.compress_size + 1024
+                else:
+                    raise InputError(f"{where}: compression method {info.compress_type} is not one numpy writes "
+                                     f"(stored or deflated): {fix}")
+                if info.file_size > can_hold or info.compress_size > path.stat().st_size:
+                    raise InputError(f"{where}: the zip directory says it expands to {info.file_size:,} bytes, "
+                                     f"more than its {info.compress_size:,} compressed bytes can hold: {fix}")
+                with z.open(info) as f:
+                    shape, dtype, fortran, offset = npy_header(f, where)
+                    nbytes = int(np.prod(shape, dtype=object)) * dtype.itemsize
+                    if info.file_size != offset + nbytes:
+                        raise InputError(f"{where}: its header declares a {dtype} array of shape {list(shape)} "
+                                         f"({nbytes:,} bytes), but the zip says {info.file_size - offset:,} bytes "
+                                         f"follow: {fix}")
+                    check(name, shape, dtype)
+                    buffer = bytearray(nbytes)
+                    view, got = memoryview(buffer), 0
+                    while got < nbytes:
+                        n = f.readinto(view[got:])
+                        if not n:
+                            raise InputError(f"{where}: the data ends after {got:,} of {nbytes:,} bytes: {fix}")
+                        got += n
+                    f.read(1)  # reach the end, where zipfile checks the CRC
+                out[name] = np.frombuffer(buffer, dtype=dtype).reshape(shape, order="F" if fortran else "C")
+    except InputError:
+        raise
+    except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, NotImplementedError, KeyError,
+            OverflowError, RuntimeError) as e:  # RuntimeError: an encrypted member
+        raise InputError(f"{path} is not a readable .npz file ({str(e)[:200]}): {fix}") from None
+    return out
+
+
+def load_sequence(path, like: Tets, max_frames: int | None = None) -> tuple[np.ndarray, np.ndarray | None]:
     """(vertices float64 [F,V,3] in world axes, frames int64 [F] or None) from an .npz, a folder of
     PLY files or one PLY file. Checked against `like` (the tets file the vertices move): the vertex
-    count, finite values and no inverted tet, else InputError naming the frame."""
+    count, finite values and no inverted tet, else InputError naming the frame. `max_frames` (the
+    scene's frame count, when known): more rows are refused before they are read."""
     from tomgs.io.video import natural_key
 
     path = Path(path)
+    V = len(like.vertices)
     frames = None
+    fix = "an .npz sequence holds 'vertices' [F,V,3] (Blender axes) and optional 'frames' [F]"
+
+    def check_count(count: int, where) -> None:
+        if max_frames is not None and count > max_frames:
+            raise InputError(f"{where} has {count:,} frames but the scene only {max_frames:,}: give at most "
+                             f"{max_frames:,}, one per scene frame")
+
     if path.is_dir():
         files = sorted((p for p in path.iterdir() if p.suffix.lower() == ".ply"), key=natural_key)
         if not files:
             raise InputError(f"sequence folder {path} holds no .ply files: give one PLY of moved vertices per frame")
+        check_count(len(files), path)
         names = [str(p) for p in files]
-        rows = [_xyz(_read_ply(p, "sequence frame"), p) for p in files]
+        rows = [_xyz(read_ply(p, "sequence frame"), p) for p in files]
     elif path.suffix.lower() == ".ply":
-        names, rows = [str(path)], [_xyz(_read_ply(path, "sequence file"), path)]
+        names, rows = [str(path)], [_xyz(read_ply(path, "sequence file"), path)]
     elif path.suffix.lower() == ".npz":
         if not path.is_file():
             raise InputError(f"sequence file {path} does not exist")
-        try:
-            with np.load(path) as data:
-                rows = np.asarray(data["vertices"], dtype=np.float64)
-                frames = np.asarray(data["frames"], dtype=np.int64) if "frames" in data.files else None
-        except (KeyError, ValueError, OSError) as e:
-            raise InputError(f"{path}: an .npz sequence needs 'vertices' [F,V,3] (and optional 'frames' [F]): {e}") \
-                from None
-        if rows.ndim != 3 or rows.shape[2] != 3 or len(rows) == 0:
-            raise InputError(f"{path}: 'vertices' must have shape [F,V,3] with F >= 1, got {rows.shape}")
-        if frames is not None and frames.shape != (len(rows),):
-            raise InputError(f"{path}: 'frames' must have one scene frame number per row ({len(rows)}), "
-                             f"got shape {frames.shape}")
+
+        def check(name, shape, dtype):
+            if name == "vertices":
+                if len(shape) != 3 or shape[2] != 3 or shape[0] < 1:
+                    raise InputError(f"{path}: 'vertices' must have shape [F,V,3] with F >= 1, got {list(shape)}")
+                if shape[1] != V:
+                    raise InputError(f"{path} row 0: {shape[1]} vertices, but the tets file has {V}: move the "
+                                     f"exported vertices without adding or removing any")
+                check_count(shape[0], path)
+                if dtype.kind != "f":
+                    raise InputError(f"{path}: 'vertices' must be floats, got {dtype}")
+            elif shape != (len(arrays["vertices"]),) or dtype.kind not in "iu":
+                raise InputError(f"{path}: 'frames' must have one scene frame number per row "
+                                 f"({len(arrays['vertices'])}), got {dtype} of shape {list(shape)}")
+
+        arrays = {}
+        arrays.update(read_npz(path, check, ["vertices"], fix, required=["vertices"]))
+        arrays.update(read_npz(path, check, ["frames"], fix))
+        rows = arrays["vertices"].astype(np.float64)
+        if "frames" in arrays:
+            frames = arrays["frames"].astype(np.int64)
         names = [f"{path} row {f}" for f in range(len(rows))]
     else:
         raise InputError(f"{path}: a vertex sequence is an .npz file, a folder of .ply files or one .ply file")
-    V = len(like.vertices)
     for name, row in zip(names, rows):
         if row.shape != (V, 3):
             raise InputError(f"{name}: {row.shape[0]} vertices, but the tets file has {V}: "
                              f"move the exported vertices without adding or removing any")
         if not np.isfinite(row).all():
             raise InputError(f"{name}: NaN or infinite vertex coordinates; re-export the frame")
-    vertices = from_blender(np.stack(rows))
+    vertices = from_blender(rows if isinstance(rows, np.ndarray) else np.stack(rows))
     inverted = volumes(vertices, like.tets) <= 0  # [F,T]
     if inverted.any():
         f, t = np.argwhere(inverted)[0]
