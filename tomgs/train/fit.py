@@ -4,10 +4,21 @@
     scene.csv         iteration, wall seconds, training PSNR, full-clip PSNR, Gaussians, memory
     scene.psnr.png    PSNR against wall-clock time
     scene.ckpt        the checkpoint while training runs (removed when the fit completes)
+
+Every output is checked before the video is read: an existing scene, log or plot is replaced only
+with overwrite=True, and a checkpoint left by an interrupted fit means resume=True (continue it) or
+overwrite=True (start over). A checkpoint records what identifies its clip (source frame numbers,
+frame size, a 4x4 thumbnail of every frame and mask, the layer and pose options, the cameras), so a
+resume with options that change the frames is refused naming the option, and it reuses the
+checkpoint's cameras instead of estimating them again. SIGINT and SIGTERM stop a fit with
+FitInterrupted (tomgs.train.checkpoint), whose `checkpoint` is the file a resume continues from, or
+None when there is none yet.
 """
 
 from __future__ import annotations
 
+import os
+import signal
 import time
 from pathlib import Path
 
@@ -15,8 +26,13 @@ import numpy as np
 import torch
 
 from tomgs.errors import InputError
+from tomgs.outputs import check_file_output, remove_stale_temporaries
+from tomgs.train.checkpoint import START_OVER, FitInterrupted, StopSignals, config_from, read_checkpoint
 from tomgs.train.config import TrainConfig
-from tomgs.train.trainer import FitResult, Trainer
+from tomgs.train.trainer import FitResult, Trainer, write_csv
+
+THUMB = 4  # frames and masks are compared on resume as THUMB x THUMB area averages
+THUMB_TOLERANCE = 2.0  # grey levels: decoders differ by less, another video or crop by more
 
 
 def output_paths(scene_path) -> dict[str, Path]:
@@ -25,51 +41,114 @@ def output_paths(scene_path) -> dict[str, Path]:
     return dict(scene=scene, csv=Path(f"{stem}.csv"), plot=Path(f"{stem}.psnr.png"), checkpoint=Path(f"{stem}.ckpt"))
 
 
+def check_outputs(output, resume: bool = False, overwrite: bool = False) -> dict[str, Path]:
+    """output_paths(output) once every one can be written: InputError saying how to proceed
+    otherwise. Without `overwrite` an existing scene, log or plot is refused; a checkpoint is
+    expected with `resume` (and the log may exist then), and refused without it."""
+    paths = output_paths(output)
+    if paths["scene"].suffix.lower() != ".ply":
+        raise InputError(f"{output}: a scene is written as .ply; name the output like scene.ply")
+    check_file_output(paths["scene"], overwrite, "scene")
+    check_file_output(paths["plot"], overwrite, "PSNR plot")
+    checkpoint = paths["checkpoint"]
+    if resume:
+        if not checkpoint.is_file():
+            raise InputError(f"{checkpoint}: no checkpoint to resume from; run without --resume")
+        check_file_output(checkpoint, True, "checkpoint")
+        check_file_output(paths["csv"], True, "log")
+    else:
+        if (checkpoint.exists() or checkpoint.is_symlink()) and not overwrite:
+            raise InputError(f"{checkpoint} holds an interrupted fit of {paths['scene'].name}: pass --resume to "
+                             f"continue it, or --overwrite (-y) to start over (Python: resume=True or "
+                             f"overwrite=True)")
+        check_file_output(checkpoint, overwrite, "checkpoint")
+        check_file_output(paths["csv"], overwrite, "log")
+    return paths
+
+
 def fit(video, output, config: TrainConfig | None = None, *, masks=None, frames=None, max_side=None,
-        poses="auto", focal=None, device=None, resume: bool = False, progress=None, pose_progress=None,
-        layer: str | None = None, mask_dilation: int = 2) -> FitResult:
+        poses="auto", focal=None, device=None, resume: bool = False, overwrite: bool = False, progress=None,
+        pose_progress=None, layer: str | None = None, mask_dilation: int = 2) -> FitResult:
     """Fit a TOM-GS scene to `video` (a file, a frame folder or a `tomgs.Video`) and save it to `output`.
 
     poses: "auto" (built-in tracker), "identity" (fixed camera, also the ablation), a cameras file,
-    or anything `tomgs.estimate_cameras` takes. resume: continue from `output`'s checkpoint.
-    layer: None (the whole frame), "background" (the pixels outside the masks, dilated by
-    `mask_dilation` pixels) or "foreground" (the masked object on a plane, no poses); see tomgs.layers.
+    or anything `tomgs.estimate_cameras` takes. resume: continue from `output`'s checkpoint (with the
+    options it was started with: others that change the frames are refused). overwrite: replace
+    existing outputs (and start over from an interrupted fit's checkpoint); without it they are
+    refused before any work. layer: None (the whole frame), "background" (the pixels outside the
+    masks, dilated by `mask_dilation` pixels) or "foreground" (the masked object on a plane, no
+    poses); see tomgs.layers. SIGINT / SIGTERM raise FitInterrupted (a KeyboardInterrupt) after
+    saving the step reached.
     """
-    from tomgs.io import Video, read_video
-    from tomgs.io.scene import save_scene
-    from tomgs.poses import estimate_cameras
     from tomgs.render import resolve_device
 
     config = config or TrainConfig()
+    paths = check_outputs(output, resume=resume, overwrite=overwrite)
     device = resolve_device(device)
-    paths = output_paths(output)
-    if not paths["scene"].parent.exists():
-        raise InputError(f"{output}: folder {paths['scene'].parent} does not exist; create it first")
-    if paths["scene"].suffix.lower() != ".ply":
-        raise InputError(f"{output}: a scene is written as .ply; name the output like scene.ply")
-    if resume and not paths["checkpoint"].exists():
-        raise InputError(f"{paths['checkpoint']}: no checkpoint to resume from; run without --resume")
+    options = dict(frames=None if frames is None else str(frames), max_side=None if max_side is None else int(max_side),
+                   layer=layer, mask_dilation=int(mask_dilation) if layer == "background" else None,
+                   masks=masks is not None or (getattr(video, "masks", None) is not None), poses=_poses_key(poses),
+                   focal=None if focal is None else float(focal))
+    saved = None
+    if resume:
+        saved = read_checkpoint(paths["checkpoint"])
+        _check_options(saved, options, config, paths["checkpoint"])
+    for path in paths.values():
+        remove_stale_temporaries(path)
+
+    def existing_checkpoint():
+        return paths["checkpoint"] if paths["checkpoint"].is_file() else None
+
+    try:
+        with StopSignals(immediate=True, checkpoint=existing_checkpoint):
+            return _fit(video, paths, config, saved, options, masks=masks, frames=frames, max_side=max_side,
+                        poses=poses, focal=focal, device=device, progress=progress, pose_progress=pose_progress,
+                        layer=layer, mask_dilation=mask_dilation)
+    except FitInterrupted:
+        raise
+    except KeyboardInterrupt:  # raised by a callback, or outside the main thread's handlers
+        raise FitInterrupted(existing_checkpoint(), signal.SIGINT) from None
+
+
+def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses, focal, device, progress,
+         pose_progress, layer, mask_dilation) -> FitResult:
+    from tomgs.cameras import Cameras
+    from tomgs.io import Video, read_video
+    from tomgs.io.scene import save_scene
+    from tomgs.poses import estimate_cameras
 
     clip = video if isinstance(video, Video) else read_video(video, frames=frames, max_side=max_side, masks=masks)
+    identity = _clip_identity(clip)
+    if saved is not None:
+        _check_clip(saved["clip"], identity, options, paths["checkpoint"])
     inputs = _layer_inputs(clip, layer, config, mask_dilation, masks, device)  # checks the masks before any work
     t0 = time.perf_counter()
-    point_frames = None
-    if inputs.cameras is None:
+    point_frames, estimated = None, None
+    if inputs.cameras is None and saved is not None and saved["clip"].get("cameras"):
+        # resume: the cameras the checkpoint's Gaussians were fitted in, not a new estimate
+        cameras = estimated = Cameras.from_dict(saved["clip"]["cameras"], source=str(paths["checkpoint"]))
+        views, points, colors, pose_notes = cameras, (), (), []
+    elif inputs.cameras is None:
         cameras, points, colors, report = estimate_cameras(clip, method=poses, focal=focal, progress=pose_progress)
         pose_notes = [f"poses: {report.summary()}", *report.notes]
-        views, point_frames = cameras, report.point_frames
+        views, point_frames, estimated = cameras, report.point_frames, cameras
     else:  # the foreground layer's fixed cameras
         cameras, views, points, colors, pose_notes = inputs.scene_cameras, inputs.cameras, (), (), []
     pose_seconds = time.perf_counter() - t0
+    if saved is not None:
+        pose_seconds = float(saved["clip"].get("pose_seconds", pose_seconds))
 
     torch.manual_seed(config.seed)
     trainer = Trainer(inputs.frames, views, points, colors, config, device, point_frames=point_frames, **inputs.hooks)
     trainer.notes[:0] = [*pose_notes, *inputs.notes]
-    if resume:
-        trainer.load_checkpoint(paths["checkpoint"])
-        _rewrite_csv(paths["csv"], trainer.history)
-    elif paths["csv"].exists():
-        paths["csv"].unlink()
+    if saved is not None:
+        trainer.load_checkpoint(saved)
+        write_csv(paths["csv"], trainer.history)  # the log as of the checkpoint (a killed run wrote further)
+    else:
+        paths["checkpoint"].unlink(missing_ok=True)  # overwrite: the interrupted fit is replaced by this one
+    trainer.clip = dict(identity, options=options, pose_seconds=round(pose_seconds, 3),
+                        cameras=None if estimated is None else estimated.to_dict(),
+                        source=str(getattr(video, "path", video)))
     result = trainer.run(checkpoint=paths["checkpoint"], log_csv=paths["csv"], progress=progress)
 
     info = dict(source=str(getattr(video, "path", video)) if not isinstance(video, Video) else "<Video>",
@@ -84,6 +163,93 @@ def fit(video, output, config: TrainConfig | None = None, *, masks=None, frames=
     _plot(paths["plot"], result.history)
     paths["checkpoint"].unlink(missing_ok=True)
     return result
+
+
+# -- what a checkpoint's clip is -----------------------------------------------------------------------
+
+
+def _poses_key(poses) -> str:
+    """The poses option as recorded: a method name, a file's absolute path, or '<type>' for an object."""
+    if isinstance(poses, (str, os.PathLike)):
+        text = str(poses)
+        return str(Path(text).resolve()) if Path(text).exists() else text
+    return f"<{type(poses).__name__}>"
+
+
+def _thumbnails(images) -> list[list[int]]:
+    """Each image (uint8 or bool [T,H,W(,C)]) as THUMB x THUMB area averages, 0..255, flattened."""
+    import cv2
+
+    out = []
+    for image in images:
+        image = np.asarray(image, dtype=np.uint8) * (255 if image.dtype == bool else 1)
+        small = cv2.resize(image, (THUMB, THUMB), interpolation=cv2.INTER_AREA)
+        out.append([int(v) for v in np.asarray(small).reshape(-1)])
+    return out
+
+
+def _clip_identity(clip) -> dict:
+    """What a resume must find again: source frame numbers, frame size, thumbnails of frames and masks."""
+    return dict(frame_indices=[int(i) for i in clip.indices], size=[int(s) for s in clip.frames.shape[1:3]],
+                thumbnails=_thumbnails(clip.frames),
+                mask_thumbnails=None if clip.masks is None else _thumbnails(clip.masks))
+
+
+def _describe(indices: list[int]) -> str:
+    if not indices:
+        return "no frames"
+    step = indices[1] - indices[0] if len(indices) > 1 else 1
+    regular = all(b - a == step for a, b in zip(indices, indices[1:]))
+    span = f"{indices[0]}..{indices[-1]}" + (f" step {step}" if regular and step != 1 else "" if regular else ", irregular")
+    return f"source frames {span} ({len(indices)} frames)"
+
+
+def _refuse(checkpoint, what: str, option: str) -> InputError:
+    return InputError(f"{checkpoint} {what}: resume with the {option} it was started with, or {START_OVER}")
+
+
+def _check_options(saved: dict, options: dict, config: TrainConfig, checkpoint) -> None:
+    """Before any work: the options a resume must repeat (layer, masks, poses, SH degree, temporal)."""
+    was = saved["clip"].get("options", {})
+    for key, option in (("layer", "--layer"), ("masks", "--masks"), ("mask_dilation", "--mask-dilation"),
+                        ("focal", "--focal")):
+        if key in was and was[key] != options[key]:
+            raise _refuse(checkpoint, f"was fitted with {option} {_show(was[key])}, this run gives "
+                                      f"{_show(options[key])}", option)
+    objects = "<" in str(was.get("poses")) + options["poses"]  # poses given as Python objects: not comparable
+    if "poses" in was and was["poses"] != options["poses"] and not objects:
+        raise _refuse(checkpoint, f"was fitted with --poses {was['poses']}, this run gives {options['poses']}",
+                      "--poses")
+    fitted = config_from(saved["config"], checkpoint)
+    for name, option in (("sh_degree", "--sh-degree"), ("temporal", "--static")):
+        if getattr(fitted, name) != getattr(config, name):
+            raise _refuse(checkpoint, f"was fitted with {name}={getattr(fitted, name)!r}, this run asks for "
+                                      f"{getattr(config, name)!r}", option)
+
+
+def _check_clip(was: dict, now: dict, options: dict, checkpoint) -> None:
+    """After decoding, before the poses: the same source frames, size and content as the checkpoint's."""
+    given = was.get("options", {})
+    if "frame_indices" in was and was["frame_indices"] != now["frame_indices"]:
+        raise _refuse(checkpoint, f"was fitted on {_describe(was['frame_indices'])} (--frames "
+                                  f"{given.get('frames') or 'all'}), this run selects {_describe(now['frame_indices'])} "
+                                  f"(--frames {options['frames'] or 'all'})", "--frames")
+    if "size" in was and was["size"] != now["size"]:
+        (h0, w0), (h1, w1) = was["size"], now["size"]
+        raise _refuse(checkpoint, f"was fitted on frames of {w0}x{h0} (--max-side {given.get('max_side') or 'none'}), "
+                                  f"this run reads {w1}x{h1} (--max-side {options['max_side'] or 'none'})",
+                      "--max-side")
+    for key, what, option in (("thumbnails", "frames", "video"), ("mask_thumbnails", "masks", "--masks")):
+        if was.get(key) is None or now.get(key) is None:
+            continue
+        a, b = np.asarray(was[key], dtype=np.float64), np.asarray(now[key], dtype=np.float64)
+        if a.shape != b.shape or np.abs(a - b).max() > THUMB_TOLERANCE:
+            differ = int(np.sum(np.abs(a - b).max(axis=1) > THUMB_TOLERANCE)) if a.shape == b.shape else len(b)
+            raise _refuse(checkpoint, f"was fitted on other {what}: {differ} of this run's {len(b)} differ", option)
+
+
+def _show(value) -> str:
+    return "none" if value is None or value is False else "given" if value is True else str(value)
 
 
 def _fps(clip) -> float:
@@ -109,14 +275,6 @@ def _layer_inputs(clip, layer, config, mask_dilation, masks_path, device):
     if layer == "foreground":
         return foreground_inputs(clip, config, masks_path, device.type)
     raise InputError(f"unknown layer {layer!r}: use background or foreground")
-
-
-def _rewrite_csv(path: Path, history: list[dict]) -> None:
-    from tomgs.train.trainer import _append_csv
-
-    path.unlink(missing_ok=True)
-    for row in history:
-        _append_csv(path, row)
 
 
 def _plot(path: Path, history: list[dict]) -> None:

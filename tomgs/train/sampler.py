@@ -2,13 +2,19 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
+
+# A frame rendered exactly (PSNR inf: an all-black clip, a flat colour) counts as this many dB.
+MAX_PSNR = 100.0
 
 
 class FrameSampler:
     """p(frame k) proportional to 1 / running PSNR_k; frames not yet seen count as the worst.
 
-    The running PSNR of a frame is updated whenever it is trained on. Sampling uses its own
+    The running PSNR of a frame is updated whenever it is trained on (inf counts as MAX_PSNR, NaN
+    as no measurement, so the probabilities stay finite). Sampling uses its own
     torch.Generator, so a seeded run repeats exactly and a resumed run continues the same draws.
     """
 
@@ -27,13 +33,20 @@ class FrameSampler:
             return torch.full((n,), 1.0 / n, dtype=torch.float64)
         seen = self.psnr > 0
         floor = self.psnr[seen].min() if seen.any() else torch.tensor(1.0, dtype=torch.float64)
-        weights = 1.0 / torch.where(seen, self.psnr, floor).clamp_min(1.0)
-        return weights / weights.sum()
+        weights = 1.0 / torch.where(seen, self.psnr, floor).clamp(1.0, MAX_PSNR)
+        total = weights.sum()
+        if not torch.isfinite(total) or total <= 0:
+            return torch.full((n,), 1.0 / n, dtype=torch.float64)
+        return weights / total
 
     def sample(self) -> int:
         return int(torch.multinomial(self.probabilities(), 1, generator=self.generator))
 
     def update(self, frame: int, psnr: float) -> None:
+        psnr = float(psnr)
+        if math.isnan(psnr):
+            return  # nothing measured (no supervised pixel in the frame)
+        psnr = min(psnr, MAX_PSNR)
         old = float(self.psnr[frame])
         self.psnr[frame] = psnr if old == 0 else self.momentum * old + (1 - self.momentum) * psnr
 

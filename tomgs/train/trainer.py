@@ -8,15 +8,23 @@ foreground's Gaussians pinned to a plane).
 
 Error against run time is part of the output: every `log_interval` iterations a CSV row
 (iteration, wall seconds, training PSNR, full-clip PSNR when measured, Gaussians, memory), and at
-the end a PNG of PSNR against wall-clock time. Checkpoints every few minutes and on Ctrl-C let
-`resume=True` continue a run where it stopped; a seeded CPU run repeats exactly.
+the end a PNG of PSNR against wall-clock time; the CSV is rewritten atomically at each row.
+
+Durability (tomgs/train/checkpoint.py): a checkpoint every `checkpoint_interval_s` seconds of
+training (30 s), spaced further when a save is slow so that saving costs at most
+CHECKPOINT_OVERHEAD of the run, and one when SIGINT or SIGTERM arrives: the signal is read at the
+next step boundary (never inside a densification, where the parameters and the optimiser disagree),
+that step is saved and FitInterrupted raised. A crash (kill -9, power loss) loses at most the
+interval (or 20 saves' time) of training; `resume=True` continues from the checkpoint, and a seeded
+CPU run repeats exactly.
 """
 
 from __future__ import annotations
 
 import csv
+import io
 import math
-import os
+import signal
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,6 +36,10 @@ from tomgs.cameras import Cameras
 from tomgs.metrics import psnr, ssim, ssim_map
 from tomgs.model import GaussianModel, nearest_neighbour_distance
 from tomgs.render import rasterize
+from tomgs.errors import InputError
+from tomgs.outputs import remove_stale_temporaries, write_text
+from tomgs.train.checkpoint import (FORMAT, START_OVER, VERSION, FitInterrupted, StopSignals, config_from,
+                                    config_to_dict, read_checkpoint, write_checkpoint)
 from tomgs.train.config import TrainConfig
 from tomgs.train.densify import Densifier
 from tomgs.train.optim import SeenAdam
@@ -37,6 +49,9 @@ from tomgs.train.sampler import FrameSampler
 # host wait for the device once more per step than the rasterizer needs.
 SAMPLER_LAG = 8
 CSV_FIELDS = ("iteration", "wall_s", "train_psnr", "clip_psnr", "gaussians", "memory_mb")
+# A save may cost at most this fraction of the training time: with slow saves (millions of
+# Gaussians, a slow disk) checkpoints are spaced to 1 / CHECKPOINT_OVERHEAD times a save's duration.
+CHECKPOINT_OVERHEAD = 0.05
 
 
 @dataclass
@@ -96,6 +111,7 @@ class Trainer:
         self.progress = 0.0  # fraction of the run done: iterations or wall-clock budget, whichever is further
         self.elapsed = 0.0  # wall seconds of earlier sessions of a resumed run
         self.history: list[dict] = []
+        self.clip: dict = {}  # what identifies the clip, saved with checkpoints (tomgs.train.fit fills it)
         self._measured: list[tuple[int, torch.Tensor]] = []  # (frame, PSNR) not yet given to the sampler
 
     # -- set-up --------------------------------------------------------------------------------
@@ -293,11 +309,27 @@ class Trainer:
         return [self.measure(k, self.render(k)[0]) for k in range(self.num_frames)]
 
     def run(self, checkpoint: Path | None = None, log_csv: Path | None = None, progress=None) -> FitResult:
-        """Train to `config.iterations`. `progress(dict)` is called every log interval."""
+        """Train to `config.iterations`. `progress(dict)` is called every log interval (a
+        KeyboardInterrupt it raises stops the run like Ctrl-C). With `checkpoint`, the state is saved
+        there on the schedule above and on SIGINT / SIGTERM, which then raise FitInterrupted."""
         c = self.config
+        for path in (checkpoint, log_csv):
+            if path is not None:
+                remove_stale_temporaries(path)
         start = time.perf_counter() - self.elapsed
-        next_eval = next_ckpt = 0.0
-        try:
+        next_eval = 0.0
+        next_ckpt = self.elapsed + c.checkpoint_interval_s  # nothing to lose at the first step
+        saved = Path(checkpoint) if checkpoint is not None and Path(checkpoint).is_file() else None
+
+        def stop_here(signum):
+            """Save the step just finished (a step boundary) and raise FitInterrupted."""
+            if checkpoint is None:
+                raise FitInterrupted(None, signum)
+            self.elapsed = time.perf_counter() - start
+            self.save_checkpoint(checkpoint)
+            raise FitInterrupted(checkpoint, signum, self.iteration)
+
+        with StopSignals(checkpoint=lambda: saved) as stop:
             while self.iteration < c.iterations:
                 now = time.perf_counter() - start
                 self.progress = max(self.iteration / c.iterations, now / c.max_seconds if c.max_seconds > 0 else 0.0)
@@ -312,21 +344,26 @@ class Trainer:
                     row = self._row(now, clip)
                     self.history.append(row)
                     if log_csv is not None:
-                        _append_csv(log_csv, row)
+                        write_csv(log_csv, self.history)
                     if progress is not None:
-                        progress(row)
+                        try:
+                            progress(row)
+                        except KeyboardInterrupt:  # the caller's Ctrl-C, also at a step boundary
+                            stop.request(signal.SIGINT)
+                if stop.signum is not None:
+                    stop_here(stop.signum)
                 if checkpoint is not None and now >= next_ckpt:
                     self.elapsed = now
+                    began = time.perf_counter()
                     self.save_checkpoint(checkpoint)
-                    next_ckpt = now + c.checkpoint_interval_s
+                    saved = Path(checkpoint)
+                    cost = time.perf_counter() - began
+                    next_ckpt = time.perf_counter() - start + max(c.checkpoint_interval_s, cost / CHECKPOINT_OVERHEAD)
                 if out_of_time:
                     self.notes.append(f"stopped at the {c.max_seconds:.0f} s budget after {self.iteration} iterations")
                     break
-        except KeyboardInterrupt:
-            if checkpoint is not None:
-                self.elapsed = time.perf_counter() - start
-                self.save_checkpoint(checkpoint)
-            raise
+        if stop.signum is not None:  # arrived after the loop's last look: still a step boundary
+            stop_here(stop.signum)
         self.elapsed = time.perf_counter() - start
         final = self.history[-1]["clip_psnr"] if self.history and self.history[-1]["clip_psnr"] != "" \
             else float(np.mean(self.clip_psnr()))
@@ -349,33 +386,69 @@ class Trainer:
 
     # -- checkpoints ---------------------------------------------------------------------------
 
-    def save_checkpoint(self, path: Path) -> None:
+    def state_dict(self) -> dict:
+        """The trainer's state as tensors and plain data (tomgs/train/checkpoint.py's layout)."""
         self.flush_measurements()
-        state = dict(
-            iteration=self.iteration, elapsed=self.elapsed, history=self.history, notes=self.notes,
+        densifier = {k: (v.cpu() if torch.is_tensor(v) else v) for k, v in self.densifier.state_dict().items()}
+        return dict(
+            format=FORMAT, version=VERSION, iteration=int(self.iteration), elapsed=float(self.elapsed),
+            extent=float(self.extent), config=config_to_dict(self.config),
+            frames=[int(self.num_frames), int(self.height), int(self.width)],
             params={k: v.detach().cpu() for k, v in self.model.parameters_by_name().items()},
-            sh_degree=self.model.sh_degree, optimizer=self.optimizer.state_dict(),
-            sampler=self.sampler.state_dict(), densifier={k: (v.cpu() if torch.is_tensor(v) else v)
-                                                          for k, v in self.densifier.state_dict().items()},
-            config=self.config, extent=self.extent,
+            sh_degree=int(self.model.sh_degree), optimizer=self.optimizer.state_dict(),
+            sampler=self.sampler.state_dict(), densifier=densifier, history=[dict(r) for r in self.history],
+            notes=[str(n) for n in self.notes], clip=dict(self.clip),
         )
-        tmp = Path(f"{path}.tmp")
-        torch.save(state, tmp)
-        os.replace(tmp, path)
 
-    def load_checkpoint(self, path: Path) -> None:
-        state = torch.load(path, map_location="cpu", weights_only=False)
+    def save_checkpoint(self, path: Path) -> None:
+        """Write the state to `path` (tomgs.train.checkpoint.write_checkpoint: an exclusively created
+        temporary, fsync, rename; the previous checkpoint stays until the new one is complete)."""
+        write_checkpoint(path, self.state_dict())
+
+    def load_checkpoint(self, checkpoint) -> dict:
+        """Continue from `checkpoint`: a path (read with weights_only and checked) or a state that
+        `read_checkpoint` returned. InputError when it was fitted on other frames or frame sizes, or
+        with another SH degree or temporal mode than this trainer's. Returns the state."""
+        where = "the checkpoint" if isinstance(checkpoint, dict) else str(checkpoint)
+        state = checkpoint if isinstance(checkpoint, dict) else read_checkpoint(checkpoint)
+        views, height, width = state["frames"]
+        if (views, height, width) != (self.num_frames, self.height, self.width):
+            raise InputError(f"{where} was fitted on {views} frames of {width}x{height}, but this run has "
+                             f"{self.num_frames} of {self.width}x{self.height}: resume with the options it was "
+                             f"started with (--frames, --max-side), or {START_OVER}")
+        saved = config_from(state["config"], where)
+        for name, option in (("sh_degree", "--sh-degree"), ("temporal", "--static")):
+            if getattr(saved, name) != getattr(self.config, name):
+                raise InputError(f"{where} was fitted with {name}={getattr(saved, name)!r}, this run asks for "
+                                 f"{getattr(self.config, name)!r}: resume with the same {option}, or {START_OVER}")
+        current = self.model.parameters_by_name()
+        for name, value in state["params"].items():
+            if value.shape[1:] != current[name].shape[1:]:
+                raise InputError(f"{where}: parameter {name} has rows of shape {tuple(value.shape[1:])}, this "
+                                 f"model's are {tuple(current[name].shape[1:])}; {START_OVER}")
+        changed = [f"{k} {getattr(saved, k)} -> {getattr(self.config, k)}" for k in config_to_dict(saved)
+                   if getattr(saved, k) != getattr(self.config, k)]
         self.model.replace({k: v.to(self.device) for k, v in state["params"].items()})
         self.model.sh_degree = state["sh_degree"]
+        self.extent = float(state["extent"])
         self.optimizer = self._optimizer()
+        own = [{k: group[k] for k in ("fused", "foreach", "capturable", "differentiable") if k in group}
+               for group in self.optimizer.param_groups]
         self.optimizer.load_state_dict(state["optimizer"])
+        for group, settings in zip(self.optimizer.param_groups, own):
+            group.update(settings)  # how this device runs Adam, not how the saving one did
         self.sampler.load_state_dict(state["sampler"])
-        densifier = state["densifier"]
+        densifier = dict(state["densifier"])
         densifier["grad_sum"] = densifier["grad_sum"].to(self.device)
         densifier["seen"] = densifier["seen"].to(self.device)
         self.densifier.load_state_dict(densifier)
-        self.iteration, self.elapsed = state["iteration"], state["elapsed"]
-        self.history, self.notes, self.extent = state["history"], state["notes"], state["extent"]
+        self.iteration, self.elapsed = state["iteration"], float(state["elapsed"])
+        self.history, self.notes = list(state["history"]), list(state["notes"])
+        self.densifier.extent = self.extent
+        self.clip = dict(state["clip"])
+        if changed:
+            self.notes.append(f"resumed at iteration {self.iteration} with other settings: {', '.join(changed)}")
+        return state
 
 
 def _as_uint8(values, shape, name: str, device) -> torch.Tensor:
@@ -386,10 +459,10 @@ def _as_uint8(values, shape, name: str, device) -> torch.Tensor:
     return torch.as_tensor(np.rint(np.clip(values, 0.0, 1.0) * 255.0).astype(np.uint8), device=device)
 
 
-def _append_csv(path: Path, row: dict) -> None:
-    new = not path.exists()
-    with open(path, "a", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=CSV_FIELDS)
-        if new:
-            writer.writeheader()
-        writer.writerow(row)
+def write_csv(path: Path, rows: list[dict]) -> None:
+    """The log `rows` as CSV at `path`, replaced atomically (never written through a link)."""
+    out = io.StringIO()
+    writer = csv.DictWriter(out, fieldnames=CSV_FIELDS)
+    writer.writeheader()
+    writer.writerows(rows)
+    write_text(path, out.getvalue())

@@ -1,0 +1,257 @@
+"""Checkpoints of a fit, and the signals that stop one.
+
+A checkpoint is tensors and plain data only (dicts, lists, str, int, float, bool, None), written
+with torch.save through `tomgs.outputs.atomic_file` (a private temporary in the same folder,
+fsync'd, renamed over the last one: a crash leaves the previous complete checkpoint) and read with
+`torch.load(weights_only=True)`, which builds no object but those: a file that holds anything else
+(a pickled class, a `__reduce__` payload) is refused with an InputError before any of it runs.
+After loading, its layout is checked (`check_state`) before a tensor of it is used.
+
+    format, version   "tomgs-checkpoint", 1
+    iteration, elapsed, extent       steps done, training seconds so far, scene size
+    config            TrainConfig's fields as a dict (rebuilt with `config_from`)
+    frames            [V, H, W]: the training views and their size
+    params            {name: float tensor [N, ...]} (tomgs.model.PARAM_NAMES), sh_degree
+    optimizer         the optimiser's state_dict (Adam's layout, moments [N, ...])
+    sampler           {psnr: float64 [V], generator: uint8 tensor}
+    densifier         {grad_sum: [N], seen: [N], capped: bool, generator: uint8 tensor}
+    history, notes    the CSV rows (dicts of numbers and "") and the fit's notes (str)
+    clip              what identifies the clip for `fit(resume=True)` (tomgs.train.fit fills it)
+
+Signals: `StopSignals` turns SIGINT and SIGTERM into a request that the training loop reads at a
+step boundary, where the parameters, the optimiser and the densifier agree; the loop saves and
+raises `FitInterrupted`. A second signal, or one outside the loop (`immediate=True`: decoding,
+poses, writing the scene), raises `FitInterrupted` at once; the checkpoint on disk is then the last
+complete one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+import signal
+import threading
+import warnings
+from pathlib import Path
+
+import torch
+
+from tomgs.errors import InputError
+from tomgs.model import PARAM_NAMES
+from tomgs.outputs import atomic_file
+
+FORMAT = "tomgs-checkpoint"
+VERSION = 1
+START_OVER = "pass --overwrite (-y) to start the fit over (Python: overwrite=True)"
+
+
+class FitInterrupted(KeyboardInterrupt):
+    """A fit stopped by SIGINT (Ctrl-C) or SIGTERM. `checkpoint`: the checkpoint that a resume
+    continues from (saved at the step the fit reached, or the last one before it), or None when there
+    is none (stopped before training began); `signum`: the signal; `iteration`: the step saved, or
+    None. `exit_code` is the shell's convention, 128 + signum."""
+
+    def __init__(self, checkpoint: Path | None, signum: int = signal.SIGINT, iteration: int | None = None):
+        self.checkpoint = None if checkpoint is None else Path(checkpoint)
+        self.signum = int(signum)
+        self.iteration = iteration
+        super().__init__(self.message())
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + self.signum
+
+    def message(self) -> str:
+        try:
+            name = signal.Signals(self.signum).name
+        except ValueError:
+            name = f"signal {self.signum}"
+        if self.checkpoint is None:
+            return f"interrupted ({name}) before training began: nothing saved"
+        at = f" (iteration {self.iteration})" if self.iteration is not None else ""
+        return f"interrupted ({name}): checkpoint{at} at {self.checkpoint}; continue with --resume"
+
+    def __str__(self) -> str:
+        return self.message()
+
+
+class StopSignals:
+    """Context manager: SIGINT and SIGTERM, while it is active, set `signum` (the loop stops at its
+    next step boundary) instead of killing the process or raising in the middle of a step. A second
+    signal raises FitInterrupted(`checkpoint`) at once, and so does the first with `immediate=True`.
+    `checkpoint`: the last complete checkpoint, kept up to date by its user. Installs nothing outside
+    the main thread (signals are delivered there only) nor for a signal that is ignored (a
+    background job's SIGINT); the previous handlers are restored on exit."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self, immediate: bool = False, checkpoint: Path | None = None):
+        self.immediate = immediate
+        self.checkpoint = checkpoint
+        self.signum: int | None = None
+        self._previous: dict[int, object] = {}
+
+    def request(self, signum: int = signal.SIGINT) -> None:
+        """Ask the loop to stop at its next step boundary (what a signal does)."""
+        if self.signum is None:
+            self.signum = int(signum)
+
+    def _handle(self, signum, frame) -> None:
+        if self.immediate or self.signum is not None:
+            raise FitInterrupted(self.checkpoint() if callable(self.checkpoint) else self.checkpoint, signum)
+        self.signum = int(signum)
+
+    def __enter__(self) -> "StopSignals":
+        if threading.current_thread() is threading.main_thread():
+            for sig in self.SIGNALS:
+                previous = signal.getsignal(sig)
+                if previous is signal.SIG_IGN or previous is None:
+                    continue  # ignored by whoever started us (or set from C): leave it so
+                self._previous[sig] = previous
+                signal.signal(sig, self._handle)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for sig, previous in self._previous.items():
+            signal.signal(sig, previous)
+        self._previous.clear()
+
+
+# -- writing and reading ---------------------------------------------------------------------------
+
+
+def write_checkpoint(path, state: dict) -> Path:
+    """Save `state` (check_state's layout) to `path` atomically and durably: the previous file at
+    `path` is replaced only by a complete new one."""
+    check_state(state, path, ours=True)
+    with atomic_file(path, durable=True) as tmp, open(tmp, "wb") as f:
+        torch.save(state, f)
+    return Path(path)
+
+
+def read_checkpoint(path) -> dict:
+    """The checked state of the checkpoint at `path`; InputError for a file that is missing, damaged,
+    holds anything but tensors and plain data (nothing in it runs), or is not laid out as tomgs
+    writes it."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: no checkpoint to resume from; run without --resume")
+    try:
+        with warnings.catch_warnings():  # torch's notes on foreign pickle protocols: the refusal says enough
+            warnings.simplefilter("ignore")
+            state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # noqa: BLE001 - every way a foreign or damaged file fails to load
+        raise InputError(f"{path} is not a checkpoint tomgs can read ({_load_failure(e)}); nothing in it was run. "
+                         f"Delete it, or {START_OVER}") from None
+    check_state(state, path)
+    return state
+
+
+def _load_failure(error: Exception) -> str:
+    """Why torch.load(weights_only=True) refused a file, in one short clause."""
+    text = str(error)
+    found = re.search(r"unsupported GLOBAL ([\w.]+)|Unsupported global: GLOBAL ([\w.]+)", text)
+    if found:
+        name = found.group(1) or found.group(2)
+        return (f"it asks to build the Python object {name}; a checkpoint holds only tensors and plain data, and "
+                f"tomgs loads nothing else")
+    if "Weights only load failed" in text:
+        detail = re.search(r"WeightsUnpickler error: \s*(.+)", text)
+        return "damaged, or not a checkpoint" + (f": {detail.group(1).strip()[:100]}" if detail else "")
+    first = text.strip().split(". ")[0].splitlines()[0] if text.strip() else type(error).__name__
+    return f"damaged, or not a checkpoint: {first[:160]}"
+
+
+def _bad(path, what: str) -> InputError:
+    return InputError(f"{path} is not a tomgs checkpoint of this version ({what}); delete it, or {START_OVER}")
+
+
+def check_state(state, path="<checkpoint>", ours: bool = False) -> None:
+    """Check the layout of a checkpoint's state before anything of it is used: InputError naming
+    `path` otherwise (a RuntimeError when `ours`: the trainer about to write a torn state)."""
+    def fail(what):
+        if ours:
+            raise RuntimeError(f"refusing to write checkpoint {path}: {what}")
+        raise _bad(path, what)
+
+    if not isinstance(state, dict) or state.get("format") != FORMAT:
+        fail(f"no \"format\": \"{FORMAT}\"")
+    if state.get("version") != VERSION:
+        fail(f"version {state.get('version')!r}, this tomgs reads {VERSION}")
+    for key, kinds in dict(iteration=int, elapsed=(int, float), extent=(int, float), sh_degree=int, config=dict,
+                           params=dict, optimizer=dict, sampler=dict, densifier=dict, history=list, notes=list,
+                           clip=dict, frames=list).items():
+        if not isinstance(state.get(key), kinds) or isinstance(state.get(key), bool):
+            fail(f"{key!r} missing or not {kinds}")
+    if state["iteration"] < 0 or not math.isfinite(state["elapsed"]) or state["elapsed"] < 0:
+        fail("negative iteration or elapsed time")
+    if not (math.isfinite(state["extent"]) and state["extent"] > 0):
+        fail("scene extent not a positive number")
+    if not 0 <= state["sh_degree"] <= 3:
+        fail(f"sh_degree {state['sh_degree']}")
+    frames = state["frames"]
+    if len(frames) != 3 or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in frames):
+        fail("'frames' is not [views, height, width]")
+    config_from(state["config"], path)  # unknown or mistyped settings
+    if not all(isinstance(n, str) for n in state["notes"]) or not all(isinstance(r, dict) for r in state["history"]):
+        fail("notes or history of another kind")
+
+    params = state["params"]
+    if set(params) != set(PARAM_NAMES) or not all(torch.is_tensor(v) and v.is_floating_point() for v in params.values()):
+        fail(f"params are not the float tensors {', '.join(PARAM_NAMES)}")
+    rows = {name: (v.shape[0] if v.dim() else -1) for name, v in params.items()}
+    n = rows["means"]
+    if len(set(rows.values())) != 1 or n < 0:
+        fail(f"parameters of different lengths {sorted(set(rows.values()))}")
+
+    optimizer = state["optimizer"]
+    groups, moments = optimizer.get("param_groups"), optimizer.get("state")
+    if not isinstance(groups, list) or not isinstance(moments, dict) or len(groups) != len(PARAM_NAMES):
+        fail("optimizer state of another layout")
+    ids = {}
+    for group in groups:
+        if not isinstance(group, dict) or group.get("name") not in params or not isinstance(group.get("params"), list) \
+                or len(group["params"]) != 1:
+            fail("optimizer groups of another layout")
+        ids[group["params"][0]] = group["name"]
+    for index, entry in moments.items():
+        if index not in ids or not isinstance(entry, dict):
+            fail("optimizer moments of unknown parameters")
+        shape = params[ids[index]].shape
+        for key in ("exp_avg", "exp_avg_sq"):
+            if not torch.is_tensor(entry.get(key)) or entry[key].shape != shape:
+                fail(f"Adam moments of {ids[index]} ({key}) do not match its {n} rows")
+
+    sampler = state["sampler"]
+    if not torch.is_tensor(sampler.get("psnr")) or tuple(sampler["psnr"].shape) != (frames[0],) \
+            or not torch.is_tensor(sampler.get("generator")):
+        fail("sampler state does not match the frames")
+    densifier = state["densifier"]
+    for key in ("grad_sum", "seen"):
+        if not torch.is_tensor(densifier.get(key)) or tuple(densifier[key].shape) != (n,):
+            fail(f"densifier statistics ({key}) do not match the {n} rows")
+    if not isinstance(densifier.get("capped"), bool) or not torch.is_tensor(densifier.get("generator")):
+        fail("densifier state of another layout")
+
+
+def config_from(values: dict, path="<checkpoint>"):
+    """TrainConfig from a checkpoint's plain dict; InputError for unknown or mistyped settings."""
+    from tomgs.train.config import TrainConfig
+
+    fields = {f.name: f for f in dataclasses.fields(TrainConfig)}
+    unknown = set(values) - set(fields)
+    if unknown:
+        raise _bad(path, f"unknown settings {', '.join(sorted(map(str, unknown)))}")
+    for name, value in values.items():
+        if not isinstance(value, (int, float, str, bool, type(None))):
+            raise _bad(path, f"setting {name} of type {type(value).__name__}")
+    return TrainConfig(**values)
+
+
+def config_to_dict(config) -> dict:
+    return dataclasses.asdict(config)
+
+
+__all__ = ["FitInterrupted", "StopSignals", "check_state", "config_from", "config_to_dict", "read_checkpoint",
+           "write_checkpoint"]
