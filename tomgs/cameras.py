@@ -433,16 +433,29 @@ def load_npy(path: Path, what: str) -> np.ndarray:
 
 def npy_header(stream, source) -> tuple[tuple[int, ...], np.dtype, bool, int]:
     """(shape, dtype, Fortran order, bytes read) of the .npy header at the start of `stream`;
-    InputError unless it is an array of numbers (bool, int, float). Reads at most the header
-    (numpy refuses headers over 10,000 bytes)."""
+    InputError unless it is an array of numbers (bool, int, float). Reads at most the header, and
+    the header only when the length it declares is under 10,000 bytes (numpy's own limit)."""
+    import io
+
     from numpy.lib import format as npformat
 
+    prefix = stream.read(8)
+    if len(prefix) < 8 or prefix[:6] != b"\x93NUMPY" or prefix[6] not in (1, 2, 3):
+        raise InputError(f"{source} is not a .npy array (no '\\x93NUMPY' magic of version 1, 2 or 3)")
+    length = stream.read(2 if prefix[6] == 1 else 4)
+    size = int.from_bytes(length, "little")
+    if len(length) < (2 if prefix[6] == 1 else 4) or size > 10_000:
+        raise InputError(f"{source}: the .npy header declares {size:,} bytes; numpy writes headers under 10,000")
+    header = stream.read(size)
+    if len(header) < size:
+        raise InputError(f"{source}: the .npy header is truncated")
+    read = npformat.read_array_header_1_0 if prefix[6] == 1 else npformat.read_array_header_2_0
     try:
-        major, _ = npformat.read_magic(stream)
-        read = npformat.read_array_header_1_0 if major == 1 else npformat.read_array_header_2_0
-        shape, fortran, dtype = read(stream)
-    except (ValueError, OSError, EOFError, SyntaxError, TypeError) as e:
-        raise InputError(f"{source} is not a .npy array ({str(e)[:200]})") from None
-    if dtype.kind not in "biuf" or dtype.hasobject or dtype.shape or dtype.names:
+        shape, fortran, dtype = read(io.BytesIO(length + header))
+    except Exception as e:  # noqa: BLE001 -- numpy's header parser raises assorted types for garbage
+        raise InputError(f"{source} is not a .npy array ({type(e).__name__}: {str(e)[:200]})") from None
+    if not isinstance(dtype, np.dtype) or dtype.kind not in "biuf" or dtype.hasobject or dtype.shape or dtype.names:
         raise InputError(f"{source} holds a {dtype} array; an array of numbers is expected")
-    return tuple(int(n) for n in shape), dtype, bool(fortran), stream.tell()
+    if any(int(n) < 0 for n in shape):
+        raise InputError(f"{source}: the .npy header declares shape {list(shape)}")
+    return tuple(int(n) for n in shape), dtype, bool(fortran), 8 + len(length) + size

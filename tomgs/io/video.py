@@ -96,17 +96,26 @@ def _resized_size(h: int, w: int, max_side: int | None) -> tuple[int, int]:
 PNG_MAX_RATIO = 1032  # deflate's largest expansion: a PNG's pixels cannot outgrow 1032 x its bytes
 
 
-def image_size(path: Path) -> tuple[int, int, str] | None:
-    """(width, height, format) that a PNG, JPEG or BMP file declares in its header, read without
-    decoding; None for other formats or a header too damaged to say."""
+def image_size(path: Path) -> tuple[int, int, str, int] | None:
+    """(width, height, format, least bytes those pixels take in this format) that a PNG, JPEG or BMP
+    file declares in its header, read without decoding; None for other formats or a header too
+    damaged to say. Least bytes: PNG, deflate's 1032:1 over one bit per pixel and the filter bytes;
+    uncompressed BMP, its rows; RLE BMP, 2 bytes per 255 pixels; baseline JPEG, 2 bits per 8x8 block
+    (a DC code and an end of block); 0 where a format can code pixels for almost nothing (progressive
+    or arithmetic JPEG, other BMP codings)."""
     try:
         with open(path, "rb") as f:
             head = f.read(32)
             if head.startswith(b"\x89PNG\r\n\x1a\n") and head[12:16] == b"IHDR":
-                return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big"), "png"
-            if head.startswith(b"BM") and len(head) >= 26:
-                return (abs(int.from_bytes(head[18:22], "little", signed=True)),
-                        abs(int.from_bytes(head[22:26], "little", signed=True)), "bmp")
+                w, h = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+                return w, h, "png", h * (1 + (w + 7) // 8) // PNG_MAX_RATIO
+            if head.startswith(b"BM") and len(head) >= 32:
+                w = abs(int.from_bytes(head[18:22], "little", signed=True))
+                h = abs(int.from_bytes(head[22:26], "little", signed=True))
+                bits, coding = int.from_bytes(head[28:30], "little"), int.from_bytes(head[30:32], "little")
+                least = h * ((w * bits + 31) // 32 * 4) if coding in (0, 3) else \
+                    2 * (w * h // 255) if coding in (1, 2) else 0
+                return w, h, "bmp", least
             if head.startswith(b"\xff\xd8"):
                 f.seek(2)
                 for _ in range(1000):  # markers before the frame header: APPn, DQT, DHT, ... (64 kB each at most)
@@ -116,8 +125,11 @@ def image_size(path: Path) -> tuple[int, int, str] | None:
                     kind, length = marker[1], int.from_bytes(marker[2:4], "big")
                     if 0xC0 <= kind <= 0xCF and kind not in (0xC4, 0xC8, 0xCC):  # SOFn: P, height, width
                         sof = f.read(5)
-                        return (int.from_bytes(sof[3:5], "big"), int.from_bytes(sof[1:3], "big"), "jpeg") \
-                            if len(sof) == 5 else None
+                        if len(sof) < 5:
+                            return None
+                        w, h = int.from_bytes(sof[3:5], "big"), int.from_bytes(sof[1:3], "big")
+                        blocks = ((w + 7) // 8) * ((h + 7) // 8)
+                        return w, h, "jpeg", blocks // 4 if kind in (0xC0, 0xC1) else 0
                     f.seek(length - 2, 1)
     except OSError:
         return None
@@ -132,13 +144,13 @@ def _check_image(path: Path) -> None:
     found = image_size(path)
     if found is None:
         return
-    w, h, kind = found
+    w, h, kind, least = found
     if not (1 <= w <= MAX_SIDE and 1 <= h <= MAX_SIDE):
         raise InputError(f"{path}: its header declares a {w}x{h} image; frames are 1..{MAX_SIDE} pixels a side: "
                          "the file is corrupt, or resize it")
-    if kind == "png" and h * (1 + (w + 7) // 8) > PNG_MAX_RATIO * path.stat().st_size:
-        raise InputError(f"{path}: its header declares a {w}x{h} image, more than its {path.stat().st_size:,} bytes "
-                         "can hold: the file is corrupt or truncated; replace it")
+    if least > path.stat().st_size:
+        raise InputError(f"{path}: its header declares a {w}x{h} {kind.upper()} image, more than its "
+                         f"{path.stat().st_size:,} bytes can hold: the file is corrupt or truncated; replace it")
 
 
 def _read_image(path: Path, flags: int) -> np.ndarray:
