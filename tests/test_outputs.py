@@ -256,3 +256,17 @@ def test_library_writers_refuse_to_replace_without_overwrite(tmp_path):
     dangling.symlink_to(tmp_path / "missing")
     with pytest.raises(InputError, match="not a regular file"):
         check_file_output(dangling, overwrite=True)
+
+
+def test_fit_refuses_to_replace_its_outputs_before_reading_the_video(tmp_path):
+    """`fit -o x.ply` used to delete an existing x.csv and replace x.psnr.png without a word."""
+    for name in ("x.ply", "x.csv", "x.psnr.png"):
+        for stale in tmp_path.iterdir():
+            stale.unlink()
+        (tmp_path / name).write_bytes(b"the user's")
+        result = run("fit", tmp_path / "no-such-video.mp4", "-o", tmp_path / "x.ply")
+        assert result.exit_code == 2, result.output
+        assert f"{name} exists" in result.output and "--overwrite" in result.output, result.output
+        assert (tmp_path / name).read_bytes() == b"the user's"
+    result = run("fit", tmp_path / "no-such-video.mp4", "-o", "/proc/x.ply")
+    assert result.exit_code == 2 and "cannot write" in result.output, result.output

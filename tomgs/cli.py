@@ -117,12 +117,13 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
     Examples:
       tomgs fit clip.mp4 -o scene.ply
       tomgs fit frames/ -o scene.ply --masks masks/ --frames 0:80 --max-side 854 --device cuda
-      tomgs fit clip.mp4 -o scene.ply --resume          # after Ctrl-C
+      tomgs fit clip.mp4 -o scene.ply --resume          # after Ctrl-C, SIGTERM or a crash
+      tomgs fit clip.mp4 -o scene.ply -y                # start over, replacing scene.* files
       tomgs fit frames/ --masks masks/ --layer background -o bg.ply
       tomgs fit frames/ --masks masks/ --layer foreground -o fg.ply
     """
+    from tomgs.train import FitInterrupted, output_paths
     from tomgs.train import fit as fit_scene
-    from tomgs.train import output_paths
     from tomgs.train import preset as make_config
 
     overrides = dict(iterations=iterations, max_gaussians=max_gaussians, max_seconds=max_seconds, sampling=sampling,
@@ -141,12 +142,11 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
                 bar.update(row["iteration"] - bar.pos, row)
 
             result = fit_scene(video, output, config, masks=masks, frames=frames, max_side=max_side, poses=poses,
-                               focal=focal, device=device, resume=resume, progress=progress, layer=layer,
-                               mask_dilation=mask_dilation)
-    except KeyboardInterrupt:
-        click.echo(f"\ninterrupted: checkpoint kept at {output_paths(output)['checkpoint']}; "
-                   f"continue with --resume", err=True)
-        raise SystemExit(130) from None
+                               focal=focal, device=device, resume=resume, overwrite=overwrite, progress=progress,
+                               layer=layer, mask_dilation=mask_dilation)
+    except FitInterrupted as e:
+        click.echo(f"\n{e.message()}", err=True)
+        raise SystemExit(e.exit_code) from None
     paths = output_paths(output)
     click.echo(f"{output}: {len(result.model):,} Gaussians, {result.iterations} iterations in {result.seconds:.1f} s, "
                f"full-clip PSNR {result.clip_psnr:.2f} dB")
