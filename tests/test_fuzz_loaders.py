@@ -147,6 +147,8 @@ def corpus(tmp_path_factory) -> Corpus:
         m[10:30, 5 * k:5 * k + 20] = 255
         cv2.imwrite(str(masks / f"m{k}{'.bmp' if k == 2 else '.png'}"), m)
     c.files["frames"], c.files["masks"] = frames, masks
+    c.files["spec"] = root / "spec.txt"
+    c.files["spec"].write_text("0:5:2")
     # LPIPS weights of the right shapes (stored, as LPIPS ships them), small values
     from tomgs.metrics import lpips_shapes
 
@@ -473,6 +475,17 @@ def _masks_folder(path, c):
     return read_video(c.files["frames"], masks=path, frames="1:")
 
 
+def _frame_ranges(path, c):
+    """A --frames spec (the file's text) at both users of it: a video and a scene's frame numbers."""
+    from tomgs.io import read_video
+    from tomgs.io.scene import select_frames
+
+    spec = path.read_bytes().decode("latin-1")
+    positions = select_frames(c.scene_cameras, spec)
+    assert positions.dtype == np.int64 and len(positions) >= 1 and positions.max() < len(c.scene_cameras)
+    return read_video(c.files["avi"], frames=spec)
+
+
 def _lpips(path, c):
     from tomgs.metrics import LPIPS
 
@@ -503,6 +516,8 @@ LOADERS = [
     Loader("frame folder", ["frames"], BYTES + [int_fields, flip_head], 80, _frames_folder,
            lambda r, c, t: check_video(r)),
     Loader("mask folder", ["masks"], BYTES + [int_fields, flip_head], 50, _masks_folder,
+           lambda r, c, t: check_video(r)),
+    Loader("frame range", ["spec"], [random_bytes, flip, splice, numbers, numbers, numbers], 60, _frame_ranges,
            lambda r, c, t: check_video(r)),
     Loader("lpips weights", ["lpips"], [random_bytes, truncate, flip_head, npy_headers, npy_headers, zip_directory],
            24, _lpips),

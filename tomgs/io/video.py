@@ -300,7 +300,7 @@ def _read_video_file(path: Path, sel: slice, spec, need_total: bool, kept: _Fram
             wanted = range(total)[sel]
         else:
             wanted = range(sel.start or 0, sys.maxsize if sel.stop is None else sel.stop, sel.step or 1)
-        if len(wanted) == 0:
+        if not wanted:  # (len() of a range overflows past 2^63)
             what = f"{path} ({total} frames)" if total is not None else str(path)
             raise InputError(f"frame range {spec!r} selects no frames of {what}: pick a range inside the clip")
         idx, k = [], 0
