@@ -43,6 +43,7 @@ from tomgs.outputs import atomic_file
 
 FORMAT = "tomgs-checkpoint"
 VERSION = 1
+LOG_FIELDS = ("iteration", "wall_s", "train_psnr", "clip_psnr", "gaussians", "memory_mb")  # a history row
 START_OVER = "pass --overwrite (-y) to start the fit over (Python: overwrite=True)"
 
 
@@ -68,7 +69,7 @@ class FitInterrupted(KeyboardInterrupt):
         except ValueError:
             name = f"signal {self.signum}"
         if self.checkpoint is None:
-            return f"interrupted ({name}) before training began: nothing saved"
+            return f"interrupted ({name}) before the first checkpoint: nothing to resume; run the fit again"
         at = f" (iteration {self.iteration})" if self.iteration is not None else ""
         return f"interrupted ({name}): checkpoint{at} at {self.checkpoint}; continue with --resume"
 
@@ -123,11 +124,30 @@ class StopSignals:
 
 def write_checkpoint(path, state: dict) -> Path:
     """Save `state` (check_state's layout) to `path` atomically and durably: the previous file at
-    `path` is replaced only by a complete new one."""
+    `path` is replaced only by a complete new one. RuntimeError, and nothing written, for a state
+    that is torn or holds anything read_checkpoint would refuse."""
     check_state(state, path, ours=True)
+    _check_plain(state, "state", path)
     with atomic_file(path, durable=True) as tmp, open(tmp, "wb") as f:
         torch.save(state, f)
     return Path(path)
+
+
+def _check_plain(value, where: str, path) -> None:
+    """Only tensors and plain data below `value` (a numpy scalar would make the file unreadable with
+    weights_only)."""
+    if value is None or type(value) in (str, int, float, bool) or type(value) is torch.Tensor:
+        return
+    if type(value) in (list, tuple):
+        for i, item in enumerate(value):
+            _check_plain(item, f"{where}[{i}]", path)
+    elif type(value) is dict:
+        for key, item in value.items():
+            if type(key) not in (str, int):
+                raise RuntimeError(f"refusing to write checkpoint {path}: key {key!r} in {where}")
+            _check_plain(item, f"{where}[{key!r}]", path)
+    else:
+        raise RuntimeError(f"refusing to write checkpoint {path}: {where} is a {type(value).__name__}, not plain data")
 
 
 def read_checkpoint(path) -> dict:
@@ -194,8 +214,12 @@ def check_state(state, path="<checkpoint>", ours: bool = False) -> None:
     if len(frames) != 3 or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in frames):
         fail("'frames' is not [views, height, width]")
     config_from(state["config"], path)  # unknown or mistyped settings
-    if not all(isinstance(n, str) for n in state["notes"]) or not all(isinstance(r, dict) for r in state["history"]):
-        fail("notes or history of another kind")
+    if not all(isinstance(n, str) for n in state["notes"]):
+        fail("notes that are not text")
+    for row in state["history"]:
+        if not isinstance(row, dict) or set(row) != set(LOG_FIELDS) \
+                or not all(isinstance(v, (int, float, str)) for v in row.values()):
+            fail(f"history rows are not {', '.join(LOG_FIELDS)}")
 
     params = state["params"]
     if set(params) != set(PARAM_NAMES) or not all(torch.is_tensor(v) and v.is_floating_point() for v in params.values()):
@@ -250,7 +274,9 @@ def config_from(values: dict, path="<checkpoint>"):
 
 
 def config_to_dict(config) -> dict:
-    return dataclasses.asdict(config)
+    """TrainConfig's fields as plain Python values (numpy scalars given as settings become numbers)."""
+    return {k: (v.item() if hasattr(v, "item") and not isinstance(v, (str, bytes)) else v)
+            for k, v in dataclasses.asdict(config).items()}
 
 
 __all__ = ["FitInterrupted", "StopSignals", "check_state", "config_from", "config_to_dict", "read_checkpoint",

@@ -176,16 +176,15 @@ def _poses_key(poses) -> str:
     return f"<{type(poses).__name__}>"
 
 
-def _thumbnails(images) -> list[list[int]]:
-    """Each image (uint8 or bool [T,H,W(,C)]) as THUMB x THUMB area averages, 0..255, flattened."""
+def _thumbnails(images) -> torch.Tensor:
+    """uint8 [T, THUMB * THUMB * C]: each image (uint8 or bool [T,H,W(,C)]) as area averages."""
     import cv2
 
     out = []
     for image in images:
         image = np.asarray(image, dtype=np.uint8) * (255 if image.dtype == bool else 1)
-        small = cv2.resize(image, (THUMB, THUMB), interpolation=cv2.INTER_AREA)
-        out.append([int(v) for v in np.asarray(small).reshape(-1)])
-    return out
+        out.append(np.asarray(cv2.resize(image, (THUMB, THUMB), interpolation=cv2.INTER_AREA)).reshape(-1))
+    return torch.from_numpy(np.stack(out))
 
 
 def _clip_identity(clip) -> dict:
@@ -242,7 +241,9 @@ def _check_clip(was: dict, now: dict, options: dict, checkpoint) -> None:
     for key, what, option in (("thumbnails", "frames", "video"), ("mask_thumbnails", "masks", "--masks")):
         if was.get(key) is None or now.get(key) is None:
             continue
-        a, b = np.asarray(was[key], dtype=np.float64), np.asarray(now[key], dtype=np.float64)
+        if not torch.is_tensor(was[key]):
+            continue
+        a, b = was[key].double().numpy(), now[key].double().numpy()
         if a.shape != b.shape or np.abs(a - b).max() > THUMB_TOLERANCE:
             differ = int(np.sum(np.abs(a - b).max(axis=1) > THUMB_TOLERANCE)) if a.shape == b.shape else len(b)
             raise _refuse(checkpoint, f"was fitted on other {what}: {differ} of this run's {len(b)} differ", option)

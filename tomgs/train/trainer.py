@@ -38,8 +38,8 @@ from tomgs.model import GaussianModel, nearest_neighbour_distance
 from tomgs.render import rasterize
 from tomgs.errors import InputError
 from tomgs.outputs import remove_stale_temporaries, write_text
-from tomgs.train.checkpoint import (FORMAT, START_OVER, VERSION, FitInterrupted, StopSignals, config_from,
-                                    config_to_dict, read_checkpoint, write_checkpoint)
+from tomgs.train.checkpoint import (FORMAT, LOG_FIELDS, START_OVER, VERSION, FitInterrupted, StopSignals,
+                                    config_from, config_to_dict, read_checkpoint, write_checkpoint)
 from tomgs.train.config import TrainConfig
 from tomgs.train.densify import Densifier
 from tomgs.train.optim import SeenAdam
@@ -48,7 +48,7 @@ from tomgs.train.sampler import FrameSampler
 # The sampler hears each step's PSNR up to this many steps late: reading it back every step made the
 # host wait for the device once more per step than the rasterizer needs.
 SAMPLER_LAG = 8
-CSV_FIELDS = ("iteration", "wall_s", "train_psnr", "clip_psnr", "gaussians", "memory_mb")
+CSV_FIELDS = LOG_FIELDS
 # A save may cost at most this fraction of the training time: with slow saves (millions of
 # Gaussians, a slow disk) checkpoints are spaced to 1 / CHECKPOINT_OVERHEAD times a save's duration.
 CHECKPOINT_OVERHEAD = 0.05
