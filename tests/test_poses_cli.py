@@ -62,6 +62,7 @@ def test_bad_input_exit_2_nothing_written(clip_dir, tmp_path, args, message):
     paths = {"missing": tmp_path / "nope.mp4", "corrupt": tmp_path / "broken.mp4", "empty": tmp_path / "empty",
              "images": clip_dir / "images", "few_masks": few, "bad_onnx": tmp_path / "bad.onnx"}
     out = tmp_path / "out" / "cams.json"
+    out.parent.mkdir()  # outputs go into existing folders (tests/test_outputs.py covers a missing one)
     res = CliRunner().invoke(main, ["poses", *[a.format(**paths) for a in args], "-o", str(out)])
     assert res.exit_code == 2, res.output
     assert message in res.output

@@ -34,8 +34,6 @@ def _user_errors(command):
     return wrapper
 
 
-MAX_SIDE = 16384  # the largest frame side a command renders (a 16K frame is 3 GB as float32 RGBA)
-
 _device_option = click.option("--device", default="auto", show_default=True, help="auto, cpu, cuda or cuda:N")
 _overwrite_option = click.option(
     "-y", "--overwrite", is_flag=True,
@@ -187,15 +185,12 @@ def evaluate_command(scene, video, lpips_weights, json_out, device, overwrite):
     to_stdout = json_out == "-"
     if json_out and not to_stdout:
         check_file_output(json_out, overwrite, what="JSON report")
-    try:
-        dev = resolve_device(device)
-        loaded = load_scene(scene, device=dev)
-        frames = read_video_for(video, loaded.cameras)
-        weights = lpips_weights or default_lpips_weights()
-        lpips = LPIPS(weights, device=dev) if weights else None
-        report = evaluate(loaded.model, loaded.cameras, frames, lpips=lpips, device=dev)
-    except ValueError as e:  # LPIPS weights that do not load
-        raise UsageError(str(e)) from None
+    dev = resolve_device(device)
+    loaded = load_scene(scene, device=dev)
+    frames = read_video_for(video, loaded.cameras)
+    weights = lpips_weights or default_lpips_weights()
+    lpips = LPIPS(weights, device=dev) if weights else None
+    report = evaluate(loaded.model, loaded.cameras, frames, lpips=lpips, device=dev)
     for k, p, s in zip(report.frames, report.psnr, report.ssim):  # on stderr when stdout carries the JSON
         click.echo(f"  frame {int(loaded.cameras.frame_indices[k]):5d}: PSNR {p:6.2f} dB  SSIM {s:.4f}",
                    err=to_stdout)
@@ -227,6 +222,8 @@ def _parse_size(text: str) -> tuple[int, int]:
         width, height = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise UsageError(f"--size must look like 320x180, got {text!r}") from None
+    from tomgs.cameras import MAX_SIDE
+
     if not (1 <= width <= MAX_SIDE and 1 <= height <= MAX_SIDE):
         raise UsageError(f"--size sides must be 1..{MAX_SIDE} pixels, got {text!r}")
     return width, height
@@ -634,7 +631,7 @@ def tets_import(scene, tets_file, sequence, output, over, frames, device, backgr
     loaded = load_scene(scene)
     mesh = load_tets(tets_file)
     check_bound(loaded.model, mesh, tets_file)
-    vertices, numbers = load_sequence(sequence, mesh)
+    vertices, numbers = load_sequence(sequence, mesh, max_frames=len(loaded.cameras))
     if _is_scene_path(output):
         if over is not None:
             raise InputError(f"--over is what a render goes over, but -o {output} writes a scene: render "
