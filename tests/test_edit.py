@@ -266,3 +266,17 @@ def test_scene_edit_records_itself():
     edited, rows = edit_scene(Scene(model, cams, {"fps": 10}), ["sphere:0,0,2.5,0.9"], translate=(1.0, 0.0, 0.0))
     assert edited.info["fps"] == 10 and edited.info["edits"][0]["selected"] == len(obj)
     assert edited.info["edits"][0]["translate"] == [1.0, 0.0, 0.0] and edited.cameras is cams
+
+
+def test_bad_index_files_are_refused(tmp_path):
+    """Numbers past int64 (OverflowError), binary bytes, a file far larger than any index list, negatives."""
+    model, cams, _ = object_scene()
+    n = len(model)
+    cases = {"huge.txt": ("1" + "0" * 30, "whole numbers"), "binary.txt": (b"\xff\xfe\x00\x81", "whole numbers"),
+             "big.txt": ("1 " * (20 * n + 2**20), "more than an index file"), "neg.txt": ("-1", "outside"),
+             "float.txt": ("1.5", "whole numbers")}
+    for name, (content, message) in cases.items():
+        path = tmp_path / name
+        path.write_bytes(content if isinstance(content, bytes) else content.encode())
+        with pytest.raises(InputError, match=message):
+            select(model, cams, [f"index:{path}"])

@@ -98,10 +98,15 @@ def _alive_between(model, t0: float, t1: float) -> np.ndarray:
 def _index_file(path: Path, n: int) -> np.ndarray:
     if not path.is_file():
         raise InputError(f"--select index:{path}: the file does not exist; give a text file of Gaussian indices")
+    limit = 32 * n + 2**20  # room for every index, repeated, with separators and comments of a sane file
+    if path.stat().st_size > limit:
+        raise InputError(f"{path}: {path.stat().st_size:,} bytes is more than an index file of {n:,} Gaussians "
+                         f"can need ({limit:,}); give a text file of Gaussian indices")
     try:
         idx = np.array([int(v) for v in path.read_text().replace(",", " ").split()], dtype=np.int64)
-    except ValueError:
-        raise InputError(f"{path}: an index file holds whole numbers separated by spaces, commas or lines") from None
+    except (ValueError, OverflowError, UnicodeDecodeError):  # OverflowError: a number past int64
+        raise InputError(f"{path}: an index file holds whole numbers 0..{n - 1} separated by spaces, commas or "
+                         f"lines") from None
     bad = idx[(idx < 0) | (idx >= n)]
     if len(bad):
         raise InputError(f"{path}: index {bad[0]} is outside the scene's Gaussians 0..{n - 1}")
