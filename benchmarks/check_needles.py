@@ -11,7 +11,10 @@ weight per pixel on image and alpha as the loss. Two families:
 
 For each case it prints the condition number and the relative L2 error |g - g_ref| / |g_ref| of the
 gradient of every input (and the image's max abs error); `f32ref` is the float32 torch reference's
-largest gradient error on the same case, the yardstick of what float32 arithmetic can do.
+largest gradient error on the same case, the yardstick of what float32 arithmetic can do. A needle
+of L >= 1e3 pointing nearly at the camera is out of float32's reach for any renderer (J W R S
+cancels the needle's ~L f / z pixels down to a few; `f32ref` shows it): the summary keeps those
+apart, as cases where f32ref > 1e-3.
 
 Usage:
   python benchmarks/check_needles.py                  # CPU
@@ -155,16 +158,22 @@ def main(argv=None) -> int:
     base = quat_mul(quat_from_axis_angle([0.0, 0.0, 1.0], 0.6), quat_from_axis_angle([1.0, 0.2, 0.0], 0.3))
     cases = [("in-plane", L, base) for L in lengths]
     cases += [("tilted", L, tilted_quat(L, c)) for L in lengths for c in conds]
-    worst = 0.0
+    worst, worst_ratio = 0.0, 0.0
     for case, length, quat in cases:
         result = check(needle(length, quat), device)
         result.update(case=case, L=length)
         rows.append(result)
-        if case == "tilted" or result["cond"] <= 1e6:
-            worst = max(worst, max(result["grads"].values()))
+        error = max(result["grads"].values())
+        if result["f32ref"] <= 1e-3:
+            if result["cond"] <= 1e6 * (1 + 1e-6):
+                worst = max(worst, error)
+        else:
+            worst_ratio = max(worst_ratio, error / result["f32ref"])
         print(f"{case:<10} {length:>7.0e} {result['cond']:>9.2e} {result['image']:>8.1e} "
               + " ".join(f"{result['grads'][n]:>8.1e}" for n in NAMES) + f" {result['f32ref']:>8.1e}", flush=True)
-    print(f"largest gradient error at condition numbers <= 1e6: {worst:.2e}")
+    print(f"largest gradient error at condition numbers <= 1e6 (float32-resolvable cases): {worst:.2e}")
+    if worst_ratio:
+        print(f"where the float32 reference itself misses by > 1e-3: at most {worst_ratio:.2f} x its error")
     if args.json:
         with open(args.json, "w") as f:
             json.dump(dict(device=device, rows=rows), f, indent=1)

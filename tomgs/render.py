@@ -20,7 +20,8 @@ import warp as wp
 from warp._src.types import array_t as _array_t  # the descriptor that wp.from_torch(return_ctype=True) builds
 
 from tomgs.constants import ALPHA_MIN, TILE_SIZE
-from tomgs.inputs import RenderError, prepare_inputs
+from tomgs.inputs import RenderError
+from tomgs.reference import prepare_finite_sh
 from tomgs.kernels import binning, project, raster
 
 _warp_ready = False
@@ -334,17 +335,17 @@ class _Rasterize(torch.autograd.Function):
 
 def rasterize(
     means: torch.Tensor,  # [N,3] world
-    quats: torch.Tensor,  # [N,4] w x y z, any norm (zero = identity)
-    scales: torch.Tensor,  # [N,3] > 0
-    opacities: torch.Tensor,  # [N] base opacity in (0, 1)
+    quats: torch.Tensor,  # [N,4] w x y z, any finite norm (zero = identity)
+    scales: torch.Tensor,  # [N,3] >= 0
+    opacities: torch.Tensor,  # [N] base opacity in [0, 1]
     colors: torch.Tensor,  # [N,3] RGB, or [N,K,3] SH with K in {1, 4, 9, 16}
     t_means: torch.Tensor,  # [N] temporal centre
-    t_scales: torch.Tensor,  # [N] temporal sigma > 0
-    viewmat: torch.Tensor,  # [4,4] world -> camera, OpenCV axes
-    K: torch.Tensor,  # [3,3] intrinsics in pixels, pixel centres at +0.5
+    t_scales: torch.Tensor,  # [N] temporal sigma >= 0 (0: a Gaussian alive at no time)
+    viewmat: torch.Tensor,  # [4,4] world -> camera, OpenCV axes, finite
+    K: torch.Tensor,  # [3,3] intrinsics in pixels, pixel centres at +0.5, finite, fx and fy > 0
     width: int,
     height: int,
-    t: float,
+    t: float,  # any finite float: used to float64 precision (t - t_means is formed before rounding)
     *,
     background: torch.Tensor | None = None,  # [3]
     near: float = 0.01,
@@ -356,11 +357,17 @@ def rasterize(
     is culled in projection and costs no tile work. Differentiable in every tensor input; runs on
     the device of the inputs (CPU or CUDA) in float32. `meta` holds per-Gaussian `radii` [N,2],
     `means2d` [N,2] (call `.retain_grad()` on it for screen-space gradients), `depths`, `conics`,
-    `opacities_t`, and counts `n_visible`, `n_alive` (alive at t), `n_intersections`.
+    `opacities_t`, and counts `n_visible`, `n_alive` (alive at t), `n_intersections`. N = 0 is fine.
+
+    A Gaussian with a non-finite mean, scale, quaternion or temporal window is culled (zero
+    gradient). Anything else outside the contract above (an opacity outside [0, 1], a negative
+    scale, a non-finite camera or background, fx <= 0, a non-integer size, a non-finite t) raises
+    RenderError naming the input; the per-Gaussian checks run inside the projection kernel and come
+    back with the intersection count, in the one host sync a frame has anyway.
     """
     t_hi, t_lo = _check_scalars(width, height, t, near, far)
-    p = prepare_inputs(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width, height, t,
-                       background, near, far, torch.float32)
+    p = prepare_finite_sh(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width, height, t,
+                          background, near, far, torch.float32)
     frame = _Frame(p.width, p.height, t_hi, t_lo, p.near, p.far)
     if frame.num_tiles * TILE_SIZE * TILE_SIZE > MAX_THREADS:
         raise RenderError(f"a {frame.width}x{frame.height} image is too large to render in one piece: keep "
