@@ -148,6 +148,21 @@ def test_non_finite_gaussians_are_culled():
         assert torch.isfinite(grad).all(), name
 
 
+@pytest.mark.parametrize("value", [math.nan, math.inf])
+def test_non_finite_means_with_sh_colours_leave_every_gradient_finite(value):
+    """Found by the renderer fuzz: SH colours look at each mean from the camera, and a culled row's
+    non-finite view direction put NaN into every mean's and the viewmat's gradient (0 * NaN)."""
+    scene = random_scene(171, n=30, sh_degree=2)
+    scene["means"][4, 1] = value
+    tensors = {k: scene[k].float().requires_grad_(True) for k in INPUT_NAMES}
+    image, alpha, meta = tomgs.rasterize(**tensors, width=scene["width"], height=scene["height"], t=scene["t"])
+    assert meta["radii"][4].max() == 0
+    grads = torch.autograd.grad((image * torch.rand(image.shape)).sum() + alpha.sum(), list(tensors.values()))
+    for name, grad in zip(INPUT_NAMES, grads):
+        assert torch.isfinite(grad).all(), name
+    assert (grads[0][4] == 0).all() and (grads[4][4] == 0).all()
+
+
 def test_intersection_overflow_is_a_clear_error():
     """2^31 tile intersections would overflow int32 offsets: the renderer refuses before allocating."""
     n, width, height = 140_000, 1920, 1080  # each Gaussian covers all 8160 tiles: 1.14e9 intersections
