@@ -1,4 +1,5 @@
-"""The Blender round trip with real Blender: assets/blender_softbody.py drops a tets cage headless.
+"""The Blender round trip with real Blender: tomgs/data/blender_softbody.py (`tomgs example
+blender_softbody.py` prints its installed path) drops a tets cage headless.
 
 Skips when `blender` is not on PATH, unless TOMGS_REQUIRE_BLENDER=1 (CI sets it), then fails.
 """
@@ -16,7 +17,7 @@ import pytest
 
 from tomgs.io.tets import Tets, load_sequence, load_tets, save_tets
 
-SCRIPT = Path(__file__).resolve().parents[1] / "assets" / "blender_softbody.py"
+SCRIPT = Path(__file__).resolve().parents[1] / "tomgs" / "data" / "blender_softbody.py"
 W = np.array([[1, 0, 0], [0, 0, 1], [0, -1, 0]], np.float64)  # world (OpenCV) -> Blender axes
 FRAMES, DROP = 24, 0.5
 

@@ -95,3 +95,17 @@ def test_outputs_get_default_permissions(tmp_path):
     plot = line_plot_png(tmp_path / "p.png", {"a": ([0.0, 1.0], [0.0, 1.0])})
     assert frames.stat().st_mode & 0o777 == 0o777 & ~umask
     assert plot.stat().st_mode & 0o777 == 0o666 & ~umask
+
+
+def test_example_files_ship_with_the_package():
+    """The README's first command fits `tomgs example bunny.mp4`: the clip and the Blender script are
+    package data, found where the package is installed (tomgs/data), not in a checkout's assets/."""
+    import importlib.metadata
+    from pathlib import Path
+
+    listing = run("example").output
+    assert "bunny.mp4" in listing and "blender_softbody.py" in listing
+    path = Path(run("example", "bunny.mp4").output.strip())
+    assert path.is_file() and path.parent == Path(tomgs.__file__).parent / "data"
+    assert CliRunner().invoke(main, ["example", "missing.mp4"]).exit_code == 2
+    assert importlib.metadata.version("tomgs") == tomgs.__version__  # one version source: pyproject reads it

@@ -258,6 +258,27 @@ def demo(output, num_frames, size, device, overwrite):
                what=f"at {width}x{height}", overwrite=overwrite)
 
 
+@main.command()
+@click.argument("names", nargs=-1, metavar="[NAME]...")
+@_user_errors
+def example(names):
+    """Print the installed path of each bundled example file NAME; with none, list them.
+
+    \b
+    Examples:
+      tomgs example                                       # what is bundled
+      tomgs fit "$(tomgs example bunny.mp4)" -o bunny.ply --budget 240
+    """
+    from tomgs.demo import EXAMPLE_FILES, example_file
+
+    if not names:
+        for name, what in EXAMPLE_FILES.items():
+            click.echo(f"{name:22s} {what}")
+        return
+    for name in names:
+        click.echo(example_file(name))
+
+
 def _render_to(output, gaussians, cams, positions, background, device, fps: float, what: str, layers=(),
                numbers=None, overwrite: bool = False) -> None:
     """Render frames `positions` of `cams` to `output` (video or PNG folder, its PNGs named by

@@ -1,4 +1,5 @@
-"""A small procedural TOM-GS scene: the bundled example that `tomgs demo` renders.
+"""The bundled examples: a small procedural TOM-GS scene (what `tomgs demo` renders) and the files
+shipped in the package (`tomgs example`: a video clip to fit and the Blender soft-body script).
 
 A checkered wall and floor made of flat static Gaussians, and a ball that moves, represented the
 TOM-GS way: one copy of the ball per key position, each copy's opacity fading in and out around
@@ -9,6 +10,7 @@ and pans across the clip.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -16,6 +18,24 @@ import torch
 from tomgs.cameras import Cameras, frame_times, intrinsics, look_at
 
 GAUSSIAN_FIELDS = ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales")
+
+# the files shipped in tomgs/data, each with what it is for
+EXAMPLE_FILES = {
+    "bunny.mp4": "32 frames of Big Buck Bunny at 128x72 to fit (licence: LICENSE-bunny.txt)",
+    "blender_softbody.py": "drops a `tomgs tets export --cage` cage in Blender, headless",
+    "LICENSE-bunny.txt": "the licence of bunny.mp4 (CC BY 3.0, Blender Foundation)",
+}
+
+
+def example_file(name: str) -> Path:
+    """The installed path of a bundled example file (one of EXAMPLE_FILES)."""
+    from importlib.resources import files
+
+    from tomgs.errors import InputError
+
+    if name not in EXAMPLE_FILES:
+        raise InputError(f"no example file {name!r}; the examples are {', '.join(EXAMPLE_FILES)}")
+    return Path(str(files("tomgs") / "data" / name))
 
 
 def _plane(origin, u_axis, v_axis, nu: int, nv: int, spacing: float, palette) -> dict[str, np.ndarray]:

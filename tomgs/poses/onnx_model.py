@@ -26,11 +26,14 @@ from tomgs.errors import InputError
 
 def run_onnx(path, frames: np.ndarray, indices=None) -> Cameras:
     """frames uint8 [T,H,W,3] -> Cameras from the model at `path` (see the module contract)."""
-    import onnxruntime as ort
-
     path = Path(path)
     if not path.is_file():
         raise InputError(f"ONNX model {path} does not exist")
+    try:
+        import onnxruntime as ort
+    except ImportError:
+        raise InputError(f"{path}: running an ONNX pose model needs onnxruntime, an optional extra: "
+                         f"pip install 'tomgs[onnx]'") from None
     try:
         sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     except Exception as e:  # onnxruntime raises its own exception types for bad files

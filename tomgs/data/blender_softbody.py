@@ -1,6 +1,6 @@
 """Drop a tomgs tets cage as a soft body onto a floor in Blender, headless, and write the frames.
 
-    blender -b --factory-startup --python-exit-code 1 --python assets/blender_softbody.py -- \
+    blender -b --factory-startup --python-exit-code 1 --python "$(tomgs example blender_softbody.py)" -- \
         --tets cage.ply --out seq.npz [--frames 80] [--fps 24] [--drop 0.5] [--stiffness 0.9]
 
 Input: a tets PLY written by `tomgs tets export` (binary little endian, Blender axes, Z up; see
@@ -28,7 +28,7 @@ import tempfile
 try:
     import bpy
 except ImportError:  # run outside Blender
-    sys.exit("blender_softbody.py runs inside Blender: blender -b --python assets/blender_softbody.py -- ...")
+    sys.exit("blender_softbody.py runs inside Blender: blender -b --python \"$(tomgs example blender_softbody.py)\" -- ...")
 try:
     import numpy as np
 except ImportError:  # Debian's blender only recommends it
@@ -56,7 +56,7 @@ class SimulationFailed(Exception):
 
 def parse_args(argv):
     p = argparse.ArgumentParser(
-        prog="blender -b --factory-startup --python assets/blender_softbody.py --",
+        prog="blender -b --factory-startup --python blender_softbody.py --",
         description="Drop a tomgs tets CAGE (kind cage: tets sharing vertices, one connected body) "
                     "as a soft body onto a floor at its lowest vertex and write the vertex sequence. "
                     "A kind-gaussian file (disconnected tets) falls apart into separate pieces.")
