@@ -162,6 +162,8 @@ def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses
     save_scene(paths["scene"], result.model, cameras, info)
     _plot(paths["plot"], result.history)
     paths["checkpoint"].unlink(missing_ok=True)
+    for path in paths.values():  # a kill just before a resume left some too fresh to remove at its start
+        remove_stale_temporaries(path)
     return result
 
 
