@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import functools
-from typing import NamedTuple
+import sys
 
 import click
-import numpy as np
 
 from tomgs import __version__
 from tomgs.errors import InputError, RenderError
+from tomgs.jobs import parse_floats, plan_render, render_frames, run_render
 
 
 class UsageError(click.ClickException):
@@ -254,8 +254,11 @@ def demo(output, num_frames, size, device, overwrite):
     check_output(output, overwrite)
     dev = resolve_device(device)
     gaussians, cams = demo_scene(num_frames, width, height)
-    _render_to(output, gaussians, cams, range(num_frames), background=(0.05, 0.05, 0.08), device=dev, fps=24.0,
-               what=f"at {width}x{height}", overwrite=overwrite)
+    with _bar(num_frames, "render") as progress:
+        report = render_frames(output, gaussians, cams, range(num_frames), background=(0.05, 0.05, 0.08),
+                               device=dev, fps=24.0, what=f"at {width}x{height}", overwrite=overwrite,
+                               progress=progress)
+    click.echo(report.summary())
 
 
 @main.command()
@@ -277,76 +280,6 @@ def example(names):
         return
     for name in names:
         click.echo(example_file(name))
-
-
-def _render_to(output, gaussians, cams, positions, background, device, fps: float, what: str, layers=(),
-               numbers=None, overwrite: bool = False) -> None:
-    """Render frames `positions` of `cams` to `output` (video or PNG folder, its PNGs named by
-    `numbers`, the frames' numbers: default the positions) with a progress bar,
-    `layers` ((gaussians, cameras) pairs) composited over them, then report the frame rate and how
-    many Gaussians each frame skipped as dead. `gaussians` and each layer's: the rasterizer's inputs,
-    or a callable frame -> inputs (`tomgs.render.render_sequence`)."""
-    import time
-
-    import numpy as np
-
-    from tomgs.io import write_frames
-    from tomgs.layers import render_layers
-
-    positions = list(positions)
-    alive, fixed, varying = [], [], []  # Gaussians: in the fixed clouds; per frame in each per-frame one
-    start = time.perf_counter()
-
-    def counted(cloud):
-        if not callable(cloud):
-            fixed.append(int(cloud["means"].shape[0]))
-            return cloud
-        sizes = []  # a per-frame cloud: count each frame's Gaussians as it is made
-        varying.append(sizes)
-
-        def source(k):
-            made = cloud(k)
-            sizes.append(int(made["means"].shape[0]))
-            return made
-        return source
-
-    source = counted(gaussians)
-    layers = [(counted(g), layer_cams) for g, layer_cams in layers]
-
-    def images():
-        sequence = render_layers(source, cams, positions, layers, background=background, device=device)
-        with click.progressbar(sequence, length=len(positions), label="render") as bar:
-            for _, image, meta in bar:
-                alive.append(int(meta["n_alive"]))
-                yield (image.numpy() * 255.0 + 0.5).astype(np.uint8)
-
-    count = write_frames(images(), output, fps=fps, numbers=positions if numbers is None else numbers,
-                         overwrite=overwrite)
-    seconds = time.perf_counter() - start
-    low = sum(fixed) + sum(min(sizes) for sizes in varying)
-    high = sum(fixed) + sum(max(sizes) for sizes in varying)
-    total = f"{low:,}" if low == high else f"{low:,}..{high:,}"
-    click.echo(f"{output}: {count} frames {what} on {device} in {seconds:.1f} s ({count / seconds:.1f} fps)")
-    click.echo(f"  {total} Gaussians; alive per frame {min(alive):,}..{max(alive):,}: only those alive near "
-               f"each frame's time were projected")
-
-
-def _split_floats(text: str) -> tuple[float, ...]:
-    """'a,b,c' -> (a, b, c); () when any part is not a number."""
-    try:
-        return tuple(float(v) for v in text.split(","))
-    except ValueError:
-        return ()
-
-
-def _parse_background(text: str | None):
-    """'r,g,b' in [0, 1] -> tuple, or None."""
-    if text is None:
-        return None
-    rgb = _split_floats(text)
-    if len(rgb) != 3 or not all(0.0 <= v <= 1.0 for v in rgb):
-        raise UsageError(f"--background must be three numbers in [0, 1] like 0,0,0 or 1,1,1, got {text!r}")
-    return rgb
 
 
 @main.command()
@@ -379,8 +312,8 @@ def render(scene, frames, output, device, background, fps, layer_paths, overwrit
     loaded = load_scene(scene)
     layers = [load_scene(path) for path in layer_paths]
     check_layers(loaded.cameras, [layer.cameras for layer in layers], list(layer_paths))
-    plan = _render_plan(output, loaded.cameras, frames, device, background, overwrite)
-    _render_scene(loaded, loaded.model.render_inputs(), plan, fps,
+    plan = plan_render(output, loaded.cameras, frames, device, _background(background), overwrite)
+    _render(loaded, loaded.model.render_inputs(), plan, fps,
                   layers=[(layer.model.render_inputs(), layer.cameras) for layer in layers])
 
 
@@ -409,14 +342,20 @@ def info(scene, plot, as_json, overwrite):
         click.echo(f"{plot}: histogram of temporal scales")
 
 
+def _background(text: str | None):
+    """--background 'r,g,b' in [0, 1] -> tuple, or None."""
+    rgb = None if text is None else parse_floats(text)
+    if rgb is not None and (len(rgb) != 3 or not all(0.0 <= v <= 1.0 for v in rgb)):
+        raise UsageError(f"--background must be three numbers in [0, 1] like 0,0,0 or 1,1,1, got {text!r}")
+    return rgb
+
+
 def _floats(text: str | None, option: str, counts=(3,)):
     """'a,b,c' -> tuple of floats (one of `counts` many), or None; UsageError naming `option` otherwise."""
-    import math
-
     if text is None:
         return None
-    values = _split_floats(text)
-    if len(values) not in counts or not all(math.isfinite(v) for v in values):
+    values = parse_floats(text)
+    if len(values) not in counts:
         shape = " or ".join(",".join("xyz"[:n] if n > 1 else "s") for n in counts)
         raise UsageError(f"{option} takes {' or '.join(map(str, counts))} comma-separated numbers ({shape}), got {text!r}")
     return values
@@ -445,57 +384,22 @@ _OVER_HELP = ("a scene to render behind (e.g. a background from `fit --layer bac
               "at the same frames; the rendered scene is composited over it as `render --layer` does")
 
 
-class _RenderPlan(NamedTuple):
-    output: str  # video file or PNG folder, checked writable
-    positions: np.ndarray  # [F] int64 camera positions to render
-    background: tuple | None  # RGB in [0, 1], None: the scene's
-    device: object  # torch.device
-    behind: object  # the --over scene (tomgs.io.scene.Scene) or None
-    overwrite: bool
+def _bar(length: int, label: str):
+    """A progress bar on stderr (stdout carries results only); yields progress(done)."""
+    import contextlib
+
+    @contextlib.contextmanager
+    def bar():
+        with click.progressbar(length=length, label=label, file=sys.stderr) as b:
+            yield lambda done: b.update(done - b.pos)
+    return bar()
 
 
-def _render_plan(output, cams, frames, device, background, overwrite, only=None, over=None,
-                 name="the scene") -> _RenderPlan:
-    """Everything a render needs, checked before any work or writing. `only`: camera positions that
-    have something to render (a sequence's). `over`: the path of a scene to render behind, checked
-    against `cams` (the scene called `name`) like a `render --layer` layer."""
-    from tomgs.io.scene import load_scene, select_frames
-    from tomgs.io.writer import check_output
-    from tomgs.layers import check_layers
-    from tomgs.render import resolve_device
-
-    check_output(output, overwrite)
-    rgb = _parse_background(background)
-    behind = None
-    if over is not None:
-        behind = load_scene(over)
-        check_layers(behind.cameras, [cams], [f"{name} (in front of --over {over})"])
-    positions = select_frames(cams, frames)
-    if only is not None:
-        positions = np.array([k for k in positions.tolist() if k in only], dtype=np.int64)
-        if len(positions) == 0:
-            raise InputError(f"the sequence covers none of the frames {frames!r}: pick frames it covers")
-    return _RenderPlan(output, positions, rgb, resolve_device(device), behind, overwrite)
-
-
-def _render_scene(scene, gaussians, plan: _RenderPlan, fps, layers=()) -> None:
-    """Render `gaussians` (inputs or a per-frame callable) of `scene`, with `layers` composited over
-    them, as `plan` (`_render_plan`) says; with the plan's --over scene, that scene is the base and
-    `gaussians` are composited over it (then `layers`)."""
-    from tomgs.io.scene import render_defaults
-
-    positions, behind = plan.positions, plan.behind
-    cams = scene.cameras
-    numbers = cams.frame_indices[positions]
-    default_rgb, default_fps = render_defaults(scene.info)
-    if behind is not None:
-        layers = [(gaussians, cams), *layers]
-        gaussians, cams = behind.model.render_inputs(), behind.cameras
-        default_rgb = render_defaults(behind.info)[0]
-    _render_to(plan.output, gaussians, cams, positions.tolist(), background=plan.background or default_rgb,
-               device=plan.device, fps=fps or default_fps,
-               what=f"({numbers[0]}..{numbers[-1]}) at {cams.width}x{cams.height}", layers=layers,
-               numbers=numbers.tolist(), overwrite=plan.overwrite)
+def _render(scene, gaussians, plan, fps, layers=()) -> None:
+    """Run a planned render (tomgs.jobs) with a progress bar and print its report."""
+    with _bar(len(plan.positions), "render") as progress:
+        report = run_render(plan, scene, gaussians, fps, layers, progress=progress)
+    click.echo(report.summary())
 
 
 def _is_scene_path(path: str) -> bool:
@@ -562,19 +466,19 @@ def edit(scene, output, selectors, translate, rotate, scale, centre, duplicate, 
         check_file_output(output, overwrite, what="edited scene")
     loaded = load_scene(scene)
     video = output if keyframes else render_out
-    plan = _render_plan(video, loaded.cameras, frames, device, background, overwrite, over=over,
-                        name=scene) if video else None
+    plan = plan_render(video, loaded.cameras, frames, device, _background(background), overwrite, over=over,
+                       name=scene) if video else None
     keys = load_keyframes(keyframes, loaded.cameras) if keyframes else None
     edited, rows = edit_scene(loaded, selectors, remove=remove, **move)
     if keys is not None:
-        _render_scene(edited, keyframed_clouds(edited.model, edited.cameras, rows, keys), plan, fps)
+        _render(edited, keyframed_clouds(edited.model, edited.cameras, rows, keys), plan, fps)
         return
     save_scene(output, edited.model, edited.cameras, edited.info)
     what = "removed" if remove else ("duplicated" if move["duplicate"] else "edited")
     click.echo(f"{output}: {edited.info['edits'][-1]['selected']:,} Gaussians {what}; {len(edited.model):,} "
                f"Gaussians, {len(edited.cameras)} frames")
     if plan is not None:
-        _render_scene(edited, edited.model.render_inputs(), plan, fps)
+        _render(edited, edited.model.render_inputs(), plan, fps)
 
 
 @main.group()
@@ -666,9 +570,9 @@ def tets_import(scene, tets_file, sequence, output, over, frames, device, backgr
         click.echo(f"{output}: {len(mesh.gaussians):,} Gaussians moved by {sequence}")
         return
     rows = sequence_rows(loaded.cameras, len(vertices), numbers)
-    plan = _render_plan(output, loaded.cameras, frames, device, background, overwrite, only=rows, over=over,
-                        name=scene)
-    _render_scene(loaded, sequence_clouds(loaded.model, mesh, vertices, rows), plan, fps)
+    plan = plan_render(output, loaded.cameras, frames, device, _background(background), overwrite, only=rows,
+                       over=over, name=scene)
+    _render(loaded, sequence_clouds(loaded.model, mesh, vertices, rows), plan, fps)
 
 
 @main.command()
@@ -735,8 +639,8 @@ def simulate(scene, output, selectors, render_out, over, drop, spin, velocity, s
     if frames > len(cams):
         raise InputError(f"--frames {frames}: the scene has {len(cams)} frames, and frame f of the shot is "
                          f"rendered with the scene's frame f; simulate at most {len(cams)}")
-    plan = _render_plan(render_out, cams, None, device, background, overwrite, only=set(range(frames)),
-                        over=over, name=scene) if render_out else None
+    plan = plan_render(render_out, cams, None, device, _background(background), overwrite,
+                       only=set(range(frames)), over=over, name=scene) if render_out else None
     indices = select(loaded.model, cams, selectors)
     means = loaded.model.means.detach().cpu().double().numpy()[indices]
     extent = max(float((means.max(0) - means.min(0)).max()), 1e-9)
@@ -752,7 +656,7 @@ def simulate(scene, output, selectors, render_out, over, drop, spin, velocity, s
                f"tets ({cage_path})")
     if plan is not None:
         clouds = sequence_clouds(loaded.model, cage, vertices, {k: k for k in range(frames)})
-        _render_scene(loaded, clouds, plan, fps)
+        _render(loaded, clouds, plan, fps)
 
 
 if __name__ == "__main__":
