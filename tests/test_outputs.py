@@ -270,3 +270,25 @@ def test_fit_refuses_to_replace_its_outputs_before_reading_the_video(tmp_path):
         assert (tmp_path / name).read_bytes() == b"the user's"
     result = run("fit", tmp_path / "no-such-video.mp4", "-o", "/proc/x.ply")
     assert result.exit_code == 2 and "cannot write" in result.output, result.output
+
+
+def test_stdout_carries_results_only(scene, tmp_path):
+    """Progress bars and notes go to stderr; `--json -` makes stdout pure JSON; -q silences stderr."""
+    import json
+    import subprocess
+    import sys
+
+    def tomgs(*args):
+        return subprocess.run([sys.executable, "-m", "tomgs.cli", *map(str, args)], capture_output=True, text=True)
+
+    frames = tmp_path / "frames"
+    out = tomgs("render", scene, "-o", frames, "--device", "cpu")
+    assert out.returncode == 0 and out.stdout.startswith(f"{frames}: 5 frames") and "render" in out.stderr
+    out = tomgs("poses", frames, "-o", tmp_path / "cams.json", "--method", "identity", "--json", "-")
+    assert out.returncode == 0 and json.loads(out.stdout)["frames"] == 5
+    out = tomgs("eval", scene, frames, "--json", "-", "--device", "cpu")
+    assert out.returncode == 0 and len(json.loads(out.stdout)["per_frame"]) == 5 and "frame" in out.stderr
+    out = tomgs("-q", "render", scene, "-o", tmp_path / "again", "--device", "cpu")
+    assert out.returncode == 0 and out.stderr == "" and "5 frames" in out.stdout
+    out = tomgs("-q", "-v", "info", scene)
+    assert out.returncode == 2 and "contradict" in out.stderr

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import sys
 
@@ -40,10 +41,56 @@ _overwrite_option = click.option(
     help="replace existing outputs (in a folder of frames only its numbered PNGs; other files are kept)")
 
 
+_VERBOSITY = {"level": 1}  # 0: -q, 1: default, 2: -v (set by `main` for the command it runs)
+
+
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="tomgs")
-def main() -> None:
-    """Editable video as static 3D Gaussians with temporal opacity (TOM-GS)."""
+@click.option("-q", "--quiet", is_flag=True, help="no progress bars or notes on stderr: results and errors only")
+@click.option("-v", "--verbose", is_flag=True, help="also every training log row on stderr")
+def main(quiet: bool, verbose: bool) -> None:
+    """Editable video as static 3D Gaussians with temporal opacity (TOM-GS).
+
+    Results go to stdout (`--json -` makes it pure JSON); progress bars and notes go to stderr.
+    """
+    if quiet and verbose:
+        raise UsageError("-q and -v contradict each other: give one")
+    _VERBOSITY["level"] = 0 if quiet else 2 if verbose else 1
+
+
+def _note(text: str, level: int = 1) -> None:
+    """A note on stderr, shown from verbosity `level` up."""
+    if _VERBOSITY["level"] >= level:
+        click.echo(text, err=True)
+
+
+def _json_option(what: str):
+    return click.option("--json", "json_out", type=click.Path(path_type=str), default=None,
+                        help=f"also write {what} as JSON to this file ('-' for stdout, then nothing else is printed)")
+
+
+def _write_json(json_out: str | None, value) -> None:
+    """`value` as JSON to `json_out` ('-': stdout), non-finite floats as null."""
+    import json
+
+    from tomgs.outputs import write_text
+
+    if not json_out:
+        return
+    text = json.dumps(_finite_or_null(value), indent=1)
+    if json_out == "-":
+        click.echo(text)
+    else:
+        write_text(json_out, text)
+
+
+def _check_json(json_out: str | None, overwrite: bool) -> bool:
+    """Check a --json file before any work; True when the JSON goes to stdout (print nothing else)."""
+    from tomgs.outputs import check_file_output
+
+    if json_out and json_out != "-":
+        check_file_output(json_out, overwrite, what="JSON report")
+    return json_out == "-"
 
 
 @main.command()
@@ -57,25 +104,38 @@ def main() -> None:
               help="auto, identity, a cameras .json / AnyCam c2w .npy / COLMAP text folder, or an .onnx model")
 @click.option("--focal", type=float, default=None, help="focal length in pixels of the (resized) frames")
 @click.option("--max-side", type=int, default=None, help="resize frames so that max(W, H) <= N")
+@_json_option("the pose report")
 @_overwrite_option
 @_user_errors
-def poses(video, output, masks, frames, method, focal, max_side, overwrite):
-    """Estimate per-frame cameras of VIDEO (a video file or a folder of frames)."""
+def poses(video, output, masks, frames, method, focal, max_side, json_out, overwrite):
+    """Estimate per-frame cameras of VIDEO (a video file or a folder of frames).
+
+    \b
+    Examples:
+      tomgs poses clip.mp4 -o cameras.json
+      tomgs poses frames/ -o cameras.json --masks masks/ --frames 0:80 --max-side 854
+      tomgs poses clip.mp4 -o cameras.json --method colmap_model/      # convert known cameras
+      tomgs fit clip.mp4 -o scene.ply --poses cameras.json
+    """
     from tomgs.io import read_video
     from tomgs.outputs import check_file_output
     from tomgs.poses import estimate_cameras
 
     check_file_output(output, overwrite, what="cameras file")
+    to_stdout = _check_json(json_out, overwrite)
     clip = read_video(video, frames=frames, max_side=max_side, masks=masks)
-    with click.progressbar(length=2 * len(clip), label="poses", show_eta=True, show_percent=True) as bar:
-        def progress(done, total):
-            bar.update(done - bar.pos)
-
-        cams, _, _, report = estimate_cameras(clip, method=method, focal=focal, progress=progress)
+    with _bar(2 * len(clip), "poses") as progress:
+        cams, _, _, report = estimate_cameras(clip, method=method, focal=focal,
+                                              progress=lambda done, total: progress(done))
     cams.save(output)
     for note in report.notes:
-        click.echo(f"  note: {note}")
-    click.echo(f"{output}: {report.summary()}")
+        _note(f"  note: {note}")
+    if not to_stdout:
+        click.echo(f"{output}: {report.summary()}")
+    _write_json(json_out, dict(output=str(output), summary=report.summary(), method=report.method, mode=report.mode,
+                               frames=report.frames, focal=report.focal, focal_estimated=report.focal_estimated,
+                               reprojection_px=report.reproj_px, points=report.points, seconds=report.seconds,
+                               notes=list(report.notes)))
 
 
 @main.command()
@@ -105,10 +165,11 @@ def poses(video, output, masks, frames, method, focal, max_side, overwrite):
               help="fit one layer (needs --masks): the pixels outside the masks, or the masked object on a plane")
 @click.option("--mask-dilation", type=click.IntRange(0), default=2, show_default=True,
               help="background layer: grow the masks by this many pixels before leaving them out")
+@_json_option("the fit's summary")
 @_overwrite_option
 @_user_errors
 def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal, device, max_gaussians, max_seconds,
-        sampling, static_3dgs, opacity_reset, sh_degree, seed, resume, layer, mask_dilation, overwrite):
+        sampling, static_3dgs, opacity_reset, sh_degree, seed, resume, layer, mask_dilation, json_out, overwrite):
     """Fit a TOM-GS scene to VIDEO (a video file or a folder of frames).
 
     \b
@@ -130,27 +191,34 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
     if static_3dgs:
         overrides["temporal"] = False
     config = make_config(preset, **overrides)
-    bar = click.progressbar(length=config.iterations, label="fit", show_eta=True, show_percent=True,
-                            item_show_func=lambda row: row and (
-                                f"PSNR {row['train_psnr']} dB, {row['gaussians']:,} Gaussians, "
-                                f"{row['iteration'] / max(row['wall_s'], 1e-9):.0f} it/s"))
+    to_stdout = _check_json(json_out, overwrite)
+
+    def row_text(row):
+        return row and (f"PSNR {row['train_psnr']} dB, {row['gaussians']:,} Gaussians, "
+                        f"{row['iteration'] / max(row['wall_s'], 1e-9):.0f} it/s")
     try:
-        with bar:
-            def progress(row):
-                bar.update(row["iteration"] - bar.pos, row)
+        with _bar(config.iterations, "fit", item_show_func=row_text) as progress:
+            def on_row(row):
+                progress(row["iteration"], row)
+                _note(f"  iteration {row['iteration']}: {row['wall_s']:.1f} s, {row_text(row)}, full-clip PSNR "
+                      f"{row['clip_psnr'] or '-'}", level=2)
 
             result = fit_scene(video, output, config, masks=masks, frames=frames, max_side=max_side, poses=poses,
-                               focal=focal, device=device, resume=resume, overwrite=overwrite, progress=progress,
+                               focal=focal, device=device, resume=resume, overwrite=overwrite, progress=on_row,
                                layer=layer, mask_dilation=mask_dilation)
     except FitInterrupted as e:
         click.echo(f"\n{e.message()}", err=True)
         raise SystemExit(e.exit_code) from None
     paths = output_paths(output)
-    click.echo(f"{output}: {len(result.model):,} Gaussians, {result.iterations} iterations in {result.seconds:.1f} s, "
-               f"full-clip PSNR {result.clip_psnr:.2f} dB")
-    click.echo(f"  error against run time: {paths['csv']} and {paths['plot']}")
+    if not to_stdout:
+        click.echo(f"{output}: {len(result.model):,} Gaussians, {result.iterations} iterations in "
+                   f"{result.seconds:.1f} s, full-clip PSNR {result.clip_psnr:.2f} dB")
+        click.echo(f"  error against run time: {paths['csv']} and {paths['plot']}")
     for note in result.notes:
-        click.echo(f"  note: {note}")
+        _note(f"  note: {note}")
+    _write_json(json_out, dict(output=str(output), gaussians=len(result.model), iterations=result.iterations,
+                               seconds=result.seconds, clip_psnr=result.clip_psnr, csv=str(paths["csv"]),
+                               plot=str(paths["plot"]), notes=list(result.notes)))
 
 
 @main.command("eval")
@@ -174,17 +242,13 @@ def evaluate_command(scene, video, lpips_weights, json_out, device, overwrite):
       tomgs eval scene.ply frames/ --lpips alexnet-lpips-v0.1.npz --json metrics.json
       tomgs eval scene.ply clip.mp4 --json - | jq .mean     # JSON alone on stdout
     """
-    import json
 
     from tomgs.io.scene import load_scene
     from tomgs.io.video import read_video_for
     from tomgs.metrics import LPIPS, default_lpips_weights, evaluate
-    from tomgs.outputs import check_file_output, write_text
     from tomgs.render import resolve_device
 
-    to_stdout = json_out == "-"
-    if json_out and not to_stdout:
-        check_file_output(json_out, overwrite, what="JSON report")
+    to_stdout = _check_json(json_out, overwrite)
     dev = resolve_device(device)
     loaded = load_scene(scene, device=dev)
     frames = read_video_for(video, loaded.cameras)
@@ -196,12 +260,7 @@ def evaluate_command(scene, video, lpips_weights, json_out, device, overwrite):
                    err=to_stdout)
     click.echo(f"{scene}: {report.summary()}" + ("" if lpips else " (LPIPS left out: no weights given)"),
                err=to_stdout)
-    if json_out:
-        text = json.dumps(_finite_or_null(report.to_dict()), indent=1)  # a perfect frame's PSNR is inf
-        if to_stdout:
-            click.echo(text)
-        else:
-            write_text(json_out, text)
+    _write_json(json_out, report.to_dict())  # a perfect frame's PSNR is inf: null
 
 
 def _finite_or_null(value):
@@ -325,7 +384,14 @@ def render(scene, frames, output, device, background, fps, layer_paths, overwrit
 @_overwrite_option
 @_user_errors
 def info(scene, plot, as_json, overwrite):
-    """Counts, time coverage, temporal scales and opacities of SCENE (a .ply from `tomgs fit`)."""
+    """Counts, time coverage, temporal scales and opacities of SCENE (a .ply from `tomgs fit`).
+
+    \b
+    Examples:
+      tomgs info scene.ply
+      tomgs info scene.ply --plot sigmas.png       # histogram of temporal scales
+      tomgs info scene.ply --json | jq .gaussians
+    """
     import json
 
     from tomgs.io.scene import check_png_path, format_summary, load_scene, plot_temporal_scales, summarize
@@ -384,15 +450,16 @@ _OVER_HELP = ("a scene to render behind (e.g. a background from `fit --layer bac
               "at the same frames; the rendered scene is composited over it as `render --layer` does")
 
 
-def _bar(length: int, label: str):
-    """A progress bar on stderr (stdout carries results only); yields progress(done)."""
-    import contextlib
-
-    @contextlib.contextmanager
-    def bar():
-        with click.progressbar(length=length, label=label, file=sys.stderr) as b:
-            yield lambda done: b.update(done - b.pos)
-    return bar()
+@contextlib.contextmanager
+def _bar(length: int, label: str, **options):
+    """A progress bar with rate and ETA on stderr (stdout carries results only), none with -q;
+    yields progress(done, item=None)."""
+    if _VERBOSITY["level"] == 0:
+        yield lambda done, item=None: None
+        return
+    with click.progressbar(length=length, label=label, file=sys.stderr, show_eta=True, show_percent=True,
+                           **options) as bar:
+        yield lambda done, item=None: bar.update(done - bar.pos, item)
 
 
 def _render(scene, gaussians, plan, fps, layers=()) -> None:
