@@ -136,6 +136,7 @@ def simulate_selection(model, indices, config, cell: float | None = None, device
     if result.inverted_frames:
         frames = result.inverted_frames
         raise InputError(f"the simulation turned cage tets inside out in {len(frames)} frame(s), first frame "
-                         f"{frames[0]} (smallest volume ratio {result.min_volume_ratio:.3g}): use a larger --cell, "
-                         "a larger --stiffness or a smaller --drop/--spin/--velocity")
+                         f"{frames[0]} (smallest volume ratio {result.min_volume_ratio:.3g}): use a larger cage cell, stiffer edges (a smaller "
+                         "edge_compliance) or a gentler start (drop_height, initial_spin, initial_velocity; CLI: "
+                         "--cell, --stiffness, --drop, --spin, --velocity)")
     return cage, result.vertices

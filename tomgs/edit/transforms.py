@@ -297,11 +297,11 @@ def edit_scene(scene, selectors=(), *, translate=None, rotate=None, scale=None, 
 
     moving = any(v is not None for v in (translate, rotate, scale, duplicate))
     if remove and moving:
-        raise InputError("--remove deletes the selection: it cannot be combined with --translate, --rotate, "
-                         "--scale or --duplicate (run `tomgs edit` twice)")
+        raise InputError("remove deletes the selection: it cannot be combined with translate, rotate, scale or "
+                         "duplicate (CLI: --remove with --translate, ...); make two edits")
     indices = select(scene.model, scene.cameras, selectors)
     if remove and len(indices) == len(scene.model):
-        raise InputError("--remove would delete every Gaussian of the scene: narrow the selection with --select")
+        raise InputError("remove would delete every Gaussian of the scene: narrow the selection (CLI: --select)")
     c = selection_centre(scene.model, indices) if centre is None else np.asarray(centre, dtype=np.float64)
     matrix = None
     if any(v is not None for v in (translate, rotate, scale)):
