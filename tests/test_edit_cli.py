@@ -184,7 +184,7 @@ def test_bad_input_exits_2_and_writes_nothing(tmp_path, scene, case, args, messa
 
 @pytest.fixture
 def rigid_fall(monkeypatch):
-    """A stand-in for tomgs.edit.physics (contract: simulate(rest [V,3], tets [T,4], SimConfig, device)
+    """A stand-in for tomgs.edit.physics (contract: EARTH_GRAVITY, simulate(rest [V,3], tets [T,4], SimConfig, device)
     -> [F,V,3] world axes): the body falls rigidly under gravity; records the configs it was given."""
     import dataclasses
     import sys
@@ -216,6 +216,7 @@ def rigid_fall(monkeypatch):
     calls = []
     module = types.ModuleType("tomgs.edit.physics")
     module.SimConfig, module.simulate, module.simulate_with_stats = SimConfig, simulate, simulate_with_stats
+    module.EARTH_GRAVITY = 9.81
     monkeypatch.setitem(sys.modules, "tomgs.edit.physics", module)
     return calls
 

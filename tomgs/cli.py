@@ -682,8 +682,7 @@ def simulate(scene, output, selectors, render_out, over, drop, spin, velocity, s
       tomgs tets import scene.ply toss.cage.ply toss.npz -o toss.mp4
       tomgs simulate fg.ply --drop 0.25 -o drop.npz --render drop.mp4 --over bg.ply
     """
-    from tomgs.edit.cage import simulate_selection
-    from tomgs.edit.physics import SimConfig
+    from tomgs.edit.cage import shot_config, simulate_selection
     from tomgs.edit.selection import select
     from tomgs.edit.transforms import sequence_clouds
     from tomgs.io.scene import load_scene, render_defaults
@@ -709,13 +708,8 @@ def simulate(scene, output, selectors, render_out, over, drop, spin, velocity, s
     plan = plan_render(render_out, cams, None, device, _background(background), overwrite,
                        only=set(range(frames)), over=over, name=scene) if render_out else None
     indices = select(loaded.model, cams, selectors)
-    means = loaded.model.means.detach().cpu().double().numpy()[indices]
-    extent = max(float((means.max(0) - means.min(0)).max()), 1e-9)
-    settings = dict(frames=frames, fps=fps or render_defaults(loaded.info)[1], drop_height=drop,
-                    gravity=(0.0, 9.81 * extent / size, 0.0))  # +y is down in OpenCV axes
-    optional = dict(initial_spin=spin, initial_velocity=velocity, damping=damping,
-                    edge_compliance=None if stiffness is None else 1.0 / stiffness)
-    config = SimConfig(**settings, **{k: v for k, v in optional.items() if v is not None})
+    config = shot_config(loaded.model, indices, frames, fps or render_defaults(loaded.info)[1], size, drop, spin,
+                         velocity, stiffness, damping)
     cage, vertices = simulate_selection(loaded.model, indices, config, cell, device=str(dev))
     save_tets(cage_path, cage)
     save_sequence(output, vertices, frames=cams.frame_indices[:frames])

@@ -123,6 +123,23 @@ def make_tets(model, indices, kind: str = "gaussian", cell: float | None = None)
     raise ValueError(f"kind must be 'gaussian' or 'cage', got {kind!r}")
 
 
+def shot_config(model, indices, frames: int, fps: float, size: float = 1.0, drop: float = 0.0, spin=None,
+                velocity=None, stiffness: float | None = None, damping: float | None = None):
+    """The SimConfig of `tomgs simulate`: gravity scaled so that the selection (Gaussians `indices`
+    of `model`), whose largest side is `size` metres, falls like a real body of that size (+y is
+    down in OpenCV axes); raised `drop` scene units; `spin` (rad/s, world axes) and `velocity`
+    (scene units / s) at the start; `stiffness` is the inverse edge compliance; None keeps
+    SimConfig's default."""
+    from tomgs.edit.physics import EARTH_GRAVITY, SimConfig
+
+    means = model.means.detach().cpu().double().numpy()[indices]
+    extent = max(float((means.max(0) - means.min(0)).max()), 1e-9)
+    optional = dict(initial_spin=spin, initial_velocity=velocity, damping=damping,
+                    edge_compliance=None if stiffness is None else 1.0 / stiffness)
+    return SimConfig(frames=frames, fps=fps, drop_height=drop, gravity=(0.0, EARTH_GRAVITY * extent / size, 0.0),
+                     **{k: v for k, v in optional.items() if v is not None})
+
+
 def simulate_selection(model, indices, config, cell: float | None = None, device: str = "cpu"):
     """(cage Tets, vertices float64 [F,V,3] world axes): a cage over the Gaussians `indices` of
     `model`, moved by `tomgs.edit.physics.simulate_with_stats` with `config` (a SimConfig) on `device`.
