@@ -100,7 +100,7 @@ class _WarpSSIM(torch.autograd.Function):
     @staticmethod
     def forward(ctx, img, ref):
         from tomgs.kernels import ssim as kernels
-        from tomgs.render import _launch, _on, _wp
+        from tomgs.runtime import launch, scope, wrap
 
         x, y = img.contiguous(), ref.contiguous()
         n, (_, height, width, _) = x.numel(), x.shape
@@ -108,18 +108,18 @@ class _WarpSSIM(torch.autograd.Function):
         moments = torch.empty(5, n, device=x.device, dtype=torch.float32)
         partials = torch.empty(3, n, device=x.device, dtype=torch.float32)
         out = torch.empty_like(x)
-        flat = (_wp(x.view(-1)), _wp(y.view(-1)), _wp(window))
-        with _on(x.device) as device:
-            _launch(kernels.moments_rows, n, device=device, args=[*flat, width, _wp(moments)])
-            _launch(kernels.ssim_cols, n, device=device, args=[
-                _wp(moments), flat[2], width, height, SSIM_C1, SSIM_C2, _wp(out.view(-1)), _wp(partials)])
+        flat = (wrap(x.view(-1)), wrap(y.view(-1)), wrap(window))
+        with scope(x.device) as device:
+            launch(kernels.moments_rows, n, device=device, args=[*flat, width, wrap(moments)])
+            launch(kernels.ssim_cols, n, device=device, args=[
+                wrap(moments), flat[2], width, height, SSIM_C1, SSIM_C2, wrap(out.view(-1)), wrap(partials)])
         ctx.save_for_backward(x, y, partials)
         return out
 
     @staticmethod
     def backward(ctx, v_out):
         from tomgs.kernels import ssim as kernels
-        from tomgs.render import _launch, _on, _wp
+        from tomgs.runtime import launch, scope, wrap
 
         x, y, partials = ctx.saved_tensors
         n, (_, height, width, _) = x.numel(), x.shape
@@ -127,11 +127,11 @@ class _WarpSSIM(torch.autograd.Function):
         v_out = v_out.contiguous()
         blurred = torch.empty_like(partials)
         v_x = torch.empty_like(x)
-        with _on(x.device) as device:
-            _launch(kernels.grad_rows, n, device=device, args=[
-                _wp(v_out.view(-1)), _wp(partials), _wp(window), width, _wp(blurred)])
-            _launch(kernels.grad_cols, n, device=device, args=[
-                _wp(blurred), _wp(x.view(-1)), _wp(y.view(-1)), _wp(window), width, height, _wp(v_x.view(-1))])
+        with scope(x.device) as device:
+            launch(kernels.grad_rows, n, device=device, args=[
+                wrap(v_out.view(-1)), wrap(partials), wrap(window), width, wrap(blurred)])
+            launch(kernels.grad_cols, n, device=device, args=[
+                wrap(blurred), wrap(x.view(-1)), wrap(y.view(-1)), wrap(window), width, height, wrap(v_x.view(-1))])
         return v_x, None
 
 

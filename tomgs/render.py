@@ -8,51 +8,19 @@ statistics see the whole frame; kernels run on torch's current stream, where the
 
 from __future__ import annotations
 
-import contextlib
 import math
-import os
 import struct
-import sys
 from dataclasses import dataclass
 
 import torch
 import warp as wp
-from warp._src.types import array_t as _array_t  # the descriptor that wp.from_torch(return_ctype=True) builds
 
 from tomgs.constants import ALPHA_MIN, TILE_SIZE
 from tomgs.inputs import RenderError
-from tomgs.reference import prepare_finite_sh
 from tomgs.kernels import binning, project, raster
-
-_warp_ready = False
-
-
-def _init_warp() -> None:
-    """Initialise Warp once, quietly: no banner, no per-module compile lines, no CPU-only driver warning."""
-    global _warp_ready
-    if not _warp_ready:
-        wp.config.log_level = max(wp.config.log_level, wp.LOG_ERROR)
-        # Warp's native library prints "Could not find or load the NVIDIA CUDA driver" straight to
-        # file descriptor 2 on machines without one, whatever the log level: on a CPU-only machine
-        # (torch sees no GPU) that line is noise in every command's output
-        with contextlib.nullcontext() if torch.cuda.is_available() else _native_stderr_silenced():
-            wp.init()
-        wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
-        _warp_ready = True
-
-
-@contextlib.contextmanager
-def _native_stderr_silenced():
-    """Send what native code writes to file descriptor 2 to /dev/null for the duration."""
-    sys.stderr.flush()
-    saved = os.dup(2)
-    try:
-        with open(os.devnull, "w") as null:
-            os.dup2(null.fileno(), 2)
-            yield
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
+from tomgs.reference import prepare_finite_sh
+from tomgs.runtime import launch, scope, wrap
+from tomgs.runtime import init_warp as _init_warp  # noqa: F401  (tests/test_physics.py still imports it from here)
 
 # The radix sort needs 2 x count slots and counts in int32: 2^30 keeps both inside int32.
 MAX_INTERSECTIONS = 2**30
@@ -136,78 +104,6 @@ class _Frame:
         return self.tiles_x * self.tiles_y
 
 
-def _warp_device(device: torch.device) -> str:
-    return "cpu" if device.type == "cpu" else f"cuda:{device.index if device.index is not None else torch.cuda.current_device()}"
-
-
-_streams: dict[int, wp.Stream] = {}
-
-
-@contextlib.contextmanager
-def _on(device: torch.device):
-    """Run Warp launches on `device`, on torch's current stream when it is a GPU."""
-    _init_warp()  # deferred to the first render so that importing tomgs stays cheap
-    if device.type == "cuda":
-        torch_stream = torch.cuda.current_stream(device)
-        stream = _streams.get(torch_stream.cuda_stream)
-        if stream is None:  # wrapping a stream costs tens of microseconds: once per stream
-            stream = _streams[torch_stream.cuda_stream] = wp.stream_from_torch(torch_stream)
-        with wp.ScopedStream(stream, sync_enter=False):  # same stream as torch: already ordered
-            yield _warp_device(device)
-    elif device.type == "cpu":
-        yield "cpu"
-    else:
-        raise RenderError(f"tensors on {device} are not supported: use a CPU or CUDA device")
-
-
-_INNER_AXES = {wp.vec2: 1, wp.vec3: 1, wp.vec4: 1, wp.vec2i: 1, wp.mat33: 2, wp.mat44: 2}
-
-
-def _wp(tensor: torch.Tensor, dtype=None):
-    """Zero-copy Warp array descriptor of `tensor`; a vector or matrix dtype folds the trailing axes.
-
-    A bare descriptor costs a few microseconds against ~20 for a full `wp.array`, which matters at
-    ~60 arguments per frame. The caller keeps `tensor` alive until the launch is queued.
-    """
-    keep = tensor.dim() - _INNER_AXES.get(dtype, 0)
-    item = tensor.element_size()
-    shape = tuple(tensor.shape[:keep]) or (1,)
-    strides = tuple(s * item for s in tensor.stride()[:keep]) or (item,)
-    return _array_t(tensor.data_ptr(), 0, len(shape), shape, strides)
-
-
-class _Launches:
-    """One recorded Warp launch per (kernel, device, block size), re-armed with fresh arguments.
-
-    `wp.launch` spends tens of microseconds in Python per call validating and packing arguments;
-    re-arming a recorded launch with ready-made descriptors skips that, which is a large share of
-    a frame at 1M Gaussians. Not thread-safe: render from one thread at a time.
-    """
-
-    def __init__(self):
-        self._recorded: dict[tuple, tuple[wp.Launch, object]] = {}
-
-    def __call__(self, kernel, dim: int, args: list, device: str, block_dim: int = 256) -> None:
-        key = (kernel.key, device, block_dim)
-        entry = self._recorded.get(key)
-        if dim == 0:
-            return  # nothing to run, and Warp records no command for an empty launch
-        if entry is None:
-            cmd = wp.launch(kernel, dim=dim, inputs=args, device=device, block_dim=block_dim, record_cmd=True)
-            self._recorded[key] = entry = (cmd, dim)
-        else:
-            cmd, last_dim = entry
-            if dim != last_dim:
-                cmd.set_dim(dim)
-                self._recorded[key] = (cmd, dim)
-            for i, arg in enumerate(args):
-                cmd.set_param_at_index_from_ctype(i, arg)
-        cmd.launch(wp.get_stream(device) if device != "cpu" else None)
-
-
-_launch = _Launches()
-
-
 def _dense(grad: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor:
     """An incoming gradient Warp can index: zeros for None; rows may be strided, the last axis must not be."""
     if grad is None:
@@ -229,14 +125,14 @@ class _Project(torch.autograd.Function):
         radii = torch.empty(n, 2, device=means.device, dtype=torch.int32)
         tiles_touched = torch.empty(n, device=means.device, dtype=torch.int32)
         # descriptors of the inputs are built once and reused by the backward (their tensors are saved)
-        inputs = [_wp(means, wp.vec3), _wp(quats, wp.vec4), _wp(scales, wp.vec3), _wp(opacities), _wp(t_means),
-                  _wp(t_scales), _wp(viewmat.reshape(1, 4, 4), wp.mat44), _wp(K.reshape(1, 3, 3), wp.mat33)]
-        radii_d, conics_d = _wp(radii, wp.vec2i), _wp(conics, wp.vec3)
-        with _on(means.device) as device:
-            _launch(project.project_forward, n, device=device, args=[
+        inputs = [wrap(means, wp.vec3), wrap(quats, wp.vec4), wrap(scales, wp.vec3), wrap(opacities), wrap(t_means),
+                  wrap(t_scales), wrap(viewmat.reshape(1, 4, 4), wp.mat44), wrap(K.reshape(1, 3, 3), wp.mat33)]
+        radii_d, conics_d = wrap(radii, wp.vec2i), wrap(conics, wp.vec3)
+        with scope(means.device) as device:
+            launch(project.project_forward, n, device=device, args=[
                 *inputs, frame.width, frame.height, frame.t_hi, frame.t_lo, frame.near, frame.far, frame.tiles_x,
-                frame.tiles_y, _wp(means2d, wp.vec2), conics_d, _wp(depths), radii_d, _wp(opacities_t),
-                _wp(tiles_touched), _wp(flags),
+                frame.tiles_y, wrap(means2d, wp.vec2), conics_d, wrap(depths), radii_d, wrap(opacities_t),
+                wrap(tiles_touched), wrap(flags),
             ])
         ctx.frame = frame
         ctx.descriptors = (inputs, radii_d, conics_d)
@@ -257,13 +153,13 @@ class _Project(torch.autograd.Function):
         v_viewmat_parts = torch.empty(parts, 4, 4, device=means.device, dtype=torch.float32)
         v_K_parts = torch.empty(parts, 4, device=means.device, dtype=torch.float32)
         inputs, radii_d, conics_d = ctx.descriptors
-        with _on(means.device) as device:
-            _launch(project.project_backward, n, device=device, args=[
+        with scope(means.device) as device:
+            launch(project.project_backward, n, device=device, args=[
                 *inputs, frame.width, frame.height, frame.t_hi, frame.t_lo, radii_d, conics_d,
-                _wp(_dense(v_means2d, conics[:, :2]), wp.vec2), _wp(_dense(v_conics, conics), wp.vec3),
-                _wp(_dense(v_opacities_t, opacities)), int(camera_grads),
-                _wp(v_means, wp.vec3), _wp(v_quats, wp.vec4), _wp(v_scales, wp.vec3), _wp(v_opacities),
-                _wp(v_t_means), _wp(v_t_scales), _wp(v_viewmat_parts, wp.mat44), _wp(v_K_parts, wp.vec4),
+                wrap(_dense(v_means2d, conics[:, :2]), wp.vec2), wrap(_dense(v_conics, conics), wp.vec3),
+                wrap(_dense(v_opacities_t, opacities)), int(camera_grads),
+                wrap(v_means, wp.vec3), wrap(v_quats, wp.vec4), wrap(v_scales, wp.vec3), wrap(v_opacities),
+                wrap(v_t_means), wrap(v_t_scales), wrap(v_viewmat_parts, wp.mat44), wrap(v_K_parts, wp.vec4),
             ])
         v_viewmat = v_K = None
         if camera_grads:
@@ -286,15 +182,15 @@ def _bin(means2d, radii, depths, ends, frame: _Frame, total: int):
     keys = torch.empty(2 * total, device=device, dtype=torch.int64)  # the radix sort uses the upper half
     ids = torch.empty(2 * total, device=device, dtype=torch.int32)
     tile_bits = max(1, (frame.num_tiles - 1).bit_length())
-    with _on(device) as wp_device:
+    with scope(device) as wp_device:
         keys_wp = wp.from_torch(keys, requires_grad=False)  # the sort wants full arrays
         ids_wp = wp.from_torch(ids, requires_grad=False)
-        _launch(binning.write_tile_keys, means2d.shape[0], device=wp_device, args=[
-            _wp(means2d, wp.vec2), _wp(radii, wp.vec2i), _wp(depths), _wp(ends), frame.tiles_x, frame.tiles_y,
-            _wp(keys), _wp(ids),
+        launch(binning.write_tile_keys, means2d.shape[0], device=wp_device, args=[
+            wrap(means2d, wp.vec2), wrap(radii, wp.vec2i), wrap(depths), wrap(ends), frame.tiles_x, frame.tiles_y,
+            wrap(keys), wrap(ids),
         ])
         wp.utils.radix_sort_pairs(keys_wp, ids_wp, total, 0, 32 + tile_bits)
-        _launch(binning.tile_ranges, total, device=wp_device, args=[_wp(keys), total, _wp(ranges)])
+        launch(binning.tile_ranges, total, device=wp_device, args=[wrap(keys), total, wrap(ranges)])
     return ranges, ids[:total]
 
 
@@ -306,12 +202,12 @@ class _Rasterize(torch.autograd.Function):
         trans = torch.empty(frame.height, frame.width, 1, device=device, dtype=torch.float32)
         end = torch.empty(frame.height, frame.width, device=device, dtype=torch.int32)
         # the list, the per-Gaussian inputs and the per-pixel state, shared with the backward
-        shared = [_wp(ranges), _wp(ids), _wp(means2d, wp.vec2), _wp(conics, wp.vec3), _wp(opacities_t),
-                  _wp(colors, wp.vec3), frame.width, frame.height, frame.tiles_x]
-        state = [_wp(trans[..., 0]), _wp(end)]
-        with _on(device) as wp_device:
-            _launch(raster.raster_forward, frame.num_tiles * TILE_SIZE * TILE_SIZE, device=wp_device,
-                    block_dim=TILE_SIZE * TILE_SIZE, args=[*shared, _wp(color, wp.vec3), *state])
+        shared = [wrap(ranges), wrap(ids), wrap(means2d, wp.vec2), wrap(conics, wp.vec3), wrap(opacities_t),
+                  wrap(colors, wp.vec3), frame.width, frame.height, frame.tiles_x]
+        state = [wrap(trans[..., 0]), wrap(end)]
+        with scope(device) as wp_device:
+            launch(raster.raster_forward, frame.num_tiles * TILE_SIZE * TILE_SIZE, device=wp_device,
+                   block_dim=TILE_SIZE * TILE_SIZE, args=[*shared, wrap(color, wp.vec3), *state])
         ctx.frame = frame
         ctx.descriptors = (shared, state)
         ctx.save_for_backward(means2d, conics, opacities_t, colors, ranges, ids, trans, end)
@@ -325,11 +221,11 @@ class _Rasterize(torch.autograd.Function):
         grads = torch.zeros(means2d.shape[0], 9, device=means2d.device, dtype=torch.float32)  # one fill, four views
         v_means2d, v_conics, v_opacities_t, v_colors = grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 6:9]
         v_color = _dense(v_color, trans.expand(-1, -1, 3))
-        with _on(means2d.device) as wp_device:
-            _launch(raster.raster_backward, frame.num_tiles * TILE_SIZE * TILE_SIZE, device=wp_device,
-                    block_dim=TILE_SIZE * TILE_SIZE, args=[
-                        *shared, *state, _wp(v_color, wp.vec3), _wp(_dense(v_trans, trans)[..., 0]),
-                        _wp(v_means2d, wp.vec2), _wp(v_conics, wp.vec3), _wp(v_opacities_t), _wp(v_colors, wp.vec3)])
+        with scope(means2d.device) as wp_device:
+            launch(raster.raster_backward, frame.num_tiles * TILE_SIZE * TILE_SIZE, device=wp_device,
+                   block_dim=TILE_SIZE * TILE_SIZE, args=[
+                       *shared, *state, wrap(v_color, wp.vec3), wrap(_dense(v_trans, trans)[..., 0]),
+                       wrap(v_means2d, wp.vec2), wrap(v_conics, wp.vec3), wrap(v_opacities_t), wrap(v_colors, wp.vec3)])
         return v_means2d, v_conics, v_opacities_t, v_colors, None, None, None
 
 
@@ -380,10 +276,10 @@ def rasterize(
         p.t_means.contiguous(), p.t_scales.contiguous(), viewmat, K, flags, frame)
     ends = torch.cumsum(tiles_touched, 0, dtype=torch.int64)  # [N] inclusive scan
     bg = p.background if p.background is not None else viewmat.reshape(-1)[:3]  # unread stand-in
-    with _on(p.means.device) as device:
-        _launch(project.check_frame, 1, device=device, args=[
-            _wp(ends), ends.shape[0], _wp(viewmat.reshape(1, 4, 4), wp.mat44), _wp(K.reshape(1, 3, 3), wp.mat33),
-            _wp(bg.reshape(1, 3), wp.vec3), int(p.background is not None), _wp(flags)])
+    with scope(p.means.device) as device:
+        launch(project.check_frame, 1, device=device, args=[
+            wrap(ends), ends.shape[0], wrap(viewmat.reshape(1, 4, 4), wp.mat44), wrap(K.reshape(1, 3, 3), wp.mat33),
+            wrap(bg.reshape(1, 3), wp.vec3), int(p.background is not None), wrap(flags)])
 
     # the one host sync per frame: the intersection count sizes the sort buffers; the contract
     # flags travel with it, so checking the inputs costs no extra wait

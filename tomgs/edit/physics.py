@@ -33,7 +33,7 @@ import warp as wp
 
 from tomgs.errors import InputError
 from tomgs.kernels import xpbd
-from tomgs.render import _init_warp
+from tomgs.runtime import init_warp
 
 # A tet flatter than this (volume over its longest edge cubed; a regular tet has 0.118) is degenerate.
 MIN_TET_SHAPE = 1e-9
@@ -151,7 +151,7 @@ def simulate_with_stats(rest_vertices, tets, config: SimConfig, device: str = "c
     else:
         floor_point = (np.asarray(config.floor_point, dtype=np.float64) - centre) / extent
 
-    _init_warp()
+    init_warp()
     with wp.ScopedDevice(device):
         solver = _Solver(rest_n, start, velocity, inv_mass, tets, volumes, config, gravity, floor_point, up)
         frames, min_ratio, inverted, speed = solver.run(config.frames)

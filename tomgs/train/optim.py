@@ -21,11 +21,11 @@ class SeenAdam(torch.optim.Optimizer):
     def step(self, seen: torch.Tensor) -> None:
         """One Adam step on the rows where `seen` (bool [N], N = every parameter's first axis) is True."""
         from tomgs.kernels import adam
-        from tomgs.render import _launch, _on, _wp
+        from tomgs.runtime import launch, scope, wrap
 
         seen_bytes = seen.to(torch.uint8)  # held until the launches are queued: the descriptor does not own it
-        seen_d = _wp(seen_bytes)
-        with _on(seen.device) as device:
+        seen_d = wrap(seen_bytes)
+        with scope(seen.device) as device:
             for group in self.param_groups:
                 beta1, beta2 = group["betas"]
                 for p in group["params"]:
@@ -42,7 +42,7 @@ class SeenAdam(torch.optim.Optimizer):
                     step = float(state["step"])  # a CPU tensor: no wait for the device
                     rows = p.shape[0]
                     grad = p.grad.contiguous()
-                    views = [_wp(t.view(rows, -1)) for t in (p, grad, state["exp_avg"], state["exp_avg_sq"])]
-                    _launch(adam.adam_seen_rows, p.numel(), device=device, args=[
+                    views = [wrap(t.view(rows, -1)) for t in (p, grad, state["exp_avg"], state["exp_avg_sq"])]
+                    launch(adam.adam_seen_rows, p.numel(), device=device, args=[
                         *views, seen_d, group["lr"], beta1, beta2, group["eps"], 1.0 - beta1 ** step,
                         math.sqrt(1.0 - beta2 ** step)])

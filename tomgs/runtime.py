@@ -1,0 +1,171 @@
+"""The Warp runtime of tomgs: the one place that initialises Warp and launches its kernels.
+
+    init_warp()                      initialise Warp once, quietly (deferred: importing tomgs stays cheap)
+    warp_device(device) -> str       the Warp name of a torch device ("cpu", "cuda:N")
+    scope(device)                    context: Warp launches on `device`, on torch's current stream;
+                                     yields the Warp device name; RenderError for other device types
+    wrap(tensor, dtype=None)         zero-copy Warp array descriptor of a torch tensor
+    launch(kernel, dim, args, device, block_dim=256)
+                                     a recorded launch per (kernel, device, block size), re-armed
+
+Used by tomgs.render (the rasterizer), tomgs.metrics (SSIM), tomgs.train.optim (SeenAdam) and
+tomgs.edit.physics (XPBD). Every buffer is a torch tensor handed to Warp without a copy, so torch's
+allocator and memory statistics see all of it.
+
+Warp has no public name for its array descriptor (the ctypes structure that kernels receive);
+`wp.from_torch(tensor, return_ctype=True)` is the public way to build one. It costs ~20% more per
+call than building the structure directly, and it pins the tensor (the descriptor keeps a
+reference), so a recorded launch would keep the previous frame's buffers alive until the next frame
+re-arms it. So the descriptor class is taken from what `wp.from_torch(..., return_ctype=True)`
+returns (no import of Warp's private modules) and filled directly; `_check_descriptor` compares the
+result with `wp.from_torch`'s own on import, so a Warp release that changes the structure fails
+here, loudly, and not as wrong pixels. Checked on Warp 1.19.0.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+
+import torch
+import warp as wp
+
+from tomgs.errors import RenderError
+
+__all__ = ["init_warp", "warp_device", "scope", "wrap", "launch", "Launches", "ArrayDescriptor"]
+
+_warp_ready = False
+
+
+def init_warp() -> None:
+    """Initialise Warp once, quietly: no banner, no per-module compile lines, no CPU-only driver warning."""
+    global _warp_ready
+    if not _warp_ready:
+        wp.config.log_level = max(wp.config.log_level, wp.LOG_ERROR)
+        # Warp's native library prints "Could not find or load the NVIDIA CUDA driver" straight to
+        # file descriptor 2 on machines without one, whatever the log level: on a CPU-only machine
+        # (torch sees no GPU) that line is noise in every command's output
+        with contextlib.nullcontext() if torch.cuda.is_available() else _native_stderr_silenced():
+            wp.init()
+        wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
+        _warp_ready = True
+
+
+@contextlib.contextmanager
+def _native_stderr_silenced():
+    """Send what native code writes to file descriptor 2 to /dev/null for the duration."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+            yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def warp_device(device: torch.device) -> str:
+    """The Warp name of a CPU or CUDA torch device (CUDA without an index: torch's current one)."""
+    if device.type == "cpu":
+        return "cpu"
+    return f"cuda:{device.index if device.index is not None else torch.cuda.current_device()}"
+
+
+_streams: dict[int, wp.Stream] = {}
+
+
+@contextlib.contextmanager
+def scope(device: torch.device):
+    """Run Warp launches on `device`, on torch's current stream when it is a GPU; yields Warp's device name."""
+    init_warp()  # deferred to the first launch so that importing tomgs stays cheap
+    if device.type == "cuda":
+        torch_stream = torch.cuda.current_stream(device)
+        stream = _streams.get(torch_stream.cuda_stream)
+        if stream is None:  # wrapping a stream costs tens of microseconds: once per stream
+            stream = _streams[torch_stream.cuda_stream] = wp.stream_from_torch(torch_stream)
+        with wp.ScopedStream(stream, sync_enter=False):  # same stream as torch: already ordered
+            yield warp_device(device)
+    elif device.type == "cpu":
+        yield "cpu"
+    else:
+        raise RenderError(f"tensors on {device} are not supported: use a CPU or CUDA device")
+
+
+# The class of the descriptors `wp.from_torch(..., return_ctype=True)` returns (see the module docstring).
+ArrayDescriptor = type(wp.from_torch(torch.empty(0), requires_grad=False, return_ctype=True))
+
+# trailing tensor axes a Warp dtype takes: 1 for a vector, 2 for a matrix (filled in on first use)
+_INNER_AXES: dict = {wp.vec2: 1, wp.vec3: 1, wp.vec4: 1, wp.vec2i: 1, wp.mat33: 2, wp.mat44: 2}
+
+
+def _inner_axes(dtype) -> int:
+    axes = 2 if wp.types.type_is_matrix(dtype) else 1 if wp.types.type_is_vector(dtype) else 0
+    _INNER_AXES[dtype] = axes
+    return axes
+
+
+def wrap(tensor: torch.Tensor, dtype=None):
+    """Zero-copy Warp array descriptor of `tensor` [..., *dtype's shape]; a vector or matrix dtype folds
+    the trailing axes, which must be contiguous; None (or a scalar dtype) keeps every axis.
+
+    What `wp.from_torch(tensor, dtype, requires_grad=False, return_ctype=True)` builds, at a few
+    microseconds against ~20 for a full `wp.array`, which matters at ~60 arguments per frame. It
+    does not own the tensor: the caller keeps `tensor` alive until the launch is queued.
+    """
+    inner = 0 if dtype is None else _INNER_AXES.get(dtype)
+    if inner is None:
+        inner = _inner_axes(dtype)
+    keep = tensor.dim() - inner
+    item = tensor.element_size()
+    shape = tuple(tensor.shape[:keep]) or (1,)
+    strides = tuple(s * item for s in tensor.stride()[:keep]) or (item,)
+    return ArrayDescriptor(tensor.data_ptr(), 0, len(shape), shape, strides)
+
+
+def _check_descriptor() -> None:
+    """Our descriptors must equal, byte for byte, what `wp.from_torch` (the public build) makes."""
+    base = torch.arange(60, dtype=torch.float32).reshape(4, 5, 3)
+    for tensor, dtype in ((base[:, ::2], wp.vec3), (base[:3, :3], wp.mat33), (base[1:, :, 0], None)):
+        theirs = wp.from_torch(tensor, dtype, requires_grad=False, return_ctype=True)
+        if bytes(wrap(tensor, dtype)) != bytes(theirs):
+            raise RuntimeError(f"tomgs.runtime: Warp {wp.__version__} builds array descriptors differently from "
+                               "the version tomgs was checked on (1.19.0): update tomgs.runtime.wrap")
+
+
+_check_descriptor()
+
+
+class Launches:
+    """One recorded Warp launch per (kernel, device, block size), re-armed with fresh arguments.
+
+    `wp.launch` spends tens of microseconds in Python per call validating and packing arguments;
+    re-arming a recorded launch with ready-made descriptors skips that, which is a large share of
+    a frame at 1M Gaussians. Arguments: `wrap`ped tensors for arrays, Python ints and floats for
+    scalars, in the kernel's order. Not thread-safe: launch from one thread at a time.
+    """
+
+    def __init__(self):
+        self._recorded: dict[tuple, tuple[wp.Launch, object]] = {}
+
+    def __call__(self, kernel, dim: int, args: list, device: str, block_dim: int = 256) -> None:
+        key = (kernel.key, device, block_dim)
+        entry = self._recorded.get(key)
+        if dim == 0:
+            return  # nothing to run, and Warp records no command for an empty launch
+        if entry is None:
+            cmd = wp.launch(kernel, dim=dim, inputs=args, device=device, block_dim=block_dim, record_cmd=True)
+            self._recorded[key] = entry = (cmd, dim)
+        else:
+            cmd, last_dim = entry
+            if dim != last_dim:
+                cmd.set_dim(dim)
+                self._recorded[key] = (cmd, dim)
+            for i, arg in enumerate(args):
+                cmd.set_param_at_index_from_ctype(i, arg)
+        cmd.launch(wp.get_stream(device) if device != "cpu" else None)
+
+
+# the process's one cache of recorded launches
+launch = Launches()
