@@ -1,9 +1,15 @@
-"""Dense pure-torch renderer with the semantics of the Warp rasterizer: the oracle for every test.
+"""Pure-torch references with the semantics of the Warp rasterizer: the oracles for every test.
+
+    project_reference   stage 1 alone, per Gaussian, with the projection kernel's outputs
+    bin_reference       stage 2 alone: the sorted (tile, depth) intersection list and tile ranges
+    rasterize_reference the whole renderer, dense
 
 Same projection (EWA with 0.3 px dilation, clamped Jacobian, opacity-aware radius), same culls
-(near/far, non-finite, temporal opacity < 1/255, off screen), same compositing (alpha clamp 0.99,
-skip alpha < 1/255, stop before T <= 1e-4), but every pixel meets every visible Gaussian and
-autograd provides the gradients. Run it in float64 on small scenes; memory is O(pixels x N).
+(near/far, non-finite, temporal opacity < 1/255, off screen), same binning (tiles of the box
+centre +- radius clamped to the image, keys ordered by tile, then float32 depth, then Gaussian),
+same compositing (alpha clamp 0.99, skip alpha < 1/255, stop before T <= 1e-4), but every pixel
+meets every visible Gaussian and autograd provides the gradients. Run them in float64 on small
+scenes; the dense renderer's memory is O(pixels x N).
 """
 
 from __future__ import annotations
@@ -12,21 +18,12 @@ import dataclasses
 
 import torch
 
-from tomgs.constants import ALPHA_MAX, ALPHA_MIN, EPS2D, FOV_CLAMP, QUAT_EPS, RADIUS_SIGMAS, T_MIN
+from tomgs.constants import ALPHA_MAX, ALPHA_MIN, EPS2D, FOV_CLAMP, RADIUS_SIGMAS, T_MIN, TILE_SIZE
+from tomgs.geometry import quat_to_rotmat
 from tomgs.inputs import RasterInputs, prepare_inputs
+from tomgs.temporal import opacity_at
 
 _PER_GAUSSIAN = ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales")
-
-
-def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices [N,3,3] of quaternions [N,4] (w x y z), normalised with an epsilon."""
-    q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(QUAT_EPS)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], dim=-1).reshape(-1, 3, 3)
 
 
 def prepare_finite_sh(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width, height, t,
@@ -53,8 +50,7 @@ def _project(p: RasterInputs) -> dict[str, torch.Tensor]:
     depth_ok = (depth > p.near) & (depth < p.far)
     z = torch.where(depth_ok, depth, torch.ones_like(depth))  # keep culled lanes NaN-free for autograd
 
-    tz = (p.t - p.t_means) / p.t_scales
-    opac_t = p.opacities * torch.exp(-0.5 * tz * tz)
+    opac_t = opacity_at(p.opacities, p.t_means, p.t_scales, p.t)
 
     fx, fy, cx, cy = p.K[0, 0], p.K[1, 1], p.K[0, 2], p.K[1, 2]
     lim_x = FOV_CLAMP * 0.5 * p.width / fx

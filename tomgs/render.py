@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import torch
 import warp as wp
 
+from tomgs import temporal
 from tomgs.constants import ALPHA_MIN, TILE_SIZE
 from tomgs.inputs import RenderError
 from tomgs.kernels import binning, project, raster
@@ -249,8 +250,8 @@ def rasterize(
 ):
     """Render the Gaussians at time t: (image [H,W,3], alpha [H,W,1], meta).
 
-    Opacity at t is opacities * exp(-(t - t_means)^2 / (2 t_scales^2)); a Gaussian below 1/255 at t
-    is culled in projection and costs no tile work. Differentiable in every tensor input; runs on
+    Opacity at t is tomgs.temporal.opacity_at(opacities, t_means, t_scales, t); a Gaussian below 1/255
+    at t is culled in projection and costs no tile work. Differentiable in every tensor input; runs on
     the device of the inputs (CPU or CUDA) in float32. `meta` holds per-Gaussian `radii` [N,2],
     `means2d` [N,2] (call `.retain_grad()` on it for screen-space gradients), `depths`, `conics`,
     `opacities_t`, and counts `n_visible`, `n_alive` (alive at t), `n_intersections`. N = 0 is fine.
@@ -318,13 +319,15 @@ def resolve_device(name: str | None = "auto") -> torch.device:
     return device
 
 
+# relative and absolute widening of a gathered alive window (tomgs.temporal.alive_radius's slack)
+GATHER_SLACK = 1e-3
+
+
 def alive_window(opacities: torch.Tensor, t_means: torch.Tensor, t_scales: torch.Tensor,
                  alpha_min: float = ALPHA_MIN) -> tuple[torch.Tensor, torch.Tensor]:
-    """(first [N], last [N]): the times between which o_i(t) >= alpha_min, widened by a hair so that
-    float32 rounding in projection never finds a Gaussian alive outside; first > last when never."""
-    reach = torch.sqrt(2.0 * torch.log(opacities / alpha_min).clamp_min(0.0)) * (1.0 + 1e-3) + 1e-3
-    reach = torch.where(opacities >= alpha_min, reach * t_scales, torch.full_like(reach, -float("inf")))
-    return t_means - reach, t_means + reach
+    """(first [N], last [N]): the times between which o_i(t) >= alpha_min (tomgs.temporal), widened by a
+    hair so that float32 rounding in projection never finds a Gaussian alive outside; first > last when never."""
+    return temporal.alive_window(opacities, t_means, t_scales, alpha_min, slack=GATHER_SLACK)
 
 
 # frames rendered from one gathered set of the Gaussians alive at any of their times

@@ -32,6 +32,7 @@ import numpy as np
 import warp as wp
 
 from tomgs.errors import InputError
+from tomgs.geometry import signed_volumes
 from tomgs.kernels import xpbd
 from tomgs.runtime import init_warp
 
@@ -133,7 +134,7 @@ def simulate_with_stats(rest_vertices, tets, config: SimConfig, device: str = "c
     extent = body_extent(rest)
     centre = 0.5 * (rest.max(axis=0) + rest.min(axis=0))
     rest_n = (rest - centre) / extent  # body units, centred: the solver's frame
-    volumes = _volumes(rest_n, tets)
+    volumes = signed_volumes(rest_n, tets)
 
     # mass lumped from tets (density 1); an unused vertex keeps inverse mass 0 (no constraint moves it)
     mass = np.zeros(len(rest))
@@ -282,7 +283,7 @@ def _check_mesh(rest_vertices, tets) -> tuple[np.ndarray, np.ndarray]:
     if (np.sort(tets, axis=1)[:, 1:] == np.sort(tets, axis=1)[:, :-1]).any():
         bad = int(np.argmax((np.sort(tets, axis=1)[:, 1:] == np.sort(tets, axis=1)[:, :-1]).any(axis=1)))
         raise InputError(f"tet {bad} uses a vertex twice ({tets[bad].tolist()}): remove it")
-    volumes = _volumes(rest, tets)
+    volumes = signed_volumes(rest, tets)
     corners = rest[tets]
     longest = np.max([np.linalg.norm(corners[:, a] - corners[:, b], axis=1)
                       for a in range(4) for b in range(a + 1, 4)], axis=0)
@@ -331,12 +332,6 @@ def _floor_normal(config: SimConfig, gravity: np.ndarray) -> np.ndarray:
     return up / length
 
 
-def _volumes(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    """Signed volumes [T] of tets [T,4] over vertices [V,3]."""
-    x = vertices[tets]
-    return np.einsum("ij,ij->i", x[:, 1] - x[:, 0], np.cross(x[:, 2] - x[:, 0], x[:, 3] - x[:, 0])) / 6.0
-
-
 _TET_EDGES = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
 
 
@@ -380,6 +375,6 @@ def box_tets(cells=(1, 1, 1), size=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0)) -> t
             path.append(path[-1] + np.eye(3, dtype=int)[a])
         tets.append(np.stack([corner + p @ step for p in path], axis=1))
     tets = np.concatenate(tets)
-    flip = _volumes(vertices, tets) < 0  # half the paths are left-handed
+    flip = signed_volumes(vertices, tets) < 0  # half the paths are left-handed
     tets[flip] = tets[flip][:, [1, 0, 2, 3]]
     return vertices, tets
