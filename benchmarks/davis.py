@@ -74,7 +74,7 @@ def main() -> None:
         name = f"{clip}-{args.tag}" if args.tag else clip
         scene = args.out / f"{name}.ply"
         start = time.perf_counter()
-        result = fit(video, scene, config, device=device, poses=args.poses,
+        result = fit(video, scene, config, device=device, poses=args.poses, overwrite=True,  # a rerun replaces its own
                      progress=lambda r: print(f"  {clip} it {r['iteration']} {r['wall_s']:.0f}s train {r['train_psnr']} "
                                               f"clip {r['clip_psnr']} N {r['gaussians']}", flush=True))
         wall = time.perf_counter() - start

@@ -46,7 +46,7 @@ def publish(tmp, path) -> Path:
 @contextmanager
 def atomic_file(path, durable: bool = False) -> Iterator[Path]:
     """Yield a fresh temporary path beside `path`; write it, and on a normal exit it replaces
-    `path` in one rename (fsync'd first when `durable`). On an exception (KeyboardInterrupt
+    `path` in one rename (when `durable`: the file fsync'd before, its folder after). On an exception (KeyboardInterrupt
     included) the temporary file is removed and `path` is left as it was."""
     path = Path(path)
     folder = _existing_folder(path)
@@ -62,9 +62,24 @@ def atomic_file(path, durable: bool = False) -> Iterator[Path]:
             with open(tmp, "rb") as f:
                 os.fsync(f.fileno())
         publish(tmp, path)
+        if durable:  # the rename itself survives a power cut only once the folder is on disk
+            _fsync_folder(folder)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def _fsync_folder(folder: Path) -> None:
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return  # a platform without folder descriptors (Windows): the file itself was synced
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass  # some file systems refuse fsync on folders; nothing more can be done there
+    finally:
+        os.close(fd)
 
 
 def write_bytes(path, data: bytes, durable: bool = False) -> Path:
