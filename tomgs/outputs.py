@@ -46,8 +46,9 @@ def publish(tmp, path) -> Path:
 @contextmanager
 def atomic_file(path, durable: bool = False) -> Iterator[Path]:
     """Yield a fresh temporary path beside `path`; write it, and on a normal exit it replaces
-    `path` in one rename (when `durable`: the file fsync'd before, its folder after). On an exception (KeyboardInterrupt
-    included) the temporary file is removed and `path` is left as it was."""
+    `path` in one rename (when `durable`: the file fsync'd before, its folder after). On an
+    exception (KeyboardInterrupt included) the temporary file is removed and `path` is left as it
+    was."""
     path = Path(path)
     folder = _existing_folder(path)
     try:
