@@ -133,6 +133,7 @@ def planar_model(frames: np.ndarray, masks: np.ndarray, cameras: Cameras, config
     the plane where camera A sees its pixel and alive around its frame's time.
     frames uint8 [T,H,W,3], masks bool [T,H,W]."""
     from tomgs.model import PlanarGaussianModel
+    from tomgs.temporal import frames_to_clip_time
 
     g = torch.Generator().manual_seed(config.seed)
     n, height, width = masks.shape
@@ -152,9 +153,10 @@ def planar_model(frames: np.ndarray, masks: np.ndarray, cameras: Cameras, config
         colors.append(torch.from_numpy(frames[k][v.numpy(), u.numpy()]).double() / 255.0)
         times.append(torch.full((per_frame,), float(cameras.times[k]), dtype=torch.float64))
         sizes.append(torch.full((per_frame,), PLANE_DISTANCE / focal * math.sqrt(len(pixels) / per_frame)))
+    sigma = frames_to_clip_time(config.init_t_scale_frames, n)
     model = PlanarGaussianModel.from_points(torch.cat(points).float(), torch.cat(colors).float(),
-                                            torch.cat(times).float(), config.init_t_scale_frames / max(n - 1, 1),
-                                            max_sh_degree=config.sh_degree, sizes=torch.cat(sizes).float())
+                                            torch.cat(times).float(), sigma, max_sh_degree=config.sh_degree,
+                                            sizes=torch.cat(sizes).float())
     model.sh_degree = config.sh_degree
     return model
 
@@ -183,6 +185,7 @@ def render_layers(gaussians, cameras: Cameras, positions=None, layers=(), *, bac
     over time, a simulated shot). Frame k of a layer is rendered with its own camera k at its time
     k, colour premultiplied by alpha, then image = colour + (1 - alpha) * image. Without layers,
     exactly `render_sequence`. meta: the base frame's, with `n_alive` summed over the layers."""
+    from tomgs.model import RENDER_INPUTS
     from tomgs.render import rasterize, render_sequence
 
     check_layers(cameras, [cams for _, cams in layers])
@@ -190,7 +193,6 @@ def render_layers(gaussians, cameras: Cameras, positions=None, layers=(), *, bac
     if not layers:
         yield from base
         return
-    names = ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales")
     where = torch.device(device) if device is not None else None if callable(gaussians) else gaussians["means"].device
     views = {}  # (layer, device) -> (viewmats, Ks)
 
@@ -200,7 +202,8 @@ def render_layers(gaussians, cameras: Cameras, positions=None, layers=(), *, bac
         image = image.to(dev)
         alive = int(meta["n_alive"])
         for i, (g, cams) in enumerate(layers):
-            g = {name: value.detach().to(dev) for name, value in (g(k) if callable(g) else g).items() if name in names}
+            g = {name: value.detach().to(dev) for name, value in (g(k) if callable(g) else g).items()
+                 if name in RENDER_INPUTS}
             if (i, dev) not in views:
                 views[i, dev] = cams.viewmats(dev), cams.Ks(dev)
             viewmats, Ks = views[i, dev]

@@ -6,17 +6,61 @@ Stored (unconstrained, what the optimiser sees), per Gaussian:
 Activated (what the renderer takes): scales = exp(log_scales), opacities = sigmoid(logits),
 t_scales = exp(log_t_scales), SH truncated to the active degree. Optimising log(sigma) keeps
 the temporal window's gradient bounded (DESIGN.md: d o / d log sigma = o z^2 <= 2a/e).
+
+The activations and their inverses (`activated_*`, `stored_*`) live here and nowhere else: code
+that holds raw parameters (densification, edits writing geometry back) goes through them; the
+temporal opacity of a model is tomgs.temporal's formula on its activated values.
 """
 
 from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
+from tomgs import temporal
+from tomgs.constants import ALPHA_MIN
 from tomgs.sh import _C0, sh_degree_of
 
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest", "t_means", "log_t_scales")
+RENDER_INPUTS = ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales")  # `render_inputs` keys
+
+
+# -- the activations, both ways: stored (unconstrained) <-> what the renderer takes -------------------
+
+def activated_scales(log_scales: torch.Tensor) -> torch.Tensor:
+    return torch.exp(log_scales)
+
+
+def activated_opacities(opacity_logits: torch.Tensor) -> torch.Tensor:
+    return torch.sigmoid(opacity_logits)
+
+
+def activated_t_scales(log_t_scales: torch.Tensor) -> torch.Tensor:
+    return torch.exp(log_t_scales)
+
+
+def _log(x):
+    """log of a tensor, a numpy array or a number, in its own precision."""
+    if isinstance(x, torch.Tensor):
+        return torch.log(x)
+    return np.log(x) if isinstance(x, np.ndarray) else math.log(x)
+
+
+def stored_scales(scales):
+    """log_scales of `scales` (tensor, numpy array or number)."""
+    return _log(scales)
+
+
+def stored_opacities(opacities):
+    """opacity_logits of base opacities in (0, 1) (tensor, numpy array or number)."""
+    return _log(opacities / (1 - opacities))
+
+
+def stored_t_scales(t_scales):
+    """log_t_scales of temporal sigmas (tensor, numpy array or number)."""
+    return _log(t_scales)
 
 
 def rgb_to_sh_dc(rgb: torch.Tensor) -> torch.Tensor:
@@ -51,24 +95,29 @@ class GaussianModel(torch.nn.Module):
 
     @classmethod
     def from_points(cls, points: torch.Tensor, colors: torch.Tensor, t_means: torch.Tensor,
-                    t_scale: float, max_sh_degree: int = 3, opacity: float = 0.1,
+                    t_scale: float | torch.Tensor, max_sh_degree: int = 3, opacity: float = 0.1,
                     sizes: torch.Tensor | None = None) -> "GaussianModel":
         """Isotropic Gaussians at `points` [P,3] with RGB `colors` [P,3] in [0,1], temporal centres
-        `t_means` [P] and a common temporal sigma; size `sizes` [P], or by default the distance to
-        the 3 nearest neighbours (as 3DGS; quadratic in P, so pass sizes for large clouds)."""
+        `t_means` [P] and temporal sigmas `t_scale` (one for all, or [P]); size `sizes` [P], or by
+        default the distance to the 3 nearest neighbours (as 3DGS; quadratic in P, so pass sizes for
+        large clouds)."""
         points = points.float()
         n = points.shape[0]
         dist = (nearest_neighbour_distance(points, k=3) if sizes is None else sizes.float()).clamp_min(1e-7)
         rest = (max_sh_degree + 1) ** 2 - 1
+        if isinstance(t_scale, torch.Tensor):
+            log_t_scales = stored_t_scales(t_scale.float()).to(points.device).expand(n).contiguous()
+        else:
+            log_t_scales = torch.full((n,), stored_t_scales(t_scale), device=points.device)
         return cls(
             means=points,
             quats=torch.tensor([1.0, 0.0, 0.0, 0.0], device=points.device).repeat(n, 1),
-            log_scales=torch.log(dist)[:, None].repeat(1, 3),
-            opacity_logits=torch.full((n,), math.log(opacity / (1 - opacity)), device=points.device),
+            log_scales=stored_scales(dist)[:, None].repeat(1, 3),
+            opacity_logits=torch.full((n,), stored_opacities(opacity), device=points.device),
             sh_dc=rgb_to_sh_dc(colors.float().clamp(0, 1)),
             sh_rest=torch.zeros(n, rest, 3, device=points.device),
             t_means=t_means.float(),
-            log_t_scales=torch.full((n,), math.log(t_scale), device=points.device),
+            log_t_scales=log_t_scales,
         )
 
     # -- activations ---------------------------------------------------------------------------
@@ -78,15 +127,29 @@ class GaussianModel(torch.nn.Module):
 
     @property
     def scales(self) -> torch.Tensor:
-        return torch.exp(self.log_scales)
+        return activated_scales(self.log_scales)
 
     @property
     def opacities(self) -> torch.Tensor:
-        return torch.sigmoid(self.opacity_logits)
+        return activated_opacities(self.opacity_logits)
 
     @property
     def t_scales(self) -> torch.Tensor:
-        return torch.exp(self.log_t_scales)
+        return activated_t_scales(self.log_t_scales)
+
+    # -- temporal opacity (tomgs.temporal, float32 as the renderer) ---------------------------------
+
+    def opacity_at(self, t) -> torch.Tensor:
+        """o_i(t) [N] at clip time t."""
+        return temporal.opacity_at(self.opacities, self.t_means, self.t_scales, t)
+
+    def alive_at(self, t, alpha_min: float = ALPHA_MIN) -> torch.Tensor:
+        """bool [N]: o_i(t) >= alpha_min, the Gaussians the renderer draws at t."""
+        return temporal.alive_at(self.opacities, self.t_means, self.t_scales, t, alpha_min)
+
+    def peak_opacity(self, t0: float, t1: float) -> torch.Tensor:
+        """[N]: the largest o_i(t) for t in [t0, t1]."""
+        return temporal.peak_opacity(self.opacities, self.t_means, self.t_scales, t0, t1)
 
     def sh(self, degree: int | None = None) -> torch.Tensor:
         """SH coefficients [N,(d+1)^2,3] of the active degree (or `degree`)."""
@@ -98,7 +161,7 @@ class GaussianModel(torch.nn.Module):
     def render_inputs(self) -> dict[str, torch.Tensor]:
         """Keyword arguments of `tomgs.rasterize` for these Gaussians (camera and time excluded)."""
         return dict(means=self.means, quats=self.quats, scales=self.scales, opacities=self.opacities,
-                    colors=self.sh(), t_means=self.t_means, t_scales=self.t_scales)
+                    colors=self.sh(), t_means=self.t_means, t_scales=self.t_scales)  # RENDER_INPUTS
 
     def parameters_by_name(self) -> dict[str, torch.nn.Parameter]:
         return {name: getattr(self, name) for name in PARAM_NAMES}
@@ -133,7 +196,7 @@ def on_plane(means: torch.Tensor, quats: torch.Tensor, log_scales: torch.Tensor)
     components get zero gradient."""
     keep = means.new_tensor([1.0, 1.0, 0.0])
     return (means * keep, quats * quats.new_tensor([1.0, 0.0, 0.0, 1.0]),
-            log_scales * keep + log_scales.new_tensor([0.0, 0.0, math.log(PLANE_NORMAL_SCALE)]))
+            log_scales * keep + log_scales.new_tensor([0.0, 0.0, stored_scales(PLANE_NORMAL_SCALE)]))
 
 
 class PlanarGaussianModel(GaussianModel):
@@ -150,7 +213,7 @@ class PlanarGaussianModel(GaussianModel):
 
     @property
     def scales(self) -> torch.Tensor:
-        return torch.exp(on_plane(self.means, self.quats, self.log_scales)[2])
+        return activated_scales(on_plane(self.means, self.quats, self.log_scales)[2])
 
     def render_inputs(self) -> dict[str, torch.Tensor]:
         means, quats, _ = on_plane(self.means, self.quats, self.log_scales)

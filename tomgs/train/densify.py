@@ -6,13 +6,11 @@ moments aligned with the rows it keeps, copies and adds (new rows start with zer
 
 from __future__ import annotations
 
-import math
-
 import torch
 
 from tomgs.constants import ALPHA_MIN
-from tomgs.model import PARAM_NAMES, GaussianModel
-from tomgs.reference import quat_to_rotmat
+from tomgs.geometry import quat_to_rotmat
+from tomgs.model import PARAM_NAMES, GaussianModel, stored_opacities, stored_scales
 
 
 class Densifier:
@@ -52,7 +50,8 @@ class Densifier:
         n = len(model)
         grads = self.grad_sum / self.seen.clamp_min(1.0)
         hot = grads >= c.grad_threshold
-        max_scale = model.scales.detach().amax(-1)
+        scales = model.scales.detach()
+        max_scale = scales.amax(-1)
         room = max(c.max_gaussians - n, 0)
         clone = hot & (max_scale <= c.percent_dense * self.extent)
         split = hot & ~clone
@@ -62,7 +61,7 @@ class Densifier:
         params = {k: v.detach() for k, v in model.parameters_by_name().items()}
         added = {k: [params[k][clone]] for k in PARAM_NAMES}
         if split.any():
-            samples = self._split(params, split)
+            samples = self._split(params, scales, split)
             for k in PARAM_NAMES:
                 added[k].append(samples[k])
         _apply(model, optimizer, ~split, {k: torch.cat(v) for k, v in added.items()})  # a split replaces its source
@@ -72,36 +71,32 @@ class Densifier:
 
     def prune(self, model: GaussianModel, optimizer) -> int:
         """Remove Gaussians that are transparent, or dead over the whole clip [0, 1]."""
-        params = {k: v.detach() for k, v in model.parameters_by_name().items()}
-        remove = self._prunable(model, params)
+        remove = self._prunable(model)
         if remove.any():
             _apply(model, optimizer, ~remove, None)
         return int(remove.sum())
 
-    def _prunable(self, model: GaussianModel, params) -> torch.Tensor:
-        opacity = torch.sigmoid(params["opacity_logits"])
-        remove = opacity < self.config.prune_opacity
+    @torch.no_grad()
+    def _prunable(self, model: GaussianModel) -> torch.Tensor:
+        remove = model.opacities < self.config.prune_opacity
         if self.config.temporal:
-            # peak opacity inside the clip: the window's centre clamped into [0, 1]
-            t = params["t_means"]
-            gap = (t - t.clamp(0.0, 1.0)).abs()
-            peak = opacity * torch.exp(-0.5 * (gap / torch.exp(params["log_t_scales"])) ** 2)
-            remove |= peak < ALPHA_MIN
+            remove |= model.peak_opacity(0.0, 1.0) < ALPHA_MIN  # its largest opacity inside the clip
         return remove
 
-    def _split(self, params, mask: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Two samples per selected Gaussian, drawn from it, each with scales / 1.6."""
+    def _split(self, params, scales: torch.Tensor, mask: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Two samples per selected Gaussian, drawn from it (`scales` [N,3]: the model's), each with
+        scales / 1.6."""
         rot = quat_to_rotmat(params["quats"][mask]).repeat(2, 1, 1)
-        scales = torch.exp(params["log_scales"][mask]).repeat(2, 1)
+        scales = scales[mask].repeat(2, 1)
         noise = torch.randn(scales.shape, generator=self.generator, device=scales.device)
         out = {k: params[k][mask].repeat(2, *([1] * (params[k].dim() - 1))) for k in PARAM_NAMES}
         out["means"] = out["means"] + (rot @ (scales * noise)[..., None])[..., 0]
-        out["log_scales"] = torch.log(scales / 1.6)
+        out["log_scales"] = stored_scales(scales / 1.6)
         return out
 
     def reset_opacity(self, model: GaussianModel, optimizer) -> None:
         """The 3DGS opacity reset (off in TOM-GS; kept for the ablation)."""
-        logit_001 = math.log(0.01 / 0.99)
+        logit_001 = stored_opacities(0.01)
         new = torch.minimum(model.opacity_logits.detach(), torch.full_like(model.opacity_logits, logit_001))
         keep = torch.ones(len(model), dtype=torch.bool, device=new.device)
         tensors = {k: v.detach() for k, v in model.parameters_by_name().items()}

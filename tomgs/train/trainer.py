@@ -36,6 +36,7 @@ from tomgs.cameras import Cameras
 from tomgs.metrics import psnr, ssim, ssim_map
 from tomgs.model import GaussianModel, nearest_neighbour_distance
 from tomgs.render import rasterize
+from tomgs.temporal import frames_to_clip_time
 from tomgs.errors import InputError
 from tomgs.outputs import remove_stale_temporaries, write_text
 from tomgs.train.checkpoint import (FORMAT, LOG_FIELDS, START_OVER, VERSION, FitInterrupted, StopSignals,
@@ -52,6 +53,7 @@ CSV_FIELDS = LOG_FIELDS
 # A save may cost at most this fraction of the training time: with slow saves (millions of
 # Gaussians, a slow disk) checkpoints are spaced to 1 / CHECKPOINT_OVERHEAD times a save's duration.
 CHECKPOINT_OVERHEAD = 0.05
+STATIC_T_SCALE = 1e3  # temporal sigma of every Gaussian of a static fit (clip time: alive throughout)
 
 
 @dataclass
@@ -136,7 +138,7 @@ class Trainer:
             pix = self.frames[k, v.long().clamp(max=self.height - 1), u.long().clamp(max=self.width - 1)]
             cols.append(pix.float().cpu().numpy() / 255.0)
             ts.append(np.full(len(u), self.times[k]))
-        frame_sigma = c.init_t_scale_frames / max(self.num_frames - 1, 1)
+        frame_sigma = frames_to_clip_time(c.init_t_scale_frames, self.num_frames)
         wide = int(round(self.wide_fraction * per_frame))  # the first `wide` of each frame's points (random)
         tracked_means, tracked_sigma = self._tracked_windows(len(points), frame_sigma)
         t_sigma = np.concatenate([tracked_sigma, *(np.where(np.arange(len(t)) < wide, 1.0, frame_sigma) for t in ts)])
@@ -149,14 +151,11 @@ class Trainer:
         all_points = np.concatenate([points, *xs]) if len(points) else np.concatenate(xs)
         all_colors = np.concatenate([colors, *cols]) if len(points) else np.concatenate(cols)
         t_means = np.concatenate([tracked_means, *(np.where(np.arange(len(t)) < wide, 0.5, t) for t in ts)])
+        t_scales = torch.as_tensor(t_sigma, dtype=torch.float32) if c.temporal else STATIC_T_SCALE
         model = GaussianModel.from_points(torch.as_tensor(all_points, dtype=torch.float32),
                                           torch.as_tensor(all_colors, dtype=torch.float32),
-                                          torch.as_tensor(t_means, dtype=torch.float32), 1.0, max_sh_degree=c.sh_degree,
-                                          sizes=torch.as_tensor(sizes, dtype=torch.float32))
-        with torch.no_grad():
-            model.log_t_scales.copy_(torch.log(torch.as_tensor(t_sigma, dtype=torch.float32)))
-            if not c.temporal:
-                model.log_t_scales.fill_(math.log(1e3))
+                                          torch.as_tensor(t_means, dtype=torch.float32), t_scales,
+                                          max_sh_degree=c.sh_degree, sizes=torch.as_tensor(sizes, dtype=torch.float32))
         if c.sh_degree > 0:
             model.sh_degree = c.sh_degree
         else:
