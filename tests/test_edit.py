@@ -12,9 +12,10 @@ from plyfile import PlyData
 from scenes import object_scene
 from tomgs.edit.cage import build_cage, make_tets
 from tomgs.edit.selection import parse_selector, select
-from tomgs.edit.tets import (THICKEN, covariances, deform, gaussians_to_tets, signed_volumes, tets_to_gaussians)
+from tomgs.edit.tets import THICKEN, deform, gaussians_to_tets, tets_to_gaussians
 from tomgs.edit.transforms import (Keyframes, affine, edit_model, keyframed_clouds, load_keyframes,
                                    transform_gaussians)
+from tomgs.geometry import covariances, signed_volumes
 from tomgs.io import InputError
 from tomgs.io.scene import Scene
 from tomgs.io.tets import FACES, load_sequence, load_tets, save_sequence, save_tets, to_blender

@@ -383,7 +383,8 @@ def check_scene(scene, tmp: Path):
 
 
 def check_tets(mesh):
-    from tomgs.io.tets import KINDS, volumes
+    from tomgs.geometry import signed_volumes as volumes
+    from tomgs.io.tets import KINDS
 
     assert mesh.kind in KINDS and mesh.vertices.ndim == 2 and mesh.vertices.shape[1] == 3
     assert np.isfinite(mesh.vertices).all() and mesh.tets.min() >= 0 and mesh.tets.max() < len(mesh.vertices)

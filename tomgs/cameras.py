@@ -365,16 +365,13 @@ def _parse_colmap(cams_txt: Path, imgs_txt: Path):
 
 
 def _quat_to_R(q: np.ndarray) -> np.ndarray:
-    """Unit quaternion (w, x, y, z) -> rotation matrix [3,3]."""
+    """COLMAP's quaternion (w, x, y, z) of any finite, non-zero norm -> rotation matrix [3,3]."""
+    from tomgs.geometry import quat_to_rotmat
+
     norm = np.linalg.norm(q)
     if not (np.isfinite(norm) and norm > 0):
         raise ValueError(f"quaternion {q.tolist()} is not a rotation")
-    w, x, y, z = q / norm
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return quat_to_rotmat(q / norm)  # unit first: a norm below QUAT_EPS is still a rotation here
 
 
 def _load_array(a, what: str) -> np.ndarray:

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from tomgs.errors import InputError
+from tomgs.temporal import alive_at, alive_between
 
 SYNTAX = "box:x0,y0,z0,x1,y1,z1, sphere:x,y,z,r, time:t0,t1, index:FILE.txt or mask:FOLDER"
 _NUMBERS = {"box": 6, "sphere": 4, "time": 2}
@@ -83,16 +84,14 @@ def _pick(s: Selector, model, cameras, means: np.ndarray) -> np.ndarray:
     return mask_vote(model, cameras, read_masks(Path(s.path), cameras))
 
 
-def _alive_between(model, t0: float, t1: float) -> np.ndarray:
-    """bool [N]: o_i(t) >= 1/255 for some t in [t0, t1] (alive within r = sigma sqrt(2 ln(255 a)) of m)."""
-    from tomgs.constants import ALPHA_MIN
+def _temporal(model) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """float64 (opacities, t_means, t_scales) [N] of `model`."""
+    return tuple(v.detach().cpu().double().numpy() for v in (model.opacities, model.t_means, model.t_scales))
 
-    a = model.opacities.detach().cpu().double().numpy()
-    m = model.t_means.detach().cpu().double().numpy()
-    sigma = model.t_scales.detach().cpu().double().numpy()
-    ratio = a / ALPHA_MIN
-    r = sigma * np.sqrt(2.0 * np.log(np.maximum(ratio, 1.0)))
-    return (ratio >= 1.0) & (m + r >= t0) & (m - r <= t1)
+
+def _alive_between(model, t0: float, t1: float) -> np.ndarray:
+    """bool [N]: o_i(t) >= 1/255 for some t in [t0, t1] (tomgs.temporal, float64)."""
+    return alive_between(*_temporal(model), t0, t1)
 
 
 def _index_file(path: Path, n: int) -> np.ndarray:
@@ -143,12 +142,8 @@ def read_masks(folder: Path, cameras) -> np.ndarray:
 def mask_vote(model, cameras, masks: np.ndarray) -> np.ndarray:
     """bool [N]: the Gaussian's mean falls inside `masks` [T,H,W] in more than half of the frames where
     it is alive (o_i(t_k) >= 1/255) and in front of the camera inside the image."""
-    from tomgs.constants import ALPHA_MIN
-
     means = model.means.detach().cpu().double().numpy()
-    a = model.opacities.detach().cpu().double().numpy()
-    m = model.t_means.detach().cpu().double().numpy()
-    sigma = model.t_scales.detach().cpu().double().numpy()
+    window = _temporal(model)
     inside = np.zeros(len(means), dtype=np.int64)
     seen = np.zeros(len(means), dtype=np.int64)
     for k, w2c in enumerate(cameras.viewmats()):
@@ -156,7 +151,7 @@ def mask_vote(model, cameras, masks: np.ndarray) -> np.ndarray:
         z = np.maximum(cam[:, 2], 1e-12)
         u = np.floor(cameras.K[0, 0] * cam[:, 0] / z + cameras.K[0, 2]).astype(np.int64)  # pixel u covers [u, u+1)
         v = np.floor(cameras.K[1, 1] * cam[:, 1] / z + cameras.K[1, 2]).astype(np.int64)
-        alive = a * np.exp(-0.5 * ((cameras.times[k] - m) / sigma) ** 2) >= ALPHA_MIN
+        alive = alive_at(*window, cameras.times[k])
         ok = alive & (cam[:, 2] > 0.01) & (u >= 0) & (u < cameras.width) & (v >= 0) & (v < cameras.height)
         seen += ok
         inside[ok] += masks[k, v[ok], u[ok]]

@@ -12,12 +12,15 @@ right-handed R, so a positively oriented tet lists them as `POSITIVE_ORDER` (0, 
 
 Flat Gaussians (one scale ~0) give a degenerate tet, which no solver can move. `gaussians_to_tets`
 can thicken the thin axis to `thicken` times the middle scale; `deform` then still maps the
-Gaussian's own (flat) covariance, so the result stays exact. Everything is float64 numpy.
+Gaussian's own (flat) covariance, so the result stays exact. Everything is float64 numpy; rotations,
+covariances and edge matrices come from tomgs.geometry.
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+from tomgs.geometry import covariances, edge_matrices, quat_to_rotmat, rotmat_to_quat
 
 TET_SIZE = 1.0  # c: the tet's vertices sit at one standard deviation along each regular direction
 DIRECTIONS = np.array([[1.0, 1.0, 1.0], [1.0, -1.0, -1.0], [-1.0, 1.0, -1.0], [-1.0, -1.0, 1.0]])  # v_k [4,3]
@@ -30,47 +33,6 @@ def _f64(x) -> np.ndarray:
     if hasattr(x, "detach"):  # torch tensor
         x = x.detach().cpu().numpy()
     return np.asarray(x, dtype=np.float64)
-
-
-def quat_to_rotmat(quats) -> np.ndarray:
-    """[N,4] w x y z (any norm; zero -> identity) -> rotation matrices [N,3,3]."""
-    q = _f64(quats)
-    norm = np.linalg.norm(q, axis=-1, keepdims=True)
-    q = np.where(norm > 1e-12, q / np.maximum(norm, 1e-12), np.array([1.0, 0.0, 0.0, 0.0]))
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    return np.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], axis=-1).reshape(q.shape[:-1] + (3, 3))
-
-
-def rotmat_to_quat(R) -> np.ndarray:
-    """Rotation matrices [N,3,3] (det +1) -> unit quaternions [N,4] w x y z with w >= 0."""
-    R = _f64(R)
-    # Shepperd: build from the largest of the four squared components, so no division by ~0
-    diag = np.stack([R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2], R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]], -1)
-    t = np.stack([1 + diag[..., 0], 1 + 2 * diag[..., 1] - diag[..., 0], 1 + 2 * diag[..., 2] - diag[..., 0],
-                  1 + 2 * diag[..., 3] - diag[..., 0]], -1)  # 4 w^2, 4 x^2, 4 y^2, 4 z^2
-    best = np.argmax(t, axis=-1)
-    s = np.sqrt(np.maximum(np.take_along_axis(t, best[..., None], -1)[..., 0], 1e-300))
-    a, b, c = R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]
-    d, e, f = R[..., 0, 1] + R[..., 1, 0], R[..., 0, 2] + R[..., 2, 0], R[..., 1, 2] + R[..., 2, 1]
-    candidates = np.stack([
-        np.stack([s, a / s, b / s, c / s], -1),
-        np.stack([a / s, s, d / s, e / s], -1),
-        np.stack([b / s, d / s, s, f / s], -1),
-        np.stack([c / s, e / s, f / s, s], -1),
-    ], -2) / 2
-    q = np.take_along_axis(candidates, best[..., None, None].repeat(4, -1), -2)[..., 0, :]
-    q /= np.linalg.norm(q, axis=-1, keepdims=True)
-    return np.where(q[..., :1] < 0, -q, q)
-
-
-def covariances(quats, scales) -> np.ndarray:
-    """Sigma = R S^2 R^T [N,3,3] of quaternions [N,4] and scales [N,3]."""
-    M = quat_to_rotmat(quats) * _f64(scales)[..., None, :]
-    return M @ np.swapaxes(M, -1, -2)
 
 
 def covariance_to_gaussian(sigma) -> tuple[np.ndarray, np.ndarray]:
@@ -94,7 +56,7 @@ def gaussians_to_tets(means, quats, scales, thicken: float = 0.0) -> np.ndarray:
         thin = np.argmin(scales, axis=-1)
         rows = np.arange(len(scales))
         scales[rows, thin] = np.maximum(scales[rows, thin], thicken * order[:, 1])
-    M = TET_SIZE * quat_to_rotmat(quats) * scales[..., None, :]  # [N,3,3] = c R S
+    M = TET_SIZE * quat_to_rotmat(_f64(quats)) * scales[..., None, :]  # [N,3,3] = c R S
     return _f64(means)[:, None, :] + DIRECTIONS @ np.swapaxes(M, -1, -2)
 
 
@@ -109,17 +71,6 @@ def tets_to_gaussians(vertices) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return mu, quats, scales
 
 
-def edge_matrices(vertices) -> np.ndarray:
-    """D [N,3,3] with columns x_1 - x_0, x_2 - x_0, x_3 - x_0 of tets [N,4,3]."""
-    x = _f64(vertices)
-    return np.swapaxes(x[:, 1:] - x[:, :1], -1, -2)
-
-
-def signed_volumes(vertices) -> np.ndarray:
-    """det(x_1 - x_0, x_2 - x_0, x_3 - x_0) / 6 [N] of tets [N,4,3] (positive = correctly oriented)."""
-    return np.linalg.det(edge_matrices(vertices)) / 6.0
-
-
 def deform(rest_vertices, vertices, means, quats, scales) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Gaussians carried by their tets from `rest_vertices` [N,4,3] to `vertices` [N,4,3]:
     F = D_s D_m^-1, mean x_0' + F (mu - x_0), covariance F Sigma F^T (exact for any affine motion,
@@ -128,6 +79,6 @@ def deform(rest_vertices, vertices, means, quats, scales) -> tuple[np.ndarray, n
     F = np.swapaxes(np.linalg.solve(np.swapaxes(edge_matrices(rest), -1, -2),
                                     np.swapaxes(edge_matrices(now), -1, -2)), -1, -2)  # D_s D_m^-1
     new_means = now[:, 0] + np.einsum("nij,nj->ni", F, _f64(means) - rest[:, 0])
-    sigma = F @ covariances(quats, scales) @ np.swapaxes(F, -1, -2)
+    sigma = F @ covariances(_f64(quats), _f64(scales)) @ np.swapaxes(F, -1, -2)
     new_quats, new_scales = covariance_to_gaussian(sigma)
     return new_means, new_quats, new_scales

@@ -21,6 +21,7 @@ import torch
 
 from tomgs.edit.tets import THICKEN, deform, gaussians_to_tets
 from tomgs.errors import InputError
+from tomgs.geometry import quat_to_rotmat, rotmat_to_quat
 
 # ---- affine maps -------------------------------------------------------------------------------
 
@@ -88,10 +89,12 @@ def _rebuilt(model, tensors):
 
 def _set_geometry(tensors: dict, rows, means, quats, scales) -> None:
     """Write float64 geometry into the stored tensors (log scales) at `rows`, in place."""
+    from tomgs.model import stored_scales
+
     like = tensors["means"]
     tensors["means"][rows] = torch.as_tensor(means, dtype=like.dtype, device=like.device)
     tensors["quats"][rows] = torch.as_tensor(quats, dtype=like.dtype, device=like.device)
-    tensors["log_scales"][rows] = torch.as_tensor(np.log(scales), dtype=like.dtype, device=like.device)
+    tensors["log_scales"][rows] = torch.as_tensor(stored_scales(scales), dtype=like.dtype, device=like.device)
 
 
 def edit_model(model, indices, matrix=None, duplicate=None, remove: bool = False):
@@ -150,8 +153,6 @@ class Keyframes:
 
     def matrix(self, t: float, centre) -> np.ndarray | None:
         """[4,4] at clip time t about `centre` (self.centre wins), or None outside the window."""
-        from tomgs.edit.tets import quat_to_rotmat
-
         times = self.times
         if not self.hold and not times[0] <= t <= times[-1]:
             return None
@@ -170,8 +171,6 @@ def load_keyframes(path, cameras) -> Keyframes:
     "rotate": [rx,ry,rz] (degrees), "scale": s or [sx,sy,sz]}, ...], "hold": false, "centre": [x,y,z]}.
     A key given by "frame" (a scene frame number) sits at that frame's time. Missing fields are the
     identity. InputError when malformed."""
-    from tomgs.edit.tets import rotmat_to_quat
-
     path = Path(path)
     fix = ('write {"keyframes": [{"t": 0.0, "translate": [0, 0, 0]}, {"t": 1.0, "translate": [0.5, 0, 0], '
            '"rotate": [0, 90, 0], "scale": 1.0}]}')

@@ -54,6 +54,7 @@ import torch
 from tomgs.cameras import Cameras, short_repr
 from tomgs.errors import InputError
 from tomgs.outputs import atomic_file
+from tomgs.temporal import alive_at, clip_time_to_frames, peak_opacity
 
 if TYPE_CHECKING:  # for the annotation only; load_scene imports the model when it builds one
     from tomgs.model import GaussianModel
@@ -364,8 +365,7 @@ def alive_per_frame(model, cameras: Cameras, alpha_min: float | None = None) -> 
         counts = np.zeros(len(cameras), dtype=np.int64)
         ever = torch.zeros(len(model), dtype=torch.bool, device=a.device)
         for k, t in enumerate(cameras.times.tolist()):
-            z = (torch.tensor(t, dtype=torch.float32, device=a.device) - m) / s
-            alive = a * torch.exp(-0.5 * z * z) >= alpha_min
+            alive = alive_at(a, m, s, torch.tensor(t, dtype=torch.float32, device=a.device), alpha_min)
             counts[k] = int(alive.sum())
             ever |= alive
     return counts, ever.cpu().numpy()
@@ -373,8 +373,7 @@ def alive_per_frame(model, cameras: Cameras, alpha_min: float | None = None) -> 
 
 def temporal_scales_in_frames(model, cameras: Cameras) -> np.ndarray:
     """float64 [N]: sigma in frames, sigma * (T - 1) (clip units for a single-frame scene)."""
-    sigma = model.t_scales.detach().cpu().double().numpy()
-    return sigma * max(len(cameras) - 1, 1)
+    return clip_time_to_frames(model.t_scales.detach().cpu().double().numpy(), len(cameras))
 
 
 def log_histogram(values: np.ndarray, per_octave: int = 1, max_bins: int = 24) -> tuple[np.ndarray, np.ndarray]:
@@ -403,10 +402,8 @@ def summarize(scene: Scene, path=None) -> dict:
     sigma = temporal_scales_in_frames(model, cams)
     edges, hist = log_histogram(sigma)
     opac = model.opacities.detach().cpu().double().numpy()
-    a, m, s = opac, model.t_means.detach().cpu().double().numpy(), model.t_scales.detach().cpu().double().numpy()
-    # peak opacity inside the clip: at the clip time nearest the temporal centre
-    nearest = np.clip(m, float(cams.times.min()), float(cams.times.max()))
-    peak = a * np.exp(-0.5 * ((nearest - m) / s) ** 2)
+    m, s = model.t_means.detach().cpu().double().numpy(), model.t_scales.detach().cpu().double().numpy()
+    peak = peak_opacity(opac, m, s, float(cams.times.min()), float(cams.times.max()))  # inside the clip
 
     def stats(x):
         if len(x) == 0:

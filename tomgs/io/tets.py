@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from tomgs.errors import InputError
+from tomgs.geometry import signed_volumes
 from tomgs.outputs import atomic_file
 
 W = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # world (OpenCV) -> Blender axes
@@ -75,13 +76,6 @@ def gaussian_tet_indices(count: int) -> np.ndarray:
     from tomgs.edit.tets import POSITIVE_ORDER
 
     return 4 * np.arange(count, dtype=np.int64)[:, None] + np.array(POSITIVE_ORDER)
-
-
-def volumes(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    """Signed volumes [T] of tets [T,4] over vertices [V,3] (or [F,V,3] -> [F,T])."""
-    x = vertices[..., tets, :]  # [..., T, 4, 3]
-    d = x[..., 1:, :] - x[..., :1, :]
-    return np.linalg.det(d) / 6.0
 
 
 # ---- tets files --------------------------------------------------------------------------------
@@ -240,7 +234,7 @@ def load_tets(path) -> Tets:
         raise InputError(f"{path}: tets must be rows of 4 vertex indices in 0..{V - 1}: {fix}")
     if not np.isfinite(vertices).all():
         raise InputError(f"{path}: non-finite vertex coordinates: {fix}")
-    bad = np.flatnonzero(volumes(vertices, tets) <= 0)
+    bad = np.flatnonzero(signed_volumes(vertices, tets) <= 0)
     if len(bad):
         raise InputError(f"{path}: tet {bad[0]} (and {len(bad) - 1} more) has non-positive volume: {fix}")
     out = Tets(kind, vertices, tets, gaussians)
@@ -409,7 +403,7 @@ def load_sequence(path, like: Tets, max_frames: int | None = None) -> tuple[np.n
         if not np.isfinite(row).all():
             raise InputError(f"{name}: NaN or infinite vertex coordinates; re-export the frame")
     vertices = from_blender(rows if isinstance(rows, np.ndarray) else np.stack(rows))
-    inverted = volumes(vertices, like.tets) <= 0  # [F,T]
+    inverted = signed_volumes(vertices, like.tets) <= 0  # [F,T]
     if inverted.any():
         f, t = np.argwhere(inverted)[0]
         raise InputError(f"{names[f]}: tet {t} is inverted (non-positive volume) with {int(inverted[f].sum())} "
