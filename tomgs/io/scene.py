@@ -52,6 +52,7 @@ import numpy as np
 import torch
 
 from tomgs.cameras import Cameras, short_repr
+from tomgs.constants import ALPHA_MIN
 from tomgs.errors import InputError
 from tomgs.outputs import atomic_file
 from tomgs.temporal import alive_at, clip_time_to_frames, peak_opacity
@@ -357,8 +358,6 @@ def render_defaults(info: dict) -> tuple[tuple[float, float, float], float]:
 def alive_per_frame(model, cameras: Cameras, alpha_min: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(count [T] of Gaussians whose temporal opacity at frame k's time is >= 1/255 -- those the
     renderer does not cull --, bool [N]: alive in at least one frame). Float32, as the renderer."""
-    from tomgs.constants import ALPHA_MIN
-
     alpha_min = ALPHA_MIN if alpha_min is None else alpha_min
     with torch.no_grad():
         a, m, s = model.opacities.detach(), model.t_means.detach(), model.t_scales.detach()
@@ -429,8 +428,8 @@ def summarize(scene: Scene, path=None) -> dict:
         "never_alive": int(n - ever.sum()),
         "temporal_sigma_frames": {**stats(sigma), "unit": "frames" if T > 1 else "clip",
                                   "edges": edges.tolist(), "counts": hist.tolist()},
-        "opacity": {**stats(opac), "below_1_255": int((opac < 1 / 255).sum())},
-        "peak_opacity_in_clip": {**stats(peak), "below_1_255": int((peak < 1 / 255).sum())},
+        "opacity": {**stats(opac), "below_1_255": int((opac < ALPHA_MIN).sum())},
+        "peak_opacity_in_clip": {**stats(peak), "below_1_255": int((peak < ALPHA_MIN).sum())},
         "info": scene.info,
     }
     return out
