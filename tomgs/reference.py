@@ -95,6 +95,86 @@ def _radii_and_valid(proj: dict[str, torch.Tensor], width: int, height: int
     return radii.clamp(max=2**30).long(), valid, extent
 
 
+def _visible(p: RasterInputs):
+    """(every Gaussian's projection, no gradients; radii [N,2] int64; visible [N] bool; extent [N,2])."""
+    with torch.no_grad():
+        full = _project(p)
+        radii, valid, extent = _radii_and_valid(full, p.width, p.height)
+    return full, radii, valid, extent
+
+
+def _subset(p: RasterInputs, idx: torch.Tensor) -> RasterInputs:
+    return dataclasses.replace(p, **{k: getattr(p, k)[idx] for k in _PER_GAUSSIAN})
+
+
+def tile_rects(means2d: torch.Tensor, radii: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """[N,4] int64 (x0, y0, x1, y1): the tiles [x0, x1) x [y0, y1) that the box means2d +- radii [N,2]
+    overlaps, clamped to the image's tiles; computed in means2d's dtype (float32 for the kernel's)."""
+    tiles_x, tiles_y = -(-int(width) // TILE_SIZE), -(-int(height) // TILE_SIZE)
+    c, r = means2d.detach(), radii.to(means2d.dtype)
+    lo = torch.floor((c - r) / TILE_SIZE)
+    hi = torch.floor((c + r) / TILE_SIZE) + 1.0
+    limit = torch.tensor([tiles_x, tiles_y], dtype=c.dtype, device=c.device)
+    lo, hi = torch.minimum(lo.clamp_min(0.0), limit), torch.minimum(hi.clamp_min(0.0), limit)
+    return torch.cat([lo, hi], -1).long()
+
+
+def tiles_touched_reference(means2d: torch.Tensor, radii: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """[N] int64: tiles of each Gaussian's box (`tile_rects`), 0 where radii are (0, 0) (culled)."""
+    rect = tile_rects(means2d, radii, width, height)
+    count = (rect[:, 2] - rect[:, 0]) * (rect[:, 3] - rect[:, 1])
+    return torch.where((radii != 0).any(-1), count, torch.zeros_like(count))
+
+
+def project_reference(
+    means, quats, scales, opacities, t_means, t_scales, viewmat, K, width, height, t, *,
+    near=0.01, far=1e10, dtype=torch.float64,
+) -> dict[str, torch.Tensor]:
+    """Stage 1 alone, per Gaussian, with `tomgs.render.project_stage`'s outputs and conventions, in
+    `dtype`: means2d [N,2], conics [N,3], depths [N], radii [N,2] int64, opacities_t [N], tiles_touched
+    [N] int64, plus extent [N,2] (the radii before rounding up: a test can tell a tie). A culled
+    Gaussian has zero means2d, conics, radii and tiles touched and gets zero gradient; depths and
+    opacities_t are given for all. means2d, conics and opacities_t are differentiable (autograd)."""
+    colors = torch.zeros_like(means) if isinstance(means, torch.Tensor) else means  # projection reads no colour
+    p = prepare_inputs(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width, height, t,
+                       None, near, far, dtype)
+    full, radii, valid, extent = _visible(p)
+    idx = torch.nonzero(valid).squeeze(-1)
+    proj = _project(_subset(p, idx))  # differentiate only the visible: culled rows get exactly zero, never NaN
+    n = p.means.shape[0]
+    means2d = torch.zeros(n, 2, dtype=dtype, device=p.means.device).index_copy(0, idx, proj["means2d"])
+    conics = torch.zeros(n, 3, dtype=dtype, device=p.means.device).index_copy(0, idx, proj["conics"])
+    opacities_t = full["opac_t"].index_copy(0, idx, proj["opac_t"])
+    return dict(means2d=means2d, conics=conics, depths=full["depth"], radii=radii, opacities_t=opacities_t,
+                tiles_touched=tiles_touched_reference(means2d, radii, p.width, p.height), extent=extent)
+
+
+def bin_reference(means2d: torch.Tensor, radii: torch.Tensor, depths: torch.Tensor, width: int, height: int
+                  ) -> dict[str, torch.Tensor]:
+    """Stage 2 alone, with `tomgs.render.bin_stage`'s outputs: every (tile, Gaussian) pair of the boxes
+    means2d +- radii [N,2] (`tile_rects`; radii (0, 0) = culled) as keys [M] int64 `tile << 32 | bits of
+    float32 depth` (depths [N] > 0 where visible), sorted by tile, then depth, then Gaussian; ids [M]
+    int64 the Gaussian of each; tiles [M] int64; ranges [tiles, 2] int64 each tile's [start, end)
+    in them, (0, 0) for a tile nobody touches."""
+    device = means2d.device
+    tiles_x, tiles_y = -(-int(width) // TILE_SIZE), -(-int(height) // TILE_SIZE)
+    rect = tile_rects(means2d, radii, width, height)
+    count = tiles_touched_reference(means2d, radii, width, height)
+    ids = torch.repeat_interleave(torch.arange(len(count), device=device), count)
+    first = torch.cumsum(count, 0) - count  # each Gaussian's first slot
+    slot = torch.arange(len(ids), device=device) - first[ids]
+    span = (rect[:, 2] - rect[:, 0])[ids]
+    tiles = (rect[ids, 1] + slot // span.clamp_min(1)) * tiles_x + rect[ids, 0] + slot % span.clamp_min(1)
+    depth_bits = depths.detach().to(torch.float32).view(torch.int32).long()  # a positive float's bits order as it
+    keys = (tiles << 32) | depth_bits[ids]
+    keys, order = torch.sort(keys, stable=True)  # equal keys keep Gaussian order, as the radix sort does
+    ids, tiles = ids[order], tiles[order]
+    per_tile = torch.bincount(tiles, minlength=tiles_x * tiles_y)
+    end = torch.cumsum(per_tile, 0)
+    ranges = torch.stack([end - per_tile, end], -1) * (per_tile > 0)[:, None]
+    return dict(keys=keys, ids=ids, tiles=tiles, ranges=ranges)
+
+
 def rasterize_reference(
     means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width, height, t, *,
     background=None, near=0.01, far=1e10, dtype=torch.float64,
@@ -102,13 +182,11 @@ def rasterize_reference(
     """Same signature and outputs as `tomgs.rasterize`; `dtype` is the compute precision."""
     p = prepare_finite_sh(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width, height, t,
                           background, near, far, dtype)
-    with torch.no_grad():
-        full = _project(p)
-        radii, valid, extent = _radii_and_valid(full, p.width, p.height)
+    full, radii, valid, extent = _visible(p)
     # differentiate only the visible subset: culled Gaussians get exactly zero gradient, never NaN
     idx = torch.nonzero(valid).squeeze(-1)
     idx = idx[torch.argsort(full["depth"][idx], stable=True)]
-    sub = dataclasses.replace(p, **{k: getattr(p, k)[idx] for k in _PER_GAUSSIAN})
+    sub = _subset(p, idx)
     proj = _project(sub)
 
     ys, xs = torch.meshgrid(torch.arange(p.height, dtype=dtype, device=p.means.device) + 0.5,
@@ -137,4 +215,5 @@ def rasterize_reference(
     return image, alpha_out, meta
 
 
-__all__ = ["rasterize_reference", "quat_to_rotmat", "prepare_finite_sh"]
+__all__ = ["rasterize_reference", "project_reference", "bin_reference", "tile_rects", "tiles_touched_reference",
+           "quat_to_rotmat", "prepare_finite_sh"]

@@ -17,11 +17,11 @@ import warp as wp
 
 from tomgs import temporal
 from tomgs.constants import ALPHA_MIN, TILE_SIZE
-from tomgs.inputs import RenderError
+from tomgs.inputs import RasterInputs, RenderError, prepare_inputs
 from tomgs.kernels import binning, project, raster
 from tomgs.reference import prepare_finite_sh
-from tomgs.runtime import launch, scope, wrap
 from tomgs.runtime import init_warp as _init_warp  # noqa: F401  (tests/test_physics.py still imports it from here)
+from tomgs.runtime import launch, scope, wrap
 
 # The radix sort needs 2 x count slots and counts in int32: 2^30 keeps both inside int32.
 MAX_INTERSECTIONS = 2**30
@@ -172,14 +172,20 @@ class _Project(torch.autograd.Function):
 
 
 def _bin(means2d, radii, depths, ends, frame: _Frame, total: int):
-    """Depth-sorted Gaussian ids per tile: (ranges [tiles, 2] int32, ids [total] int32).
+    """Stage 2: (ranges [tiles, 2] int32 [start, end) into the sorted list, ids [total] int32 Gaussian per
+    intersection, keys [total] int64 `tile << 32 | depth bits`, sorted).
 
     `ends` [N] int64 is the inclusive scan of tiles touched: Gaussian i writes keys [ends[i-1], ends[i]).
     """
+    if total > MAX_INTERSECTIONS:
+        raise RenderError(
+            f"this frame needs {total:,} Gaussian-tile intersections, more than the {MAX_INTERSECTIONS:,} the "
+            f"rasterizer can sort; render at a lower resolution or with fewer or smaller Gaussians")
     device = means2d.device
     ranges = torch.zeros(frame.num_tiles, 2, device=device, dtype=torch.int32)
     if total == 0:
-        return ranges, torch.empty(0, device=device, dtype=torch.int32)
+        return ranges, torch.empty(0, device=device, dtype=torch.int32), torch.empty(0, device=device,
+                                                                                      dtype=torch.int64)
     keys = torch.empty(2 * total, device=device, dtype=torch.int64)  # the radix sort uses the upper half
     ids = torch.empty(2 * total, device=device, dtype=torch.int32)
     tile_bits = max(1, (frame.num_tiles - 1).bit_length())
@@ -192,7 +198,7 @@ def _bin(means2d, radii, depths, ends, frame: _Frame, total: int):
         ])
         wp.utils.radix_sort_pairs(keys_wp, ids_wp, total, 0, 32 + tile_bits)
         launch(binning.tile_ranges, total, device=wp_device, args=[wrap(keys), total, wrap(ranges)])
-    return ranges, ids[:total]
+    return ranges, ids[:total], keys[:total]
 
 
 class _Rasterize(torch.autograd.Function):
@@ -228,6 +234,31 @@ class _Rasterize(torch.autograd.Function):
                        *shared, *state, wrap(v_color, wp.vec3), wrap(_dense(v_trans, trans)[..., 0]),
                        wrap(v_means2d, wp.vec2), wrap(v_conics, wp.vec3), wrap(v_opacities_t), wrap(v_colors, wp.vec3)])
         return v_means2d, v_conics, v_opacities_t, v_colors, None, None, None
+
+
+def _project_frame(p: RasterInputs, frame: _Frame):
+    """Stage 1 and the frame's one host sync: ((means2d, conics, depths, radii, opacities_t, tiles_touched),
+    ends [N] int64 the inclusive scan of tiles touched, the intersection count); RenderError on input
+    outside the contract."""
+    viewmat, K = p.viewmat.contiguous(), p.K.contiguous()
+    # contract flags and the intersection count, written on the device and read back together below
+    flags = torch.zeros(project.NUM_FLAGS, device=p.means.device, dtype=torch.int64)
+    outputs = _Project.apply(p.means.contiguous(), p.quats.contiguous(), p.scales.contiguous(),
+                             p.opacities.contiguous(), p.t_means.contiguous(), p.t_scales.contiguous(), viewmat, K,
+                             flags, frame)
+    ends = torch.cumsum(outputs[-1], 0, dtype=torch.int64)  # [N] inclusive scan of tiles touched
+    bg = p.background if p.background is not None else viewmat.reshape(-1)[:3]  # unread stand-in
+    with scope(p.means.device) as device:
+        launch(project.check_frame, 1, device=device, args=[
+            wrap(ends), ends.shape[0], wrap(viewmat.reshape(1, 4, 4), wp.mat44), wrap(K.reshape(1, 3, 3), wp.mat33),
+            wrap(bg.reshape(1, 3), wp.vec3), int(p.background is not None), wrap(flags)])
+
+    # the one host sync per frame: the intersection count sizes the sort buffers; the contract
+    # flags travel with it, so checking the inputs costs no extra wait
+    stats = flags.tolist()
+    if any(stats[1:]):
+        raise _contract_error(stats, p)
+    return outputs, ends, stats[project.FLAG_TOTAL]
 
 
 def rasterize(
@@ -269,30 +300,8 @@ def rasterize(
     if frame.num_tiles * TILE_SIZE * TILE_SIZE > MAX_THREADS:
         raise RenderError(f"a {frame.width}x{frame.height} image is too large to render in one piece: keep "
                           f"width x height below {MAX_THREADS:,} pixels")
-    viewmat, K = p.viewmat.contiguous(), p.K.contiguous()
-    # contract flags and the intersection count, written on the device and read back together below
-    flags = torch.zeros(project.NUM_FLAGS, device=p.means.device, dtype=torch.int64)
-    means2d, conics, depths, radii, opacities_t, tiles_touched = _Project.apply(
-        p.means.contiguous(), p.quats.contiguous(), p.scales.contiguous(), p.opacities.contiguous(),
-        p.t_means.contiguous(), p.t_scales.contiguous(), viewmat, K, flags, frame)
-    ends = torch.cumsum(tiles_touched, 0, dtype=torch.int64)  # [N] inclusive scan
-    bg = p.background if p.background is not None else viewmat.reshape(-1)[:3]  # unread stand-in
-    with scope(p.means.device) as device:
-        launch(project.check_frame, 1, device=device, args=[
-            wrap(ends), ends.shape[0], wrap(viewmat.reshape(1, 4, 4), wp.mat44), wrap(K.reshape(1, 3, 3), wp.mat33),
-            wrap(bg.reshape(1, 3), wp.vec3), int(p.background is not None), wrap(flags)])
-
-    # the one host sync per frame: the intersection count sizes the sort buffers; the contract
-    # flags travel with it, so checking the inputs costs no extra wait
-    stats = flags.tolist()
-    if any(stats[1:]):
-        raise _contract_error(stats, p)
-    total = stats[project.FLAG_TOTAL]
-    if total > MAX_INTERSECTIONS:
-        raise RenderError(
-            f"this frame needs {total:,} Gaussian-tile intersections, more than the {MAX_INTERSECTIONS:,} the "
-            f"rasterizer can sort; render at a lower resolution or with fewer or smaller Gaussians")
-    ranges, ids = _bin(means2d, radii, depths, ends, frame, total)
+    (means2d, conics, depths, radii, opacities_t, tiles_touched), ends, total = _project_frame(p, frame)
+    ranges, ids, _ = _bin(means2d, radii, depths, ends, frame, total)
     color, trans = _Rasterize.apply(means2d, conics, opacities_t, p.colors.contiguous(), ranges, ids, frame)
     image = color if p.background is None else color + trans * p.background
     meta = dict(radii=radii, means2d=means2d, depths=depths, conics=conics, opacities_t=opacities_t,
@@ -300,6 +309,55 @@ def rasterize(
                 n_intersections=total, tile_size=TILE_SIZE,
                 width=frame.width, height=frame.height)
     return image, 1.0 - trans, meta
+
+
+def project_stage(
+    means: torch.Tensor,  # [N,3] world
+    quats: torch.Tensor,  # [N,4] w x y z, any finite norm
+    scales: torch.Tensor,  # [N,3] >= 0
+    opacities: torch.Tensor,  # [N] in [0, 1]
+    t_means: torch.Tensor,  # [N]
+    t_scales: torch.Tensor,  # [N] >= 0
+    viewmat: torch.Tensor,  # [4,4] world -> camera
+    K: torch.Tensor,  # [3,3]
+    width: int,
+    height: int,
+    t: float,
+    *,
+    near: float = 0.01,
+    far: float = 1e10,
+) -> dict[str, torch.Tensor]:
+    """Stage 1 alone, as `rasterize` runs it (same checks, same kernel), for tests and tools: per
+    Gaussian `means2d` [N,2], `conics` [N,3], `depths` [N], `radii` [N,2] int32, `opacities_t` [N],
+    `tiles_touched` [N] int32; a culled Gaussian has zero means2d, conics, radii and tiles touched
+    (depths and opacities_t are written for all). means2d, conics and opacities_t are differentiable;
+    a culled Gaussian gets zero gradient. See tomgs.reference.project_reference."""
+    t_hi, t_lo = _check_scalars(width, height, t, near, far)
+    zeros = torch.zeros_like(means) if isinstance(means, torch.Tensor) else means  # projection reads no colour
+    p = prepare_inputs(means, quats, scales, opacities, zeros, t_means, t_scales, viewmat, K, width, height, t,
+                       None, near, far, torch.float32)
+    frame = _Frame(p.width, p.height, t_hi, t_lo, p.near, p.far)
+    outputs, _, _ = _project_frame(p, frame)
+    return dict(zip(("means2d", "conics", "depths", "radii", "opacities_t", "tiles_touched"), outputs))
+
+
+def bin_stage(
+    means2d: torch.Tensor,  # [N,2] float32 pixels
+    radii: torch.Tensor,  # [N,2] int32; (0, 0) = culled
+    depths: torch.Tensor,  # [N] float32, > 0 wherever a radius is not zero
+    tiles_touched: torch.Tensor,  # [N] int32: tiles of each Gaussian's box, as projection counts them
+    width: int,
+    height: int,
+) -> dict[str, torch.Tensor]:
+    """Stage 2 alone, as `rasterize` runs it, for tests and tools: `keys` [M] int64 `tile << 32 | float32
+    depth bits` sorted, `ids` [M] int32 the Gaussian of each, `ranges` [tiles, 2] int32 each tile's
+    [start, end) in them ((0, 0) for an empty tile). See tomgs.reference.bin_reference."""
+    _check_scalars(width, height, 0.0, 0.01, 1e10)
+    frame = _Frame(int(width), int(height), 0.0, 0.0, 0.01, 1e10)
+    ends = torch.cumsum(tiles_touched, 0, dtype=torch.int64)
+    total = int(ends[-1]) if ends.numel() else 0
+    ranges, ids, keys = _bin(means2d.contiguous(), radii.contiguous(), depths.contiguous(), ends, frame, total)
+    return dict(keys=keys, ids=ids, ranges=ranges)
 
 
 def resolve_device(name: str | None = "auto") -> torch.device:
