@@ -290,5 +290,8 @@ def test_stdout_carries_results_only(scene, tmp_path):
     assert out.returncode == 0 and len(json.loads(out.stdout)["per_frame"]) == 5 and "frame" in out.stderr
     out = tomgs("-q", "render", scene, "-o", tmp_path / "again", "--device", "cpu")
     assert out.returncode == 0 and out.stderr == "" and "5 frames" in out.stdout
-    out = tomgs("-q", "-v", "info", scene)
-    assert out.returncode == 2 and "contradict" in out.stderr
+    out = tomgs("render", scene, "-o", tmp_path / "after", "--device", "cpu", "-q")  # after the command too
+    assert out.returncode == 0 and out.stderr == "" and "5 frames" in out.stdout
+    for args in (["-q", "-v", "info", scene], ["info", scene, "-q", "-v"]):
+        out = tomgs(*args)
+        assert out.returncode == 2 and "contradict" in out.stderr

@@ -720,5 +720,28 @@ def simulate(scene, output, selectors, render_out, over, drop, spin, velocity, s
         _render(loaded, clouds, plan, fps)
 
 
+def _set_verbosity(ctx, param, value) -> None:
+    if not value:
+        return
+    if ctx.meta.setdefault("tomgs.verbosity", param.name) != param.name:
+        raise UsageError("-q and -v contradict each other: give one")
+    _VERBOSITY["level"] = 0 if param.name == "quiet" else 2
+
+
+def _verbosity_options(group: click.Group) -> None:
+    """-q and -v after the command too (`tomgs render ... -q` as well as `tomgs -q render ...`)."""
+    for command in group.commands.values():
+        if isinstance(command, click.Group):
+            _verbosity_options(command)
+            continue
+        command.params += [
+            click.Option(["-q", "--quiet"], is_flag=True, expose_value=False, callback=_set_verbosity,
+                         help="no progress bars or notes on stderr: results and errors only"),
+            click.Option(["-v", "--verbose"], is_flag=True, expose_value=False, callback=_set_verbosity,
+                         help="also every training log row on stderr")]
+
+
+_verbosity_options(main)
+
 if __name__ == "__main__":
     main()
