@@ -35,10 +35,40 @@ def _user_errors(command):
     return wrapper
 
 
+_OUTPUT_HELP = "an .mp4/.avi/.mov/.mkv file, or a folder (no suffix) for PNG frames"
+
+
+def _clip_options(f):
+    """--frames, --max-side, --masks and --focal, as `poses` and `fit` read a clip."""
+    for option in reversed([
+        click.option("--frames", default=None, help="frame range start:stop:step of the source, e.g. 0:80 or ::2"),
+        click.option("--max-side", type=click.IntRange(16), default=None, help="resize frames so that max(W, H) <= N"),
+        click.option("--masks", type=click.Path(path_type=str), default=None,
+                     help="folder of masks, one per source frame, white on the moving object (left out of poses)"),
+        click.option("--focal", type=float, default=None, help="focal length in pixels of the (resized) frames"),
+    ]):
+        f = option(f)
+    return f
+
+
 _device_option = click.option("--device", default="auto", show_default=True, help="auto, cpu, cuda or cuda:N")
 _overwrite_option = click.option(
     "-y", "--overwrite", is_flag=True,
     help="replace existing outputs (in a folder of frames only its numbered PNGs; other files are kept)")
+
+
+def _render_options(f):
+    """--frames, --device, --background, --fps and --overwrite, as `tomgs render` has them."""
+    for option in reversed([
+        click.option("--frames", default=None, help="frame range start:stop:step in the scene's frame numbers"),
+        _device_option,
+        click.option("--background", default=None, help="r,g,b in [0, 1]; default: the scene's, else black"),
+        click.option("--fps", type=click.FloatRange(min=0.1), default=None,
+                     help="frame rate of a video output; default: the scene's, else 25"),
+        _overwrite_option,
+    ]):
+        f = option(f)
+    return f
 
 
 _VERBOSITY = {"level": 1}  # 0: -q, 1: default, 2: -v (set by `main` for the command it runs)
@@ -71,17 +101,12 @@ def _json_option(what: str):
 
 def _write_json(json_out: str | None, value) -> None:
     """`value` as JSON to `json_out` ('-': stdout), non-finite floats as null."""
-    import json
+    from tomgs.outputs import json_text, write_text
 
-    from tomgs.outputs import write_text
-
-    if not json_out:
-        return
-    text = json.dumps(_finite_or_null(value), indent=1)
     if json_out == "-":
-        click.echo(text)
-    else:
-        write_text(json_out, text)
+        click.echo(json_text(value))
+    elif json_out:
+        write_text(json_out, json_text(value))
 
 
 def _check_json(json_out: str | None, overwrite: bool) -> bool:
@@ -97,13 +122,9 @@ def _check_json(json_out: str | None, overwrite: bool) -> bool:
 @click.argument("video", type=click.Path(path_type=str))
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=str),
               help="cameras JSON to write (schema in tomgs.cameras)")
-@click.option("--masks", type=click.Path(path_type=str), default=None,
-              help="folder of masks, one per source frame (white = moving, ignored for poses)")
-@click.option("--frames", default=None, help="frame range start:stop:step, e.g. 0:80 or ::2")
 @click.option("--method", default="auto", show_default=True,
               help="auto, identity, a cameras .json / AnyCam c2w .npy / COLMAP text folder, or an .onnx model")
-@click.option("--focal", type=float, default=None, help="focal length in pixels of the (resized) frames")
-@click.option("--max-side", type=int, default=None, help="resize frames so that max(W, H) <= N")
+@_clip_options
 @_json_option("the pose report")
 @_overwrite_option
 @_user_errors
@@ -145,12 +166,9 @@ def poses(video, output, masks, frames, method, focal, max_side, json_out, overw
 @click.option("--preset", default="default", show_default=True, type=click.Choice(["default", "paper", "quick"]),
               help="default: tuned for speed; paper: 80k iterations, densify to 60k; quick: a few hundred")
 @click.option("--iterations", type=click.IntRange(1), default=None, help="override the preset's iteration count")
-@click.option("--frames", default=None, help="frame range start:stop:step, e.g. 0:80")
-@click.option("--max-side", type=click.IntRange(16), default=None, help="resize frames so that max(W, H) <= N")
-@click.option("--masks", type=click.Path(path_type=str), default=None, help="folder of masks (moving content)")
 @click.option("--poses", default="auto", show_default=True,
               help="auto, identity, or a cameras .json / AnyCam .npy / COLMAP folder / .onnx model")
-@click.option("--focal", type=float, default=None, help="focal length in pixels, if known")
+@_clip_options
 @_device_option
 @click.option("--cap", "max_gaussians", type=click.IntRange(1), default=None, help="most Gaussians (default 10M)")
 @click.option("--budget", "max_seconds", type=click.FloatRange(min=1.0), default=None,
@@ -263,19 +281,6 @@ def evaluate_command(scene, video, lpips_weights, json_out, device, overwrite):
     _write_json(json_out, report.to_dict())  # a perfect frame's PSNR is inf: null
 
 
-def _finite_or_null(value):
-    """JSON has no infinity: non-finite floats become null, recursively."""
-    import math
-
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: _finite_or_null(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_finite_or_null(v) for v in value]
-    return value
-
-
 def _parse_size(text: str) -> tuple[int, int]:
     try:
         width, height = (int(v) for v in text.lower().split("x"))
@@ -343,18 +348,11 @@ def example(names):
 
 @main.command()
 @click.argument("scene", type=click.Path(path_type=str))
-@click.option("--frames", default=None, help="frame range start:stop:step in the scene's frame numbers, e.g. 0:80")
-@click.option("-o", "--output", required=True, type=click.Path(path_type=str),
-              help="an .mp4/.avi/.mov/.mkv file, or a folder (no suffix) for PNG frames")
-@_device_option
-@click.option("--background", default=None,
-              help="r,g,b in [0, 1]; default: the scene's (info \"background\"), else black")
-@click.option("--fps", type=click.FloatRange(min=0.1), default=None,
-              help="frame rate of a video output; default: the scene's (info \"fps\"), else 25")
+@click.option("-o", "--output", required=True, type=click.Path(path_type=str), help=_OUTPUT_HELP)
 @click.option("--layer", "layer_paths", multiple=True, type=click.Path(path_type=str),
               help="a scene to composite over SCENE (e.g. a foreground from `fit --layer foreground`), each "
                    "with its own cameras at the same frames; repeat for more, the last in front")
-@_overwrite_option
+@_render_options
 @_user_errors
 def render(scene, frames, output, device, background, fps, layer_paths, overwrite):
     """Render frames of SCENE (a .ply from `tomgs fit`) from its own cameras at their frame times.
@@ -429,21 +427,6 @@ def _floats(text: str | None, option: str, counts=(3,)):
 
 _SELECT_HELP = ("pick Gaussians (repeat to intersect): box:x0,y0,z0,x1,y1,z1 | sphere:x,y,z,r | time:t0,t1 (clip "
                 "time 0..1) | index:FILE.txt | mask:FOLDER (world axes: x right, y down, z forward)")
-_OUTPUT_HELP = "an .mp4/.avi/.mov/.mkv file, or a folder (no suffix) for PNG frames"
-
-
-def _render_options(f):
-    """--frames, --device, --background, --fps and --overwrite, as `tomgs render` has them."""
-    for option in reversed([
-        click.option("--frames", default=None, help="frame range start:stop:step in the scene's frame numbers"),
-        _device_option,
-        click.option("--background", default=None, help="r,g,b in [0, 1]; default: the scene's, else black"),
-        click.option("--fps", type=click.FloatRange(min=0.1), default=None,
-                     help="frame rate of a video output; default: the scene's, else 25"),
-        _overwrite_option,
-    ]):
-        f = option(f)
-    return f
 
 
 _OVER_HELP = ("a scene to render behind (e.g. a background from `fit --layer background`), with its own cameras "

@@ -94,6 +94,23 @@ def write_text(path, text: str, durable: bool = False) -> Path:
     return write_bytes(path, text.encode("utf-8"), durable=durable)
 
 
+def json_text(value) -> str:
+    """`value` as indented JSON; non-finite floats (JSON has none: a perfect frame's PSNR is inf)
+    become null, recursively."""
+    import json
+    import math
+
+    def finite(v):
+        if isinstance(v, float):
+            return v if math.isfinite(v) else None
+        if isinstance(v, dict):
+            return {k: finite(x) for k, x in v.items()}
+        if isinstance(v, (list, tuple)):
+            return [finite(x) for x in v]
+        return v
+    return json.dumps(finite(value), indent=1)
+
+
 def _existing_folder(path: Path) -> Path:
     folder = path.parent
     if not folder.exists():
