@@ -36,6 +36,39 @@ class Densifier:
         self.grad_sum += torch.where(visible, (grad * scale).norm(dim=-1), torch.zeros_like(self.grad_sum))
         self.seen += visible.float()
 
+    # -- the schedule (gsplat's strategy shape: the trainer calls these two around backward) -------
+
+    def collecting(self, progress: float) -> bool:
+        """Whether this step's screen-space gradients are wanted: until densification stops
+        (`densify_stop_fraction` of the run) or the cap is reached."""
+        return progress < self.config.densify_stop_fraction and not self.capped
+
+    def step_pre_backward(self, meta: dict, progress: float) -> None:
+        """Before loss.backward(): keep the gradient of the projected means when collecting."""
+        if self.collecting(progress):
+            meta["means2d"].retain_grad()
+
+    def step_post_backward(self, model: GaussianModel, optimizer, meta: dict, visible: torch.Tensor,
+                           iteration: int, progress: float, after_optimizer_step) -> None:
+        """After loss.backward(): collect this step's statistics (`visible`: bool [N], the Gaussians
+        it reached), let `after_optimizer_step()` update the parameters, then, at `iteration` (the
+        step just taken, counted from 1) and `progress` (by iterations or by the wall-clock budget,
+        whichever is further): densify every `densify_interval` steps inside [densify_start_fraction,
+        densify_stop_fraction) until the cap, else prune every 10 intervals; reset opacities every
+        `opacity_reset_interval` steps while densifying."""
+        c = self.config
+        if self.collecting(progress):
+            self.observe(meta, visible)
+        after_optimizer_step()
+        if self.due(iteration, progress) and not self.capped:
+            self.step(model, optimizer)
+        elif iteration % (10 * c.densify_interval) == 0:
+            self.prune(model, optimizer)
+            self.reset_stats(len(model), visible.device)
+        if c.opacity_reset_interval and iteration % c.opacity_reset_interval == 0 \
+                and progress < c.densify_stop_fraction:
+            self.reset_opacity(model, optimizer)
+
     def due(self, iteration: int, progress: float) -> bool:
         """Every `densify_interval` iterations while the run's progress (by iterations or by
         wall-clock budget) is inside [densify_start_fraction, densify_stop_fraction)."""

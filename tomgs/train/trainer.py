@@ -262,37 +262,28 @@ class Trainer:
                          height=self.height, t=self.times[k], **kw)
 
     def step(self) -> None:
-        c = self.config
         k = self.sampler.sample()
         image, alpha, meta = self.render(k)
-        densifying = self.progress < c.densify_stop_fraction and not self.densifier.capped
-        if densifying:
-            meta["means2d"].retain_grad()
+        self.densifier.step_pre_backward(meta, self.progress)
         target = self.target(k, image)  # once per step: the loss and the sampler's PSNR share it
         self.loss(k, image, alpha, target).backward()
         self._measured.append((k, self._psnr(k, image, target)))
         if len(self._measured) >= SAMPLER_LAG:
             self.flush_measurements()
         in_view = (meta["radii"] > 0).any(-1)  # bool [N]: the Gaussians this step's gradient reaches
-        if densifying:
-            self.densifier.observe(meta, in_view)
-        for group in self.optimizer.param_groups:
-            if group["name"] == "means":
-                group["lr"] = self._means_lr()
-        if self.sparse_adam:
-            self.optimizer.step(in_view)
-        else:
-            self.optimizer.step()
-        self.optimizer.zero_grad(set_to_none=True)
+
+        def optimizer_step():
+            for group in self.optimizer.param_groups:
+                if group["name"] == "means":
+                    group["lr"] = self._means_lr()
+            if self.sparse_adam:
+                self.optimizer.step(in_view)
+            else:
+                self.optimizer.step()
+            self.optimizer.zero_grad(set_to_none=True)
+        self.densifier.step_post_backward(self.model, self.optimizer, meta, in_view, self.iteration + 1,
+                                          self.progress, optimizer_step)
         self.iteration += 1
-        if self.densifier.due(self.iteration, self.progress) and not self.densifier.capped:
-            self.densifier.step(self.model, self.optimizer)
-        elif self.iteration % (10 * c.densify_interval) == 0:
-            self.densifier.prune(self.model, self.optimizer)
-            self.densifier.reset_stats(len(self.model), self.device)
-        if c.opacity_reset_interval and self.iteration % c.opacity_reset_interval == 0 \
-                and self.progress < c.densify_stop_fraction:
-            self.densifier.reset_opacity(self.model, self.optimizer)
 
     def flush_measurements(self) -> None:
         """Hand the PSNRs measured since the last flush to the sampler, in order (one device read)."""
