@@ -109,9 +109,9 @@ def test_frame_check_counts_inverted_tets():
     import warp as wp
 
     from tomgs.kernels import xpbd
-    from tomgs.render import _init_warp
+    from tomgs.runtime import init_warp
 
-    _init_warp()
+    init_warp()
     vertices, tets = cube5()
     moved = vertices.copy()
     moved[0] = [0.9, 0.9, 0.9]  # through the central tet's face: the corner tet of vertex 0 turns inside out

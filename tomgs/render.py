@@ -20,7 +20,6 @@ from tomgs.constants import ALPHA_MIN, TILE_SIZE
 from tomgs.inputs import RasterInputs, RenderError, prepare_inputs
 from tomgs.kernels import binning, project, raster
 from tomgs.reference import prepare_finite_sh
-from tomgs.runtime import init_warp as _init_warp  # noqa: F401  (tests/test_physics.py still imports it from here)
 from tomgs.runtime import launch, scope, wrap
 
 # The radix sort needs 2 x count slots and counts in int32: 2^30 keeps both inside int32.
