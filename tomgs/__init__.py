@@ -13,10 +13,10 @@ __version__ = "0.1.0"
 # public name -> owning module (one module owns each concept; see DESIGN.md)
 _EXPORTS = {
     "rasterize": "tomgs.render",
-    "RenderError": "tomgs.render",
+    "RenderError": "tomgs.errors",
     "rasterize_reference": "tomgs.reference",
     "eval_sh": "tomgs.sh",
-    "InputError": "tomgs.io",
+    "InputError": "tomgs.errors",
     "Video": "tomgs.io",
     "read_video": "tomgs.io",
     "Cameras": "tomgs.cameras",

@@ -1,8 +1,8 @@
 """Image quality: PSNR, SSIM and LPIPS (AlexNet, v0.1 heads) as the peers compute them, and `evaluate`.
 
 Images are float tensors in [0, 1], shape [H,W,3] or batched [B,H,W,3], on any device; each metric
-returns one value per image (a 0-d tensor for [H,W,3], [B] for a batch). Protocol
-(../shared/data/README.md): float renders, no 8-bit rounding; PSNR per frame, averaged over frames.
+returns one value per image (a 0-d tensor for [H,W,3], [B] for a batch). Protocol (the papers'
+evaluation, as their numbers were made): float renders, no 8-bit rounding; PSNR per frame, averaged over frames.
 
 SSIM follows the 3DGS implementation exactly: 11x11 Gaussian window (sigma 1.5), C1 = 0.01^2,
 C2 = 0.03^2, per channel, zero "same" padding (conv2d padding=5), mean over all pixels and
