@@ -12,8 +12,9 @@ from plyfile import PlyData, PlyElement
 import tomgs
 from tomgs.cameras import Cameras, intrinsics, look_at
 from tomgs.io import InputError
-from tomgs.io.scene import (alive_per_frame, format_summary, load_scene, log_histogram, render_defaults, save_scene,
-                            select_frames, summarize)
+from tomgs.io.scene import load_scene, save_scene
+from tomgs.jobs import render_defaults, select_frames
+from tomgs.summary import alive_per_frame, format_summary, log_histogram, summarize
 from tomgs.model import PARAM_NAMES, GaussianModel
 
 # written out by hand from INRIA's GaussianModel.construct_list_of_attributes, not from tomgs

@@ -392,7 +392,8 @@ def info(scene, plot, as_json, overwrite):
     """
     import json
 
-    from tomgs.io.scene import check_png_path, format_summary, load_scene, plot_temporal_scales, summarize
+    from tomgs.io.scene import load_scene
+    from tomgs.summary import check_png_path, format_summary, plot_temporal_scales, summarize
     from tomgs.outputs import check_file_output
 
     if plot is not None:
@@ -668,7 +669,8 @@ def simulate(scene, output, selectors, render_out, over, drop, spin, velocity, s
     from tomgs.edit.cage import shot_config, simulate_selection
     from tomgs.edit.selection import select
     from tomgs.edit.transforms import sequence_clouds
-    from tomgs.io.scene import load_scene, render_defaults
+    from tomgs.io.scene import load_scene
+    from tomgs.jobs import render_defaults
     from tomgs.io.tets import save_sequence, save_tets
     from tomgs.outputs import check_file_output
     from tomgs.render import resolve_device

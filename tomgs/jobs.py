@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from tomgs.cameras import Cameras
 from tomgs.errors import InputError
 
 
@@ -67,7 +68,7 @@ def plan_render(output, cameras, frames=None, device="auto", background=None, ov
     to `output` before any work. `background`: RGB in [0, 1], or None for the scene's. `only`: camera positions that
     have something to render (a sequence's). `over`: the path of a scene to render behind, checked
     against `cameras` (the scene called `name`) like a `render --layer` layer."""
-    from tomgs.io.scene import load_scene, select_frames
+    from tomgs.io.scene import load_scene
     from tomgs.io.writer import check_output
     from tomgs.layers import check_layers
     from tomgs.render import resolve_device
@@ -94,8 +95,6 @@ def run_render(plan: RenderPlan, scene, gaussians, fps: float | None = None, lay
     (tomgs.io.scene.Scene: cameras and info) with `layers` ((gaussians, cameras) pairs) composited
     over them, as `plan` says; the plan's `behind` scene is the base, `gaussians` go over it.
     `progress(frames_done)` is called after each frame."""
-    from tomgs.io.scene import render_defaults
-
     cams = scene.cameras
     numbers = cams.frame_indices[plan.positions]
     default_rgb, default_fps = render_defaults(scene.info)
@@ -151,3 +150,57 @@ def render_frames(output, gaussians, cams, positions, background, device, fps: f
     high = sum(fixed) + sum(max(sizes) for sizes in varying)
     return RenderReport(str(output), count, time.perf_counter() - start, device, what, (low, high),
                         (min(alive), max(alive)))
+
+
+# ---- which frames, and the scene's defaults ---------------------------------------------------
+
+def select_frames(cameras: Cameras, spec) -> np.ndarray:
+    """Positions (into `cameras`) of the frames that `spec` ('a:b', 'a:b:c', 'k', None = all) picks, in
+    the scene's frame numbering (`cameras.frame_indices`, the source video's frame numbers).
+
+    Numbers follow Python slices over 0 .. last frame number (negative counts from the end): a stop
+    past the last frame is clamped to it, as slicing does (`0:90:3` picks frames 0..87 of a scene
+    fitted on every third of 90 frames); a start outside the scene's frames, a stop before its
+    first, or a range that holds none of them, raises InputError.
+    """
+    from tomgs.io.video import parse_frames
+
+    numbers = cameras.frame_indices
+    first, last = int(numbers.min()), int(numbers.max())
+    span = f"{first}:{last + 1}" if len(numbers) == last - first + 1 else \
+        f"{len(numbers)} frames numbered {first}..{last}"
+    sel = parse_frames(spec)
+    if spec is None or sel == slice(None):
+        return np.arange(len(cameras))
+    for value, what, hi in ((sel.start, "start", last), (sel.stop, "stop", last + 1)):
+        if value is None or (what == "stop" and value > hi):  # a stop past the end: clamped by the slice
+            continue
+        absolute = value + last + 1 if value < 0 else value
+        if not first <= absolute <= hi:
+            raise InputError(f"frame range {spec!r}: {what} {value} is outside the scene's frames ({span}); "
+                             f"pick a range inside {first}:{last + 1}")
+    # the numbers that range(last + 1)[sel] holds, by arithmetic: no array as long as the largest number
+    picked = range(last + 1)[sel]
+    positions = np.array([k for k, num in enumerate(numbers.tolist()) if num in picked], dtype=np.int64)
+    if len(positions) == 0:
+        raise InputError(f"frame range {spec!r} holds none of the scene's frames ({span})")
+    return positions
+
+
+def render_defaults(info: dict) -> tuple[tuple[float, float, float], float]:
+    """(background RGB, frames per second) for rendering a scene: its info's `background` and `fps`
+    when they are valid, else black and 25."""
+    background, fps = (0.0, 0.0, 0.0), 25.0
+    try:
+        rgb = tuple(float(v) for v in info.get("background", ()))
+        if len(rgb) == 3 and all(0.0 <= v <= 1.0 for v in rgb):
+            background = rgb
+    except (TypeError, ValueError):
+        pass
+    try:
+        value = float(info.get("fps", fps))
+        if math.isfinite(value) and value > 0:
+            fps = value
+    except (TypeError, ValueError):
+        pass
+    return background, fps
