@@ -141,7 +141,8 @@ class Trainer:
         frame_sigma = frames_to_clip_time(c.init_t_scale_frames, self.num_frames)
         wide = int(round(self.wide_fraction * per_frame))  # the first `wide` of each frame's points (random)
         tracked_means, tracked_sigma = self._tracked_windows(len(points), frame_sigma)
-        t_sigma = np.concatenate([tracked_sigma, *(np.where(np.arange(len(t)) < wide, 1.0, frame_sigma) for t in ts)])
+        start_t_scales = np.concatenate([tracked_sigma, *(np.where(np.arange(len(t)) < wide, 1.0, frame_sigma)
+                                                          for t in ts)])
         # sizes: tracked points from their neighbours (few), per-frame points from one sample's
         # share of the image (many: a neighbour search over them would be quadratic)
         pixel_size = max(float(np.median(depth)) / float(fx) * math.sqrt(self.width * self.height / per_frame), 1e-6)
@@ -151,7 +152,7 @@ class Trainer:
         all_points = np.concatenate([points, *xs]) if len(points) else np.concatenate(xs)
         all_colors = np.concatenate([colors, *cols]) if len(points) else np.concatenate(cols)
         t_means = np.concatenate([tracked_means, *(np.where(np.arange(len(t)) < wide, 0.5, t) for t in ts)])
-        t_scales = torch.as_tensor(t_sigma, dtype=torch.float32) if c.temporal else STATIC_T_SCALE
+        t_scales = torch.as_tensor(start_t_scales, dtype=torch.float32) if c.temporal else STATIC_T_SCALE
         model = GaussianModel.from_points(torch.as_tensor(all_points, dtype=torch.float32),
                                           torch.as_tensor(all_colors, dtype=torch.float32),
                                           torch.as_tensor(t_means, dtype=torch.float32), t_scales,
@@ -163,7 +164,7 @@ class Trainer:
         return model.to(self.device), float(np.median(depth))
 
     def _tracked_windows(self, count: int, min_sigma: float) -> tuple[np.ndarray, np.ndarray]:
-        """(t_means [P], t_sigmas [P]) of the tracked points: centred on the frames that saw each one,
+        """(t_means [P], t_scales [P]) of the tracked points: centred on the frames that saw each one,
         sigma half their time span (at least `min_sigma`); the whole clip without `point_frames`."""
         if self.point_frames is None or len(self.point_frames) != count:
             return np.full(count, 0.5), np.full(count, 1.0)
