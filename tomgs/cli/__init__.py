@@ -1,0 +1,204 @@
+"""The `tomgs` command line: a thin click layer that parses, calls the library, and prints.
+
+This module holds the group, the shared options and the one error decorator; the commands live
+by room: `video` (poses, fit, eval), `scenes` (demo, example, render, info) and `editing` (edit,
+tets, simulate).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import sys
+
+import click
+
+from tomgs import __version__
+from tomgs.errors import InputError, RenderError
+from tomgs.jobs import parse_floats, run_render
+
+
+class UsageError(click.ClickException):
+    """A bad input: clear message, exit code 2, nothing written."""
+
+    exit_code = 2
+
+
+def user_errors(command):
+    """Bad input found by the library (InputError, RenderError): exit 2 with its message. An OS
+    error while reading or writing (disk full, a file removed under us): exit 1 naming the file.
+    Never a traceback."""
+    @functools.wraps(command)
+    def wrapper(*args, **kwargs):
+        try:
+            return command(*args, **kwargs)
+        except (InputError, RenderError) as e:
+            raise UsageError(str(e)) from None
+        except OSError as e:
+            where = f"{e.filename}: " if e.filename else ""
+            raise click.ClickException(f"{where}{e.strerror or e}") from None
+    return wrapper
+
+
+OUTPUT_HELP = "an .mp4/.avi/.mov/.mkv file, or a folder (no suffix) for PNG frames"
+
+
+def clip_options(f):
+    """--frames, --max-side, --masks and --focal, as `poses` and `fit` read a clip."""
+    for option in reversed([
+        click.option("--frames", default=None, help="frame range start:stop:step of the source, e.g. 0:80 or ::2"),
+        click.option("--max-side", type=click.IntRange(16), default=None, help="resize frames so that max(W, H) <= N"),
+        click.option("--masks", type=click.Path(path_type=str), default=None,
+                     help="folder of masks, one per source frame, white on the moving object (left out of poses)"),
+        click.option("--focal", type=float, default=None, help="focal length in pixels of the (resized) frames"),
+    ]):
+        f = option(f)
+    return f
+
+
+device_option = click.option("--device", default="auto", show_default=True, help="auto, cpu, cuda or cuda:N")
+overwrite_option = click.option(
+    "-y", "--overwrite", is_flag=True,
+    help="replace existing outputs (in a folder of frames only its numbered PNGs; other files are kept)")
+
+
+def render_options(f):
+    """--frames, --device, --background, --fps and --overwrite, as `tomgs render` has them."""
+    for option in reversed([
+        click.option("--frames", default=None, help="frame range start:stop:step in the scene's frame numbers"),
+        device_option,
+        click.option("--background", default=None, help="r,g,b in [0, 1]; default: the scene's, else black"),
+        click.option("--fps", type=click.FloatRange(min=0.1), default=None,
+                     help="frame rate of a video output; default: the scene's, else 25"),
+        overwrite_option,
+    ]):
+        f = option(f)
+    return f
+
+
+_VERBOSITY = {"level": 1}  # 0: -q, 1: default, 2: -v (set by `main` for the command it runs)
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="tomgs")
+@click.option("-q", "--quiet", is_flag=True, help="no progress bars or notes on stderr: results and errors only")
+@click.option("-v", "--verbose", is_flag=True, help="also every training log row on stderr")
+def main(quiet: bool, verbose: bool) -> None:
+    """Editable video as static 3D Gaussians with temporal opacity (TOM-GS).
+
+    Results go to stdout (`--json -` makes it pure JSON); progress bars and notes go to stderr.
+    """
+    if quiet and verbose:
+        raise UsageError("-q and -v contradict each other: give one")
+    _VERBOSITY["level"] = 0 if quiet else 2 if verbose else 1
+
+
+def say(text: str, level: int = 1) -> None:
+    """A note on stderr, shown from verbosity `level` up."""
+    if _VERBOSITY["level"] >= level:
+        click.echo(text, err=True)
+
+
+def json_option(what: str):
+    return click.option("--json", "json_out", type=click.Path(path_type=str), default=None,
+                        help=f"also write {what} as JSON to this file ('-' for stdout, then nothing else is printed)")
+
+
+def write_json(json_out: str | None, value) -> None:
+    """`value` as JSON to `json_out` ('-': stdout), non-finite floats as null."""
+    from tomgs.outputs import json_text, write_text
+
+    if json_out == "-":
+        click.echo(json_text(value))
+    elif json_out:
+        write_text(json_out, json_text(value))
+
+
+def check_json(json_out: str | None, overwrite: bool) -> bool:
+    """Check a --json file before any work; True when the JSON goes to stdout (print nothing else)."""
+    from tomgs.outputs import check_file_output
+
+    if json_out and json_out != "-":
+        check_file_output(json_out, overwrite, what="JSON report")
+    return json_out == "-"
+
+
+def parse_background(text: str | None):
+    """--background 'r,g,b' in [0, 1] -> tuple, or None."""
+    rgb = None if text is None else parse_floats(text)
+    if rgb is not None and (len(rgb) != 3 or not all(0.0 <= v <= 1.0 for v in rgb)):
+        raise UsageError(f"--background must be three numbers in [0, 1] like 0,0,0 or 1,1,1, got {text!r}")
+    return rgb
+
+
+def parse_numbers(text: str | None, option: str, counts=(3,)):
+    """'a,b,c' -> tuple of floats (one of `counts` many), or None; UsageError naming `option` otherwise."""
+    if text is None:
+        return None
+    values = parse_floats(text)
+    if len(values) not in counts:
+        shape = " or ".join(",".join("xyz"[:n] if n > 1 else "s") for n in counts)
+        raise UsageError(f"{option} takes {' or '.join(map(str, counts))} comma-separated numbers ({shape}), "
+                         f"got {text!r}")
+    return values
+
+
+SELECT_HELP = ("pick Gaussians (repeat to intersect): box:x0,y0,z0,x1,y1,z1 | sphere:x,y,z,r | time:t0,t1 (clip "
+                "time 0..1) | index:FILE.txt | mask:FOLDER (world axes: x right, y down, z forward)")
+
+
+OVER_HELP = ("a scene to render behind (e.g. a background from `fit --layer background`), with its own cameras "
+              "at the same frames; the rendered scene is composited over it as `render --layer` does")
+
+
+@contextlib.contextmanager
+def progress_bar(length: int, label: str, **options):
+    """A progress bar with rate and ETA on stderr (stdout carries results only), none with -q;
+    yields progress(done, item=None)."""
+    if _VERBOSITY["level"] == 0:
+        yield lambda done, item=None: None
+        return
+    with click.progressbar(length=length, label=label, file=sys.stderr, show_eta=True, show_percent=True,
+                           **options) as bar:
+        yield lambda done, item=None: bar.update(done - bar.pos, item)
+
+
+def render_planned(scene, gaussians, plan, fps, layers=()) -> None:
+    """Run a planned render (tomgs.jobs) with a progress bar and print its report."""
+    with progress_bar(len(plan.positions), "render") as progress:
+        report = run_render(plan, scene, gaussians, fps, layers, progress=progress)
+    click.echo(report.summary())
+
+
+def is_scene_path(path: str) -> bool:
+    return path.lower().endswith(".ply")
+
+
+def _set_verbosity(ctx, param, value) -> None:
+    if not value:
+        return
+    if ctx.meta.setdefault("tomgs.verbosity", param.name) != param.name:
+        raise UsageError("-q and -v contradict each other: give one")
+    _VERBOSITY["level"] = 0 if param.name == "quiet" else 2
+
+
+def _verbosity_options(group: click.Group) -> None:
+    """-q and -v after the command too (`tomgs render ... -q` as well as `tomgs -q render ...`)."""
+    for command in group.commands.values():
+        if isinstance(command, click.Group):
+            _verbosity_options(command)
+            continue
+        command.params += [
+            click.Option(["-q", "--quiet"], is_flag=True, expose_value=False, callback=_set_verbosity,
+                         help="no progress bars or notes on stderr: results and errors only"),
+            click.Option(["-v", "--verbose"], is_flag=True, expose_value=False, callback=_set_verbosity,
+                         help="also every training log row on stderr")]
+
+
+_verbosity_options(main)
+
+
+# the commands, by room: each module adds its commands to `main`
+from tomgs.cli import editing, scenes, video  # noqa: E402,F401  (registers the commands)
+
+_verbosity_options(main)

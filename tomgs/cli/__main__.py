@@ -1,0 +1,5 @@
+"""`python -m tomgs.cli`: the `tomgs` command."""
+
+from tomgs.cli import main
+
+main()

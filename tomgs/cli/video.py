@@ -1,0 +1,181 @@
+"""`tomgs poses`, `tomgs fit` and `tomgs eval`: the commands that read a video."""
+
+from __future__ import annotations
+
+import click
+
+from tomgs.cli import (
+    check_json,
+    clip_options,
+    device_option,
+    json_option,
+    main,
+    overwrite_option,
+    progress_bar,
+    say,
+    user_errors,
+    write_json,
+)
+
+
+@main.command()
+@click.argument("video", type=click.Path(path_type=str))
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=str),
+              help="cameras JSON to write (schema in tomgs.cameras)")
+@click.option("--method", default="auto", show_default=True,
+              help="auto, identity, a cameras .json / AnyCam c2w .npy / COLMAP text folder, or an .onnx model")
+@clip_options
+@json_option("the pose report")
+@overwrite_option
+@user_errors
+def poses(video, output, masks, frames, method, focal, max_side, json_out, overwrite):
+    """Estimate per-frame cameras of VIDEO (a video file or a folder of frames).
+
+    \b
+    Examples:
+      tomgs poses clip.mp4 -o cameras.json
+      tomgs poses frames/ -o cameras.json --masks masks/ --frames 0:80 --max-side 854
+      tomgs poses clip.mp4 -o cameras.json --method colmap_model/      # convert known cameras
+      tomgs fit clip.mp4 -o scene.ply --poses cameras.json
+    """
+    from tomgs.io import read_video
+    from tomgs.outputs import check_file_output
+    from tomgs.poses import estimate_cameras
+
+    check_file_output(output, overwrite, what="cameras file")
+    to_stdout = check_json(json_out, overwrite)
+    clip = read_video(video, frames=frames, max_side=max_side, masks=masks)
+    with progress_bar(2 * len(clip), "poses") as progress:
+        cams, _, _, report = estimate_cameras(clip, method=method, focal=focal,
+                                              progress=lambda done, total: progress(done))
+    cams.save(output)
+    for note in report.notes:
+        say(f"  note: {note}")
+    if not to_stdout:
+        click.echo(f"{output}: {report.summary()}")
+    write_json(json_out, dict(output=str(output), summary=report.summary(), method=report.method, mode=report.mode,
+                               frames=report.frames, focal=report.focal, focal_estimated=report.focal_estimated,
+                               reprojection_px=report.reproj_px, points=report.points, seconds=report.seconds,
+                               notes=list(report.notes)))
+
+
+@main.command()
+@click.argument("video", type=click.Path(path_type=str))
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=str),
+              help="scene file to write (.ply); a .csv log and a .psnr.png plot are written beside it")
+@click.option("--preset", default="default", show_default=True, type=click.Choice(["default", "paper", "quick"]),
+              help="default: tuned for speed; paper: 80k iterations, densify to 60k; quick: a few hundred")
+@click.option("--iterations", type=click.IntRange(1), default=None, help="override the preset's iteration count")
+@click.option("--poses", default="auto", show_default=True,
+              help="auto, identity, or a cameras .json / AnyCam .npy / COLMAP folder / .onnx model")
+@clip_options
+@device_option
+@click.option("--cap", "max_gaussians", type=click.IntRange(1), default=None, help="most Gaussians (default 10M)")
+@click.option("--budget", "max_seconds", type=click.FloatRange(min=1.0), default=None,
+              help="stop after this many seconds of training (schedules follow the budget)")
+@click.option("--sampling", type=click.Choice(["inverse_psnr", "uniform"]), default=None)
+@click.option("--static", "static_3dgs", is_flag=True, help="ablation: no temporal opacity (static 3DGS)")
+@click.option("--opacity-reset", type=click.IntRange(0), default=None, help="ablation: reset opacities every N")
+@click.option("--sh-degree", type=click.IntRange(0, 3), default=None, help="view-dependent colour (default 0)")
+@click.option("--seed", type=int, default=None)
+@click.option("--resume", is_flag=True, help="continue from the checkpoint beside OUTPUT")
+@click.option("--layer", type=click.Choice(["background", "foreground"]), default=None,
+              help="fit one layer (needs --masks): the pixels outside the masks, or the masked object on a plane")
+@click.option("--mask-dilation", type=click.IntRange(0), default=2, show_default=True,
+              help="background layer: grow the masks by this many pixels before leaving them out")
+@json_option("the fit's summary")
+@overwrite_option
+@user_errors
+def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal, device, max_gaussians, max_seconds,
+        sampling, static_3dgs, opacity_reset, sh_degree, seed, resume, layer, mask_dilation, json_out, overwrite):
+    """Fit a TOM-GS scene to VIDEO (a video file or a folder of frames).
+
+    \b
+    Examples:
+      tomgs fit clip.mp4 -o scene.ply
+      tomgs fit frames/ -o scene.ply --masks masks/ --frames 0:80 --max-side 854 --device cuda
+      tomgs fit clip.mp4 -o scene.ply --resume          # after Ctrl-C, SIGTERM or a crash
+      tomgs fit clip.mp4 -o scene.ply -y                # start over, replacing scene.* files
+      tomgs fit frames/ --masks masks/ --layer background -o bg.ply
+      tomgs fit frames/ --masks masks/ --layer foreground -o fg.ply
+    """
+    from tomgs.train import FitInterrupted, output_paths
+    from tomgs.train import fit as fit_scene
+    from tomgs.train import preset as make_config
+
+    overrides = dict(iterations=iterations, max_gaussians=max_gaussians, max_seconds=max_seconds, sampling=sampling,
+                     opacity_reset_interval=opacity_reset, sh_degree=sh_degree, seed=seed)
+    overrides = {k: v for k, v in overrides.items() if v is not None}
+    if static_3dgs:
+        overrides["temporal"] = False
+    config = make_config(preset, **overrides)
+    to_stdout = check_json(json_out, overwrite)
+
+    def row_text(row):
+        return row and (f"PSNR {row['train_psnr']} dB, {row['gaussians']:,} Gaussians, "
+                        f"{row['iteration'] / max(row['wall_s'], 1e-9):.0f} it/s")
+    try:
+        with progress_bar(config.iterations, "fit", item_show_func=row_text) as progress:
+            def on_row(row):
+                progress(row["iteration"], row)
+                say(f"  iteration {row['iteration']}: {row['wall_s']:.1f} s, {row_text(row)}, full-clip PSNR "
+                      f"{row['clip_psnr'] or '-'}", level=2)
+
+            result = fit_scene(video, output, config, masks=masks, frames=frames, max_side=max_side, poses=poses,
+                               focal=focal, device=device, resume=resume, overwrite=overwrite, progress=on_row,
+                               layer=layer, mask_dilation=mask_dilation)
+    except FitInterrupted as e:
+        click.echo(f"\n{e.message()}", err=True)
+        raise SystemExit(e.exit_code) from None
+    paths = output_paths(output)
+    if not to_stdout:
+        click.echo(f"{output}: {len(result.model):,} Gaussians, {result.iterations} iterations in "
+                   f"{result.seconds:.1f} s, full-clip PSNR {result.clip_psnr:.2f} dB")
+        click.echo(f"  error against run time: {paths['csv']} and {paths['plot']}")
+    for note in result.notes:
+        say(f"  note: {note}")
+    write_json(json_out, dict(output=str(output), gaussians=len(result.model), iterations=result.iterations,
+                               seconds=result.seconds, clip_psnr=result.clip_psnr, csv=str(paths["csv"]),
+                               plot=str(paths["plot"]), notes=list(result.notes)))
+
+
+@main.command("eval")
+@click.argument("scene", type=click.Path(path_type=str))
+@click.argument("video", type=click.Path(path_type=str))
+@click.option("--lpips", "lpips_weights", type=click.Path(path_type=str), default=None,
+              help="LPIPS AlexNet weights (.npz); default $TOMGS_LPIPS_WEIGHTS, else LPIPS is left out")
+@click.option("--json", "json_out", type=click.Path(path_type=str), default=None,
+              help="also write per-frame and mean metrics as JSON to this file ('-' for stdout)")
+@device_option
+@overwrite_option
+@user_errors
+def evaluate_command(scene, video, lpips_weights, json_out, device, overwrite):
+    """Compare SCENE, rendered at every frame it was fitted on, with VIDEO: PSNR and SSIM per frame
+    and on average, as the peers compute them (float renders, 11x11 Gaussian SSIM); LPIPS when its
+    weights are given.
+
+    \b
+    Examples:
+      tomgs eval scene.ply clip.mp4
+      tomgs eval scene.ply frames/ --lpips alexnet-lpips-v0.1.npz --json metrics.json
+      tomgs eval scene.ply clip.mp4 --json - | jq .mean     # JSON alone on stdout
+    """
+
+    from tomgs.io.scene import load_scene
+    from tomgs.io.video import read_video_for
+    from tomgs.metrics import LPIPS, default_lpips_weights, evaluate
+    from tomgs.render import resolve_device
+
+    to_stdout = check_json(json_out, overwrite)
+    dev = resolve_device(device)
+    loaded = load_scene(scene, device=dev)
+    frames = read_video_for(video, loaded.cameras)
+    weights = lpips_weights or default_lpips_weights()
+    lpips = LPIPS(weights, device=dev) if weights else None
+    report = evaluate(loaded.model, loaded.cameras, frames, lpips=lpips, device=dev)
+    for k, p, s in zip(report.frames, report.psnr, report.ssim):  # on stderr when stdout carries the JSON
+        click.echo(f"  frame {int(loaded.cameras.frame_indices[k]):5d}: PSNR {p:6.2f} dB  SSIM {s:.4f}",
+                   err=to_stdout)
+    click.echo(f"{scene}: {report.summary()}" + ("" if lpips else " (LPIPS left out: no weights given)"),
+               err=to_stdout)
+    write_json(json_out, report.to_dict())  # a perfect frame's PSNR is inf: null
