@@ -20,7 +20,10 @@ import numpy as np
 from tomgs.errors import InputError
 from tomgs.outputs import check_file_output, check_folder_output, publish
 
-VIDEO_SUFFIXES = {".mp4": "mp4v", ".avi": "MJPG", ".mov": "mp4v", ".mkv": "mp4v"}
+# suffix -> codec: H.264 (yuv420p, index first) through PyAV for the containers browsers and players
+# read (OpenCV's mp4v, MPEG-4 Part 2, plays in no browser); Motion JPEG through OpenCV for .avi
+VIDEO_SUFFIXES = {".mp4": "h264", ".mov": "h264", ".mkv": "h264", ".avi": "mjpg"}
+H264_CRF = 18  # x264's constant quality: visually lossless for rendered frames
 _FRAME_PNG = re.compile(r"\d{5,}\.png")
 
 
@@ -62,21 +65,18 @@ def write_frames(frames: Iterable[np.ndarray], path, fps: float = 25.0, numbers:
             frame = np.ascontiguousarray(frame)
             if frame.dtype != np.uint8 or frame.ndim != 3 or frame.shape[2] != 3:
                 raise ValueError(f"frames must be uint8 [H,W,3], got {frame.dtype} {frame.shape}")
-            bgr = frame[..., ::-1]
             if is_video:
                 if writer is None:
-                    fourcc = cv2.VideoWriter_fourcc(*VIDEO_SUFFIXES[path.suffix.lower()])
-                    writer = cv2.VideoWriter(str(target), fourcc, fps, (frame.shape[1], frame.shape[0]))
-                    if not writer.isOpened():
-                        raise InputError(f"{path}: OpenCV cannot write {path.suffix} here; write PNG frames to a folder")
-                writer.write(np.ascontiguousarray(bgr))
+                    make = _H264Writer if VIDEO_SUFFIXES[path.suffix.lower()] == "h264" else _MJPGWriter
+                    writer = make(target, fps, frame.shape[1], frame.shape[0])
+                writer.write(frame)
             else:
                 number = count if names is None else int(next(names))
-                if not cv2.imwrite(str(target / f"{number:05d}.png"), bgr):
+                if not cv2.imwrite(str(target / f"{number:05d}.png"), frame[..., ::-1]):
                     raise InputError(f"{path}: could not write PNG frame {number}")
             count += 1
         if writer is not None:
-            writer.release()
+            writer.close()
             writer = None
         if count == 0:
             raise InputError(f"{path}: no frames to write")
@@ -86,9 +86,58 @@ def write_frames(frames: Iterable[np.ndarray], path, fps: float = 25.0, numbers:
             _merge_frames(staging, path)
     finally:
         if writer is not None:
-            writer.release()
+            writer.close()
         shutil.rmtree(staging, ignore_errors=True)
     return count
+
+
+class _H264Writer:
+    """H.264 High profile, yuv420p, constant quality H264_CRF, the index at the front of the file
+    (`+faststart`: a browser starts playing before the whole file is loaded). yuv420p needs even
+    sides: an odd width or height is padded by repeating the last column or row."""
+
+    def __init__(self, path: Path, fps: float, width: int, height: int):
+        from fractions import Fraction
+
+        import av
+
+        self.container = av.open(str(path), "w", options={"movflags": "+faststart"})
+        self.stream = self.container.add_stream("libx264", rate=Fraction(fps).limit_denominator(1001))
+        self.stream.width, self.stream.height = width + width % 2, height + height % 2
+        self.stream.pix_fmt = "yuv420p"
+        self.stream.options = {"crf": str(H264_CRF), "profile": "high"}
+        self.pad = ((0, height % 2), (0, width % 2), (0, 0))
+        self.av = av
+
+    def write(self, rgb: np.ndarray) -> None:
+        if any(self.pad[0] + self.pad[1]):
+            rgb = np.pad(rgb, self.pad, mode="edge")
+        for packet in self.stream.encode(self.av.VideoFrame.from_ndarray(rgb, format="rgb24")):
+            self.container.mux(packet)
+
+    def close(self) -> None:
+        try:
+            for packet in self.stream.encode():  # flush the encoder's delayed frames
+                self.container.mux(packet)
+        finally:
+            self.container.close()
+
+
+class _MJPGWriter:
+    """Motion JPEG in AVI through OpenCV."""
+
+    def __init__(self, path: Path, fps: float, width: int, height: int):
+        import cv2
+
+        self.writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, (width, height))
+        if not self.writer.isOpened():
+            raise InputError(f"{path.name}: OpenCV cannot write .avi here; write .mp4 or PNG frames to a folder")
+
+    def write(self, rgb: np.ndarray) -> None:
+        self.writer.write(np.ascontiguousarray(rgb[..., ::-1]))
+
+    def close(self) -> None:
+        self.writer.release()
 
 
 def _merge_frames(staging: Path, folder: Path) -> None:
