@@ -68,7 +68,11 @@ def prepare_inputs(
         raise RenderError(f"need 0 < near < far, got near={near}, far={far}")
     if colors.dim() == 3:
         sh_degree_of(colors.shape[1])  # raises on a bad coefficient count
-        colors = sh_to_colors(colors, means, viewmat)
+        # a non-finite mean's row looks from the camera as if it sat at the origin: that Gaussian is
+        # culled anyway, and its NaN view direction would reach every gradient of means and viewmat
+        # through the SH backward (0 * NaN)
+        view_from = torch.where(torch.isfinite(means), means, torch.zeros_like(means)) if colors.shape[1] > 1 else means
+        colors = sh_to_colors(colors, view_from, viewmat)
     dtype = dtype or means.dtype
     cast = {k: v.to(dtype) for k, v in dict(tensors, colors=colors).items()}
     return RasterInputs(

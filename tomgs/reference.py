@@ -26,22 +26,6 @@ from tomgs.temporal import opacity_at
 _PER_GAUSSIAN = ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales")
 
 
-def prepare_finite_sh(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width, height, t,
-                      background, near, far, dtype) -> RasterInputs:
-    """`prepare_inputs`, but SH colours look from the camera at a non-finite mean's row as if it were
-    at the origin: that Gaussian is culled anyway, and its NaN view direction would otherwise reach
-    every gradient of means and viewmat through the SH backward (0 * NaN). Shared with tomgs.render."""
-    sh_means = means
-    if (isinstance(colors, torch.Tensor) and colors.dim() == 3 and colors.shape[1] > 1
-            and isinstance(means, torch.Tensor) and means.is_floating_point()):
-        sh_means = torch.where(torch.isfinite(means), means, torch.zeros_like(means))
-    p = prepare_inputs(sh_means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width, height, t,
-                       background, near, far, dtype)
-    if sh_means is not means:
-        p.means = means.to(p.quats.dtype)
-    return p
-
-
 def _project(p: RasterInputs) -> dict[str, torch.Tensor]:
     """Per-Gaussian 2D quantities for all N (culled ones are garbage, see `valid`)."""
     rot_view, trans_view = p.viewmat[:3, :3], p.viewmat[:3, 3]
@@ -180,7 +164,7 @@ def rasterize_reference(
     background=None, near=0.01, far=1e10, dtype=torch.float64,
 ):
     """Same signature and outputs as `tomgs.rasterize`; `dtype` is the compute precision."""
-    p = prepare_finite_sh(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width, height, t,
+    p = prepare_inputs(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width, height, t,
                           background, near, far, dtype)
     full, radii, valid, extent = _visible(p)
     # differentiate only the visible subset: culled Gaussians get exactly zero gradient, never NaN
@@ -216,4 +200,4 @@ def rasterize_reference(
 
 
 __all__ = ["rasterize_reference", "project_reference", "bin_reference", "tile_rects", "tiles_touched_reference",
-           "quat_to_rotmat", "prepare_finite_sh"]
+           "quat_to_rotmat"]

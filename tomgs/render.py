@@ -19,7 +19,6 @@ from tomgs import temporal
 from tomgs.constants import ALPHA_MIN, TILE_SIZE
 from tomgs.inputs import RasterInputs, RenderError, prepare_inputs
 from tomgs.kernels import binning, project, raster
-from tomgs.reference import prepare_finite_sh
 from tomgs.runtime import launch, scope, wrap
 
 # The radix sort needs 2 x count slots and counts in int32: 2^30 keeps both inside int32.
@@ -293,7 +292,7 @@ def rasterize(
     back with the intersection count, in the one host sync a frame has anyway.
     """
     t_hi, t_lo = _check_scalars(width, height, t, near, far)
-    p = prepare_finite_sh(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width, height, t,
+    p = prepare_inputs(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width, height, t,
                           background, near, far, torch.float32)
     frame = _Frame(p.width, p.height, t_hi, t_lo, p.near, p.far)
     if frame.num_tiles * TILE_SIZE * TILE_SIZE > MAX_THREADS:

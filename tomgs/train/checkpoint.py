@@ -273,11 +273,21 @@ def config_from(values: dict, path="<checkpoint>"):
     return TrainConfig(**values)
 
 
+def check_same_settings(saved: dict, config, where) -> None:
+    """InputError unless `config` keeps the settings a checkpoint's Gaussians depend on (SH degree,
+    temporal or static), naming the option; `saved` is the checkpoint's config dict."""
+    fitted = config_from(saved, where)
+    for name, option in (("sh_degree", "--sh-degree"), ("temporal", "--static")):
+        if getattr(fitted, name) != getattr(config, name):
+            raise InputError(f"{where} was fitted with {name}={getattr(fitted, name)!r}, this run asks for "
+                             f"{getattr(config, name)!r}: resume with the same {option}, or {START_OVER}")
+
+
 def config_to_dict(config) -> dict:
     """TrainConfig's fields as plain Python values (numpy scalars given as settings become numbers)."""
     return {k: (v.item() if hasattr(v, "item") and not isinstance(v, (str, bytes)) else v)
             for k, v in dataclasses.asdict(config).items()}
 
 
-__all__ = ["FitInterrupted", "StopSignals", "check_state", "config_from", "config_to_dict", "read_checkpoint",
+__all__ = ["FitInterrupted", "StopSignals", "check_same_settings", "check_state", "config_from", "config_to_dict", "read_checkpoint",
            "write_checkpoint"]

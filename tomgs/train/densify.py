@@ -49,17 +49,17 @@ class Densifier:
             meta["means2d"].retain_grad()
 
     def step_post_backward(self, model: GaussianModel, optimizer, meta: dict, visible: torch.Tensor,
-                           iteration: int, progress: float, after_optimizer_step) -> None:
-        """After loss.backward(): collect this step's statistics (`visible`: bool [N], the Gaussians
-        it reached), let `after_optimizer_step()` update the parameters, then, at `iteration` (the
-        step just taken, counted from 1) and `progress` (by iterations or by the wall-clock budget,
-        whichever is further): densify every `densify_interval` steps inside [densify_start_fraction,
+                           iteration: int, progress: float) -> None:
+        """After loss.backward() and the optimiser's step (as gsplat's strategies run): collect this
+        step's statistics (`visible`: bool [N], the Gaussians it reached; the projected means'
+        gradient, which the optimiser does not touch), then, at `iteration` (the step just taken,
+        counted from 1) and `progress` (by iterations or by the wall-clock budget, whichever is
+        further): densify every `densify_interval` steps inside [densify_start_fraction,
         densify_stop_fraction) until the cap, else prune every 10 intervals; reset opacities every
         `opacity_reset_interval` steps while densifying."""
         c = self.config
         if self.collecting(progress):
             self.observe(meta, visible)
-        after_optimizer_step()
         if self.due(iteration, progress) and not self.capped:
             self.step(model, optimizer)
         elif iteration % (10 * c.densify_interval) == 0:

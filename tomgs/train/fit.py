@@ -27,7 +27,7 @@ import torch
 
 from tomgs.errors import InputError
 from tomgs.outputs import check_file_output, remove_stale_temporaries
-from tomgs.train.checkpoint import START_OVER, FitInterrupted, StopSignals, config_from, read_checkpoint
+from tomgs.train.checkpoint import START_OVER, FitInterrupted, StopSignals, check_same_settings, read_checkpoint
 from tomgs.train.config import TrainConfig
 from tomgs.train.trainer import FitResult, Trainer, write_csv
 
@@ -221,11 +221,7 @@ def _check_options(saved: dict, options: dict, config: TrainConfig, checkpoint) 
     if "poses" in was and was["poses"] != options["poses"] and not objects:
         raise _refuse(checkpoint, f"was fitted with --poses {was['poses']}, this run gives {options['poses']}",
                       "--poses")
-    fitted = config_from(saved["config"], checkpoint)
-    for name, option in (("sh_degree", "--sh-degree"), ("temporal", "--static")):
-        if getattr(fitted, name) != getattr(config, name):
-            raise _refuse(checkpoint, f"was fitted with {name}={getattr(fitted, name)!r}, this run asks for "
-                                      f"{getattr(config, name)!r}", option)
+    check_same_settings(saved["config"], config, checkpoint)
 
 
 def _check_clip(was: dict, now: dict, options: dict, checkpoint) -> None:

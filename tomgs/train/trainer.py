@@ -38,9 +38,10 @@ from tomgs.model import GaussianModel, nearest_neighbour_distance
 from tomgs.render import rasterize
 from tomgs.temporal import frames_to_clip_time
 from tomgs.errors import InputError
-from tomgs.outputs import remove_stale_temporaries, write_text
+from tomgs.outputs import write_text
 from tomgs.train.checkpoint import (FORMAT, LOG_FIELDS, START_OVER, VERSION, FitInterrupted, StopSignals,
-                                    config_from, config_to_dict, read_checkpoint, write_checkpoint)
+                                    check_same_settings, config_from, config_to_dict, read_checkpoint,
+                                    write_checkpoint)
 from tomgs.train.config import TrainConfig
 from tomgs.train.densify import Densifier
 from tomgs.train.optim import SeenAdam
@@ -272,19 +273,16 @@ class Trainer:
         if len(self._measured) >= SAMPLER_LAG:
             self.flush_measurements()
         in_view = (meta["radii"] > 0).any(-1)  # bool [N]: the Gaussians this step's gradient reaches
-
-        def optimizer_step():
-            for group in self.optimizer.param_groups:
-                if group["name"] == "means":
-                    group["lr"] = self._means_lr()
-            if self.sparse_adam:
-                self.optimizer.step(in_view)
-            else:
-                self.optimizer.step()
-            self.optimizer.zero_grad(set_to_none=True)
-        self.densifier.step_post_backward(self.model, self.optimizer, meta, in_view, self.iteration + 1,
-                                          self.progress, optimizer_step)
+        for group in self.optimizer.param_groups:
+            if group["name"] == "means":
+                group["lr"] = self._means_lr()
+        if self.sparse_adam:
+            self.optimizer.step(in_view)
+        else:
+            self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
         self.iteration += 1
+        self.densifier.step_post_backward(self.model, self.optimizer, meta, in_view, self.iteration, self.progress)
 
     def flush_measurements(self) -> None:
         """Hand the PSNRs measured since the last flush to the sampler, in order (one device read)."""
@@ -304,9 +302,6 @@ class Trainer:
         KeyboardInterrupt it raises stops the run like Ctrl-C). With `checkpoint`, the state is saved
         there on the schedule above and on SIGINT / SIGTERM, which then raise FitInterrupted."""
         c = self.config
-        for path in (checkpoint, log_csv):
-            if path is not None:
-                remove_stale_temporaries(path)
         start = time.perf_counter() - self.elapsed
         next_eval = 0.0
         next_ckpt = self.elapsed + c.checkpoint_interval_s  # nothing to lose at the first step
@@ -407,11 +402,8 @@ class Trainer:
             raise InputError(f"{where} was fitted on {views} frames of {width}x{height}, but this run has "
                              f"{self.num_frames} of {self.width}x{self.height}: resume with the options it was "
                              f"started with (--frames, --max-side), or {START_OVER}")
+        check_same_settings(state["config"], self.config, where)
         saved = config_from(state["config"], where)
-        for name, option in (("sh_degree", "--sh-degree"), ("temporal", "--static")):
-            if getattr(saved, name) != getattr(self.config, name):
-                raise InputError(f"{where} was fitted with {name}={getattr(saved, name)!r}, this run asks for "
-                                 f"{getattr(self.config, name)!r}: resume with the same {option}, or {START_OVER}")
         current = self.model.parameters_by_name()
         for name, value in state["params"].items():
             if value.shape[1:] != current[name].shape[1:]:
