@@ -36,6 +36,7 @@ from click.testing import CliRunner
 
 from tomgs.cameras import Cameras, intrinsics, look_at
 from tomgs.errors import InputError
+from tomgs.geometry import rotmat_to_quat
 
 SEED = int(os.environ.get("TOMGS_FUZZ_SEED", "0"))
 SCALE = float(os.environ.get("TOMGS_FUZZ_SCALE", "8"))  # 8: about 15,600 inputs, a minute on 2 CPU cores
@@ -122,7 +123,7 @@ def corpus(tmp_path_factory) -> Corpus:
     lines = ["# Image list"]
     for k in range(3):
         w2c = np.linalg.inv(cams.c2w[k])
-        q = _rot_to_quat(w2c[:3, :3])
+        q = rotmat_to_quat(w2c[:3, :3])
         lines += [f"{k + 1} {' '.join(map(str, q))} {' '.join(map(str, w2c[:3, 3]))} 1 f{k}.png", "1.0 2.0 -1"]
     (colmap / "images.txt").write_text("\n".join(lines) + "\n")
     c.files["colmap"] = colmap
@@ -167,14 +168,6 @@ def corpus(tmp_path_factory) -> Corpus:
         (root / "poses.onnx").write_bytes(b"")
         c.files["onnx"] = root / "poses.onnx"
     return c
-
-
-def _rot_to_quat(R):
-    w = np.sqrt(max(0.0, 1 + np.trace(R))) / 2
-    x = np.copysign(np.sqrt(max(0.0, 1 + R[0, 0] - R[1, 1] - R[2, 2])) / 2, R[2, 1] - R[1, 2])
-    y = np.copysign(np.sqrt(max(0.0, 1 - R[0, 0] + R[1, 1] - R[2, 2])) / 2, R[0, 2] - R[2, 0])
-    z = np.copysign(np.sqrt(max(0.0, 1 - R[0, 0] - R[1, 1] + R[2, 2])) / 2, R[1, 0] - R[0, 1])
-    return np.array([w, x, y, z])
 
 
 # ---- mutations -----------------------------------------------------------------------------------
