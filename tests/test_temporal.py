@@ -193,3 +193,33 @@ def test_frames_and_clip_time():
     sigma = np.array([0.025, 0.1])
     np.testing.assert_allclose(clip_time_to_frames(sigma, 41), [1.0, 4.0])
     assert torch.equal(frames_to_clip_time(torch.tensor([4.0]), 5), torch.tensor([1.0]))
+
+
+def test_frozen_at_renders_that_moment_with_only_the_alive_gaussians():
+    """A frozen cloud (alive Gaussians, opacity baked) rendered at t is the full cloud rendered at t,
+    and it drops exactly the Gaussians dead at t."""
+    import tomgs
+    from tests.scenes import random_scene
+    from tomgs.temporal import frozen_at
+
+    for seed in range(3):
+        scene = {k: (v.float() if isinstance(v, torch.Tensor) else v) for k, v in random_scene(700 + seed, n=300).items()}
+        scene["t_scales"][:40] = 1e-3  # many dead at t
+        names = ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales")
+        gaussians = {k: scene[k] for k in names}
+        view = dict(viewmat=scene["viewmat"], K=scene["K"], width=scene["width"], height=scene["height"],
+                    background=scene["background"])
+        t = scene["t"]
+        frozen = frozen_at(gaussians, t)
+        alive = alive_at(gaussians["opacities"].double(), gaussians["t_means"].double(),
+                         gaussians["t_scales"].double(), t)
+        assert len(frozen["means"]) == int(alive.sum()) < 300
+        assert set(frozen) == set(names)
+        want = opacity_at(*(gaussians[k].double() for k in ("opacities", "t_means", "t_scales")), t)[alive]
+        torch.testing.assert_close(frozen["opacities"].double(), want, rtol=1e-6, atol=0)
+        full, full_alpha, _ = tomgs.rasterize(**gaussians, **view, t=t)
+        still, still_alpha, _ = tomgs.rasterize(**frozen, **view, t=t)
+        torch.testing.assert_close(still, full, rtol=0, atol=2e-6)
+        torch.testing.assert_close(still_alpha, full_alpha, rtol=0, atol=2e-6)
+    empty = frozen_at({k: v[:0] for k, v in gaussians.items()}, 0.5)
+    assert all(len(v) == 0 for v in empty.values())

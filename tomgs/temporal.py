@@ -78,6 +78,24 @@ def alive_window(opacities, t_means, t_scales, alpha_min: float = ALPHA_MIN, sla
     return t_means - r, t_means + r
 
 
+def frozen_at(gaussians: dict, t: float, alpha_min: float = ALPHA_MIN) -> dict:
+    """One moment of a clip as a static cloud: the Gaussians of `gaussians` (the rasterizer's inputs,
+    `GaussianModel.render_inputs()`: means [N,3], quats [N,4], scales [N,3], opacities [N], colors
+    [N,K,3], t_means [N], t_scales [N]) alive at clip time t, with their opacity at t baked into
+    `opacities` (computed in float64, then in the inputs' dtype). Same keys, rows of the alive ones,
+    detached; `t_means` = t and `t_scales` = 1 so that rendering the result at t draws each with
+    exactly its baked opacity, and a static tool that ignores the temporal fields sees that moment."""
+    opacities = gaussians["opacities"].detach()
+    at_t = opacity_at(opacities.double(), gaussians["t_means"].detach().double(),
+                      gaussians["t_scales"].detach().double(), float(t))
+    keep = at_t >= alpha_min
+    frozen = {name: value.detach()[keep] for name, value in gaussians.items()}
+    frozen["opacities"] = at_t[keep].to(opacities.dtype)
+    frozen["t_means"] = frozen["t_means"].new_full(frozen["t_means"].shape, float(t))
+    frozen["t_scales"] = frozen["t_scales"].new_ones(frozen["t_scales"].shape)
+    return frozen
+
+
 def frames_to_clip_time(frames, num_frames: int):
     """A duration of `frames` frames of an n-frame clip in clip time: frames / (n - 1)."""
     return frames / max(num_frames - 1, 1)
@@ -89,4 +107,4 @@ def clip_time_to_frames(duration, num_frames: int):
 
 
 __all__ = ["opacity_at", "alive_at", "peak_opacity", "alive_between", "alive_radius", "alive_window",
-           "frames_to_clip_time", "clip_time_to_frames"]
+           "frozen_at", "frames_to_clip_time", "clip_time_to_frames"]
