@@ -158,7 +158,7 @@ def save_scene(path, model, cameras: Cameras, info: dict | None = None) -> Path:
 def load_scene(path, device="cpu") -> Scene:
     """Read a scene written by `save_scene`; the model's parameters are put on `device`.
     Raises `tomgs.InputError` naming the file and the fix when it is missing or malformed."""
-    from tomgs.io.tets import read_ply
+    from tomgs.io.ply import read_ply
     from tomgs.model import GaussianModel
 
     path = Path(path)
