@@ -43,8 +43,8 @@ BACKGROUND_WIDE_FRACTION = 0.5
 @dataclass
 class LayerInputs:
     """What the trainer fits for a layer: frames uint8 [V,H,W,3] with their cameras [V] (V = T for
-    the background, 2T for the foreground's two views), Trainer keyword arguments (`weights`,
-    `alpha_targets`, `initial`), the cameras saved with the scene ([T]; None: the estimated ones),
+    the background, 2T for the foreground's two views), Trainer keyword arguments (`weights` and
+    `alpha_targets` as uint8 [V,H,W], 255 = 1, `initial`), the cameras saved with the scene ([T]; None: the estimated ones),
     and notes for the fit's report."""
 
     frames: np.ndarray
@@ -86,11 +86,12 @@ def background_inputs(clip, dilation: int = 2, masks_path=None) -> LayerInputs:
         raise InputError(f"the mask of frame {int(clip.indices[full[0]])} (dilated by {dilation} px) covers the whole "
                          f"frame: the background layer needs pixels outside the mask in every frame; drop the frame "
                          f"with --frames or use a smaller --mask-dilation")
-    weights = (~covered).astype(np.float32)
+    # uint8 0..255 like the frames (the trainer's storage): float32 would take 4/3 of the clip twice
+    weights = np.where(covered, 0, 255).astype(np.uint8)
     hooks = dict(weights=weights, wide_fraction=BACKGROUND_WIDE_FRACTION,
-                 alpha_targets=np.ones(weights.shape, np.float32))
+                 alpha_targets=np.full(weights.shape, 255, np.uint8))
     return LayerInputs(clip.frames, None, hooks, notes=[
-        f"background layer: loss on the {100 * weights.mean():.1f}% of pixels outside the masks "
+        f"background layer: loss on the {100 - 100 * covered.mean():.1f}% of pixels outside the masks "
         f"(dilated by {dilation} px); PSNR measured there"])
 
 
@@ -117,7 +118,7 @@ def foreground_inputs(clip, config, masks_path=None, device_type: str = "cpu") -
     front, back = plane_cameras(n, width, height, clip.times, clip.indices)
     cutout = np.where(masks[..., None], clip.frames, 0).astype(np.uint8)
     frames = np.concatenate([cutout, cutout[:, :, ::-1]])
-    alpha = np.concatenate([masks, masks[:, :, ::-1]]).astype(np.float32)
+    alpha = np.concatenate([masks, masks[:, :, ::-1]]).astype(np.uint8) * np.uint8(255)
     views = Cameras(np.concatenate([front.c2w, back.c2w]), front.K, width, height,
                     np.concatenate([front.times, back.times]), np.concatenate([front.frame_indices] * 2))
     model = planar_model(cutout, masks, front, config, device_type)

@@ -6,7 +6,6 @@ OpenCV is imported inside the functions so that `import tomgs` stays cheap.
 from __future__ import annotations
 
 import re
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,6 +26,8 @@ class Video:
     fps:     frames per second of the source (None for a folder of frames).
     indices: int64 [T], the source frame number of each kept frame.
     path:    where the clip came from.
+    decoded: frames the decoder produced to read it (a folder: images read); frames before the
+             keyframe preceding the first selected one, and after the last, are never decoded.
     """
 
     frames: np.ndarray
@@ -34,6 +35,7 @@ class Video:
     fps: float | None
     indices: np.ndarray
     path: Path
+    decoded: int = 0
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -178,15 +180,17 @@ def _frame_budget() -> int:
 
 
 class _Frames:
-    """Frames kept while reading: RGB, resized as they arrive, checked for one size and for memory."""
+    """Frames kept while reading: RGB, resized as they arrive, checked for one size and for memory,
+    written into one array allocated at the first frame (`count` frames expected), so the clip is
+    never held twice (a list of frames stacked at the end was)."""
 
-    def __init__(self, path: Path, max_side: int | None):
-        self.path, self.max_side = path, max_side
-        self.images: list[np.ndarray] = []
-        self.first: tuple | None = None  # (source, name) of the first kept frame
+    def __init__(self, path: Path, max_side: int | None, count: int):
+        self.path, self.max_side, self.count = path, max_side, count
+        self.array: np.ndarray | None = None  # uint8 [count, h, w, 3] once the first frame is known
+        self.kept = 0
+        self.first: str | None = None  # name of the first kept frame
         self.size: tuple[int, int] | None = None  # source (h, w)
         self.flat = True
-        self.bytes, self.budget = 0, _frame_budget()
 
     def add(self, image: np.ndarray, name: str, bgr: bool = True) -> None:
         import cv2
@@ -195,35 +199,51 @@ class _Frames:
             raise InputError(f"{name} decodes to an array of shape {image.shape}, not a colour frame: re-encode it")
         if self.size is None:
             self.size, self.first = image.shape[:2], name
+            nh, nw = _resized_size(*self.size, self.max_side)
+            need = self.count * nh * nw * 3
+            if need > _frame_budget():
+                raise InputError(f"{self.path}: {self.count} frames of {nw}x{nh} take {need / 2**30:.1f} GiB, more "
+                                 f"than half of this machine's memory: read fewer (--frames) or smaller "
+                                 f"(--max-side) frames")
+            self.array = np.empty((self.count, nh, nw, 3), np.uint8)
         elif image.shape[:2] != self.size:
             raise InputError(f"{name} is {image.shape[1]}x{image.shape[0]} but {self.first} is "
                              f"{self.size[1]}x{self.size[0]}: all frames must have one size")
+        if self.kept >= self.count:
+            raise InputError(f"{self.path}: more frames decode than its index lists: the file is corrupt; re-encode it")
         self.flat = self.flat and bool((image == image[:1, :1]).all())
-        rgb = cv2.cvtColor(image, cv2.COLOR_BGR2RGB) if bgr else image
-        nh, nw = _resized_size(*self.size, self.max_side)
-        if (nh, nw) != tuple(self.size):
-            rgb = cv2.resize(rgb, (nw, nh), interpolation=cv2.INTER_AREA)
-        self.bytes += rgb.nbytes
-        if self.bytes > self.budget:
-            raise InputError(f"{self.path}: the {len(self.images) + 1} frames read so far take {self.bytes / 2**30:.1f} "
-                             f"GiB, more than half of this machine's memory: read fewer (--frames) or smaller "
-                             f"(--max-side) frames")
-        self.images.append(rgb)
+        out = self.array[self.kept]
+        if out.shape[:2] != image.shape[:2]:
+            image = cv2.resize(image, (out.shape[1], out.shape[0]), interpolation=cv2.INTER_AREA)
+        if bgr:
+            cv2.cvtColor(image, cv2.COLOR_BGR2RGB, dst=out)
+        else:
+            out[...] = image
+        self.kept += 1
+
+    def frames(self) -> np.ndarray:
+        """uint8 [kept, h, w, 3]: the frames read (fewer than expected where a file ended early)."""
+        return self.array[:self.kept]
 
 
-def read_video(path, frames=None, max_side: int | None = None, masks=None) -> Video:
+def read_video(path, frames=None, max_side: int | None = None, masks=None, progress=None) -> Video:
     """Read a clip into memory.
 
     path:     a video file (mp4/mov/avi/mkv/...) or a folder of jpg/png frames (natural sort order).
     frames:   None (all), or a range 'start:stop:step' such as '0:80' or '::2' (source frame numbers).
-    max_side: if given, frames are resized (area filter) so that max(H, W) <= max_side.
+    max_side: if given, frames are resized (area filter) so that max(H, W) <= N.
     masks:    None, or a folder of mask images, one per source frame (same order and size as the
               frames); a pixel > 127 means moving foreground.
-    Returns a `Video`. Frames stream: only the selected ones are kept, resized as they are read.
+    progress: None, or callable(done, total) as frames are decoded (total: the frames to decode).
+    Returns a `Video`. Frames stream: a video file's index is read first (no decoding), decoding
+    starts at the keyframe before the first selected frame and stops after the last, only the
+    selected frames are converted to RGB and resized, into one uint8 array; `Video.decoded` says
+    how many frames the decoder produced.
     Raises `InputError` for a missing path, an unreadable or corrupt video, zero frames, a bad
     range, or masks of another count or size; for a video whose header declares frames larger than
     tomgs.cameras.MAX_SIDE, whose frames change size, or whose frames are all one flat colour (what
-    random bytes decode to); for images whose header declares more than MAX_SIDE a side.
+    random bytes decode to); for images whose header declares more than MAX_SIDE a side; for
+    selected frames that would take more than half of this machine's memory.
     """
     import cv2
 
@@ -233,112 +253,135 @@ def read_video(path, frames=None, max_side: int | None = None, masks=None) -> Vi
     sel = parse_frames(frames)
     if max_side is not None and int(max_side) < 1:
         raise InputError(f"max_side must be a positive number of pixels, got {max_side}")
+    report = progress or (lambda done, total: None)
 
     fps = None
-    kept = _Frames(path, max_side)
     if path.is_dir():
         files = list_images(path)
         if not files:
             raise InputError(f"{path} holds no jpg/png frames: point at a folder of images or a video file")
         total = len(files)
         idx = _select(total, sel, frames, path)
-        for i in idx:
+        kept = _Frames(path, max_side, len(idx))
+        for n, i in enumerate(idx):
             kept.add(_read_image(files[i], cv2.IMREAD_COLOR), str(files[i]))
+            report(n + 1, len(idx))
+        decoded = len(idx)
     else:
         if path.suffix.lower() not in VIDEO_EXTS:
             raise InputError(f"{path} is neither a video ({', '.join(sorted(VIDEO_EXTS))}) nor a folder of frames")
-        fps, total, idx = _read_video_file(path, sel, frames, masks is not None, kept)
+        fps, total, idx, kept, decoded = _read_video_file(path, sel, frames, max_side, report)
 
     h, w = kept.size
-    mask_arr = None
-    if masks is not None:
-        mask_arr = _read_masks(Path(masks), total, idx, h, w)
-        nh, nw = _resized_size(h, w, max_side)
-        if (nh, nw) != (h, w):
-            mask_arr = np.stack([cv2.resize(m.astype(np.uint8), (nw, nh), interpolation=cv2.INTER_NEAREST) > 0
-                                 for m in mask_arr])
-    return Video(np.ascontiguousarray(np.stack(kept.images)), mask_arr, fps, np.asarray(idx, dtype=np.int64), path)
+    nh, nw = kept.array.shape[1:3]
+    mask_arr = None if masks is None else _read_masks(Path(masks), total, idx, h, w, (nh, nw))
+    return Video(kept.frames(), mask_arr, fps, np.asarray(idx, dtype=np.int64), path, decoded)
 
 
-def _read_video_file(path: Path, sel: slice, spec, need_total: bool, kept: _Frames):
-    """Decode the frames of video file `path` that `sel` picks into `kept`: (fps or None, the total
-    frame count or None where decoding stopped early, the kept source frame numbers)."""
+def _video_index(container, stream) -> tuple[list, list]:
+    """(pts, keyframe flags) of the stream's packets in file order, read without decoding."""
+    pts, keys = [], []
+    for packet in container.demux(stream):
+        if packet.size == 0 or packet.is_discard:  # the flush packet; frames an edit list leaves out
+            continue
+        pts.append(packet.pts)
+        keys.append(bool(packet.is_keyframe))
+    return pts, keys
+
+
+def _read_video_file(path: Path, sel: slice, spec, max_side, report):
+    """Decode the frames of video file `path` that `sel` picks: (fps or None, the total frame count,
+    the kept source frame numbers, the _Frames holding them, the frames decoded).
+
+    Frame k is the k-th in presentation order. The index (one pass over the packets, no decoding)
+    gives the count, each packet's time and the keyframes: decoding seeks to the last keyframe at or
+    before the first selected frame and stops after the last one."""
     import math
 
-    import cv2
+    import av
 
     from tomgs.cameras import MAX_SIDE
 
     fix = "re-encode it (e.g. ffmpeg -i in.mov -c:v libx264 out.mp4) or extract its frames to a folder"
-
-    def open_capture():
-        cap = cv2.VideoCapture(str(path))
-        if not cap.isOpened():
-            raise InputError(f"cannot open video {path}: the file is unreadable or corrupt; {fix}")
-        return cap
-
-    cap = open_capture()
     try:
-        fps = float(cap.get(cv2.CAP_PROP_FPS))
-        fps = fps if math.isfinite(fps) and 0 < fps <= 1000 else None
-        w, h = (float(cap.get(p)) for p in (cv2.CAP_PROP_FRAME_WIDTH, cv2.CAP_PROP_FRAME_HEIGHT))
+        container = av.open(str(path), metadata_errors="ignore")
+    except (av.error.FFmpegError, UnicodeDecodeError, ValueError) as e:
+        raise InputError(f"cannot open video {path} ({str(e).strip()[:200]}): the file is unreadable or corrupt; "
+                         f"{fix}") from None
+    try:
+        if not container.streams.video:
+            raise InputError(f"cannot open video {path}: it holds no video stream; {fix}")
+        stream = container.streams.video[0]
+        if stream.codec_context is None:
+            raise InputError(f"cannot decode video {path}: no decoder for its video codec; {fix}")
+        w, h = stream.codec_context.width, stream.codec_context.height
         if not (1 <= w <= MAX_SIDE and 1 <= h <= MAX_SIDE):
-            raise InputError(f"video {path} declares {w:g}x{h:g} frames; frames are 1..{MAX_SIDE} pixels a side: "
+            raise InputError(f"video {path} declares {w}x{h} frames; frames are 1..{MAX_SIDE} pixels a side: "
                              f"the file is corrupt, or {fix}")
-        declared = {(round(w), round(h)), (round(h), round(w))}  # either way round: rotation metadata
-        # negative bounds count from the end, and masks must match the total: count first (no colour conversion)
-        need_total = need_total or any(v is not None and v < 0 for v in (sel.start, sel.stop))
-        total = None
-        if need_total:
-            total = 0
-            while cap.grab():
-                total += 1
-            cap.release()
-            cap = open_capture()
-            if total == 0:
-                raise InputError(f"video {path} has zero readable frames: the file is empty or corrupt; {fix}")
-            wanted = range(total)[sel]
+        rate = stream.average_rate or stream.guessed_rate
+        fps = float(rate) if rate else None
+        fps = fps if fps is not None and math.isfinite(fps) and 0 < fps <= 1000 else None
+        pts, keys = _video_index(container, stream)
+        total = len(pts)
+        if total == 0:
+            raise InputError(f"video {path} has zero readable frames: the file is empty or corrupt; {fix}")
+        wanted = range(total)[sel]
+        if not wanted:
+            raise InputError(f"frame range {spec!r} selects no frames of {path} ({total} frames): "
+                             f"pick a range inside 0:{total}")
+        # presentation order: frame k has the k-th smallest time; without distinct times, decode order
+        timed = None not in pts and len(set(pts)) == total
+        order = sorted(pts) if timed else None
+        rank = {t: k for k, t in enumerate(order)} if timed else {}
+        start = 0  # back from the end of the index pass: to the keyframe before the first wanted frame
+        if timed and wanted[0] > 0:
+            first = order[wanted[0]]
+            start = rank[max((t for t, key in zip(pts, keys) if key and t <= first), default=order[0])]
+        if timed:
+            container.seek(order[start], stream=stream, backward=True, any_frame=False)
         else:
-            wanted = range(sel.start or 0, sys.maxsize if sel.stop is None else sel.stop, sel.step or 1)
-        if not wanted:  # (len() of a range overflows past 2^63)
-            what = f"{path} ({total} frames)" if total is not None else str(path)
-            raise InputError(f"frame range {spec!r} selects no frames of {what}: pick a range inside the clip")
-        idx, k = [], 0
-        while k <= wanted[-1]:
-            if k in wanted:
-                ok, image = cap.read()
-            else:
-                ok, image = cap.grab(), None
-            if not ok:
+            container.seek(0)
+        stream.thread_type = "AUTO"  # frame threads: phone clips decode several times faster
+        kept = _Frames(path, max_side, len(wanted))
+        todo, chosen = wanted[-1] + 1 - start, set(wanted)
+        idx, decoded, k = [], 0, start - 1
+        for frame in container.decode(stream):
+            decoded += 1
+            k = rank.get(frame.pts, k + 1) if timed else k + 1
+            report(min(decoded, todo), todo)
+            if k > wanted[-1]:
                 break
-            if image is not None:
-                if kept.size is None and (image.shape[1], image.shape[0]) not in declared:
-                    raise InputError(f"video {path} decodes to {image.shape[1]}x{image.shape[0]} frames but its header "
-                                     f"says {w:g}x{h:g}: the file is corrupt; {fix}")
-                kept.add(image, f"frame {k} of {path}")
-                idx.append(k)
-            k += 1
-        else:
-            k = None  # stopped after the last selected frame: the total is not known
-    except cv2.error as e:
+            if k not in chosen or (idx and k <= idx[-1]):
+                continue
+            if kept.size is None and (frame.width, frame.height) not in {(w, h), (h, w)}:  # rotation metadata
+                raise InputError(f"video {path} decodes to {frame.width}x{frame.height} frames but its header "
+                                 f"says {w}x{h}: the file is corrupt; {fix}")
+            kept.add(_upright(frame.to_ndarray(format="rgb24"), frame), f"frame {k} of {path}", bgr=False)
+            idx.append(k)
+    except av.error.FFmpegError as e:
         raise InputError(f"cannot decode video {path} ({str(e).strip()[:200]}): {fix}") from None
     finally:
-        cap.release()
-    total = total if total is not None else k
-    if total == 0:
-        raise InputError(f"video {path} has zero readable frames: the file is empty or corrupt; {fix}")
+        container.close()
     if not idx:
-        raise InputError(f"frame range {spec!r} selects no frames of {path} ({total} frames): "
-                         f"pick a range inside 0:{total}")
+        raise InputError(f"frame range {spec!r} selects no decodable frames of {path} ({total} frames): "
+                         f"the file is corrupt, or pick a range inside 0:{total}")
     if kept.flat:
         raise InputError(f"video {path} decodes to {len(idx)} frame{'s' if len(idx) > 1 else ''} of one flat colour "
                          f"and nothing else: there is no picture to fit. A file of random or damaged bytes decodes "
                          f"like this; if the video is real, pick frames with content (--frames); else {fix}")
-    return fps, total, idx
+    return fps, total, idx, kept, decoded
 
 
-def _read_masks(folder: Path, total: int, idx: np.ndarray, h: int, w: int) -> np.ndarray:
-    """bool [len(idx), h, w] from a folder with one mask per source frame."""
+def _upright(image: np.ndarray, frame) -> np.ndarray:
+    """The frame as it is shown: phone clips store portrait frames sideways with a display rotation
+    (counter-clockwise degrees), which players apply."""
+    turns = round((getattr(frame, "rotation", 0) or 0) / 90) % 4
+    return np.ascontiguousarray(np.rot90(image, turns)) if turns else image
+
+
+def _read_masks(folder: Path, total: int, idx, h: int, w: int, size: tuple[int, int]) -> np.ndarray:
+    """bool [len(idx), *size] from a folder with one mask per source frame (h x w, as the source frames),
+    each resized (nearest) to `size` as it is read."""
     import cv2
 
     if not folder.is_dir():
@@ -347,28 +390,37 @@ def _read_masks(folder: Path, total: int, idx: np.ndarray, h: int, w: int) -> np
     if len(files) != total:
         raise InputError(f"{folder} holds {len(files)} masks but the clip has {total} frames: "
                          "give exactly one mask per source frame, in the same order")
-    out = np.empty((len(idx), h, w), dtype=bool)
+    out = np.empty((len(idx), *size), dtype=bool)
     for k, i in enumerate(idx):
         m = _read_image(files[i], cv2.IMREAD_GRAYSCALE)
         if m.shape != (h, w):
             raise InputError(f"mask {files[i]} is {m.shape[1]}x{m.shape[0]} but the frames are {w}x{h}: "
                              "masks must have the size of the source frames")
+        if m.shape != size:
+            m = cv2.resize(np.where(m > 127, 255, 0).astype(np.uint8), (size[1], size[0]),
+                           interpolation=cv2.INTER_NEAREST)
         out[k] = m > 127
     return out
 
 
 def read_video_for(path, cameras) -> np.ndarray:
     """uint8 [T,H,W,3]: the frames of `path` that `cameras` (a tomgs.Cameras) were made for, picked by
-    source frame number and resized as `read_video` resizes, so a scene meets its own training frames."""
-    numbers = cameras.frame_indices
-    clip = read_video(path, frames=slice(int(numbers.min()), int(numbers.max()) + 1) if len(numbers) else None,
-                      max_side=max(cameras.width, cameras.height))
+    source frame number and resized as `read_video` resizes, so a scene meets its own training frames.
+    Only the frames the scene has are converted (a regular step is read as a stepped range)."""
+    numbers = np.asarray(cameras.frame_indices, dtype=np.int64)
+    sel = None
+    if len(numbers):
+        steps = np.unique(np.diff(numbers))
+        step = int(steps[0]) if len(steps) == 1 and steps[0] > 0 else 1
+        sel = slice(int(numbers.min()), int(numbers.max()) + 1, step)
+    clip = read_video(path, frames=sel, max_side=max(cameras.width, cameras.height))
     position = {int(s): i for i, s in enumerate(clip.indices)}
-    missing = [int(s) for s in cameras.frame_indices if int(s) not in position]
+    missing = [int(s) for s in numbers if int(s) not in position]
     if missing:
         raise InputError(f"{path} has {len(clip)} frames but the scene was fitted on source frame {missing[0]}; "
                          "give the video the scene was fitted on")
-    frames = clip.frames[[position[int(s)] for s in cameras.frame_indices]]
+    order = [position[int(s)] for s in numbers]
+    frames = clip.frames if order == list(range(len(clip))) else clip.frames[order]
     if frames.shape[1:3] != (cameras.height, cameras.width):
         raise InputError(f"{path} gives {frames.shape[2]}x{frames.shape[1]} frames but the scene is "
                          f"{cameras.width}x{cameras.height}; give the video the scene was fitted on")

@@ -435,11 +435,14 @@ class Trainer:
 
 
 def _as_uint8(values, shape, name: str, device) -> torch.Tensor:
-    """float [T,H,W] in [0,1] -> uint8 [T,H,W] on `device` (stored like the frames, converted per step)."""
-    values = np.asarray(values, dtype=np.float32)
+    """uint8 [T,H,W] (255 = 1) as given, or float [T,H,W] in [0,1] converted frame by frame -> uint8
+    [T,H,W] on `device` (stored like the frames, converted per step)."""
+    values = np.asarray(values)
     if values.shape != tuple(shape):
         raise ValueError(f"{name} must have shape {tuple(shape)} like the frames, got {values.shape}")
-    return torch.as_tensor(np.rint(np.clip(values, 0.0, 1.0) * 255.0).astype(np.uint8), device=device)
+    if values.dtype != np.uint8:
+        values = np.stack([np.rint(np.clip(v.astype(np.float32), 0.0, 1.0) * 255.0).astype(np.uint8) for v in values])
+    return torch.as_tensor(values, device=device)
 
 
 def write_csv(path: Path, rows: list[dict]) -> None:
