@@ -199,6 +199,6 @@ _verbosity_options(main)
 
 
 # the commands, by room: each module adds its commands to `main`
-from tomgs.cli import editing, scenes, video  # noqa: E402,F401  (registers the commands)
+from tomgs.cli import editing, scenes, video, view  # noqa: E402,F401  (registers the commands)
 
 _verbosity_options(main)
