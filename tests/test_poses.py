@@ -10,28 +10,7 @@ import pytest
 from tomgs.io import InputError
 from tomgs.poses import estimate_cameras
 from tomgs.poses.synthetic import make_clip, orbit, pan
-
-
-def umeyama(src, dst):
-    """Similarity (s, R, t) minimising |s R src + t - dst|^2; src, dst [N,3]."""
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    S, D = src - mu_s, dst - mu_d
-    U, sig, Vt = np.linalg.svd(D.T @ S / len(src))
-    E = np.eye(3)
-    if np.linalg.det(U @ Vt) < 0:
-        E[2, 2] = -1
-    s = np.trace(np.diag(sig) @ E) / max((S ** 2).sum(1).mean(), 1e-300)
-    R = U @ E @ Vt
-    return s, R, mu_d - s * R @ mu_s
-
-
-def errors(est, gt):
-    """(max position error / path length, max rotation error in degrees) of c2w [T,4,4]."""
-    s, R, t = umeyama(est[:, :3, 3], gt[:, :3, 3])
-    pos = np.linalg.norm(s * est[:, :3, 3] @ R.T + t - gt[:, :3, 3], axis=1)
-    path = np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1).sum()
-    cos = (np.einsum("kij,kij->k", gt[:, :3, :3], est[:, :3, :3]) - 1) / 2
-    return (pos.max() / path if path > 0 else 0.0), np.degrees(np.arccos(np.clip(cos, -1, 1))).max()
+from tomgs.poses.synthetic import trajectory_errors as errors
 
 
 @pytest.fixture(scope="module")

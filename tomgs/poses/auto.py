@@ -1,13 +1,17 @@
 """The built-in, weight-free camera tracker (REFERENCES.md, "Camera poses").
 
-frames (+ moving masks) -> static-region masks -> KLT tracks -> [fixed camera? -> identity]
--> init pair (0, j) chosen by parallax left after a homography -> focal, when unknown, by
-self-calibration on a log grid and trial reconstructions -> essential matrix (USAC_MAGSAC) + a
-chirality vote + triangulation -> PnP (RANSAC + LM) per new frame, triangulating new tracks,
-windowed bundle adjustment -> final robust bundle adjustment (focal refined) -> frame 0 =
-identity, median depth of frame 0's points = 1.
+frames (+ moving masks), read one at a time into small gray copies at a working resolution
+(tracks.read_working) -> static-region masks -> KLT tracks -> [fixed camera? -> identity]
+-> keyframes (track survival and image motion) -> on the keyframes: init pair (0, j) chosen
+by parallax left after a homography -> focal, when unknown, by self-calibration on a log grid
+and trial reconstructions -> essential matrix (USAC_MAGSAC) + a chirality vote + triangulation
+-> PnP (RANSAC + LM) per new keyframe, triangulating new tracks, windowed bundle adjustment ->
+final robust bundle adjustment (focal refined) -> frame 0 = identity, median depth of frame 0's
+points = 1 -> the other frames registered to the keyframes' points (start between their two
+keyframes, one batched pose-only refinement), so the cost grows linearly with the frames.
 A clip whose views are all related by homographies (pure rotation, or a very distant scene)
-is solved with rotation-only cameras.
+is solved with rotation-only cameras. Pixel thresholds inside are in working pixels; the
+Solution is in the input frames' pixels.
 """
 
 from __future__ import annotations
@@ -17,10 +21,11 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+import torch
 
 from tomgs.cameras import intrinsics
-from tomgs.poses.ba import bundle_adjust, reprojection_errors
-from tomgs.poses.tracks import flow_motion_masks, klt_tracks, robust_fit, to_gray
+from tomgs.poses.ba import bundle_adjust, pick_device, refine_poses, reprojection_errors, so3_exp
+from tomgs.poses.tracks import WORK_SIDE, Tracks, flow_motion_masks, klt_tracks, read_working, robust_fit, select_keyframes
 
 
 @dataclass
@@ -38,6 +43,7 @@ class Solution:
     reproj_all_px: float = float("nan")  # the same median over every observation of those tracks
     rejected: float = 0.0  # fraction of those observations rejected as outliers
     point_frames: np.ndarray | None = None  # int [P,2]: first and last frame a point was tracked in
+    keyframes: np.ndarray | None = None  # int [K]: the frames solved in the bundle (None: no keyframes)
 
 
 def static_masks(masks: np.ndarray | None, gray: np.ndarray, notes: list) -> np.ndarray:
@@ -76,24 +82,33 @@ def is_fixed_camera(gray: np.ndarray, static: np.ndarray, thresh_px: float = 0.3
     return True
 
 
-def _sample_colors(frames: np.ndarray, frame_idx: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Colours float32 [N,3] in [0,1] sampled (nearest pixel) at +0.5-convention pixels."""
-    T, H, W, _ = frames.shape
+def _sample_colors(images: np.ndarray, frame_idx: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Colours float32 [N,3] in [0,1] of images uint8 [T,h,w,3] sampled (nearest pixel) at
+    +0.5-convention pixels xy [N,2] of those images."""
+    T, H, W, _ = images.shape
     xi = np.clip(np.floor(xy[:, 0]).astype(int), 0, W - 1)
     yi = np.clip(np.floor(xy[:, 1]).astype(int), 0, H - 1)
-    return frames[frame_idx, yi, xi].astype(np.float32) / 255.0
+    return images[frame_idx, yi, xi].astype(np.float32) / 255.0
 
 
-def unit_depth_points(frames: np.ndarray, K: np.ndarray, n: int = 4000, static: np.ndarray | None = None):
-    """Points at depth 1 on a grid of frame 0's pixels (no parallax to do better): ([P,3], [P,3])."""
-    _, H, W, _ = frames.shape
+def scale_K(K: np.ndarray, s: float) -> np.ndarray:
+    """Intrinsics [3,3] of an image resized by s (pixel centres at +0.5, so cx scales with it)."""
+    return np.diag([s, s, 1.0]) @ K
+
+
+def unit_depth_points(image: np.ndarray, K: np.ndarray, n: int = 4000, static: np.ndarray | None = None):
+    """Points at depth 1 on a grid of a frame's pixels (no parallax to do better): ([P,3], [P,3]).
+
+    image uint8 [H,W,3] with intrinsics K [3,3]; static bool [h,w] (any size, True = usable) or None."""
+    H, W, _ = image.shape
     step = max(1, int(np.sqrt(H * W / n)))
     ys, xs = np.mgrid[0:H:step, 0:W:step]
     xy = np.stack([xs.ravel() + 0.5, ys.ravel() + 0.5], 1)
     if static is not None:
-        xy = xy[static[0, ys.ravel(), xs.ravel()]]
+        sh, sw = static.shape
+        xy = xy[static[(ys.ravel() * sh) // H, (xs.ravel() * sw) // W]]
     pts = np.concatenate([(xy - K[:2, 2]) / np.diag(K)[:2], np.ones((len(xy), 1))], 1)
-    return pts, _sample_colors(frames, np.zeros(len(xy), int), xy)
+    return pts, _sample_colors(image[None], np.zeros(len(xy), int), xy)
 
 
 def triangulate(Ra, ta, Rb, tb, xa, xb, K):
@@ -148,51 +163,77 @@ def _recover_pose(E, xa, xb, K, inl):
 class Tracker:
     """One run of the built-in tracker on a clip; `solve()` returns a `Solution`.
 
-    frames uint8 [T,H,W,3] RGB; masks bool [T,H,W] (True = moving) or None; focal px or None
-    (estimated); progress callable(done, total) or None; K [3,3] to use instead of a centred
-    square-pixel K built from the focal (known cameras).
-    State while solving: poses as world-to-camera Rw [T,3,3], tw [T,3]; X [n_tracks,3] (nan
-    until triangulated); obs_ok bool per track observation.
+    frames uint8 [T,H,W,3] RGB or a sequence of uint8 [H,W,3]; masks bool [T,H,W] (or a sequence
+    of [H,W]; True = moving) or None; focal px or None (estimated); progress callable(done,
+    total) or None; K [3,3] to use instead of a centred square-pixel K built from the focal
+    (known cameras); work_side: long side of the working resolution; device: where the bundle
+    adjustment and the registration run (default: CUDA when torch sees it).
+    State while solving, in working pixels: poses as world-to-camera Rw [T,3,3], tw [T,3];
+    X [n_tracks,3] (nan until triangulated); obs_ok bool per track observation. While the
+    keyframes are solved, T, tracks and frame numbers are the keyframes' (self.keys maps them back).
     """
 
-    def __init__(self, frames, masks=None, focal=None, progress=None, max_corners=None, K=None):
-        self.frames = frames
-        self.K_given = None if K is None else np.asarray(K, dtype=np.float64)
-        self.T, self.H, self.W = frames.shape[:3]
-        self.masks = masks
+    def __init__(self, frames, masks=None, focal=None, progress=None, max_corners=None, K=None,
+                 work_side: int = WORK_SIDE, device=None):
+        t0 = time.perf_counter()
+        self.T_all = self.T = len(frames)
+        self._progress_fn = progress or (lambda done, total: None)
+        self._done = 0
+        self.clip = read_working(frames, masks, work_side, progress=lambda k: self._progress(0.5 * (k + 1)))
+        self.timings: dict[str, float] = {"read": time.perf_counter() - t0}
+        self.H, self.W = self.clip.gray.shape[1:]
+        self.scale = self.clip.scale
+        self.K_full = None if K is None else np.asarray(K, dtype=np.float64)
+        self.K_given = None if K is None else scale_K(self.K_full, self.scale)
         self.focal_given = focal is not None
-        self.focal = float(focal) if focal is not None else 1.2 * max(self.W, self.H)
-        self.progress = progress or (lambda done, total: None)
+        self.focal = float(focal) * self.scale if focal is not None else 1.2 * max(self.W, self.H)
         self.max_corners = max_corners or int(np.clip(self.W * self.H / 150, 300, 1500))
+        self.device = pick_device(device)
         self.notes: list[str] = []
-        self.timings: dict[str, float] = {}
         self.side = max(self.W, self.H)
         self.min_angle = 0.5  # degrees between rays for a new point; set from the first pair
+        self.keys = np.arange(self.T)
+        self.keyframes = None  # the keyframes once solved: int [K]
 
     @property
     def K(self):
         return self.K_given if self.K_given is not None else intrinsics(self.focal, self.W, self.H)
 
+    def _progress(self, units: float):
+        """Report progress out of 2 T_all: reading [0, T/2], tracks [T/2, T], keyframes [T, 1.8 T],
+        registration [1.8 T, 2 T]; never backwards, and repeated as a heartbeat during long steps."""
+        self._done = max(self._done, min(int(units), 2 * self.T_all))
+        self._progress_fn(self._done, 2 * self.T_all)
+
     def _tick(self, name, t0):
         self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - t0
         return time.perf_counter()
+
+    def _frame_no(self, k: int) -> int:
+        """The clip's frame number of solver frame k (a keyframe while keyframes are solved)."""
+        return int(self.keys[k])
 
     # ---- top level -----------------------------------------------------------------------------
 
     def solve(self) -> Solution:
         t0 = time.perf_counter()
-        T = self.T
-        gray = to_gray(self.frames)
-        self.static = static_masks(self.masks, gray, self.notes)
+        T, gray = self.T_all, self.clip.gray
+        static = static_masks(self.clip.moving, gray, self.notes)
         t0 = self._tick("masks", t0)
-        if T == 1 or is_fixed_camera(gray, self.static):
+        if T == 1 or is_fixed_camera(gray, static):
             self.notes.append("single frame: identity pose" if T == 1 else
                               "fixed camera detected: identity poses, no poses solved")
-            pts, cols = unit_depth_points(self.frames, self.K, static=self.static)
-            self.progress(2 * T, 2 * T)
-            return Solution(np.tile(np.eye(4), (T, 1, 1)), self.K, pts, cols, "fixed", float("nan"), self.notes,
-                            self.timings)
-        self.tracks = klt_tracks(gray, self.static, self.max_corners, progress=lambda k: self.progress(k + 1, 2 * T))
+            pts, cols = self._unit_depth(static)
+            self._progress(2 * T)
+            return Solution(np.tile(np.eye(4), (T, 1, 1)), self._full_K(), pts, cols, "fixed", float("nan"),
+                            self.notes, self.timings)
+        all_tracks = klt_tracks(gray, static, self.max_corners, progress=lambda k: self._progress(0.5 * T + 0.5 * (k + 1)))
+        del static
+        self.clip.gray = None  # the tracks are all that is needed from here on
+        self.keys = select_keyframes(all_tracks, T, self.side)
+        self.tracks, self.key_obs = all_tracks.subset(self.keys)
+        self.T = len(self.keys)
+        self.notes.append(f"{self.T} keyframes of {T} frames solved in the bundle, the others registered to them")
         t0 = self._tick("tracks", t0)
         j, general = self._init_pair()
         if not self.focal_given:
@@ -201,18 +242,37 @@ class Tracker:
                 f = self._focal_trials(j)
                 general = f is not None
                 self.focal = f if general else self._focal_search(j, False)
-            self.notes.append(f"focal search: {self.focal:.1f} px before the final adjustment")
+            self.notes.append(f"focal search: {self.focal / self.scale:.1f} px before the final adjustment")
         t0 = self._tick("focal", t0)
-        sol = self._solve_general(j) if general else None
-        if sol is None:
+        pts = self._solve_general(j) if general else None
+        mode = "general"
+        if pts is None:
             if general:
                 self.notes.append("two-view start failed: fell back to rotation-only cameras")
-            sol = self._solve_rotation()
-        self._tick("reconstruct", t0)
-        self.progress(2 * T, 2 * T)
+            pts, mode = self._solve_rotation(), "rotation"
+        t0 = self._tick("keyframes", t0)
+        self._register_rest(all_tracks, mode == "rotation")
+        self._tick("register", t0)
+        sol = self._solution(mode, pts)
+        if len(sol.points) == 0:  # nothing trackable (blank frames): still give the trainer something
+            sol.points, sol.colors = self._unit_depth(None)
+            sol.point_frames = None
+            self.notes.append("no trackable texture: points placed at depth 1 in front of frame 0")
+        self._progress(2 * T)
         return sol
 
-    # ---- choosing how to start -----------------------------------------------------------------
+    def _full_K(self) -> np.ndarray:
+        """K [3,3] in the input frames' pixels."""
+        if self.K_full is not None:
+            return self.K_full
+        W, H = self.clip.size
+        return intrinsics(self.focal / self.scale, W, H)
+
+    def _unit_depth(self, static: np.ndarray | None):
+        """Points at depth 1 in front of frame 0 and their colours (frame 0's colour copy)."""
+        img = self.clip.colors[0]
+        return unit_depth_points(img, scale_K(self._full_K(), img.shape[1] / self.clip.size[0]),
+                                 static=None if static is None else static[0])
 
     def _init_pair(self) -> tuple[int, bool]:
         """(j, general): frame paired with 0, and whether translation is observable.
@@ -298,17 +358,19 @@ class Tracker:
         best, seen = (np.inf, None), []
         for f in starts:
             self.focal = f
-            sol = self._solve_general(j, frames=trial, report=False)
-            if sol is not None:
-                seen.append(f"{f:.0f}->{sol.K[0, 0]:.0f} ({sol.reproj_all_px:.3f} px)")
-                if sol.reproj_all_px < best[0]:
-                    best = (sol.reproj_all_px, float(sol.K[0, 0]))
+            pts = self._solve_general(j, frames=trial, report=False)
+            self._progress(self._done)  # heartbeat: a trial takes a few seconds on a CPU
+            if pts is not None:
+                err = self._all_errors(pts)[0]
+                seen.append(f"{f / self.scale:.0f}->{self.focal / self.scale:.0f} ({err / self.scale:.3f} px)")
+                if err < best[0]:
+                    best = (err, self.focal)
         self.notes.append("focal trials, start -> refined (median error): " + ", ".join(seen))
         return best[1]  # None: no start could be reconstructed
 
     # ---- general motion ------------------------------------------------------------------------
 
-    def _solve_general(self, j: int, frames=None, report: bool = True) -> Solution | None:
+    def _solve_general(self, j: int, frames=None, report: bool = True) -> np.ndarray | None:
         """Incremental reconstruction of frame 0 and `frames` (all by default) from the pair (0, j)."""
         T, tr = self.T, self.tracks
         K = self.K
@@ -352,7 +414,7 @@ class Tracker:
                 self._local_ba()
                 n_since = 0
             if report:
-                self.progress(T + count + 2, 2 * T)
+                self._progress(self.T_all * (1 + 0.8 * (count + 2) / T))
         return self._finish(quick=not report)
 
     def _reject(self, obs_idx):
@@ -403,7 +465,8 @@ class Tracker:
         if not ok:
             rvec, tvec = rvec0, tvec0
             if self.reporting:
-                self.notes.append(f"frame {k}: too few tracked points for PnP, pose copied from frame {prev}")
+                self.notes.append(f"frame {self._frame_no(k)}: too few tracked points for PnP, pose copied from "
+                                  f"frame {self._frame_no(prev)}")
         self.Rw[k] = cv2.Rodrigues(rvec)[0]
         self.tw[k] = tvec.ravel()
         self.reg[k] = True
@@ -459,7 +522,7 @@ class Tracker:
             remap = np.cumsum(part) - 1
             R, t, X, K = bundle_adjust(self.Rw, self.tw, self.X[pts[part]], self.K, ci[m], remap[pi[m]], obs[m],
                                        free, opt_focal=opt_focal and free.any(), fix_translation=fix_translation,
-                                       iters=it, focal_bounds=bounds)
+                                       iters=it, focal_bounds=bounds, device=self.device)
             self.Rw, self.tw = R, t
             self.X[pts[part]] = X
             self.focal = float(K[0, 0])
@@ -478,13 +541,15 @@ class Tracker:
         used[np.sort(regd)[-24:]] = True
         self._run_ba(free, iters=10, opt_focal=not self.focal_given and self.reg.sum() >= 6, frames_used=used)
 
-    def _finish(self, quick: bool = False) -> Solution:
+    def _finish(self, quick: bool = False) -> np.ndarray:
+        """Final adjustment of every solved frame, then the gauge; returns the track ids with points."""
         free = self.reg.copy()
         free[0] = False
         opt_f = not self.focal_given
         # a free focal moves along a shallow valley: give it more iterations
         self._run_ba(free, iters=10 if quick else 30 if opt_f else 20, opt_focal=opt_f)
         if not quick:
+            self._progress(self._done)
             self._run_ba(free, iters=15 if opt_f else 10, opt_focal=opt_f, rest=True)
         # gauge: frame 0 stays the identity; median depth of frame 0's points = 1
         ci, pi, obs, pts, _ = self._ba_problem(free | self.reg)
@@ -493,15 +558,69 @@ class Tracker:
         s = float(np.median(d[d > 0])) if (d > 0).any() else 1.0
         self.tw /= s
         self.X /= s
-        err = reprojection_errors(self.Rw, self.tw, self.X[pts], self.K, ci, pi, obs)
+        return pts
+
+    # ---- the frames between keyframes ----------------------------------------------------------
+
+    def _register_rest(self, all_tracks: Tracks, rotation: bool):
+        """Pose every frame from the solved keyframes and switch the state to all frames.
+
+        A frame between keyframes a and b starts from their poses interpolated (rotation along
+        the geodesic, translation linearly), then all such frames are refined at once against
+        the points (pose only, Huber), observations far off are dropped, and refined again.
+        Observations of a track after the keyframe solve ended it stay rejected."""
+        T, keys, nK = self.T_all, self.keys, self.T
+        is_key = np.zeros(T, bool)
+        is_key[keys] = True
+        a = np.searchsorted(keys, np.arange(T), side="right") - 1
+        b = np.minimum(a + 1, nK - 1)
+        w = np.where(b > a, (np.arange(T) - keys[a]) / np.maximum(keys[b] - keys[a], 1), 0.0)
+        rel = self.Rw[b] @ np.transpose(self.Rw[a], (0, 2, 1))
+        rotvec = np.stack([cv2.Rodrigues(r)[0].ravel() for r in rel])
+        Rw = so3_exp(torch.as_tensor(w[:, None] * rotvec)).numpy() @ self.Rw[a]
+        tw = (1 - w)[:, None] * self.tw[a] + w[:, None] * self.tw[b]
+        Rw[keys], tw[keys] = self.Rw, self.tw
+        # track ends found while solving keyframes, as clip frame numbers
+        end = np.where(self.track_end < nK, keys[np.minimum(self.track_end, nK - 1)], T)
+        ok = np.zeros(len(all_tracks.frame), bool)
+        ok[self.key_obs] = self.obs_ok
+        tr = all_tracks
+        m = ~is_key[tr.frame] & self._has()[tr.track] & (tr.frame < end[tr.track])
+        rest = np.flatnonzero(~is_key)
+        if len(rest) and m.any():
+            slot = np.cumsum(~is_key) - 1
+            idx = np.flatnonzero(m)
+            R, t = Rw[rest], tw[rest]
+            inliers = lambda err: err <= max(0.5, 4 * float(np.median(err[np.isfinite(err)])))  # as _run_ba
+            for iters in (8, 5):  # refine, drop what is far off, refine again
+                self._progress(1.8 * T if iters == 8 else 1.9 * T)
+                R, t, err = refine_poses(R, t, self.X[tr.track[idx]], self.K, slot[tr.frame[idx]], tr.xy[idx],
+                                         fix_translation=rotation, iters=iters, device=self.device)
+                idx = idx[inliers(err)]
+            ok[idx] = True
+            count = np.bincount(slot[tr.frame[idx]], minlength=len(rest))
+            good = count >= 10
+            Rw[rest[good]], tw[rest[good]] = R[good], t[good]
+            if not good.all():
+                self.notes.append(f"{int((~good).sum())} frame(s) with under 10 tracked points: pose interpolated "
+                                  "between their keyframes")
+        self.tracks, self.T, self.keys = all_tracks, T, np.arange(T)
+        self.Rw, self.tw, self.obs_ok = Rw, tw, ok
+        self.reg = np.ones(T, bool)
+        self.keyframes = keys
+
+    def _solution(self, mode: str, pts: np.ndarray) -> Solution:
+        """The Solution of the current state for points `pts`, in the input frames' pixels."""
+        tr = self.tracks
+        m = self.obs_ok & np.isin(tr.track, pts)
+        err = reprojection_errors(self.Rw, self.tw, self.X, self.K, tr.frame[m], tr.track[m], tr.xy[m])
         c2w = np.tile(np.eye(4), (self.T, 1, 1))
         c2w[:, :3, :3] = np.transpose(self.Rw, (0, 2, 1))
         c2w[:, :3, 3] = -np.einsum("nji,nj->ni", self.Rw, self.tw)
-        sol = Solution(c2w, self.K, self.X[pts], self._point_colors(pts), "general",
-                       float(np.median(err)) if len(err) else float("nan"), self.notes, self.timings,
-                       point_frames=self._point_frames(pts))
-        self._all_errors(sol, pts)
-        return sol
+        all_px, rejected = self._all_errors(pts)
+        return Solution(c2w, self._full_K(), self.X[pts], self._point_colors(pts), mode,
+                        float(np.median(err)) / self.scale if len(err) else float("nan"), self.notes, self.timings,
+                        all_px / self.scale, rejected, self._point_frames(pts), self.keyframes)
 
     def _point_frames(self, pts: np.ndarray) -> np.ndarray:
         """int [len(pts),2]: the first and last frame of each track's observations kept."""
@@ -513,26 +632,30 @@ class Tracker:
         np.maximum.at(last, tr.track[kept], tr.frame[kept])
         return np.stack([first[pts], last[pts]], axis=1)
 
-    def _all_errors(self, sol: Solution, pts: np.ndarray):
-        """Median error over every observation of the solution's tracks, outliers included."""
+    def _all_errors(self, pts: np.ndarray) -> tuple[float, float]:
+        """(median error in working px over every observation of the tracks `pts`, outliers
+        included; the fraction rejected). nan, nan without observations."""
         tr = self.tracks
         m = self.reg[tr.frame] & np.isin(tr.track, pts)
-        if m.any():
-            e = reprojection_errors(self.Rw, self.tw, self.X, self.K, tr.frame[m], tr.track[m], tr.xy[m])
-            sol.reproj_all_px = float(np.median(e))
-            sol.rejected = float(1 - self.obs_ok[m].mean())
+        if not m.any():
+            return float("nan"), float("nan")
+        e = reprojection_errors(self.Rw, self.tw, self.X, self.K, tr.frame[m], tr.track[m], tr.xy[m])
+        return float(np.median(e)), float(1 - self.obs_ok[m].mean())
 
     def _point_colors(self, pts):
+        """float32 [len(pts),3]: each track's colour where it was first seen."""
         tr = self.tracks
         m = np.isin(tr.track, pts)
         t, first = np.unique(tr.track[m], return_index=True)
         idx = np.flatnonzero(m)[first]
-        return _sample_colors(self.frames, tr.frame[idx], tr.xy[idx])
+        s = self.clip.colors.shape[2] / self.W  # colour copies are at most the working size
+        return _sample_colors(self.clip.colors, self.keys[tr.frame[idx]], tr.xy[idx] * s)
 
     # ---- rotation only -------------------------------------------------------------------------
 
-    def _solve_rotation(self) -> Solution:
-        """Cameras that only rotate (t = 0); points are directions placed at distance 1."""
+    def _solve_rotation(self) -> np.ndarray:
+        """Cameras that only rotate (t = 0); points are directions placed at distance 1. Returns
+        the track ids with points."""
         T, tr = self.T, self.tracks
         self.notes.append("rotation-only cameras: no parallax to recover translation")
         self.Rw = np.tile(np.eye(3), (T, 1, 1))
@@ -548,46 +671,40 @@ class Tracker:
             if len(xa) >= 8:
                 Hm, _ = robust_fit(cv2.findHomography, xa, xb, cv2.USAC_MAGSAC, 1.0)
             if Hm is None:
-                self.notes.append(f"frame {k}: no homography to frame {k - 1}, rotation copied")
+                self.notes.append(f"frame {self._frame_no(k)}: no homography to frame {self._frame_no(k - 1)}, "
+                                  "rotation copied")
                 Rrel = np.eye(3)
             else:
                 Rrel = _polar(Ki @ Hm @ K)
             self.Rw[k] = Rrel @ self.Rw[k - 1]
             self.reg[k] = True
-            self.progress(T + k + 1, 2 * T)
+            self._progress(self.T_all * (1 + 0.4 * (k + 1) / T))
         # each track becomes a point along its first ray (depth is unobservable without parallax)
         t, first = np.unique(tr.track, return_index=True)
         xy = tr.xy[first]
         rays = np.concatenate([xy, np.ones((len(xy), 1))], 1) @ Ki.T
-        self.X = np.einsum("nji,nj->ni", self.Rw[tr.frame[first]], rays / rays[:, 2:3])
+        self.X = np.full((tr.n_tracks, 3), np.nan)  # tracks seen only between keyframes get none
+        self.X[t] = np.einsum("nji,nj->ni", self.Rw[tr.frame[first]], rays / rays[:, 2:3])
         free = np.ones(T, bool)
         free[0] = False
         for iters in (20, 10):
             self._run_ba(free, iters=iters, opt_focal=not self.focal_given, fix_translation=True, rest=iters == 10)
-        ci, pi, obs, pts, _ = self._ba_problem(np.ones(T, bool))
-        X = self.X[pts]
-        X = X / np.linalg.norm(X, axis=1, keepdims=True)
-        err = reprojection_errors(self.Rw, self.tw, X, self.K, ci, pi, obs)
-        c2w = np.tile(np.eye(4), (T, 1, 1))
-        c2w[:, :3, :3] = np.transpose(self.Rw, (0, 2, 1))
-        sol = Solution(c2w, self.K, X, self._point_colors(pts), "rotation",
-                       float(np.median(err)) if len(err) else float("nan"), self.notes, self.timings,
-                       point_frames=self._point_frames(pts))
-        self.X[pts] = X
-        self._all_errors(sol, pts)
-        return sol
+            self._progress(self._done)
+        pts = self._ba_problem(np.ones(T, bool))[3]
+        self.X[pts] /= np.linalg.norm(self.X[pts], axis=1, keepdims=True)
+        return pts
 
 
-def known_camera_points(frames: np.ndarray, masks: np.ndarray | None, cams):
-    """Sparse points for given cameras: KLT tracks triangulated with the cameras' poses and
-    refined with the poses fixed. Falls back to unit-depth points when the cameras have no
-    baseline (e.g. identity poses). Returns (points [P,3], colors [P,3], median reprojection px)."""
+def known_camera_points(frames, masks, cams):
+    """Sparse points for given cameras: KLT tracks (at the working resolution) triangulated with
+    the cameras' poses and refined with the poses fixed. Falls back to unit-depth points when the
+    cameras have no baseline (e.g. identity poses). frames, masks: as `Tracker` takes them.
+    Returns (points [P,3], colors [P,3], median reprojection px of the input frames)."""
     tr = Tracker(frames, masks, cams.focal, K=cams.K)
-    gray = to_gray(frames)
-    tr.static = static_masks(masks, gray, tr.notes)
-    T = len(frames)
+    static = static_masks(tr.clip.moving, tr.clip.gray, tr.notes)
+    T = tr.T
     if T >= 2:
-        tr.tracks = klt_tracks(gray, tr.static, tr.max_corners)
+        tr.tracks = klt_tracks(tr.clip.gray, static, tr.max_corners)
         w2c = np.linalg.inv(cams.c2w)
         tr.Rw, tr.tw = w2c[:, :3, :3].copy(), w2c[:, :3, 3].copy()
         tr.reg = np.ones(T, bool)
@@ -600,7 +717,7 @@ def known_camera_points(frames: np.ndarray, masks: np.ndarray | None, cams):
             tr._run_ba(np.zeros(T, bool), iters=10, rest=True)
             ci, pi, obs, pts, _ = tr._ba_problem(np.ones(T, bool))
             err = reprojection_errors(tr.Rw, tr.tw, tr.X[pts], tr.K, ci, pi, obs)
-            return tr.X[pts], tr._point_colors(pts), float(np.median(err))
-    pts, cols = unit_depth_points(frames, cams.K, static=tr.static)
+            return tr.X[pts], tr._point_colors(pts), float(np.median(err)) / tr.scale
+    pts, cols = tr._unit_depth(static)
     # frame 0's camera coordinates -> world
     return pts @ cams.c2w[0, :3, :3].T + cams.c2w[0, :3, 3], cols, float("nan")

@@ -4,30 +4,42 @@ Poses are world-to-camera (R, t) with x_cam = R X + t, updated as R <- exp(dw) R
 the focal length (fx = fy) is updated in log space when asked. Each iteration eliminates the
 points with the Schur complement: for every point p with damped block V_p,
     S = H_cc - sum_p M_p V_p^-1 M_p^T = H_cc - Z^T Z,   Z_p = (M_p chol(V_p^-1))^T,
-so the reduced camera system is one dense BLAS product, independent of track length.
-Everything is float64: numpy for the per-observation algebra (the Jacobians are a few lines, no
-autograd needed), torch for the reduced dense solve.
+so the reduced camera system is one dense product, independent of track length.
+Everything is float64 torch on `device` (the per-observation algebra is a few scatter-adds; the
+reduced product Z^T Z is what grows with the keyframes, and is what a GPU takes over); numpy at
+the boundary. `refine_poses` is the pose-only version for many frames at once (points fixed),
+used to register the frames between keyframes.
 Observations are in pixels with +0.5 centres, like K.
 """
 
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 
-def so3_exp(w: np.ndarray) -> np.ndarray:
-    """Rodrigues: axis-angle [N,3] -> rotation [N,3,3]."""
-    th = np.linalg.norm(w, axis=1)[:, None, None]
-    small = th < 1e-8
-    a = np.where(small, 1.0, np.sin(th) / np.where(small, 1.0, th))
-    b = np.where(small, 0.5, (1 - np.cos(th)) / np.where(small, 1.0, th * th))
-    return np.eye(3) + a * skew(w) + b * (skew(w) @ skew(w))
+def pick_device(device=None) -> torch.device:
+    """The device for the heavy algebra: `device` if given, else CUDA when torch sees it."""
+    if device is not None:
+        return torch.device(device)
+    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
 
 
-def skew(v: np.ndarray) -> np.ndarray:
+def skew(v: torch.Tensor) -> torch.Tensor:
     """[N,3] -> [N,3,3] cross-product matrices."""
-    z = np.zeros(len(v))
-    return np.stack([z, -v[:, 2], v[:, 1], v[:, 2], z, -v[:, 0], -v[:, 1], v[:, 0], z], 1).reshape(-1, 3, 3)
+    z = torch.zeros_like(v[:, 0])
+    return torch.stack([z, -v[:, 2], v[:, 1], v[:, 2], z, -v[:, 0], -v[:, 1], v[:, 0], z], 1).reshape(-1, 3, 3)
+
+
+def so3_exp(w: torch.Tensor) -> torch.Tensor:
+    """Rodrigues: axis-angle [N,3] -> rotation [N,3,3]."""
+    th = torch.linalg.norm(w, dim=1)[:, None, None]
+    small = th < 1e-8
+    safe = torch.where(small, torch.ones_like(th), th)
+    a = torch.where(small, torch.ones_like(th), torch.sin(safe) / safe)
+    b = torch.where(small, torch.full_like(th, 0.5), (1 - torch.cos(safe)) / (safe * safe))
+    S = skew(w)
+    return torch.eye(3, dtype=w.dtype, device=w.device) + a * S + b * (S @ S)
 
 
 def reprojection_errors(R, t, X, K, cam_idx, pt_idx, obs) -> np.ndarray:
@@ -43,22 +55,41 @@ def reprojection_errors(R, t, X, K, cam_idx, pt_idx, obs) -> np.ndarray:
     return err
 
 
-def _huber_cost(err: np.ndarray, delta: float) -> float:
-    e = np.where(np.isfinite(err), err, 1e6)
-    return float(np.where(e <= delta, 0.5 * e * e, delta * (e - 0.5 * delta)).sum())
+def _huber(n: torch.Tensor, delta: float) -> torch.Tensor:
+    """Huber cost per residual norm [N] (non-finite counts as 1e6 px)."""
+    e = torch.where(torch.isfinite(n), n, torch.full_like(n, 1e6))
+    return torch.where(e <= delta, 0.5 * e * e, delta * (e - 0.5 * delta))
 
 
-def _reduced_solve(H: np.ndarray, Z: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Solve (H - Z^T Z) x = b. Done in torch on one thread: for these sizes (a few hundred
-    unknowns) handing BLAS work to threads costs more than it saves on a busy 2-core machine."""
-    import torch
+def _project(Rc, tc, Xp, f, c, obs):
+    """Camera points [N,3] and residuals [N,2] (pixels) of points Xp [N,3] in cameras (Rc [N,3,3], tc [N,3])."""
+    Xc = torch.einsum("nij,nj->ni", Rc, Xp) + tc
+    return Xc, f * Xc[:, :2] / Xc[:, 2:3].clamp_min(1e-6) + c - obs
 
+
+def _jacobians(Xc, tc, r, obs, c, f, delta):
+    """Per observation: d(residual)/d(point in camera) du [N,2,3], the rotation block Jw [N,2,3],
+    and the IRLS weight sqrt(w) [N,1] of the Huber loss."""
+    z = Xc[:, 2].clamp_min(1e-6)
+    du = torch.zeros(len(Xc), 2, 3, dtype=Xc.dtype, device=Xc.device)
+    du[:, 0, 0] = du[:, 1, 1] = f / z
+    du[:, 0, 2] = -f * Xc[:, 0] / z ** 2
+    du[:, 1, 2] = -f * Xc[:, 1] / z ** 2
+    Jw = -du @ skew(Xc - tc)
+    n = torch.linalg.norm(r, dim=1)
+    sw = torch.sqrt(torch.where(n <= delta, torch.ones_like(n), delta / n.clamp_min(1e-12)))[:, None]
+    return du, Jw, sw
+
+
+def _reduced_solve(H: torch.Tensor, Z: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Solve (H - Z^T Z) x = b. On the CPU in one thread: for a few hundred unknowns handing
+    BLAS work to threads costs more than it saves on a busy 2-core machine."""
+    if H.device.type != "cpu":
+        return torch.linalg.solve(H - Z.T @ Z, b)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        Zt = torch.from_numpy(np.ascontiguousarray(Z))
-        S = torch.from_numpy(H) - Zt.T @ Zt
-        return torch.linalg.solve(S, torch.from_numpy(b)).numpy()
+        return torch.linalg.solve(H - Z.T @ Z, b)
     finally:
         torch.set_num_threads(threads)
 
@@ -66,18 +97,23 @@ def _reduced_solve(H: np.ndarray, Z: np.ndarray, b: np.ndarray) -> np.ndarray:
 def bundle_adjust(R0: np.ndarray, t0: np.ndarray, X0: np.ndarray, K: np.ndarray,
                   cam_idx: np.ndarray, pt_idx: np.ndarray, obs: np.ndarray,
                   free_cams: np.ndarray, opt_focal: bool = False, fix_translation: bool = False,
-                  iters: int = 20, delta: float = 1.0, focal_bounds=(0.0, np.inf)):
+                  iters: int = 20, delta: float = 1.0, focal_bounds=(0.0, np.inf), device=None):
     """Refine poses of free cameras, all points, and optionally the focal length.
 
     R0 [C,3,3], t0 [C,3]: world-to-camera; X0 [P,3]; K [3,3]; cam_idx, pt_idx int [N]; obs [N,2]
     pixels; free_cams bool [C]. fix_translation keeps t (rotation-only cameras). The focal stays
-    inside focal_bounds (a tiny focal is a degenerate way to shrink every error).
-    Returns (R [C,3,3], t [C,3], X [P,3], K [3,3]).
+    inside focal_bounds (a tiny focal is a degenerate way to shrink every error). device: where
+    the algebra runs (pick_device's default).
+    Returns numpy (R [C,3,3], t [C,3], X [P,3], K [3,3]).
     """
-    R, t, X, K = R0.copy(), t0.copy(), X0.copy(), K.copy()
+    K = K.copy()
     N, P = len(obs), len(X0)
     if N == 0:
-        return R, t, X, K
+        return R0.copy(), t0.copy(), X0.copy(), K
+    dev = pick_device(device)
+    T = lambda a, dt=torch.float64: torch.as_tensor(np.ascontiguousarray(a), dtype=dt, device=dev)
+    R, t, X = T(R0), T(t0), T(X0)
+    ci, pi, obs_t = T(cam_idx, torch.int64), T(pt_idx, torch.int64), T(obs)
     cb = 3 if fix_translation else 6
     fc = np.flatnonzero(free_cams)
     slot = np.full(len(R0), -1)
@@ -87,62 +123,58 @@ def bundle_adjust(R0: np.ndarray, t0: np.ndarray, X0: np.ndarray, K: np.ndarray,
     D = nC + 1 + cb
     s = slot[cam_idx]
     cols = np.where(s[:, None] >= 0, s[:, None] * cb + np.arange(cb), trash + np.arange(cb))
-    cols = np.concatenate([cols, np.full((N, 1), fcol)], 1)  # [N, cb + 1]
-    keep = np.r_[np.arange(nC), [fcol] if opt_focal else []].astype(int)
-    hidx = (cols[:, :, None] * D + cols[:, None, :]).ravel()
-    zcol = np.repeat(cols[:, :, None], 3, 2)  # [N, cb+1, 3]
-    zidx = ((3 * pt_idx[:, None, None] + np.arange(3)[None, None, :]) * D + zcol).ravel()
-    c = K[:2, 2]
+    cols = T(np.concatenate([cols, np.full((N, 1), fcol)], 1), torch.int64)  # [N, cb + 1]
+    keep = T(np.r_[np.arange(nC), [fcol] if opt_focal else []], torch.int64)
+    hidx = (cols[:, :, None] * D + cols[:, None, :]).reshape(-1)
+    zidx = ((3 * pi[:, None, None] + torch.arange(3, device=dev)[None, None, :]) * D + cols[:, :, None]).reshape(-1)
+    fct = T(fc, torch.int64)
+    c = T(K[:2, 2])
+    eye3 = torch.eye(3, dtype=torch.float64, device=dev)
+    eyeD = torch.eye(D, dtype=torch.float64, device=dev)
 
-    def residuals(R, t, X, f):
-        Xc = np.einsum("nij,nj->ni", R[cam_idx], X[pt_idx]) + t[cam_idx]
-        return Xc, f * Xc[:, :2] / np.maximum(Xc[:, 2:3], 1e-6) + c - obs
+    def add(idx, w, n):  # scatter-add of weights w into n bins
+        return torch.zeros(n, dtype=torch.float64, device=dev).index_add_(0, idx, w.reshape(-1))
 
-    f = K[0, 0]
-    cost = _huber_cost(np.linalg.norm(residuals(R, t, X, f)[1], axis=1), delta)
+    def cost_of(R, t, X, f):
+        return float(_huber(torch.linalg.norm(_project(R[ci], t[ci], X[pi], f, c, obs_t)[1], dim=1), delta).sum())
+
+    f = float(K[0, 0])
+    cost = cost_of(R, t, X, f)
     lam = 1e-3
     for _ in range(iters):
-        Xc, r = residuals(R, t, X, f)
-        z = np.maximum(Xc[:, 2], 1e-6)
-        n = np.linalg.norm(r, axis=1)
-        sw = np.sqrt(np.where(n <= delta, 1.0, delta / np.maximum(n, 1e-12)))[:, None]  # IRLS
-        du = np.zeros((N, 2, 3))
-        du[:, 0, 0] = du[:, 1, 1] = f / z
-        du[:, 0, 2] = -f * Xc[:, 0] / z ** 2
-        du[:, 1, 2] = -f * Xc[:, 1] / z ** 2
-        Jw = -du @ skew(Xc - t[cam_idx])
-        A = np.concatenate([Jw] + ([] if fix_translation else [du]) + [(r + obs - c)[:, :, None]], 2)
-        A *= sw[:, :, None]
-        B = (du @ R[cam_idx]) * sw[:, :, None]
+        Xc, r = _project(R[ci], t[ci], X[pi], f, c, obs_t)
+        du, Jw, sw = _jacobians(Xc, t[ci], r, obs_t, c, f, delta)
+        A = torch.cat([Jw] + ([] if fix_translation else [du]) + [(r + obs_t - c)[:, :, None]], 2) * sw[:, :, None]
+        B = (du @ R[ci]) * sw[:, :, None]
         rw = r * sw
-        H = np.bincount(hidx, (A.transpose(0, 2, 1) @ A).ravel(), D * D).reshape(D, D)
-        g = np.bincount(cols.ravel(), np.einsum("nki,nk->ni", A, rw).ravel(), D)
-        V = np.stack([np.bincount(pt_idx, (B[:, :, i] * B[:, :, j]).sum(1), P)
-                      for i in range(3) for j in range(3)], 1).reshape(P, 3, 3)
-        gp = np.stack([np.bincount(pt_idx, (B[:, :, i] * rw).sum(1), P) for i in range(3)], 1)
-        W = A.transpose(0, 2, 1) @ B  # [N, cb+1, 3]
+        H = add(hidx, A.transpose(1, 2) @ A, D * D).reshape(D, D)
+        g = add(cols.reshape(-1), torch.einsum("nki,nk->ni", A, rw), D)
+        V = add((pi[:, None] * 9 + torch.arange(9, device=dev)).reshape(-1), B.transpose(1, 2) @ B, 9 * P).reshape(P, 3, 3)
+        gp = add((pi[:, None] * 3 + torch.arange(3, device=dev)).reshape(-1), torch.einsum("nki,nk->ni", B, rw), 3 * P)
+        gp = gp.reshape(P, 3)
+        W = A.transpose(1, 2) @ B  # [N, cb+1, 3]
         while True:
-            Hd = H + lam * np.diag(np.diag(H)) + 1e-9 * np.eye(D)
-            Vd = V + lam * V * np.eye(3) + 1e-9 * np.eye(3)
-            Vinv = np.linalg.inv(Vd)
-            L = np.linalg.cholesky(0.5 * (Vinv + Vinv.transpose(0, 2, 1)))
-            Z = np.bincount(zidx, (W @ L[pt_idx]).ravel(), 3 * P * D).reshape(3 * P, D)
-            Vg = np.einsum("pij,pj->pi", Vinv, gp)
-            rhs = g - np.bincount(cols.ravel(), np.einsum("nij,nj->ni", W, Vg[pt_idx]).ravel(), D)
-            dc = np.zeros(D)
+            Hd = H + lam * torch.diag(torch.diag(H)) + 1e-9 * eyeD
+            Vd = V + lam * V * eye3 + 1e-9 * eye3
+            Vinv = torch.linalg.inv(Vd)
+            L = torch.linalg.cholesky(0.5 * (Vinv + Vinv.transpose(1, 2)))
+            Z = add(zidx, W @ L[pi], 3 * P * D).reshape(3 * P, D)
+            Vg = torch.einsum("pij,pj->pi", Vinv, gp)
+            rhs = g - add(cols.reshape(-1), torch.einsum("nij,nj->ni", W, Vg[pi]), D)
+            dc = torch.zeros(D, dtype=torch.float64, device=dev)
             if len(keep):
-                dc[keep] = _reduced_solve(Hd[np.ix_(keep, keep)], Z[:, keep], -rhs[keep])
-            wdc = np.einsum("nij,ni->nj", W, dc[cols])
-            back = np.stack([np.bincount(pt_idx, wdc[:, i], P) for i in range(3)], 1)
-            dX = -np.einsum("pij,pj->pi", Vinv, gp + back)
+                dc[keep] = _reduced_solve(Hd[keep][:, keep], Z[:, keep], -rhs[keep])
+            wdc = torch.einsum("nij,ni->nj", W, dc[cols])
+            back = add((pi[:, None] * 3 + torch.arange(3, device=dev)).reshape(-1), wdc, 3 * P).reshape(P, 3)
+            dX = -torch.einsum("pij,pj->pi", Vinv, gp + back)
             dcam = dc[:nC].reshape(-1, cb)
-            R1, t1 = R.copy(), t.copy()
-            R1[fc] = so3_exp(dcam[:, :3]) @ R[fc]
+            R1, t1 = R.clone(), t.clone()
+            R1[fct] = so3_exp(dcam[:, :3]) @ R[fct]
             if not fix_translation:
-                t1[fc] = t[fc] + dcam[:, 3:]
-            f1 = float(np.clip(f * np.exp(dc[fcol]), *focal_bounds)) if opt_focal else f
+                t1[fct] = t[fct] + dcam[:, 3:]
+            f1 = float(np.clip(f * np.exp(float(dc[fcol])), *focal_bounds)) if opt_focal else f
             X1 = X + dX
-            new = _huber_cost(np.linalg.norm(residuals(R1, t1, X1, f1)[1], axis=1), delta)
+            new = cost_of(R1, t1, X1, f1)
             if new < cost:
                 R, t, X, f = R1, t1, X1, f1
                 improved = (cost - new) / max(cost, 1e-12)
@@ -155,4 +187,51 @@ def bundle_adjust(R0: np.ndarray, t0: np.ndarray, X0: np.ndarray, K: np.ndarray,
         if improved < 1e-5:
             break
     K[0, 0] = K[1, 1] = f
-    return R, t, X, K
+    return R.cpu().numpy(), t.cpu().numpy(), X.cpu().numpy(), K
+
+
+def refine_poses(R0: np.ndarray, t0: np.ndarray, X: np.ndarray, K: np.ndarray, cam_idx: np.ndarray,
+                 obs: np.ndarray, fix_translation: bool = False, iters: int = 10, delta: float = 1.0, device=None):
+    """Pose-only Levenberg-Marquardt for many cameras at once, points fixed: each camera solves
+    its own 6x6 (3x3 with fix_translation) damped system, all in one batch.
+
+    R0 [C,3,3], t0 [C,3] world-to-camera starting poses; X [N,3] the point of each observation;
+    K [3,3]; cam_idx int [N]; obs [N,2] pixels. A camera's step is kept only where it lowers that
+    camera's Huber cost. Returns numpy (R [C,3,3], t [C,3], error per observation [N] in pixels).
+    """
+    dev = pick_device(device)
+    T = lambda a, dt=torch.float64: torch.as_tensor(np.ascontiguousarray(a), dtype=dt, device=dev)
+    R, t, Xo, ci, obs_t = T(R0), T(t0), T(X), T(cam_idx, torch.int64), T(obs)
+    C, cb = len(R0), 3 if fix_translation else 6
+    f, c = float(K[0, 0]), T(K[:2, 2])
+
+    def costs(R, t):
+        _, r = _project(R[ci], t[ci], Xo, f, c, obs_t)
+        return torch.zeros(C, dtype=torch.float64, device=dev).index_add_(0, ci, _huber(torch.linalg.norm(r, dim=1),
+                                                                                          delta))
+
+    cost = costs(R, t)
+    lam = torch.full((C,), 1e-3, dtype=torch.float64, device=dev)
+    eye = torch.eye(cb, dtype=torch.float64, device=dev)
+    for _ in range(iters):
+        Xc, r = _project(R[ci], t[ci], Xo, f, c, obs_t)
+        du, Jw, sw = _jacobians(Xc, t[ci], r, obs_t, c, f, delta)
+        J = (Jw if fix_translation else torch.cat([Jw, du], 2)) * sw[:, :, None]  # [N,2,cb]
+        H = torch.zeros(C, cb, cb, dtype=torch.float64, device=dev).index_add_(0, ci, J.transpose(1, 2) @ J)
+        g = torch.zeros(C, cb, dtype=torch.float64, device=dev).index_add_(0, ci, torch.einsum("nki,nk->ni", J,
+                                                                                              r * sw))
+        Hd = H + lam[:, None, None] * (H * eye) + 1e-9 * eye
+        step = -torch.linalg.solve(Hd, g)
+        R1 = so3_exp(step[:, :3]) @ R
+        t1 = t if fix_translation else t + step[:, 3:]
+        new = costs(R1, t1)
+        better = new < cost
+        R = torch.where(better[:, None, None], R1, R)
+        t = torch.where(better[:, None], t1, t)
+        cost = torch.where(better, new, cost)
+        lam = torch.where(better, (lam / 3).clamp_min(1e-7), lam * 10)
+    _, r = _project(R[ci], t[ci], Xo, f, c, obs_t)
+    err = torch.linalg.norm(r, dim=1)
+    Xc_z = (torch.einsum("nij,nj->ni", R[ci], Xo) + t[ci])[:, 2]
+    err = torch.where(Xc_z > 1e-9, err, torch.full_like(err, float("inf")))
+    return R.cpu().numpy(), t.cpu().numpy(), err.cpu().numpy()

@@ -25,7 +25,9 @@ class PoseReport:
     tracks, rejected outliers included; rejected: the fraction rejected;
     seconds: wall time; points: P; notes: what was detected, skipped or assumed;
     point_frames: int [P,2], the first and last frame each point was tracked in (None: points not
-    from tracks, such as a fixed camera's or known cameras', taken as seen throughout).
+    from tracks, such as a fixed camera's or known cameras', taken as seen throughout);
+    keyframes: int [K], the frames solved in the bundle adjustment (the others were registered
+    to them), or None.
     """
 
     method: str
@@ -41,6 +43,7 @@ class PoseReport:
     reproj_all_px: float = float("nan")
     rejected: float = float("nan")
     point_frames: np.ndarray | None = None
+    keyframes: np.ndarray | None = None
 
     def summary(self) -> str:
         err = "n/a" if not np.isfinite(self.reproj_px) else f"{self.reproj_px:.2f} px"
@@ -49,16 +52,22 @@ class PoseReport:
                 f"reprojection error {err}, {self.points} points, {self.seconds:.1f} s")
 
 
-def estimate_cameras(frames, masks=None, method="auto", focal=None, progress=None):
+def estimate_cameras(frames, masks=None, method="auto", focal=None, progress=None, device=None):
     """Cameras and a sparse coloured point cloud for a clip.
 
-    frames: uint8 [T,H,W,3] RGB (or a `tomgs.io.Video`, whose masks are then used by default).
-    masks:  bool [T,H,W], True on moving content (ignored for pose estimation), or None.
+    frames: uint8 [T,H,W,3] RGB, or any sequence of uint8 [H,W,3] frames (read one at a time:
+            the tracker keeps small gray copies only), or a `tomgs.io.Video`, whose masks are then
+            used by default.
+    masks:  bool [T,H,W] (or a sequence of bool [H,W]), True on moving content (ignored for pose
+            estimation), or None.
     method: "auto" (the built-in tracker), "identity" (a fixed camera), a path to a cameras
             .json (Cameras.save), an AnyCam c2w .npy (K from `focal` or 1.2 x max(W, H)), a COLMAP
             text model folder, or an .onnx model (contract in tomgs.poses.onnx_model).
     focal:  focal length in pixels if known; None lets `auto` estimate it.
-    progress: optional callable(done, total).
+    progress: optional callable(done, total), called at least once per frame read and tracked
+            and between the solver's steps.
+    device: where the tracker's bundle adjustment and registration run ("cuda", "cpu"); None:
+            CUDA when torch sees it.
     Returns (Cameras, points float64 [P,3] (world), colors float32 [P,3] in [0,1], PoseReport).
     Raises InputError for bad frames, masks or methods.
     """
@@ -70,39 +79,36 @@ def estimate_cameras(frames, masks=None, method="auto", focal=None, progress=Non
         masks = frames.masks if masks is None else masks
         indices = frames.indices
         frames = frames.frames
-    frames = np.asarray(frames)
-    if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8 or len(frames) == 0:
+    if isinstance(frames, np.ndarray) and (frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8):
         raise InputError(f"frames must be uint8 [T,H,W,3] with T >= 1, got {frames.dtype} {frames.shape}")
-    T, H, W = frames.shape[:3]
-    if masks is not None:
-        masks = np.asarray(masks).astype(bool)
-        if masks.shape != (T, H, W):
-            raise InputError(f"masks must be bool [T,H,W] = {(T, H, W)} like the frames, got {masks.shape}")
+    if len(frames) == 0:
+        raise InputError("frames must be uint8 [T,H,W,3] with T >= 1, got no frames")
+    T = len(frames)
+    first = np.asarray(frames[0])  # the rest are checked as they are read
+    if first.ndim != 3 or first.shape[-1] != 3 or first.dtype != np.uint8:
+        raise InputError(f"frames must be uint8 [T,H,W,3] with T >= 1, got frame 0 as {first.dtype} {first.shape}")
+    H, W = first.shape[:2]
+    if isinstance(masks, np.ndarray) and masks.shape != (T, H, W):
+        raise InputError(f"masks must be bool [T,H,W] = {(T, H, W)} like the frames, got {masks.shape}")
     if focal is not None and not (np.isfinite(focal) and focal > 0):
         raise InputError(f"focal must be a positive number of pixels, got {focal}")
 
     if isinstance(method, (str, Path)) and str(method) == "auto":
         from tomgs.poses.auto import Tracker
 
-        sol = Tracker(frames, masks, focal, progress).solve()
+        sol = Tracker(frames, masks, focal, progress, device=device).solve()
         cams = Cameras.create(sol.c2w, sol.K, W, H, indices)
         rep = PoseReport("auto", sol.mode, T, cams.focal, focal is None and sol.mode != "fixed", sol.reproj_px,
                          0.0, len(sol.points), list(sol.notes), dict(sol.timings), sol.reproj_all_px, sol.rejected,
-                         sol.point_frames)
+                         sol.point_frames, sol.keyframes)
         pts, cols = sol.points, sol.colors
-        if len(pts) == 0:  # nothing trackable (blank frames): still give the trainer something
-            from tomgs.poses.auto import unit_depth_points
-
-            pts, cols = unit_depth_points(frames, cams.K)
-            rep.notes.append("no trackable texture: points placed at depth 1 in front of frame 0")
-            rep.point_frames = None
-            rep.points = len(pts)
     elif isinstance(method, (str, Path)) and str(method) == "identity":
         from tomgs.poses.auto import unit_depth_points
 
         K = intrinsics(focal if focal is not None else 1.2 * max(W, H), W, H)
         cams = Cameras.identity(T, K, W, H, indices)
-        pts, cols = unit_depth_points(frames, K, static=None if masks is None else ~masks)  # moving content left out
+        static = None if masks is None else ~np.asarray(masks[0], dtype=bool)  # moving content left out
+        pts, cols = unit_depth_points(first, K, static=static)
         rep = PoseReport("identity", "identity", T, cams.focal, False, float("nan"), 0.0, len(pts),
                          ["identity poses requested" + ("" if focal is not None else "; focal assumed 1.2 x image side")])
     else:
@@ -111,7 +117,7 @@ def estimate_cameras(frames, masks=None, method="auto", focal=None, progress=Non
             from tomgs.poses.onnx_model import run_onnx
 
             try:
-                cams = run_onnx(path, frames, indices)
+                cams = run_onnx(path, np.asarray(frames), indices)
             except InputError as e:  # Cameras' own checks do not know the file
                 raise InputError(str(e) if str(path) in str(e) else f"{path}: {str(e).removeprefix('Cameras: ')}") \
                     from None

@@ -22,9 +22,71 @@ def robust_fit(fn, *args):
     return out[0], out[1]
 
 
-def to_gray(frames: np.ndarray) -> np.ndarray:
-    """uint8 [T,H,W,3] RGB -> uint8 [T,H,W]."""
-    return np.stack([cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in frames])
+WORK_SIDE = 960  # long side (px) the tracker works at: KLT is sharp there, 1080p and 4K cost the same
+COLOR_SIDE = 480  # long side of the copies kept for point colours (they only seed the Gaussians)
+
+
+@dataclass
+class WorkingClip:
+    """A clip as the tracker keeps it: small copies made one frame at a time, never full frames.
+
+    gray: uint8 [T,h,w] at the working size; colors: uint8 [T,hc,wc,3] RGB (long side at most
+    COLOR_SIDE); moving: bool [T,h,w] (given masks, resized; True = moving) or None;
+    size: (W, H) of the input frames; scale: working / input pixels (<= 1).
+    """
+
+    gray: np.ndarray
+    colors: np.ndarray
+    moving: np.ndarray | None
+    size: tuple[int, int]
+    scale: float
+
+
+def _small(side: int, W: int, H: int) -> tuple[int, int]:
+    """(w, h) with the long side at most `side`, aspect kept."""
+    s = min(1.0, side / max(W, H))
+    return max(1, round(W * s)), max(1, round(H * s))
+
+
+def read_working(frames, masks=None, work_side: int = WORK_SIDE, progress=None) -> WorkingClip:
+    """Read a clip one frame at a time into a WorkingClip.
+
+    frames: uint8 [T,H,W,3] RGB or any sequence of uint8 [H,W,3] frames; masks: bool [T,H,W] or a
+    sequence of bool [H,W] (True = moving), or None. Each frame is resized (area averaging) and
+    converted to gray once. progress: callable(k) after frame k. Raises InputError on bad frames.
+    """
+    from tomgs.errors import InputError
+
+    T = len(frames)
+    first = np.asarray(frames[0])
+    if first.ndim != 3 or first.shape[-1] != 3 or first.dtype != np.uint8:
+        raise InputError(f"frames must be uint8 [T,H,W,3] with T >= 1, got frame 0 as {first.dtype} {first.shape}")
+    H, W = first.shape[:2]
+    if masks is not None and len(masks) != T:
+        raise InputError(f"masks must be bool [T,H,W] = {(T, H, W)} like the frames, got {len(masks)} masks")
+    w, h = _small(work_side, W, H)
+    wc, hc = _small(COLOR_SIDE, w, h)
+    gray = np.empty((T, h, w), np.uint8)
+    colors = np.empty((T, hc, wc, 3), np.uint8)
+    moving = None if masks is None else np.empty((T, h, w), bool)
+    for k in range(T):
+        f = first if k == 0 else np.asarray(frames[k])
+        if f.shape != first.shape or f.dtype != np.uint8:
+            raise InputError(f"frames must all be uint8 [H,W,3] = {first.shape}: frame {k} is {f.dtype} {f.shape}")
+        small = f if (w, h) == (W, H) else cv2.resize(f, (w, h), interpolation=cv2.INTER_AREA)
+        gray[k] = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY)
+        colors[k] = small if (wc, hc) == (w, h) else cv2.resize(small, (wc, hc), interpolation=cv2.INTER_AREA)
+        if masks is not None:
+            m = np.asarray(masks[k])
+            if m.shape != (H, W):
+                raise InputError(f"masks must be bool [T,H,W] = {(T, H, W)} like the frames, got {m.shape} for "
+                                 f"frame {k}")
+            # any moving pixel under a working pixel makes it moving
+            moving[k] = m if (w, h) == (W, H) else cv2.resize(m.astype(bool).astype(np.uint8) * 255, (w, h),
+                                                                interpolation=cv2.INTER_AREA) > 0
+        if progress is not None:
+            progress(k)
+    return WorkingClip(gray, colors, moving, (W, H), w / W)
 
 
 def _sampson(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
@@ -108,6 +170,32 @@ class Tracks:
         tb, xb = self.in_frame(b)
         ids, ia, ib = np.intersect1d(ta, tb, assume_unique=True, return_indices=True)
         return ids, xa[ia], xb[ib]
+
+    def subset(self, frames: np.ndarray) -> tuple["Tracks", np.ndarray]:
+        """The observations in `frames` (sorted int [K]), renumbered 0..K-1 (track ids kept), and
+        their indices int [n] in self."""
+        sel = np.flatnonzero(np.isin(self.frame, frames))
+        renum = np.full(int(frames[-1]) + 1, -1)
+        renum[frames] = np.arange(len(frames))
+        return Tracks(renum[self.frame[sel]], self.track[sel], self.xy[sel], self.n_tracks), sel
+
+
+def select_keyframes(tracks: Tracks, T: int, side: int, min_shared: float = 0.7, max_move: float = 0.03,
+                     max_gap: int = 30) -> np.ndarray:
+    """Frames (sorted int [K], first and last included) to solve in the bundle; the others are
+    registered to them. A new keyframe starts when fewer than `min_shared` of the last keyframe's
+    tracks survive, when they moved by more than `max_move` x `side` px (median), or after
+    `max_gap` frames; a slow clip gets few, a fast one many."""
+    keys = [0]
+    ids0, xy0 = tracks.in_frame(0)
+    for k in range(1, T):
+        ids, xy = tracks.in_frame(k)
+        _, i0, i1 = np.intersect1d(ids0, ids, assume_unique=True, return_indices=True)
+        moved = float(np.median(np.linalg.norm(xy[i1] - xy0[i0], axis=1))) if len(i0) else np.inf
+        if len(i0) < min_shared * len(ids0) or moved > max_move * side or k - keys[-1] >= max_gap or k == T - 1:
+            keys.append(k)
+            ids0, xy0 = ids, xy
+    return np.array(keys, dtype=np.int64)
 
 
 def klt_tracks(gray: np.ndarray, static: np.ndarray | None, max_corners: int = 1500,
