@@ -137,3 +137,48 @@ def object_scene(frames: int = 5, width: int = 32, height: int = 24):
     c2w = np.stack([c2w_look_at([0.1 * k, 0.0, 0.0], [0.1 * k, 0.0, 3.0]) for k in range(frames)])
     cams = Cameras.create(c2w, intrinsics(26.0, width, height), width, height)
     return model, cams, np.arange(len(wall), len(means))
+
+
+# ---- scene files (tomgs.io.scene version 2) taken apart and put back, for tests of bad files -------
+
+def clip_parts(path) -> tuple[bytes, bytes, bytes]:
+    """(PLY header and vertex rows, the clip's JSON, the camera records) of a version 2 scene file."""
+    from tomgs.io.scene import TRAILER_MAGIC
+
+    data = open(path, "rb").read()
+    end = data.index(TRAILER_MAGIC)
+    start = end + len(TRAILER_MAGIC) + 8
+    length = int.from_bytes(data[start - 8:start], "little")
+    return data[:end], data[start:start + length], data[start + length:]
+
+
+def with_clip_text(path, dst, text: bytes):
+    """A copy of scene `path` at `dst` whose clip JSON is `text` (its length field rewritten to match)."""
+    from tomgs.io.scene import TRAILER_MAGIC
+
+    head, _, records = clip_parts(path)
+    open(dst, "wb").write(head + TRAILER_MAGIC + len(text).to_bytes(8, "little") + text + records)
+    return dst
+
+
+def patch_clip(path, dst, **fields):
+    """A copy of scene `path` at `dst` whose clip JSON has `fields` set (None removes a key)."""
+    import json
+
+    clip = json.loads(clip_parts(path)[1])
+    clip.update(fields)
+    return with_clip_text(path, dst, json.dumps({k: v for k, v in clip.items() if v is not None}).encode())
+
+
+def rewrite_vertex(path, dst, edit):
+    """A copy of scene `path` at `dst` with its vertex rows replaced by `edit(rows)` (a structured
+    array of float32 properties, named as in the file); the clip after them kept."""
+    from plyfile import PlyData
+
+    from tomgs.io.scene import HEADER_NOTE, ply_header
+
+    rows = edit(PlyData.read(str(path))["vertex"].data.copy())
+    data = open(path, "rb").read()
+    trailer = data[len(clip_parts(path)[0]):]
+    open(dst, "wb").write(ply_header(rows.dtype.names, len(rows), [HEADER_NOTE]) + rows.tobytes() + trailer)
+    return dst

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
-from plyfile import PlyData, PlyElement
 
+from tests.scenes import rewrite_vertex
 from tomgs.cameras import Cameras, intrinsics, look_at
 from tomgs.cli import main
 from tomgs.io.scene import save_scene
@@ -119,16 +119,13 @@ def test_info_text_json_and_plot(tmp_path, scene):
 
 
 def _missing_property(tmp_path, scene):
-    ply = PlyData.read(str(scene))
-    v = ply["vertex"].data
-    keep = [n for n in v.dtype.names if n != "scale_1"]
-    v2 = np.empty(len(v), dtype=[(n, v.dtype[n]) for n in keep])
-    for n in keep:
-        v2[n] = v[n]
-    path = tmp_path / "inputs" / "noscale.ply"
-    PlyData([PlyElement.describe(v2, "vertex"), PlyElement.describe(ply["camera"].data, "camera")],
-            comments=ply.comments).write(str(path))
-    return path
+    def drop_scale_1(rows):
+        keep = [n for n in rows.dtype.names if n != "scale_1"]
+        out = np.empty(len(rows), dtype=[(n, rows.dtype[n]) for n in keep])
+        for n in keep:
+            out[n] = rows[n]
+        return out
+    return rewrite_vertex(scene, tmp_path / "inputs" / "noscale.ply", drop_scale_1)
 
 
 @pytest.mark.parametrize("case, args, message", [

@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from tests.scenes import clip_parts, patch_clip, with_clip_text
 from tomgs.cameras import Cameras, intrinsics
 from tomgs.cli import main
 from tomgs.errors import InputError
@@ -74,19 +75,6 @@ def small_scene(path, frame_indices=(0, 1), width=32, height=24, times=None):
     cams = Cameras(np.tile(np.eye(4), (T, 1, 1)), intrinsics(30.0, width, height), width, height,
                    np.linspace(0, 1, T) if times is None else times, frame_indices)
     return save_scene(path, model, cams)
-
-
-def patch_header(path, dst, **fields):
-    """A copy of scene `path` whose header JSON has `fields` replaced (same byte layout otherwise)."""
-    data = path.read_bytes()
-    end = data.index(b"end_header\n") + len(b"end_header\n")
-    lines = data[:end].split(b"\n")
-    k = next(i for i, l in enumerate(lines) if l.startswith(b"comment tomgs-scene "))
-    header = json.loads(lines[k][len(b"comment tomgs-scene "):])
-    header.update(fields)
-    lines[k] = b"comment tomgs-scene " + json.dumps(header).encode()
-    dst.write_bytes(b"\n".join(lines) + data[end:])
-    return dst
 
 
 def cameras_json(path, **changes):
@@ -155,7 +143,7 @@ def test_render_frames_does_not_allocate_by_the_largest_frame_number(tmp_path):
 
 @pytest.mark.parametrize("field, value", [("width", 65536), ("height", 65536), ("width", 0), ("height", -3)])
 def test_scene_header_image_size_is_bounded(tmp_path, field, value):
-    scene = patch_header(small_scene(tmp_path / "s.ply"), tmp_path / "big.ply", **{field: value})
+    scene = patch_clip(small_scene(tmp_path / "s.ply"), tmp_path / "big.ply", **{field: value})
     from tomgs.io.scene import load_scene
 
     with pytest.raises(InputError, match="big.ply"):
@@ -285,13 +273,13 @@ def test_deeply_nested_json_is_an_input_error(tmp_path, clip):
     with pytest.raises(InputError, match="keys.json"):
         load_keyframes(keys, load_scene(scene).cameras)
     nested = tmp_path / "nested.ply"
-    data = scene.read_bytes()
-    nested.write_bytes(data.replace(b'"info":{}', b'"info":{"a":' + _deep(50_000).encode() + b"}", 1))
+    text = clip_parts(scene)[1]
+    with_clip_text(scene, nested, text.replace(b'"info":{}', b'"info":{"a":' + _deep(50_000).encode() + b"}", 1))
     with pytest.raises(InputError, match="nested.ply"):
         load_scene(nested)
     middling = tmp_path / "middling.ply"  # Python reads 500 levels, but every later json.dumps of info would fail
-    middling.write_bytes(data.replace(b'"info":{}', b'"info":{"a":' + _deep(500).encode() + b"}", 1))
-    with pytest.raises(InputError, match="middling.ply.*nests deeper"):
+    with_clip_text(scene, middling, text.replace(b'"info":{}', b'"info":{"a":' + _deep(500).encode() + b"}", 1))
+    with pytest.raises(InputError, match="middling.ply.*nest deeper"):
         load_scene(middling)
     result = cli("poses", clip, "-o", tmp_path / "c.json", "--method", deep)
     assert result.exit_code == 2 and "deep.json" in result.output
@@ -354,9 +342,9 @@ def test_nan_frame_time_in_a_scene_is_refused_at_load(tmp_path):
     from tomgs.io.scene import load_scene
 
     data = bytearray(small_scene(tmp_path / "s.ply").read_bytes())
-    # the last camera row: 16 doubles of c2w, then the time (double), then the index (int32)
+    # the last camera record: 16 doubles of c2w, then the time (double), then the index (int64)
     end = len(data)
-    data[end - 12:end - 4] = np.array([np.nan], "<f8").tobytes()
+    data[end - 16:end - 8] = np.array([np.nan], "<f8").tobytes()
     (tmp_path / "nan.ply").write_bytes(bytes(data))
     with pytest.raises(InputError, match="time"):
         load_scene(tmp_path / "nan.ply")

@@ -10,12 +10,13 @@ import torch
 from plyfile import PlyData, PlyElement
 
 import tomgs
+from tests.scenes import clip_parts, patch_clip
 from tomgs.cameras import Cameras, intrinsics, look_at
 from tomgs.io import InputError
-from tomgs.io.scene import load_scene, save_scene
+from tomgs.io.scene import TRAILER_MAGIC, load_scene, save_scene
 from tomgs.jobs import render_defaults, select_frames
-from tomgs.summary import alive_per_frame, format_summary, log_histogram, summarize
 from tomgs.model import PARAM_NAMES, GaussianModel
+from tomgs.summary import alive_per_frame, format_summary, log_histogram, summarize
 
 # written out by hand from INRIA's GaussianModel.construct_list_of_attributes, not from tomgs
 INRIA_DEGREE_3 = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
@@ -98,8 +99,9 @@ def test_layout_is_inria_first_then_temporal(tmp_path):
     with torch.no_grad():  # sh_rest[i, j, c] = 1000 i + 10 j + c: where each coefficient lands is visible
         i, j, c = torch.meshgrid(torch.arange(20), torch.arange(15), torch.arange(3), indexing="ij")
         model.sh_rest.copy_((1000 * i + 10 * j + c).float())
-    ply = PlyData.read(str(save_scene(tmp_path / "s.ply", model, cams)))
-    assert [e.name for e in ply.elements] == ["vertex", "camera"]
+    path = save_scene(tmp_path / "s.ply", model, cams, {"notes": "x" * 5000})
+    ply = PlyData.read(str(path))
+    assert [e.name for e in ply.elements] == ["vertex"]  # one element: parsers that sum every property line
     vertex = ply["vertex"]
     names = [p.name for p in vertex.properties]
     assert names[:len(INRIA_DEGREE_3)] == INRIA_DEGREE_3
@@ -115,10 +117,21 @@ def test_layout_is_inria_first_then_temporal(tmp_path):
     np.testing.assert_array_equal(vertex["opacity"], model.opacity_logits.detach().numpy())
     np.testing.assert_array_equal(vertex["rot_0"], model.quats[:, 0].detach().numpy())
     np.testing.assert_array_equal(vertex["t_log_sigma"], model.log_t_scales.detach().numpy())
-    camera = ply["camera"]
-    assert len(camera.data) == 4 and camera.data.dtype["c2w_23"] == np.dtype("<f8")
-    np.testing.assert_array_equal(camera["c2w_03"], cams.c2w[:, 0, 3])
-    np.testing.assert_array_equal(camera["index"], cams.frame_indices)
+    # the header: short lines, `element vertex` third (SIBR), far under 10 kB (antimatter15/splat reads that much)
+    data = path.read_bytes()
+    header = data[:data.index(b"end_header\n") + len(b"end_header\n")]
+    lines = header.decode("ascii").splitlines()
+    assert lines[2] == "element vertex 20" and max(map(len, lines)) <= 200 and len(header) < 4096
+    # the clip after the vertex rows: magic, JSON, then float64 camera records
+    rest = data[len(header) + 20 * len(names) * 4:]
+    assert rest.startswith(b"\ntomgs-scene-data\n")
+    length = int.from_bytes(rest[18:26], "little")
+    clip = json.loads(rest[26:26 + length])
+    assert clip["version"] == 2 and clip["cameras"] == 4 and clip["info"]["notes"] == "x" * 5000
+    records = np.frombuffer(rest[26 + length:], dtype=[("c2w", "<f8", (16,)), ("time", "<f8"), ("index", "<i8")])
+    np.testing.assert_array_equal(records["c2w"].reshape(-1, 4, 4), cams.c2w)
+    np.testing.assert_array_equal(records["time"], cams.times)
+    np.testing.assert_array_equal(records["index"], cams.frame_indices)
 
 
 def test_inria_loader_reads_the_gaussians(tmp_path):
@@ -158,11 +171,12 @@ def test_save_refuses_what_would_not_load_and_keeps_the_old_file(tmp_path, monke
     with pytest.raises(ValueError, match="JSON"):
         save_scene(path, random_model(5, 1, 0), random_cameras(2), {"x": object()})
 
-    def broken_write(self, stream):
-        stream.write(b"ply\nformat binary_little_endian 1.0\n")
-        raise OSError("disk full")
+    class DiskFull:  # the header and the Gaussians are written, then the disk fills up
+        @staticmethod
+        def pack(*args):
+            raise OSError("disk full")
 
-    monkeypatch.setattr(PlyData, "write", broken_write)
+    monkeypatch.setattr("tomgs.io.scene.struct", DiskFull)
     with pytest.raises(OSError):
         save_scene(path, random_model(6, 1, 0), random_cameras(3))
     assert path.read_bytes() == before
@@ -173,6 +187,35 @@ def test_save_refuses_what_would_not_load_and_keeps_the_old_file(tmp_path, monke
 
 def _write_ply(path, elements, comments):
     PlyData(elements, text=False, byte_order="<", comments=comments).write(str(path))
+
+
+def save_version_1(path, model, cams, info=None):
+    """A scene file as tomgs 0.1 wrote it (format version 1): the header JSON in a comment, the cameras
+    as a second element `camera`. Written here from the format's description, so that old files stay
+    readable whatever save_scene writes now."""
+    scene = load_scene(save_scene(path, model, cams, info))  # the vertex rows are the same in both versions
+    vertex = PlyData.read(str(path))["vertex"].data.copy()
+    c2w = [f"c2w_{r}{c}" for r in range(4) for c in range(4)]
+    camera = np.empty(len(cams), dtype=[(n, "<f8") for n in c2w] + [("time", "<f8"), ("index", "<i4")])
+    for j, name in enumerate(c2w):
+        camera[name] = cams.c2w.reshape(len(cams), 16)[:, j]
+    camera["time"], camera["index"] = cams.times, cams.frame_indices
+    header = {"format": "tomgs-scene", "version": 1, "width": cams.width, "height": cams.height,
+              "K": cams.K.tolist(), "sh_degree": scene.model.sh_degree, "max_sh_degree": scene.model.max_sh_degree,
+              "tomgs": "0.1.0", "info": info or {}}
+    _write_ply(path, [PlyElement.describe(vertex, "vertex"), PlyElement.describe(camera, "camera")],
+               ["tomgs-scene " + json.dumps(header, separators=(",", ":"))])
+    return path
+
+
+@pytest.mark.parametrize("max_degree, degree", [(0, 0), (3, 1)])
+def test_version_1_files_still_load(tmp_path, max_degree, degree):
+    model, cams = random_model(30, max_degree, degree), random_cameras(5)
+    path = save_version_1(tmp_path / "old.ply", model, cams, {"fps": 12.0})
+    assert [e.name for e in PlyData.read(str(path)).elements] == ["vertex", "camera"]
+    scene = load_scene(path)
+    assert_same_scene(model, cams, scene)
+    assert scene.info == {"fps": 12.0}
 
 
 def _rewrite(src, dst, *, drop_vertex=(), drop_camera=False, comment=None, vertex_fn=None):
@@ -193,7 +236,12 @@ def _rewrite(src, dst, *, drop_vertex=(), drop_camera=False, comment=None, verte
 
 @pytest.fixture
 def good(tmp_path):
-    return save_scene(tmp_path / "good.ply", random_model(8, 1, 1), random_cameras(3))
+    return save_version_1(tmp_path / "good.ply", random_model(8, 1, 1), random_cameras(3))
+
+
+@pytest.fixture
+def good2(tmp_path):
+    return save_scene(tmp_path / "good2.ply", random_model(8, 1, 1), random_cameras(3), {"fps": 3.0})
 
 
 def _file(path, data: bytes):
@@ -214,8 +262,8 @@ def _nan_opacity(v):
      "damaged or truncated"),
     (lambda d, g: _rewrite(g, d / "p.ply", drop_vertex=("t_log_sigma",)), "lacks properties t_log_sigma"),
     (lambda d, g: _rewrite(g, d / "r.ply", drop_vertex=("rot_3", "f_rest_8")), "f_rest_8, rot_3"),
-    (lambda d, g: _rewrite(g, d / "c.ply", drop_camera=True), "'camera'"),
-    (lambda d, g: _rewrite(g, d / "i.ply", comment=["made by a 3DGS trainer"]), "not a tomgs scene"),
+    (lambda d, g: _rewrite(g, d / "c.ply", drop_camera=True), "no 'camera' element"),
+    (lambda d, g: _rewrite(g, d / "i.ply", comment=["made by a 3DGS trainer"]), "--cameras cameras.json"),
     (lambda d, g: _rewrite(g, d / "j.ply", comment=["tomgs-scene {not json"]), "not valid JSON"),
     (lambda d, g: _rewrite(g, d / "v.ply", comment=['tomgs-scene {"format": "tomgs-scene", "version": 9}']),
      "version 9"),
@@ -223,6 +271,29 @@ def _nan_opacity(v):
 ])
 def test_bad_files_raise_input_error(tmp_path, good, make, message):
     bad = make(tmp_path, good)
+    with pytest.raises(InputError, match=message) as e:
+        load_scene(bad)
+    assert str(bad) in str(e.value)
+
+
+@pytest.mark.parametrize("make, message", [
+    (lambda d, g: _file(d / "a.ply", clip_parts(g)[0]), "cameras and settings after the Gaussians are missing"),
+    (lambda d, g: _file(d / "b.ply", clip_parts(g)[0] + b"\nsomething-else-entirely\n" + b"0" * 400),
+     "do not start the clip's data"),
+    (lambda d, g: _file(d / "c.ply", g.read_bytes()[:-1]), "holds 431 bytes of camera records"),
+    (lambda d, g: _file(d / "d.ply", g.read_bytes() + b"\0" * 144), "declares 3 cameras but holds 576"),
+    (lambda d, g: _file(d / "e.ply", clip_parts(g)[0] + TRAILER_MAGIC + (2**63).to_bytes(8, "little")),
+     "claim"),
+    (lambda d, g: patch_clip(g, d / "f.ply", cameras=0), "declares 0 cameras"),
+    (lambda d, g: patch_clip(g, d / "g.ply", cameras=True), "declares True cameras"),
+    (lambda d, g: patch_clip(g, d / "h.ply", width=None), "'width' is missing"),
+    (lambda d, g: patch_clip(g, d / "i.ply", version=7), "version 7"),
+    (lambda d, g: _file(d / "j.ply", g.read_bytes().replace(b"tomgs-scene 2:", b"tomgs-scene 9:")), "version 9"),
+    (lambda d, g: patch_clip(g, d / "k.ply", K=[[-57.0, 0, 32], [0, 57.0, 18], [0, 0, 1]]), "bad cameras"),
+])
+def test_bad_version_2_files_raise_input_error(tmp_path, good2, make, message):
+    assert load_scene(good2).info == {"fps": 3.0}
+    bad = make(tmp_path, good2)
     with pytest.raises(InputError, match=message) as e:
         load_scene(bad)
     assert str(bad) in str(e.value)

@@ -6,6 +6,7 @@ The formats built on PLY (scenes, tets files, static 3DGS exports) live beside t
 from __future__ import annotations
 
 import re
+from dataclasses import dataclass
 from pathlib import Path
 
 from tomgs.errors import InputError
@@ -21,11 +22,21 @@ _PLY_SIZES = {name: size for size, names in ((1, "char uchar int8 uint8"), (2, "
               for name in names.split()}
 
 
-def ply_layout(path: Path, what: str = "PLY file", fix: str = "") -> list[tuple[str, int]]:
-    """[(element name, row count)] of the PLY file `path`, from a header read with a byte cap
-    (PLY_HEADER_CAP), checked against the file before anything is allocated: each element's rows take
-    at least their scalar sizes (a list at least its count; in ASCII two characters per value), and
-    all rows together must fit in the bytes after the header. InputError otherwise."""
+@dataclass
+class PlyLayout:
+    """What a PLY header declares: `elements` [(name, row count)] in file order, and `data_end`, the
+    byte offset where their rows end when every row has a fixed size (binary, no list properties),
+    else None. Bytes after `data_end` are not part of the PLY data; readers stop before them."""
+
+    elements: list[tuple[str, int]]
+    data_end: int | None
+
+
+def ply_layout(path: Path, what: str = "PLY file", fix: str = "") -> PlyLayout:
+    """The layout of the PLY file `path`, from a header read with a byte cap (PLY_HEADER_CAP), checked
+    against the file before anything is allocated: each element's rows take at least their scalar
+    sizes (a list at least its count; in ASCII two characters per value), and all rows together must
+    fit in the bytes after the header. InputError otherwise."""
     path = Path(path)
     fix = f": {fix}" if fix else ""
     if not path.is_file():
@@ -44,6 +55,7 @@ def ply_layout(path: Path, what: str = "PLY file", fix: str = "") -> list[tuple[
     body = size - end.end()
     ascii_format = False
     elements: list[list] = []  # [name, count, least bytes per row]
+    fixed_rows = True  # every row's size is known from the header alone
     for line in head[:end.start()].decode("latin-1").splitlines()[1:]:
         words = line.split()
         if not words or words[0] in ("comment", "obj_info"):
@@ -56,6 +68,7 @@ def ply_layout(path: Path, what: str = "PLY file", fix: str = "") -> list[tuple[
             elements.append([words[1], int(words[2]), 0])
         elif words[0] == "property" and elements:
             kind = words[2] if len(words) > 2 and words[1] == "list" else words[1] if len(words) > 1 else ""
+            fixed_rows = fixed_rows and not ascii_format and words[1:2] != ["list"]
             elements[-1][2] += 2 if ascii_format else _PLY_SIZES.get(kind, 1)
     for name, count, row in elements:
         least = count * max(row, 1)
@@ -63,7 +76,8 @@ def ply_layout(path: Path, what: str = "PLY file", fix: str = "") -> list[tuple[
             raise InputError(f"{path} is a damaged or truncated PLY file: element {name!r} declares {count:,} rows, "
                              f"at least {least:,} bytes, but only {body:,} bytes are left for it{fix}")
         body -= least
-    return [(name, count) for name, count, _ in elements]
+    data_end = end.end() + sum(count * row for _, count, row in elements) if fixed_rows else None
+    return PlyLayout([(name, count) for name, count, _ in elements], data_end)
 
 
 def read_ply(path, what: str = "PLY file", fix: str = "", known_list_len=None):
