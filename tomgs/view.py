@@ -435,8 +435,8 @@ class Viewer:
         for handle in (self.shape, self.size, self.radius, self.now_only):
             handle.on_update(lambda _: self._update_selection(announce=True))
         self.centre.on_update(lambda _: self._centre_typed())
-        self.gizmo.on_update(lambda _: self._gizmo_moved(announce=False))
-        self.gizmo.on_drag_end(lambda _: self._gizmo_moved(announce=True))
+        # live highlight while dragging; the text is printed once, on release
+        self.gizmo.on_update(lambda event: self._gizmo_moved(announce=event.phase == "end"))
 
     def _centre_typed(self) -> None:
         with self._lock:
