@@ -295,6 +295,41 @@ class Cameras:
         except InputError as e:
             raise InputError(f"{source}: {str(e).removeprefix('Cameras: ')}") from None
 
+    def frame_names(self) -> list[str]:
+        """The image name of each frame as `tomgs render -o folder/` writes it: '00012.png'."""
+        return [f"{int(i):05d}.png" for i in self.frame_indices]
+
+    def colmap_text(self) -> dict[str, str]:
+        """A COLMAP text model of these cameras: {'cameras.txt', 'images.txt', 'points3D.txt': text},
+        one shared PINHOLE camera, images named by `frame_names` with COLMAP's world-to-camera
+        quaternion (w x y z) and translation, no points. COLMAP's pixel centres are at +0.5 as ours;
+        numbers in full precision (Python's repr), so `from_colmap` reads the poses back."""
+        from tomgs.geometry import rotmat_to_quat
+
+        fx, fy, cx, cy = (float(v) for v in (self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]))
+        w2c = np.linalg.inv(self.c2w)
+        quats = rotmat_to_quat(w2c[:, :3, :3])
+        images = ["# IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, then a line of points (none)"]
+        for k, name in enumerate(self.frame_names()):
+            numbers = " ".join(repr(float(v)) for v in (*quats[k], *w2c[k, :3, 3]))
+            images += [f"{k + 1} {numbers} 1 {name}", ""]
+        return {"cameras.txt": "# CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]\n"
+                               f"1 PINHOLE {self.width} {self.height} {fx!r} {fy!r} {cx!r} {cy!r}\n",
+                "images.txt": "\n".join(images) + "\n",
+                "points3D.txt": "# POINT3D_ID X Y Z R G B ERROR TRACK[]\n"}
+
+    def nerfstudio(self, image_folder: str = "images") -> dict:
+        """nerfstudio's transforms.json of these cameras: OpenGL camera axes (x right, y up, z back:
+        c2w with y and z negated), pinhole intrinsics (pixel centres at +0.5 in both), each frame's
+        file under `image_folder` and its clip time."""
+        opengl = self.c2w @ np.diag([1.0, -1.0, -1.0, 1.0])
+        return {"camera_model": "OPENCV", "w": self.width, "h": self.height, "fl_x": float(self.K[0, 0]),
+                "fl_y": float(self.K[1, 1]), "cx": float(self.K[0, 2]), "cy": float(self.K[1, 2]),
+                "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
+                "frames": [{"file_path": f"{image_folder}/{name}", "transform_matrix": m.tolist(), "time": float(t),
+                            "frame_index": int(i)}
+                           for name, m, t, i in zip(self.frame_names(), opengl, self.times, self.frame_indices)]}
+
     @classmethod
     def from_colmap(cls, folder) -> "Cameras":
         """A COLMAP text model (folder with cameras.txt and images.txt; one shared camera).

@@ -178,6 +178,43 @@ def check_layers(base: Cameras, layers, names=None) -> None:
                              "fitted on the same frames (--frames)")
 
 
+# ---- a layer in the base's world (one static cloud: `tomgs export --layer`, `tomgs view --layer`) --------
+
+NEAR = 0.01  # the rasterizer's near plane (tomgs.rasterize's default `near`)
+LAYER_GAP = 0.5  # a layer's farthest Gaussian sits at this fraction of the depth of the nearest one behind it
+
+
+def layer_transform(base: Cameras, layer: Cameras, k: int, scale: float) -> np.ndarray:
+    """[4,4] affine map from a layer's world to the base's at position k: the base camera k sees the
+    mapped layer where the layer's camera k sees the layer, every point at `scale` times its depth
+    (a perspective camera sees the same image when points move along their rays)."""
+    intrinsics = np.eye(4)
+    intrinsics[:3, :3] = np.linalg.inv(base.K) @ layer.K  # keeps depth: its last row is (0, 0, 1)
+    return base.c2w[k] @ np.diag([scale, scale, scale, 1.0]) @ intrinsics @ np.linalg.inv(layer.c2w[k])
+
+
+def place_layer(base: Cameras, layer: Cameras, k: int, behind, means) -> tuple[np.ndarray, np.ndarray]:
+    """(matrix [4,4], keep bool [M]): where a layer's Gaussians at position k go in the base's world
+    so that base camera k sees them as `render_layers` composites them, in front of `behind` (means
+    [P,3] in the base's world, what lies behind the layer there). `means` [M,3] are the layer's,
+    `keep` those in front of its camera's near plane (the rasterizer culls the rest). The layer is
+    pulled along the rays until its farthest Gaussian is at LAYER_GAP of the nearest depth behind it,
+    never nearer than twice the near plane."""
+    def depths(cams, points):
+        w2c = np.linalg.inv(cams.c2w[k])
+        return np.asarray(points, np.float64) @ w2c[2, :3] + w2c[2, 3]
+
+    ahead = depths(base, behind)
+    ahead = ahead[ahead >= NEAR]
+    depth = depths(layer, means)
+    keep = depth >= NEAR
+    scale = 1.0
+    if keep.any() and len(ahead):
+        nearest, farthest = float(depth[keep].min()), float(depth[keep].max())
+        scale = max(LAYER_GAP * float(ahead.min()) / farthest, 2.0 * NEAR / nearest)
+    return layer_transform(base, layer, k, scale), keep
+
+
 def render_layers(gaussians, cameras: Cameras, positions=None, layers=(), *, background=None, device=None):
     """Yield (k, image [H,W,3] float32 in [0,1] on the CPU, meta) for frames `positions` of the base
     (`gaussians`, `cameras`, as `tomgs.render.render_sequence` takes them) with `layers`, a sequence

@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import sys
+import time
 
 import click
 
@@ -163,11 +164,56 @@ def progress_bar(length: int, label: str, **options):
         yield lambda done, item=None: bar.update(done - bar.pos, item)
 
 
+STEPS = 1000  # a phase bar's length: phases count frames, iterations or seconds, shown as a fraction
+PHASE_LABELS = {"read": "reading", "poses": "poses", "init": "initialising", "train": "training", "save": "saving"}
+
+
+@contextlib.contextmanager
+def phase_bars(min_interval: float = 0.25):
+    """One progress bar per phase on stderr, each with rate and ETA (none with -q); yields
+    update(phase, done, total, text=None): a new phase name closes the previous bar and opens its
+    own; redraws at most every `min_interval` seconds, so a caller may tick every step."""
+    if _VERBOSITY["level"] == 0:
+        yield lambda phase, done, total, text=None: None
+        return
+    state = dict(phase=None, bar=None, shown=0.0)
+
+    def close():
+        if state["bar"] is not None:
+            state["bar"].__exit__(None, None, None)
+            state["bar"] = None
+
+    def update(phase, done, total, text=None):
+        now = time.monotonic()
+        if phase != state["phase"]:
+            close()
+            label = f"{PHASE_LABELS.get(phase, phase):12s}"
+            bar = click.progressbar(length=STEPS, label=label, file=sys.stderr, show_eta=True, show_percent=True,
+                                    item_show_func=lambda item: item)
+            state.update(phase=phase, bar=bar.__enter__(), shown=0.0)
+        bar = state["bar"]
+        if done < total and now - state["shown"] < min_interval:
+            return
+        state["shown"] = now
+        bar.update(round(STEPS * min(done / total, 1.0)) - bar.pos if total > 0 else 0, text)
+
+    try:
+        yield update
+    finally:
+        close()
+
+
 def render_planned(scene, gaussians, plan, fps, layers=()) -> None:
     """Run a planned render (tomgs.jobs) with a progress bar and print its report."""
     with progress_bar(len(plan.positions), "render") as progress:
         report = run_render(plan, scene, gaussians, fps, layers, progress=progress)
     click.echo(report.summary())
+
+
+scene_cameras_option = click.option(
+    "--cameras", "cameras_path", type=click.Path(path_type=str), default=None,
+    help="the clip's cameras (a cameras.json from `tomgs export --cameras-out` or `tomgs poses`), for a scene "
+         "that another tool re-saved without them (SuperSplat, splat-transform); replaces the scene's own")
 
 
 def is_scene_path(path: str) -> bool:
