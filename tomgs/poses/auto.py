@@ -58,7 +58,7 @@ def static_masks(masks: np.ndarray | None, gray: np.ndarray, notes: list) -> np.
         moving = flow_motion_masks(gray)
     else:
         return np.ones((T, H, W), bool)
-    static = ~moving
+    static = np.logical_not(moving, out=moving)  # in place: a 900-frame mask stack is 0.5 GB
     bad = static.reshape(T, -1).mean(1) < 0.15
     if bad.any():  # a mask that leaves almost nothing is more likely wrong than the scene
         static[bad] = True

@@ -180,8 +180,8 @@ class Tracks:
         return Tracks(renum[self.frame[sel]], self.track[sel], self.xy[sel], self.n_tracks), sel
 
 
-def select_keyframes(tracks: Tracks, T: int, side: int, min_shared: float = 0.7, max_move: float = 0.03,
-                     max_gap: int = 30) -> np.ndarray:
+def select_keyframes(tracks: Tracks, T: int, side: int, min_shared: float = 0.7, max_move: float = 0.02,
+                     max_gap: int = 10) -> np.ndarray:
     """Frames (sorted int [K], first and last included) to solve in the bundle; the others are
     registered to them. A new keyframe starts when fewer than `min_shared` of the last keyframe's
     tracks survive, when they moved by more than `max_move` x `side` px (median), or after
