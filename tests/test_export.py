@@ -20,6 +20,7 @@ from tomgs.cameras import Cameras
 from tomgs.cli import main
 from tomgs.demo import demo_scene
 from tomgs.io.scene import load_scene, save_scene
+from tomgs.io.splats import RDF_TO_RUB, SPZ_SH_FLIPS
 from tomgs.model import GaussianModel, rgb_to_sh_dc
 from tomgs.temporal import frozen_at
 
@@ -205,17 +206,18 @@ def test_splat_and_spz_decode_to_what_tomgs_renders(scene_path, tmp_path):
     assert (np.diff(size) <= 1e-6).all()  # largest first, as the viewers' files are
 
     assert cli("export", scene_path, "--frame", 7, "-o", tmp_path / "f.spz").exit_code == 0
-    g = gsply.read_spz(str(tmp_path / "f.spz"))
-    means = np.asarray(g.means)
+    g = gsply.read_spz(str(tmp_path / "f.spz"))  # as stored: SPZ's RUB axes (y up, z back), ours turned half round x
+    means = np.asarray(g.means) * RDF_TO_RUB
     assert len(means) == n
     np.testing.assert_allclose(means, want["means"], atol=0.5 / 4096 + 1e-6)  # 12 fractional bits
     np.testing.assert_allclose(np.asarray(g.scales), np.log(want["scales"]), atol=0.5 / 16 + 1e-5)
     np.testing.assert_allclose(1 / (1 + np.exp(-np.asarray(g.opacities, np.float64).reshape(-1))),
                                want["opacities"], atol=0.5 / 255 + 1e-4)
     np.testing.assert_allclose(np.asarray(g.sh0).reshape(-1, 3), want["colors"][:, 0], atol=0.5 / (0.15 * 255) + 1e-5)
-    np.testing.assert_allclose(np.asarray(g.shN).reshape(n, -1, 3), want["colors"][:, 1:], atol=0.5 / 128 + 1e-5)
+    np.testing.assert_allclose(np.asarray(g.shN).reshape(n, -1, 3) * SPZ_SH_FLIPS[:3, None], want["colors"][:, 1:],
+                               atol=0.5 / 128 + 1e-5)
     unit = want["quats"] / np.linalg.norm(want["quats"], axis=1, keepdims=True)
-    dots = np.abs((np.asarray(g.quats, np.float64) * unit).sum(1))
+    dots = np.abs((np.asarray(g.quats, np.float64) * [1.0, 1.0, -1.0, -1.0] * unit).sum(1))
     assert dots.min() > 1 - 1e-4  # the same rotation (q and -q alike), to the 9-bit smallest three
 
 

@@ -13,7 +13,10 @@ clip) and writes atomically. The layouts, as the readers expect them (REFERENCES
             flags, 0) and the sections positions (24-bit fixed point), alphas, colours
             (0.15 x 255 f_dc + 127.5), scales ((log + 10) 16), rotations (smallest three in 32 bits)
             and SH rest (128 + 128 x coefficient, coefficient-major then channel), each a uint8
-            rounding; lossy by design (about 1/4096 of a unit in position at 12 fractional bits)
+            rounding; lossy by design (about 1/4096 of a unit in position at 12 fractional bits).
+            SPZ keeps its data in RUB axes (x right, y up, z back; Niantic's spz library converts
+            on load): our OpenCV (RDF) axes turn half round x, y and z negated, quaternions
+            (w, x, -y, -z), SH coefficients odd in y + z negated (SPZ_SH_FLIPS)
 """
 
 from __future__ import annotations
@@ -147,18 +150,27 @@ def _smallest_three(quats: np.ndarray) -> np.ndarray:
     return packed | (largest.astype(np.uint32) << 30)
 
 
+# signs of the 15 SH rest coefficients (3DGS order: degree 1 y z x; degree 2 xy yz z^2 xz x^2-y^2; degree 3
+# y(3x^2-y^2) xyz y(4z^2-..) z(2z^2-..) x(4z^2-..) z(x^2-y^2) x(x^2-3y^2)) when y and z change sign
+SPZ_SH_FLIPS = np.array([-1, -1, 1, -1, 1, 1, -1, 1, -1, 1, -1, -1, 1, -1, 1], np.float64)
+RDF_TO_RUB = np.array([1.0, -1.0, -1.0])
+
+
 def _spz_bytes(g: StaticGaussians) -> bytes:
     n, degree = len(g), g.sh_degree
-    bits = spz_fractional_bits(g.means)
-    fixed = np.rint(g.means.astype(np.float64) * (1 << bits)).astype(np.int64) & 0xFFFFFF  # two's complement
+    means = g.means.astype(np.float64) * RDF_TO_RUB
+    quats = g.quats.astype(np.float64) * np.array([1.0, 1.0, -1.0, -1.0])  # conjugated by the half turn about x
+    sh_rest = g.sh_rest.astype(np.float64) * SPZ_SH_FLIPS[:g.sh_rest.shape[1], None]
+    bits = spz_fractional_bits(means)
+    fixed = np.rint(means * (1 << bits)).astype(np.int64) & 0xFFFFFF  # two's complement
     positions = np.stack([(fixed >> shift) & 0xFF for shift in (0, 8, 16)], axis=-1).astype(np.uint8)  # [N,3,3]
     sections = [
         positions.reshape(-1),
         _bytes(_sigmoid(g.opacity_logits) * 255.0),
         _bytes(g.sh_dc.astype(np.float64) * (SPZ_COLOR_SCALE * 255.0) + 127.5).reshape(-1),
         _bytes((g.log_scales.astype(np.float64) + 10.0) * 16.0).reshape(-1),
-        _smallest_three(g.quats).astype("<u4").view(np.uint8),
-        _bytes(g.sh_rest.astype(np.float64) * 128.0 + 128.0).reshape(-1),
+        _smallest_three(quats).astype("<u4").view(np.uint8),
+        _bytes(sh_rest * 128.0 + 128.0).reshape(-1),
     ]
     header = struct.pack("<IIIBBBB", SPZ_MAGIC, SPZ_VERSION, n, degree, bits, 0, 0)
     return gzip.compress(header + b"".join(s.tobytes() for s in sections), compresslevel=6, mtime=0)
