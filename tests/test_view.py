@@ -26,7 +26,7 @@ from tomgs.demo import demo_scene
 from tomgs.edit.selection import parse_selector
 from tomgs.geometry import covariances, rotmat_to_quat
 from tomgs.io.scene import Scene, load_scene, save_scene
-from tomgs.layers import plane_cameras, render_layers
+from tomgs.layers import NEAR, plane_cameras, render_layers
 from tomgs.model import GaussianModel, rgb_to_sh_dc, stored_opacities, stored_scales, stored_t_scales
 from tomgs.render import rasterize
 from tomgs.temporal import frozen_at, opacity_at
@@ -135,23 +135,14 @@ def test_a_layer_placed_in_the_base_world_looks_as_its_own_camera_sees_it(demo):
         assert (mapped - own).abs().max() < 3e-3
         # in front of every base Gaussian, as compositing puts it
         w2c = base.cameras.viewmats()[k]
-        depth = lambda c: c @ w2c[2, :3] + w2c[2, 3]  # noqa: E731
-        ahead = depth(base_splats.centers)
-        assert depth(layer_splats.centers).max() < ahead[ahead > view.NEAR].min()
+        ahead, layer_depth = (splats.centers @ w2c[2, :3] + w2c[2, 3] for splats in (base_splats, layer_splats))
+        assert layer_depth.max() < ahead[ahead > NEAR].min()
         parts = [_as_rasterizer_inputs(splats) for splats in (base_splats, layer_splats)]
         together = {name: torch.cat([part[name] for part in parts]) for name in parts[0]}
         joint = _render(together, base.cameras, k, torch.tensor(BACKGROUND))
         (_, composite, _), = render_layers(base.model.render_inputs(), base.cameras, [k],
                                            [(layer.model.render_inputs(), layer.cameras)], background=BACKGROUND)
         assert (joint.clamp(0, 1) - composite).abs().max() < 5e-3
-
-
-def test_layer_transform_is_the_camera_similarity_for_equal_intrinsics(demo):
-    cams = load_scene(demo).cameras
-    m = view.layer_transform(cams, cams, 4, 0.5)
-    centre = cams.c2w[4, :3, 3]
-    point = np.array([0.3, -0.2, 5.0])
-    assert np.allclose(m[:3, :3] @ point + m[:3, 3], centre + 0.5 * (point - centre))
 
 
 def test_clip_camera_is_the_scene_camera(demo):

@@ -16,7 +16,8 @@ moved into the base scene's world by the affine map that the base camera k sees 
 camera k sees it: into the layer camera's axes, K_base^-1 K_layer (the same pixels under the base's
 intrinsics; identity when both have the same K), scaled by s about the camera centre (a camera sees
 the same image of a cloud scaled about its own centre), then out through the base camera. s puts the
-layer in front of everything before it, as compositing does, and is chosen per frame.
+layer in front of everything before it, as compositing does, and is chosen per frame
+(`tomgs.layers.place_layer`, which `tomgs export --layer` uses too).
 
 Selections are `tomgs edit --select` texts (tomgs.edit.selection): the viewer writes the text of the
 box or sphere placed in it and selects with that text, so the viewer and the command line agree.
@@ -39,14 +40,13 @@ import torch
 
 from tomgs.cameras import Cameras
 from tomgs.errors import InputError
-from tomgs.geometry import covariances
+from tomgs.geometry import covariances, rotmat_to_quat
+from tomgs.layers import NEAR, place_layer
 from tomgs.sh import sh_to_colors
 from tomgs.temporal import frozen_at
 
 INSTALL_HINT = 'pip install "tomgs[view]"'
-NEAR = 0.01  # the rasterizer's and viser's near plane
-FAR = 1e4  # viser's far plane (its default, 1000, would cut large scenes)
-LAYER_GAP = 0.5  # a layer's farthest Gaussian sits at this fraction of the depth of the nearest one behind it
+FAR = 1e4  # viser's far plane (its default, 1000, would cut large scenes); its near plane is the rasterizer's
 SELECTION_COLOR = (255, 0, 255)
 
 
@@ -93,14 +93,6 @@ def clip_camera(cameras: Cameras, k: int) -> dict:
                 fov=2.0 * math.atan(cameras.height / (2.0 * cameras.K[1, 1])))
 
 
-def layer_transform(base: Cameras, layer: Cameras, k: int, scale: float) -> np.ndarray:
-    """[4,4] affine map from a layer's world to the base's at position k: the base camera k sees the
-    mapped layer where the layer's camera k sees the layer, every point at `scale` times its depth."""
-    intrinsics = np.eye(4)
-    intrinsics[:3, :3] = np.linalg.inv(base.K) @ layer.K  # keeps depth: its last row is (0, 0, 1)
-    return base.c2w[k] @ np.diag([scale, scale, scale, 1.0]) @ intrinsics @ np.linalg.inv(layer.c2w[k])
-
-
 class ViewScene:
     """A scene and its layers as the viewer shows them: per position k, one `Splats` per scene, the
     base's first, each layer in front of what comes before it (the last in front, as `tomgs render`)."""
@@ -134,32 +126,17 @@ class ViewScene:
         return dict(means=g["means"], covariances=g["covariances"], rgbs=rgbs, opacities=g["opacities"],
                     index=g["index"])
 
-    def _depths(self, i: int, k: int, means: torch.Tensor) -> torch.Tensor:
-        """Depth [M] of `means` in scene i's camera k."""
-        w2c = self._viewmats[i][k]
-        return means @ w2c[2, :3] + w2c[2, 3]
-
     @torch.no_grad()
     def frame(self, k: int) -> list[Splats]:
-        """The splats of position k: the base's, then each layer's mapped into the base's world."""
-        base = self._alive(0, k)
-        out = [_splats(base)]
-        ahead = self._depths(0, k, base["means"])
-        ahead = ahead[ahead >= NEAR]
-        limit = float(ahead.min()) if len(ahead) else None  # the nearest depth a layer must stay in front of
+        """The splats of position k: the base's, then each layer's placed in the base's world in front of
+        what comes before it (tomgs.layers.place_layer)."""
+        out = [_splats(self._alive(0, k))]
         for i, layer in enumerate(self.layers, start=1):
             g = self._alive(i, k)
-            depth = self._depths(i, k, g["means"])
-            g = {name: value[depth >= NEAR] for name, value in g.items()}  # the rasterizer culls the rest
-            depth = depth[depth >= NEAR]
-            scale = 1.0
-            if len(depth):
-                nearest, farthest = float(depth.min()), float(depth.max())
-                if limit is not None:  # never closer than the near plane, where both renderers cull
-                    scale = max(LAYER_GAP * limit / farthest, 2.0 * NEAR / nearest)
-                limit = scale * nearest
-            m = torch.as_tensor(layer_transform(self.cameras, layer.cameras, k, scale), dtype=g["means"].dtype,
-                                device=self.device)
+            behind = np.concatenate([splats.centers for splats in out])
+            matrix, keep = place_layer(self.cameras, layer.cameras, k, behind, g["means"].cpu().numpy())
+            g = {name: value[torch.as_tensor(keep, device=self.device)] for name, value in g.items()}
+            m = torch.as_tensor(matrix, dtype=g["means"].dtype, device=self.device)
             g["means"] = g["means"] @ m[:3, :3].T + m[:3, 3]
             g["covariances"] = m[:3, :3] @ g["covariances"] @ m[:3, :3].T
             out.append(_splats(g))
@@ -393,8 +370,6 @@ class Viewer:
         """The clip camera as a frustum, while the view is free to orbit away from it."""
         cams, k = self.view.cameras, self._position
         cam = clip_camera(cams, k)
-        from tomgs.geometry import rotmat_to_quat
-
         c2w = cams.c2w[k]
         self.frustum.fov, self.frustum.aspect = cam["fov"], cams.width / cams.height
         self.frustum.wxyz = rotmat_to_quat(c2w[:3, :3] / np.linalg.norm(c2w[:3, :3], axis=0))
