@@ -93,7 +93,8 @@ def test_initial_points_per_frame_respect_device_frame_size_and_cap():
     assert config.points_per_frame(854 * 480, 90, "cuda") == 8000
     assert config.points_per_frame(854 * 480, 90, "cpu") == 2000  # serial kernels: fewer, more steps
     assert config.points_per_frame(128 * 72, 32, "cuda") == 128 * 72 // 5  # small frames: one per 5 pixels
-    assert config.points_per_frame(854 * 480, 2000, "cuda") == 2500  # long clips: half of the 10M cap
+    assert config.replace(max_gaussians=10_000_000).points_per_frame(854 * 480, 2000, "cuda") == 2500  # half the cap
+    assert config.points_per_frame(854 * 480, 2000, "cuda") == 8000  # the automatic cap grows with the clip
     assert config.replace(init_points_per_frame=300).points_per_frame(100, 5) == 300  # asked for: as given
     assert config.replace(max_gaussians=10).points_per_frame(100, 90) == 1
 

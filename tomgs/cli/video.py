@@ -11,6 +11,7 @@ from tomgs.cli import (
     json_option,
     main,
     overwrite_option,
+    phase_bars,
     progress_bar,
     say,
     user_errors,
@@ -70,9 +71,11 @@ def poses(video, output, masks, frames, method, focal, max_side, json_out, overw
               help="auto, identity, or a cameras .json / AnyCam .npy / COLMAP folder / .onnx model")
 @clip_options
 @device_option
-@click.option("--cap", "max_gaussians", type=click.IntRange(1), default=None, help="most Gaussians (default 10M)")
+@click.option("--cap", "max_gaussians", type=click.IntRange(1), default=None,
+              help="most Gaussians (default: by the clip's frames x pixels and the device, see the plan line)")
 @click.option("--budget", "max_seconds", type=click.FloatRange(min=1.0), default=None,
-              help="stop after this many seconds of training (schedules follow the budget)")
+              help="the whole command's wall time in seconds, reading, poses and saving included (schedules follow "
+                   "it); default: none on a GPU, chosen where the iterations would take longer (10 min on a CPU)")
 @click.option("--sampling", type=click.Choice(["inverse_psnr", "uniform"]), default=None)
 @click.option("--static", "static_3dgs", is_flag=True, help="ablation: no temporal opacity (static 3DGS)")
 @click.option("--opacity-reset", type=click.IntRange(0), default=None, help="ablation: reset opacities every N")
@@ -102,7 +105,9 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
     from tomgs.train import FitInterrupted, output_paths
     from tomgs.train import fit as fit_scene
     from tomgs.train import preset as make_config
+    from tomgs.train.fit import phase_text, process_started
 
+    started = process_started()
     overrides = dict(iterations=iterations, max_gaussians=max_gaussians, max_seconds=max_seconds, sampling=sampling,
                      opacity_reset_interval=opacity_reset, sh_degree=sh_degree, seed=seed)
     overrides = {k: v for k, v in overrides.items() if v is not None}
@@ -110,33 +115,48 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
         overrides["temporal"] = False
     config = make_config(preset, **overrides)
     to_stdout = check_json(json_out, overwrite)
+    last = {}
 
     def row_text(row):
-        return row and (f"PSNR {row['train_psnr']} dB, {row['gaussians']:,} Gaussians, "
-                        f"{row['iteration'] / max(row['wall_s'], 1e-9):.0f} it/s")
+        return (f"PSNR {row['train_psnr']} dB, {row['gaussians']:,} Gaussians, "
+                f"{row['iteration'] / max(row['wall_s'], 1e-9):.1f} it/s")
+
+    def on_row(row):
+        last["row"] = row
+        say(f"  iteration {row['iteration']}: {row['wall_s']:.1f} s, {row_text(row)}, full-clip PSNR "
+            f"{row['clip_psnr'] or '-'}", level=2)
+
     try:
-        with progress_bar(config.iterations, "fit", item_show_func=row_text) as progress:
-            def on_row(row):
-                progress(row["iteration"], row)
-                say(f"  iteration {row['iteration']}: {row['wall_s']:.1f} s, {row_text(row)}, full-clip PSNR "
-                      f"{row['clip_psnr'] or '-'}", level=2)
+        with phase_bars() as bars:
+            def on_phase(phase, done, total, text):
+                if phase == "train" and "row" in last:
+                    text = "; ".join(filter(None, (text, row_text(last["row"]))))
+                bars(phase, done, total, text)
 
             result = fit_scene(video, output, config, masks=masks, frames=frames, max_side=max_side, poses=poses,
                                focal=focal, device=device, resume=resume, overwrite=overwrite, progress=on_row,
-                               layer=layer, mask_dilation=mask_dilation)
+                               layer=layer, mask_dilation=mask_dilation, phases=on_phase,
+                               on_plan=lambda plan: say(plan.summary()), auto_budget=iterations is None,
+                               started=started)
     except FitInterrupted as e:
         click.echo(f"\n{e.message()}", err=True)
         raise SystemExit(e.exit_code) from None
     paths = output_paths(output)
+    memory = f"peak memory {result.peak_host_mb / 1024:.2f} GiB host" + (
+        "" if result.peak_gpu_mb is None else f", {result.peak_gpu_mb / 1024:.2f} GiB GPU")
     if not to_stdout:
         click.echo(f"{output}: {len(result.model):,} Gaussians, {result.iterations} iterations in "
                    f"{result.seconds:.1f} s, full-clip PSNR {result.clip_psnr:.2f} dB")
+        click.echo(f"  {result.wall_seconds:.1f} s in all ({phase_text(result.phase_seconds)}), {memory}")
         click.echo(f"  error against run time: {paths['csv']} and {paths['plot']}")
     for note in result.notes:
         say(f"  note: {note}")
     write_json(json_out, dict(output=str(output), gaussians=len(result.model), iterations=result.iterations,
-                               seconds=result.seconds, clip_psnr=result.clip_psnr, csv=str(paths["csv"]),
-                               plot=str(paths["plot"]), notes=list(result.notes)))
+                               seconds=result.seconds, wall_seconds=result.wall_seconds,
+                               phase_seconds=result.phase_seconds, eta_seconds=result.plan.eta,
+                               peak_host_mb=result.peak_host_mb, peak_gpu_mb=result.peak_gpu_mb,
+                               clip_psnr=result.clip_psnr, csv=str(paths["csv"]), plot=str(paths["plot"]),
+                               notes=list(result.notes)))
 
 
 @main.command("eval")

@@ -278,6 +278,44 @@ def read_video(path, frames=None, max_side: int | None = None, masks=None, progr
     return Video(kept.frames(), mask_arr, fps, np.asarray(idx, dtype=np.int64), path, decoded)
 
 
+def probe_clip(path, frames=None, max_side: int | None = None) -> tuple[int, int, int, int]:
+    """(selected frames, height, width, source pixels per frame) of a clip, from a video's index and
+    header or a folder's listing and first image, without decoding the frames: what a fit plans
+    with before it reads. Raises InputError as `read_video` does for a missing path or bad range."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path} does not exist: give a video file or a folder of frames")
+    sel = parse_frames(frames)
+    if path.is_dir():
+        files = list_images(path)
+        if not files:
+            raise InputError(f"{path} holds no jpg/png frames: point at a folder of images or a video file")
+        idx = _select(len(files), sel, frames, path)
+        found = image_size(files[idx[0]])
+        if found is None:
+            import cv2
+
+            h, w = _read_image(files[idx[0]], cv2.IMREAD_COLOR).shape[:2]
+        else:
+            w, h = found[:2]
+        count = len(idx)
+    else:
+        import av
+
+        try:
+            with av.open(str(path), metadata_errors="ignore") as container:
+                if not container.streams.video or container.streams.video[0].codec_context is None:
+                    raise InputError(f"cannot open video {path}: no decodable video stream")
+                stream = container.streams.video[0]
+                w, h = stream.codec_context.width, stream.codec_context.height
+                count = len(range(len(_video_index(container, stream)[0]))[sel])
+        except (av.error.FFmpegError, UnicodeDecodeError, ValueError) as e:
+            raise InputError(f"cannot open video {path} ({str(e).strip()[:200]}): the file is unreadable or "
+                             "corrupt") from None
+    nh, nw = _resized_size(h, w, max_side)
+    return count, nh, nw, h * w
+
+
 def _video_index(container, stream) -> tuple[list, list]:
     """(pts, keyframe flags) of the stream's packets in file order, read without decoding."""
     pts, keys = [], []

@@ -14,7 +14,7 @@ After loading, its layout is checked (`check_state`) before a tensor of it is us
     params            {name: float tensor [N, ...]} (tomgs.model.PARAM_NAMES), sh_degree
     optimizer         the optimiser's state_dict (Adam's layout, moments [N, ...])
     sampler           {psnr: float64 [V], generator: uint8 tensor}
-    densifier         {grad_sum: [N], seen: [N], capped: bool, generator: uint8 tensor}
+    densifier         {grad_sum: [N], seen: [N], capped: bool, generator: uint8 tensor, changed_at: int}
     history, notes    the CSV rows (dicts of numbers and "") and the fit's notes (str)
     clip              what identifies the clip for `fit(resume=True)` (tomgs.train.fit fills it)
 
@@ -255,7 +255,8 @@ def check_state(state, path="<checkpoint>", ours: bool = False) -> None:
     for key in ("grad_sum", "seen"):
         if not torch.is_tensor(densifier.get(key)) or tuple(densifier[key].shape) != (n,):
             fail(f"densifier statistics ({key}) do not match the {n} rows")
-    if not isinstance(densifier.get("capped"), bool) or not torch.is_tensor(densifier.get("generator")):
+    if not isinstance(densifier.get("capped"), bool) or not torch.is_tensor(densifier.get("generator")) \
+            or type(densifier.get("changed_at", 0)) is not int:
         fail("densifier state of another layout")
 
 

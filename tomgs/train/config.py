@@ -24,7 +24,7 @@ class TrainConfig:
     densify_interval: int = 100
     grad_threshold: float = 2e-4  # view-space positional gradient, NDC units as in 3DGS
     percent_dense: float = 0.01  # clone below this fraction of the scene extent, split above
-    max_gaussians: int = 10_000_000
+    max_gaussians: int | None = None  # None: by the clip and device (tomgs.train.plan.auto_cap)
     prune_opacity: float = 0.005
     opacity_reset_interval: int = 0  # 0: off (TOM-GS); 3000 reproduces the 3DGS heuristic (ablation)
     # sampling of training frames: "inverse_psnr" (TOM-GS) or "uniform" (ablation)
@@ -61,19 +61,30 @@ class TrainConfig:
     # spaced further only when a save is slow (trainer.CHECKPOINT_OVERHEAD). SIGINT and SIGTERM save
     # at once. A CPU save takes ~10 ms, a GPU scene of millions of Gaussians a few seconds.
     checkpoint_interval_s: float = 30.0
-    max_seconds: float = 0.0  # stop after this much wall-clock time (0: run all iterations)
+    # the whole fit's wall-clock budget, reading, poses and saving included (0: none; `fit` may pick
+    # one where the iterations would take longer than tomgs.train.plan.DEFAULT_BUDGET); a Trainer
+    # used alone stops its training after this long
+    max_seconds: float = 0.0
     seed: int = 0
 
     def points_per_frame(self, pixels: int, frames: int, device_type: str = "cpu") -> int:
         """Initial Gaussians per frame of `pixels` pixels in a clip of `frames` frames, trained on a
         `device_type` device: `init_points_per_frame`, or when it is None AUTO_POINTS_PER_FRAME's
-        count for the device, at most one per 5 pixels; and never more than half of the cap over
-        the whole clip, so that densification always has room to work."""
+        count for the device, at most one per 5 pixels; and never more than half of the cap (`cap`)
+        over the whole clip, so that densification always has room to work."""
         if self.init_points_per_frame is None:
             wanted = min(AUTO_POINTS_PER_FRAME.get(device_type, AUTO_POINTS_PER_FRAME["cpu"]), pixels // 5)
         else:
             wanted = int(self.init_points_per_frame)
-        return max(min(wanted, self.max_gaussians // (2 * max(frames, 1))), 1)
+        return max(min(wanted, self.cap(frames, pixels, device_type) // (2 * max(frames, 1))), 1)
+
+    def cap(self, frames: int, pixels: int, device_type: str = "cpu") -> int:
+        """`max_gaussians`, or when it is None the cap tomgs.train.plan.auto_cap picks for the clip."""
+        if self.max_gaussians is not None:
+            return int(self.max_gaussians)
+        from tomgs.train.plan import auto_cap
+
+        return auto_cap(frames, pixels, device_type)[0]
 
     def replace(self, **changes) -> "TrainConfig":
         return dataclasses.replace(self, **changes)
@@ -83,7 +94,8 @@ PRESETS = {
     # tuned to reach the paper's quality sooner (issue 4): fewer iterations, earlier densification stop
     "default": TrainConfig(),
     # the paper's schedule: 80k iterations, densification until 60k, cap 10M
-    "paper": TrainConfig(iterations=80_000, densify_start_fraction=500 / 80_000, densify_stop_fraction=0.75),
+    "paper": TrainConfig(iterations=80_000, densify_start_fraction=500 / 80_000, densify_stop_fraction=0.75,
+                         max_gaussians=10_000_000),
     # a few hundred iterations: smoke tests and CPU demos
     "quick": TrainConfig(iterations=600, densify_start_fraction=1 / 6, densify_stop_fraction=0.75, densify_interval=50,
                          init_points_per_frame=400, eval_interval_s=5.0),

@@ -20,6 +20,7 @@ class Densifier:
         self.generator = torch.Generator(device=device).manual_seed(seed + 1)
         self.reset_stats(num_gaussians, device)
         self.capped = False
+        self.changed_at = 0  # the iteration of the last densification, prune or opacity reset
 
     def reset_stats(self, n: int, device) -> None:
         self.grad_sum = torch.zeros(n, device=device)
@@ -62,12 +63,15 @@ class Densifier:
             self.observe(meta, visible)
         if self.due(iteration, progress) and not self.capped:
             self.step(model, optimizer)
+            self.changed_at = iteration
         elif iteration % (10 * c.densify_interval) == 0:
             self.prune(model, optimizer)
             self.reset_stats(len(model), visible.device)
+            self.changed_at = iteration
         if c.opacity_reset_interval and iteration % c.opacity_reset_interval == 0 \
                 and progress < c.densify_stop_fraction:
             self.reset_opacity(model, optimizer)
+            self.changed_at = iteration
 
     def due(self, iteration: int, progress: float) -> bool:
         """Every `densify_interval` iterations while the run's progress (by iterations or by
@@ -138,11 +142,12 @@ class Densifier:
 
     def state_dict(self) -> dict:
         return dict(grad_sum=self.grad_sum, seen=self.seen, capped=self.capped,
-                    generator=self.generator.get_state())
+                    generator=self.generator.get_state(), changed_at=self.changed_at)
 
     def load_state_dict(self, state: dict) -> None:
         self.grad_sum, self.seen, self.capped = state["grad_sum"], state["seen"], state["capped"]
         self.generator.set_state(state["generator"])
+        self.changed_at = int(state.get("changed_at", 0))  # checkpoints before it: as if unchanged
 
 
 def _limit(clone: torch.Tensor, split: torch.Tensor, room: int, grads: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

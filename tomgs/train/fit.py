@@ -66,9 +66,13 @@ def check_outputs(output, resume: bool = False, overwrite: bool = False) -> dict
     return paths
 
 
+PHASES = ("read", "poses", "init", "train", "save")
+
+
 def fit(video, output, config: TrainConfig | None = None, *, masks=None, frames=None, max_side=None,
         poses="auto", focal=None, device=None, resume: bool = False, overwrite: bool = False, progress=None,
-        pose_progress=None, layer: str | None = None, mask_dilation: int = 2) -> FitResult:
+        pose_progress=None, layer: str | None = None, mask_dilation: int = 2, phases=None, on_plan=None,
+        auto_budget: bool = True, started: float | None = None) -> FitResult:
     """Fit a TOM-GS scene to `video` (a file, a frame folder or a `tomgs.Video`) and save it to `output`.
 
     poses: "auto" (built-in tracker), "identity" (fixed camera, also the ablation), a cameras file,
@@ -79,9 +83,18 @@ def fit(video, output, config: TrainConfig | None = None, *, masks=None, frames=
     masks, dilated by `mask_dilation` pixels) or "foreground" (the masked object on a plane, no
     poses); see tomgs.layers. SIGINT / SIGTERM raise FitInterrupted (a KeyboardInterrupt) after
     saving the step reached.
+
+    Before any frame is decoded the fit plans (tomgs.train.plan): `config.max_seconds` is the whole
+    fit's wall-clock budget from `started` (a time.perf_counter() value, default the call), reading,
+    poses and saving included; without one and with `auto_budget`, a budget is picked where the
+    iterations would run longer than the device's DEFAULT_BUDGET. `on_plan(FitPlan)` hears the plan
+    first; `phases(name, done, total, text)` follows each phase of PHASES (train counts iterations,
+    or seconds of training under a budget; text: the latest log, or None); `progress(row)` hears
+    each CSV row and `pose_progress(done, total)` the poses (default: through `phases`).
     """
     from tomgs.render import resolve_device
 
+    started = time.perf_counter() if started is None else started
     config = config or TrainConfig()
     paths = check_outputs(output, resume=resume, overwrite=overwrite)
     device = resolve_device(device)
@@ -103,43 +116,86 @@ def fit(video, output, config: TrainConfig | None = None, *, masks=None, frames=
         with StopSignals(immediate=True, checkpoint=existing_checkpoint):
             return _fit(video, paths, config, saved, options, masks=masks, frames=frames, max_side=max_side,
                         poses=poses, focal=focal, device=device, progress=progress, pose_progress=pose_progress,
-                        layer=layer, mask_dilation=mask_dilation)
+                        layer=layer, mask_dilation=mask_dilation, phases=phases or (lambda *a: None),
+                        on_plan=on_plan, auto_budget=auto_budget, started=started)
     except FitInterrupted:
         raise
     except KeyboardInterrupt:  # raised by a callback, or outside the main thread's handlers
         raise FitInterrupted(existing_checkpoint(), signal.SIGINT) from None
 
 
+def _plan(video, config, device, saved, *, frames, max_side, poses, layer, auto_budget):
+    """The plan of a fit (tomgs.train.plan.make_plan) from the clip's index, before decoding."""
+    from tomgs.io import Video
+    from tomgs.io.video import probe_clip
+    from tomgs.train.plan import make_plan
+
+    if isinstance(video, Video):
+        count, height, width = video.frames.shape[:3]
+        source = height * width
+    else:
+        count, height, width, source = probe_clip(video, frames, max_side)
+    views = 2 * count if layer == "foreground" else count  # the foreground trains two views of each frame
+    free = None
+    if device.type == "cuda":
+        free = torch.cuda.mem_get_info(device)[0] - views * height * width * 3
+    estimated = layer != "foreground" and str(poses) == "auto" and not (saved and saved["clip"].get("cameras"))
+    return make_plan(config, views, height, width, source * views // max(count, 1), device.type,
+                     poses_estimated=estimated, auto_budget=auto_budget, free_bytes=free)
+
+
 def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses, focal, device, progress,
-         pose_progress, layer, mask_dilation) -> FitResult:
+         pose_progress, layer, mask_dilation, phases, on_plan, auto_budget, started) -> FitResult:
     from tomgs.cameras import Cameras
     from tomgs.io import Video, read_video
     from tomgs.io.scene import save_scene
     from tomgs.poses import estimate_cameras
 
-    clip = video if isinstance(video, Video) else read_video(video, frames=frames, max_side=max_side, masks=masks)
+    plan, config = _plan(video, config, device, saved, frames=frames, max_side=max_side, poses=poses, layer=layer,
+                         auto_budget=auto_budget)
+    if on_plan is not None:
+        on_plan(plan)
+    seconds = {}
+    mark = time.perf_counter()
+
+    def lap(name):
+        nonlocal mark
+        now = time.perf_counter()
+        seconds[name] = seconds.get(name, 0.0) + now - mark
+        mark = now
+
+    phases("read", 0, 1, None)
+    clip = video if isinstance(video, Video) else read_video(
+        video, frames=frames, max_side=max_side, masks=masks, progress=lambda done, total: phases("read", done, total, None))
     identity = _clip_identity(clip)
     if saved is not None:
         _check_clip(saved["clip"], identity, options, paths["checkpoint"])
     inputs = _layer_inputs(clip, layer, config, mask_dilation, masks, device)  # checks the masks before any work
-    t0 = time.perf_counter()
+    phases("read", 1, 1, None)
+    lap("read")
     point_frames, estimated = None, None
     if inputs.cameras is None and saved is not None and saved["clip"].get("cameras"):
         # resume: the cameras the checkpoint's Gaussians were fitted in, not a new estimate
         cameras = estimated = Cameras.from_dict(saved["clip"]["cameras"], source=str(paths["checkpoint"]))
         views, points, colors, pose_notes = cameras, (), (), []
     elif inputs.cameras is None:
-        cameras, points, colors, report = estimate_cameras(clip, method=poses, focal=focal, progress=pose_progress)
+        phases("poses", 0, 1, None)
+        report_poses = pose_progress or (lambda done, total: phases("poses", done, total, None))
+        cameras, points, colors, report = estimate_cameras(clip, method=poses, focal=focal, progress=report_poses)
         pose_notes = [f"poses: {report.summary()}", *report.notes]
         views, point_frames, estimated = cameras, report.point_frames, cameras
     else:  # the foreground layer's fixed cameras
         cameras, views, points, colors, pose_notes = inputs.scene_cameras, inputs.cameras, (), (), []
-    pose_seconds = time.perf_counter() - t0
+    lap("poses")
+    pose_seconds = seconds["poses"]
     if saved is not None:
         pose_seconds = float(saved["clip"].get("pose_seconds", pose_seconds))
 
+    phases("poses", 1, 1, None)
     torch.manual_seed(config.seed)
-    trainer = Trainer(inputs.frames, views, points, colors, config, device, point_frames=point_frames, **inputs.hooks)
+    phases("init", 0, 1, None)
+    trainer = Trainer(inputs.frames, views, points, colors, config, device, point_frames=point_frames,
+                      progress=lambda done, total: phases("init", done, total, None), **inputs.hooks)
     trainer.notes[:0] = [*pose_notes, *inputs.notes]
     if saved is not None:
         trainer.load_checkpoint(saved)
@@ -149,7 +205,15 @@ def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses
     trainer.clip = dict(identity, options=options, pose_seconds=round(pose_seconds, 3),
                         cameras=None if estimated is None else estimated.to_dict(),
                         source=str(getattr(video, "path", video)))
-    result = trainer.run(checkpoint=paths["checkpoint"], log_csv=paths["csv"], progress=progress)
+    phases("init", 1, 1, None)
+    lap("init")
+    time_limit = 0.0
+    if plan.budget > 0:  # training takes what the other phases leave of the budget
+        left = plan.budget - (time.perf_counter() - started) - plan.phases["save"]
+        time_limit = trainer.elapsed + max(left, 1.0)
+    result = trainer.run(checkpoint=paths["checkpoint"], log_csv=paths["csv"], progress=progress,
+                         time_limit=time_limit, tick=_train_ticks(phases, config.iterations, time_limit))
+    lap("train")
 
     info = dict(source=str(getattr(video, "path", video)) if not isinstance(video, Video) else "<Video>",
                 iterations=result.iterations, train_seconds=round(result.seconds, 2),
@@ -159,12 +223,61 @@ def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses
     if layer is not None:
         info["layer"] = layer
     result.cameras = cameras
+    phases("save", 0, 2, None)
     save_scene(paths["scene"], result.model, cameras, info)
+    phases("save", 1, 2, None)
     _plot(paths["plot"], result.history)
+    phases("save", 2, 2, None)
     paths["checkpoint"].unlink(missing_ok=True)
     for path in paths.values():  # a kill just before a resume left some too fresh to remove at its start
         remove_stale_temporaries(path)
+    lap("save")
+    result.plan, result.phase_seconds = plan, seconds
+    result.wall_seconds = time.perf_counter() - started
+    result.peak_host_mb, result.peak_gpu_mb = peak_memory(device)
+    result.notes[:0] = plan.reasons
+    if plan.budget > 0:
+        result.notes.append(f"{'chosen ' if plan.budget_chosen else ''}budget {plan.budget:.0f} s for the whole fit: "
+                            f"{result.wall_seconds:.0f} s ({phase_text(seconds)})")
     return result
+
+
+def process_started() -> float:
+    """The time.perf_counter() value at which this process started (Linux: from /proc; elsewhere
+    now), so a command's budget counts its start-up too."""
+    try:
+        ticks = os.sysconf("SC_CLK_TCK")
+        with open("/proc/self/stat") as f:
+            began = int(f.read().rsplit(")", 1)[1].split()[19]) / ticks  # field 22: start, ticks after boot
+        with open("/proc/uptime") as f:
+            age = float(f.read().split()[0]) - began
+        return time.perf_counter() - min(max(age, 0.0), 60.0)
+    except (OSError, ValueError, IndexError):
+        return time.perf_counter()
+
+
+def phase_text(seconds: dict) -> str:
+    """'read 1.2 s, poses 3.4 s, ...' in PHASES order."""
+    return ", ".join(f"{name} {seconds[name]:.1f} s" for name in PHASES if name in seconds)
+
+
+def peak_memory(device) -> tuple[float, float | None]:
+    """(peak resident host memory of this process, peak GPU memory allocated by torch or None), MiB."""
+    import resource
+
+    host = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux
+    gpu = torch.cuda.max_memory_allocated(device) / 2**20 if device.type == "cuda" else None
+    return host, gpu
+
+
+def _train_ticks(phases, iterations: int, time_limit: float):
+    """The trainer's tick as the "train" phase: iterations done, or seconds under a time limit."""
+    def tick(iteration, seconds, text):
+        if time_limit > 0:
+            phases("train", min(seconds, time_limit), time_limit, text or f"iteration {iteration:,}")
+        else:
+            phases("train", iteration, iterations, text)
+    return tick
 
 
 # -- what a checkpoint's clip is -----------------------------------------------------------------------

@@ -54,6 +54,9 @@ CSV_FIELDS = LOG_FIELDS
 # A save may cost at most this fraction of the training time: with slow saves (millions of
 # Gaussians, a slow disk) checkpoints are spaced to 1 / CHECKPOINT_OVERHEAD times a save's duration.
 CHECKPOINT_OVERHEAD = 0.05
+# Full-clip PSNR measurements may cost at most this fraction of the run (a long clip's takes seconds).
+EVAL_OVERHEAD = 0.1
+RENDER_SHARE = 0.4  # a forward render's time over a training step's (CPU, the bundled clip: 0.15 / 0.4 s)
 STATIC_T_SCALE = 1e3  # temporal sigma of every Gaussian of a static fit (clip time: alive throughout)
 
 
@@ -66,6 +69,12 @@ class FitResult:
     seconds: float
     history: list[dict] = field(default_factory=list)  # the CSV rows
     notes: list[str] = field(default_factory=list)  # what was left out or assumed
+    # filled by tomgs.train.fit: the plan, wall seconds per phase and in all, peak memory (MiB)
+    plan: object = None
+    phase_seconds: dict = field(default_factory=dict)
+    wall_seconds: float = 0.0
+    peak_host_mb: float = 0.0
+    peak_gpu_mb: float | None = None
 
 
 class Trainer:
@@ -87,14 +96,19 @@ class Trainer:
     def __init__(self, frames: np.ndarray, cameras: Cameras, points: np.ndarray, colors: np.ndarray,
                  config: TrainConfig, device: torch.device, *, weights: np.ndarray | None = None,
                  alpha_targets: np.ndarray | None = None, initial: tuple[GaussianModel, float] | None = None,
-                 wide_fraction: float = 0.0, point_frames: np.ndarray | None = None):
-        self.config = config
+                 wide_fraction: float = 0.0, point_frames: np.ndarray | None = None, progress=None):
+        frames = np.ascontiguousarray(frames)
+        self.num_frames, self.height, self.width = frames.shape[:3]
+        self.config = config.replace(max_gaussians=config.cap(self.num_frames, self.height * self.width, device.type))
         self.device = device
         self.cameras = cameras
-        self.frames = torch.as_tensor(np.ascontiguousarray(frames), device=device)  # uint8, converted per step
-        self.weights, self.alpha_targets = (None if a is None else _as_uint8(a, self.frames.shape[:3], name, device)
+        # uint8, converted per step; on the device unless they would crowd out the Gaussians (then
+        # each step copies its frame over)
+        self.store = _frame_store(frames.nbytes * (1 + (weights is not None) / 3 + (alpha_targets is not None) / 3),
+                                  device)
+        self.frames = torch.as_tensor(frames, device=self.store)
+        self.weights, self.alpha_targets = (None if a is None else _as_uint8(a, frames.shape[:3], name, self.store)
                                             for a, name in ((weights, "weights"), (alpha_targets, "alpha_targets")))
-        self.num_frames, self.height, self.width = self.frames.shape[:3]
         self.viewmats = cameras.viewmats(device)
         self.K = torch.as_tensor(cameras.K, dtype=torch.float32, device=device)
         self.times = [float(t) for t in cameras.times]
@@ -104,25 +118,27 @@ class Trainer:
         self.sparse_adam = device.type == "cuda" if config.sparse_adam is None else bool(config.sparse_adam)
         if initial is None:
             self.model, self.extent = self._initial_model(np.asarray(points, dtype=np.float64).reshape(-1, 3),
-                                                          np.asarray(colors, dtype=np.float32).reshape(-1, 3))
+                                                          np.asarray(colors, dtype=np.float32).reshape(-1, 3),
+                                                          progress or (lambda done, total: None))
         else:
             self.model, self.extent = initial[0].to(device), float(initial[1])
         self.optimizer = self._optimizer()
         self.sampler = FrameSampler(self.num_frames, config.sampling, config.psnr_momentum, config.seed)
-        self.densifier = Densifier(config, self.extent, len(self.model), device, config.seed)
+        self.densifier = Densifier(self.config, self.extent, len(self.model), device, config.seed)
         self.iteration = 0
         self.progress = 0.0  # fraction of the run done: iterations or wall-clock budget, whichever is further
         self.elapsed = 0.0  # wall seconds of earlier sessions of a resumed run
         self.history: list[dict] = []
         self.clip: dict = {}  # what identifies the clip, saved with checkpoints (tomgs.train.fit fills it)
         self._measured: list[tuple[int, torch.Tensor]] = []  # (frame, PSNR) not yet given to the sampler
+        self.eval_seconds = 0.0  # how long the last full-clip PSNR took
 
     # -- set-up --------------------------------------------------------------------------------
 
-    def _initial_model(self, points: np.ndarray, colors: np.ndarray) -> tuple[GaussianModel, float]:
+    def _initial_model(self, points: np.ndarray, colors: np.ndarray, progress) -> tuple[GaussianModel, float]:
         """Tracked points (alive over the frames that saw them, or the whole clip) plus points
         unprojected from every frame at the scene depth, each alive around its frame's time
-        (`wide_fraction` of them over the whole clip)."""
+        (`wide_fraction` of them over the whole clip). progress(done, total) after each frame."""
         c = self.config
         g = torch.Generator().manual_seed(c.seed)
         w2c = self.cameras.viewmats()
@@ -139,6 +155,7 @@ class Trainer:
             pix = self.frames[k, v.long().clamp(max=self.height - 1), u.long().clamp(max=self.width - 1)]
             cols.append(pix.float().cpu().numpy() / 255.0)
             ts.append(np.full(len(u), self.times[k]))
+            progress(k + 1, self.num_frames)
         frame_sigma = frames_to_clip_time(c.init_t_scale_frames, self.num_frames)
         wide = int(round(self.wide_fraction * per_frame))  # the first `wide` of each frame's points (random)
         tracked_means, tracked_sigma = self._tracked_windows(len(points), frame_sigma)
@@ -220,14 +237,14 @@ class Trainer:
         """Frame k [H,W,3] in [0,1]. With weights and the render `image`, the unsupervised pixels show
         the render itself (detached): no L1 there, and SSIM windows reaching into them compare the
         render with itself, so masked content never pulls on the model."""
-        target = self.frames[k].float() / 255.0
+        target = self.frames[k].to(self.device, non_blocking=True).float() / 255.0
         if self.weights is None or image is None:
             return target
         w = self._weight(k)
         return w * target + (1 - w) * image.detach()
 
     def _weight(self, k: int) -> torch.Tensor:
-        return self.weights[k, :, :, None].float() / 255.0  # [H,W,1]
+        return self.weights[k, :, :, None].to(self.device, non_blocking=True).float() / 255.0  # [H,W,1]
 
     def loss(self, k: int, image: torch.Tensor, alpha: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         """(1 - w) L1 + w D-SSIM of the render image [H,W,3] against `target` (`self.target(k, image)`)
@@ -242,7 +259,7 @@ class Trainer:
             similarity = (ssim_map(image[None], target[None])[0] * w.permute(2, 0, 1)).sum() / total
         loss = (1 - c.ssim_weight) * l1 + c.ssim_weight * (1 - similarity)
         if self.alpha_targets is not None:
-            loss = loss + (alpha[..., 0] - self.alpha_targets[k].float() / 255.0).abs().mean()
+            loss = loss + (alpha[..., 0] - self.alpha_targets[k].to(self.device).float() / 255.0).abs().mean()
         return loss
 
     def measure(self, k: int, image: torch.Tensor, target: torch.Tensor | None = None) -> float:
@@ -293,19 +310,40 @@ class Trainer:
             self._measured.clear()
 
     @torch.no_grad()
-    def clip_psnr(self) -> list[float]:
-        """PSNR of every frame (of its weighted pixels), rendered at its time: [T] floats."""
-        return [self.measure(k, self.render(k)[0]) for k in range(self.num_frames)]
+    def clip_psnr(self, tick=None) -> list[float]:
+        """PSNR of every frame (of its weighted pixels), rendered at its time: [T] floats.
+        tick(text) after each frame (a display's heartbeat on long clips)."""
+        out = []
+        for k in range(self.num_frames):
+            out.append(self._psnr(k, self.render(k)[0]))
+            if tick is not None:
+                tick(f"full-clip PSNR {k + 1}/{self.num_frames}")
+        return torch.stack(out).tolist() if out else []
 
-    def run(self, checkpoint: Path | None = None, log_csv: Path | None = None, progress=None) -> FitResult:
-        """Train to `config.iterations`. `progress(dict)` is called every log interval (a
-        KeyboardInterrupt it raises stops the run like Ctrl-C). With `checkpoint`, the state is saved
-        there on the schedule above and on SIGINT / SIGTERM, which then raise FitInterrupted."""
+    def run(self, checkpoint: Path | None = None, log_csv: Path | None = None, progress=None, *,
+            time_limit: float | None = None, tick=None) -> FitResult:
+        """Train to `config.iterations`, or for `time_limit` seconds of training (default
+        `config.max_seconds`; 0: no limit), stopping early enough that the last full-clip PSNR ends
+        by then. `progress(dict)` is called with every CSV row (a KeyboardInterrupt it raises stops
+        the run like Ctrl-C); `tick(iteration, seconds, text)` after every step and every frame of
+        a full-clip measurement, a display's heartbeat. With `checkpoint`, the state is saved there
+        on the schedule above and on SIGINT / SIGTERM, which then raise FitInterrupted.
+
+        The full-clip PSNR is measured every `eval_interval_s` (further apart when a measurement is
+        slow, so measuring costs at most EVAL_OVERHEAD of the run), and only once `densify_interval`
+        / 2 steps have passed since the last densification, prune or opacity reset: right after
+        one the clip PSNR dips by 2-3 dB for a few dozen steps, a saw-tooth of the schedule rather
+        than of the fit. The final measurement is taken wherever the run ends."""
         c = self.config
+        limit = c.max_seconds if time_limit is None else float(time_limit)
+        tick = tick or (lambda iteration, seconds, text: None)
         start = time.perf_counter() - self.elapsed
-        next_eval = 0.0
+        measured = [r["wall_s"] for r in self.history if r["clip_psnr"] != ""]  # a resume keeps the schedule
+        next_eval = measured[-1] + c.eval_interval_s if measured else 0.0
         next_ckpt = self.elapsed + c.checkpoint_interval_s  # nothing to lose at the first step
         saved = Path(checkpoint) if checkpoint is not None and Path(checkpoint).is_file() else None
+        settle = max(c.densify_interval // 2, 1)
+        step_seconds = None  # running mean of a step's time (the first, which loads kernels, left out)
 
         def stop_here(signum):
             """Save the step just finished (a step boundary) and raise FitInterrupted."""
@@ -317,16 +355,25 @@ class Trainer:
 
         with StopSignals(checkpoint=lambda: saved) as stop:
             while self.iteration < c.iterations:
-                now = time.perf_counter() - start
-                self.progress = max(self.iteration / c.iterations, now / c.max_seconds if c.max_seconds > 0 else 0.0)
+                before = time.perf_counter() - start
+                self.progress = max(self.iteration / c.iterations, before / limit if limit > 0 else 0.0)
                 self.step()
                 now = time.perf_counter() - start
-                out_of_time = 0 < c.max_seconds <= now
-                if self.iteration % c.log_interval == 0 or self.iteration == c.iterations or out_of_time:
+                if self.iteration > 1:
+                    step_seconds = now - before if step_seconds is None else 0.9 * step_seconds + 0.1 * (now - before)
+                tick(self.iteration, now, None)
+                # until one is measured, a full-clip PSNR costs what RENDER_SHARE of a step costs per frame
+                final_eval = self.eval_seconds or RENDER_SHARE * self.num_frames * (step_seconds or 0.0)
+                out_of_time = 0 < limit <= now + final_eval
+                last = self.iteration == c.iterations or out_of_time
+                measure = last or (now >= next_eval and self.iteration - self.densifier.changed_at >= settle)
+                if self.iteration % c.log_interval == 0 or measure:
                     clip = None
-                    if now >= next_eval or self.iteration == c.iterations or out_of_time:
-                        clip = float(np.mean(self.clip_psnr()))
-                        next_eval = now + c.eval_interval_s
+                    if measure:
+                        began = time.perf_counter()
+                        clip = float(np.mean(self.clip_psnr(lambda text: tick(self.iteration, now, text))))
+                        self.eval_seconds = time.perf_counter() - began
+                        next_eval = now + max(c.eval_interval_s, self.eval_seconds / EVAL_OVERHEAD)
                     row = self._row(now, clip)
                     self.history.append(row)
                     if log_csv is not None:
@@ -338,15 +385,16 @@ class Trainer:
                             stop.request(signal.SIGINT)
                 if stop.signum is not None:
                     stop_here(stop.signum)
-                if checkpoint is not None and now >= next_ckpt:
-                    self.elapsed = now
+                if checkpoint is not None and time.perf_counter() - start >= next_ckpt:
+                    self.elapsed = time.perf_counter() - start
                     began = time.perf_counter()
                     self.save_checkpoint(checkpoint)
                     saved = Path(checkpoint)
                     cost = time.perf_counter() - began
                     next_ckpt = time.perf_counter() - start + max(c.checkpoint_interval_s, cost / CHECKPOINT_OVERHEAD)
                 if out_of_time:
-                    self.notes.append(f"stopped at the {c.max_seconds:.0f} s budget after {self.iteration} iterations")
+                    self.notes.append(f"training stopped after {self.iteration} iterations at its {limit:.0f} s "
+                                      "time limit")
                     break
         if stop.signum is not None:  # arrived after the loop's last look: still a step boundary
             stop_here(stop.signum)
@@ -432,6 +480,18 @@ class Trainer:
         if changed:
             self.notes.append(f"resumed at iteration {self.iteration} with other settings: {', '.join(changed)}")
         return state
+
+
+FRAME_MEMORY_SHARE = 0.25  # of the free GPU memory: frames beyond it stay on the host
+
+
+def _frame_store(nbytes: float, device: torch.device) -> torch.device:
+    """Where the clip's uint8 frames live: on `device`, or on the host when they would take more than
+    FRAME_MEMORY_SHARE of a GPU's free memory (each step then copies one frame over)."""
+    if device.type != "cuda":
+        return device
+    free, _ = torch.cuda.mem_get_info(device)
+    return device if nbytes <= FRAME_MEMORY_SHARE * free else torch.device("cpu")
 
 
 def _as_uint8(values, shape, name: str, device) -> torch.Tensor:

@@ -1,0 +1,161 @@
+"""What a fit will do, decided before any frame is decoded: frames, size, device, iterations or a time
+budget, the Gaussian cap and the initial points, and when it will end (ETA). `fit` prints it first,
+so a user knows from the first second what to expect, and follows it.
+
+Time comes from a cost model per device (seconds per training step: a + b Gaussians + c pixels;
+the same for a full-clip render; decoding and poses per pixel), fitted on a 2-core CPU (the bundled
+clip and DAVIS sizes) and the GPU benchmarks; a plan with a budget ends at the budget whatever the
+model says, since training takes the time the other phases leave.
+
+Capacity follows the clip and the device. The cap on Gaussians grows with the square root of the
+clip's pixels (frames x width x height; 10M for a DAVIS clip, 90 frames of 854x480, where the paper
+used 10M), bounded on a GPU by its free memory. On a CPU, where every step costs ~8 us per
+Gaussian, the starting cloud is at most what the time left can step MIN_STEPS times, and the cap
+CAP_OVER_START times that.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+# seconds per training step (render, loss, backward, Adam): a + b * Gaussians + c * pixels
+STEP_COST = {"cpu": (0.25, 8e-6, 2e-6), "cuda": (4e-3, 1.5e-9, 5e-9)}
+# seconds per forward render of one frame (full-clip PSNR, evaluation)
+RENDER_COST = {"cpu": (0.12, 3e-6, 0.7e-6), "cuda": (1e-3, 0.5e-9, 2e-9)}
+DECODE_COST = 10e-9  # seconds per source pixel decoded and converted (H.264, 2 cores)
+POSE_COST = {"cpu": 1e-6, "cuda": 0.03e-6}  # seconds per fitted pixel of the built-in tracker
+SAVE_COST = (0.5, 0.3e-6)  # seconds to write the scene and plot: a + b * Gaussians
+# when the preset would run longer than this on the device, the fit stops at this budget instead
+DEFAULT_BUDGET = {"cpu": 600.0, "cuda": 3600.0}
+MIN_STEPS = 300  # a CPU fit must be able to step its starting cloud this many times
+CAP_OVER_START = 3  # time-bound cap: this many times the starting cloud
+REFERENCE_CAP, REFERENCE_PIXELS = 10_000_000, 90 * 854 * 480  # DAVIS clip: the paper's 10M cap
+MIN_CAP = 100_000
+GAUSSIAN_BYTES = 1500  # GPU memory per Gaussian while training (parameters, Adam, gradients, sorting)
+GPU_MEMORY_SHARE = 0.6  # of the free GPU memory after the frames, for Gaussians
+
+
+def _cost(table: dict, device_type: str, gaussians: float, pixels: float) -> float:
+    a, b, c = table.get(device_type, table["cpu"])
+    return a + b * gaussians + c * pixels
+
+
+def step_seconds(device_type: str, gaussians: float, pixels: float) -> float:
+    return _cost(STEP_COST, device_type, gaussians, pixels)
+
+
+def render_seconds(device_type: str, gaussians: float, pixels: float) -> float:
+    return _cost(RENDER_COST, device_type, gaussians, pixels)
+
+
+@dataclass
+class FitPlan:
+    """A fit's plan: clip (frames x height x width) on `device`; `iterations`, and `budget` (seconds
+    of the whole fit, 0: none) with `budget_chosen` when the plan picked it; `cap` and
+    `points_per_frame` with the reason for each; estimated seconds per phase (`phases`) and `eta`."""
+
+    frames: int
+    height: int
+    width: int
+    device: str
+    iterations: int
+    budget: float
+    budget_chosen: bool
+    cap: int
+    points_per_frame: int
+    phases: dict = field(default_factory=dict)
+    reasons: list = field(default_factory=list)
+
+    @property
+    def eta(self) -> float:
+        """Seconds from the start to the scene file: the budget, else the phases' estimates."""
+        return self.budget if self.budget > 0 else sum(self.phases.values())
+
+    def summary(self) -> str:
+        """One line: what the fit will do and when it ends."""
+        work = (f"{self.iterations:,} iterations or {_duration(self.budget)}, whichever comes first"
+                if self.budget > 0 else f"{self.iterations:,} iterations")
+        chosen = " (budget chosen for this device: --budget or --iterations to change)" if self.budget_chosen else ""
+        eta = _duration(self.eta) if self.budget > 0 else f"~{_duration(self.eta)} (estimated)"
+        return (f"plan: {self.frames} frames of {self.width}x{self.height} on {self.device}, {work}{chosen}; "
+                f"start from {self.points_per_frame * self.frames:,} Gaussians, cap {self.cap:,}; ETA {eta}")
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.1f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
+def auto_cap(frames: int, pixels: int, device_type: str, free_bytes: int | None = None) -> tuple[int, str]:
+    """(cap, why): REFERENCE_CAP scaled by the square root of the clip's pixels, at least MIN_CAP;
+    on a GPU at most what `free_bytes` (after the frames) holds."""
+    cap = max(MIN_CAP, int(REFERENCE_CAP * math.sqrt(frames * pixels / REFERENCE_PIXELS)))
+    why = f"cap {cap:,} for {frames} frames of {pixels:,} pixels (10M for 90 frames at 854x480, by square root)"
+    if free_bytes is not None:
+        fits = int(GPU_MEMORY_SHARE * max(free_bytes, 0) / GAUSSIAN_BYTES)
+        if fits < cap:
+            cap, why = max(fits, MIN_CAP), f"cap {max(fits, MIN_CAP):,}: what {free_bytes / 2**30:.1f} GiB of free GPU memory holds"
+    return cap, why
+
+
+def make_plan(config, frames: int, height: int, width: int, source_pixels: int, device_type: str, *,
+              poses_estimated: bool = True, auto_budget: bool = True,
+              free_bytes: int | None = None) -> tuple[FitPlan, object]:
+    """(FitPlan, the TrainConfig to train with: its cap and initial points resolved).
+
+    config: TrainConfig (max_seconds: the whole fit's budget, 0: none; max_gaussians and
+    init_points_per_frame None: chosen here). source_pixels: pixels of a frame as decoded.
+    poses_estimated: the built-in tracker will run. auto_budget: pick DEFAULT_BUDGET where the
+    iterations would take longer on this device. free_bytes: a GPU's free memory after the frames."""
+    pixels = height * width
+    phases = dict(read=DECODE_COST * frames * source_pixels,
+                  poses=POSE_COST.get(device_type, POSE_COST["cpu"]) * frames * pixels if poses_estimated else 0.0,
+                  init=0.5 + 2e-4 * frames)
+    budget, chosen = float(config.max_seconds), False
+    reasons = []
+    cap, cap_why = (config.max_gaussians, f"cap {config.max_gaussians:,} as asked") \
+        if config.max_gaussians is not None else auto_cap(frames, pixels, device_type, free_bytes)
+    per_frame = config.replace(max_gaussians=cap).points_per_frame(pixels, frames, device_type)
+    start = per_frame * frames
+
+    def train_estimate(n0: int) -> float:  # the steps and the last full-clip PSNR
+        grown = min(cap, 2 * n0)  # the cloud grows while it densifies: its mean size, roughly
+        return config.iterations * step_seconds(device_type, grown, pixels) + \
+            frames * render_seconds(device_type, grown, pixels)
+
+    def save(n: int) -> float:
+        return SAVE_COST[0] + SAVE_COST[1] * min(cap, 2 * n)
+
+    if budget <= 0 and auto_budget:
+        needed = sum(phases.values()) + train_estimate(start) + save(start)
+        limit = DEFAULT_BUDGET.get(device_type, DEFAULT_BUDGET["cpu"])
+        if needed > limit:
+            budget, chosen = limit, True
+            reasons.append(f"budget {_duration(limit)}: {config.iterations:,} iterations would take about "
+                           f"{_duration(needed)} on {device_type}")
+    if budget > 0:
+        train = max(budget - sum(phases.values()) - save(start), 0.1 * budget)
+        if device_type == "cpu" and config.init_points_per_frame is None:
+            a, b, c = STEP_COST["cpu"]
+            # never below the cloud whose cost matches a step's fixed cost: fewer saves little time
+            steppable = max(int((train / MIN_STEPS - a - c * pixels) / b), int(a / b), frames)
+            if start > steppable:
+                per_frame = max(steppable // frames, 1)
+                reasons.append(f"{per_frame * frames:,} starting Gaussians ({per_frame} per frame): what "
+                               f"{_duration(train)} of training on the CPU steps {MIN_STEPS} times")
+                start = per_frame * frames
+            if config.max_gaussians is None and cap > CAP_OVER_START * max(start, steppable):
+                cap = CAP_OVER_START * max(start, steppable)
+                cap_why = f"cap {cap:,}: {CAP_OVER_START} x what the time left can step {MIN_STEPS} times"
+        phases["train"] = train
+    else:
+        phases["train"] = train_estimate(start)
+    phases["save"] = save(start)
+    reasons.insert(0, cap_why)
+    plan = FitPlan(frames, height, width, device_type, config.iterations, budget, chosen, cap, per_frame, phases,
+                   reasons)
+    return plan, config.replace(max_gaussians=cap, init_points_per_frame=per_frame)
