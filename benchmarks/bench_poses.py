@@ -116,7 +116,8 @@ def one_case(case: str, args) -> dict:
                 trajectory_err=round(float(traj), 5), rotation_err_deg=round(float(rot), 4),
                 focal_err=round(abs(cams.focal / focal - 1), 4), mode=rep.mode, reproj_px=round(rep.reproj_px, 3),
                 points=len(pts), longest_silence_s=round(float(gaps.max()), 2),
-                keyframes=rep.timings.get("keyframes"), timings={k: round(v, 2) for k, v in rep.timings.items()},
+                keyframes=None if rep.keyframes is None else len(rep.keyframes),
+                timings={k: round(v, 2) for k, v in rep.timings.items()},
                 notes=rep.notes)
 
 

@@ -522,7 +522,8 @@ class Tracker:
             remap = np.cumsum(part) - 1
             R, t, X, K = bundle_adjust(self.Rw, self.tw, self.X[pts[part]], self.K, ci[m], remap[pi[m]], obs[m],
                                        free, opt_focal=opt_focal and free.any(), fix_translation=fix_translation,
-                                       iters=it, focal_bounds=bounds, device=self.device)
+                                       iters=it, focal_bounds=bounds, device=self.device,
+                                       tick=lambda: self._progress(self._done))
             self.Rw, self.tw = R, t
             self.X[pts[part]] = X
             self.focal = float(K[0, 0])

@@ -97,13 +97,13 @@ def _reduced_solve(H: torch.Tensor, Z: torch.Tensor, b: torch.Tensor) -> torch.T
 def bundle_adjust(R0: np.ndarray, t0: np.ndarray, X0: np.ndarray, K: np.ndarray,
                   cam_idx: np.ndarray, pt_idx: np.ndarray, obs: np.ndarray,
                   free_cams: np.ndarray, opt_focal: bool = False, fix_translation: bool = False,
-                  iters: int = 20, delta: float = 1.0, focal_bounds=(0.0, np.inf), device=None):
+                  iters: int = 20, delta: float = 1.0, focal_bounds=(0.0, np.inf), device=None, tick=None):
     """Refine poses of free cameras, all points, and optionally the focal length.
 
     R0 [C,3,3], t0 [C,3]: world-to-camera; X0 [P,3]; K [3,3]; cam_idx, pt_idx int [N]; obs [N,2]
     pixels; free_cams bool [C]. fix_translation keeps t (rotation-only cameras). The focal stays
     inside focal_bounds (a tiny focal is a degenerate way to shrink every error). device: where
-    the algebra runs (pick_device's default).
+    the algebra runs (pick_device's default); tick: called after each iteration (a heartbeat).
     Returns numpy (R [C,3,3], t [C,3], X [P,3], K [3,3]).
     """
     K = K.copy()
@@ -184,6 +184,8 @@ def bundle_adjust(R0: np.ndarray, t0: np.ndarray, X0: np.ndarray, K: np.ndarray,
             if lam > 1e8:
                 improved = 0.0
                 break
+        if tick is not None:
+            tick()
         if improved < 1e-5:
             break
     K[0, 0] = K[1, 1] = f
