@@ -56,7 +56,9 @@ class TrainConfig:
     init_t_scale_frames: float = 2.0  # sigma of per-frame points, in frames
     # logging
     log_interval: int = 50  # iterations between CSV rows
-    eval_interval_s: float = 30.0  # seconds between full-clip PSNR measurements
+    # seconds between full-clip PSNR measurements (further apart where one costs more than 10% of
+    # that, and never right after a densification: Trainer.run)
+    eval_interval_s: float = 30.0
     # seconds of training between checkpoints: what a crash (kill -9, power loss) can lose at most;
     # spaced further only when a save is slow (trainer.CHECKPOINT_OVERHEAD). SIGINT and SIGTERM save
     # at once. A CPU save takes ~10 ms, a GPU scene of millions of Gaussians a few seconds.

@@ -1,9 +1,18 @@
 """`tomgs.fit`: video in, scene file out, with the error-against-run-time record beside it.
 
     scene.ply         the Gaussians, cameras and frame times (tomgs.load_scene reads it)
-    scene.csv         iteration, wall seconds, training PSNR, full-clip PSNR, Gaussians, memory
+    scene.csv         iteration, wall seconds of training, training PSNR (running, of the frames
+                      trained on), full-clip PSNR, Gaussians, memory (peak MiB: GPU allocated, or host
+                      resident). The full-clip PSNR (every frame rendered at its time) is measured
+                      every eval_interval_s, never within densify_interval / 2 steps after a
+                      densification, prune or opacity reset (it dips by 2-3 dB right after one), and
+                      at the end; rows without one leave it empty
     scene.psnr.png    PSNR against wall-clock time
     scene.ckpt        the checkpoint while training runs (removed when the fit completes)
+
+A fit first plans (tomgs.train.plan: frames, size, device, iterations or budget, cap, ETA) from
+the clip's index, before decoding anything; a budget (config.max_seconds) is the whole fit's wall
+time, and training takes what reading, poses and saving leave of it.
 
 Every output is checked before the video is read: an existing scene, log or plot is replaced only
 with overwrite=True, and a checkpoint left by an interrupted fit means resume=True (continue it) or
