@@ -1,0 +1,138 @@
+"""Phone-sized videos end to end (issue 14): `tomgs fit` with the built-in poses under a budget.
+
+    python benchmarks/phone_video.py --clip ../shared/data/videos/bigbuckbunny.mp4 --budget 300 \
+        --device cuda --json benchmarks/results/phone_video.json
+    python benchmarks/phone_video.py --quick            # CPU smoke check: tiny clips, 25 s budget
+
+Cases: every --clip as it is, and synthetic clips of the demo scene (`tomgs demo`) at --size with
+--frames frames each (1920x1080 with 300, 900 and 1800 by default; made once in --work and kept).
+Each case runs `tomgs fit CLIP -o scene.ply --budget B --json ...` in its own process (peak
+resident memory is per process) and records: the ETA its plan printed and the wall time the
+command took, seconds per phase (read, poses, init, train, save), peak host (resident) and GPU
+(torch allocated) memory, the uint8 size of the selected frames (the host budget is that plus
+2 GB), the full-clip PSNR at 1, 2 and 5 minutes of the command's wall time and at the end,
+Gaussians and iterations. Writes JSON to --json and prints a table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+MARKS = (60, 120, 300)  # seconds of the command's wall time at which the PSNR is reported
+
+
+def tomgs(*args) -> list[str]:
+    return [sys.executable, "-m", "tomgs.cli", *map(str, args)]
+
+
+def make_synthetic(work: Path, frames: int, size: str, device: str) -> Path:
+    path = work / f"demo_{frames}_{size}.mp4"
+    if not path.exists():
+        began = time.perf_counter()
+        subprocess.run(tomgs("demo", "--frames", frames, "--size", size, "-o", path, "--device", device, "-q"),
+                       check=True)
+        print(f"made {path} in {time.perf_counter() - began:.0f} s", flush=True)
+    return path
+
+
+def psnr_at(rows: list[dict], before_training: float, seconds: float):
+    """The full-clip PSNR measured last at or before `seconds` of the command (training rows count
+    from its start, `before_training` seconds in); None if training had not measured one by then."""
+    best = None
+    for row in rows:
+        if row["clip_psnr"] and before_training + float(row["wall_s"]) <= seconds:
+            best = float(row["clip_psnr"])
+    return best
+
+
+def run_case(name: str, clip: Path, args, work: Path) -> dict:
+    from tomgs.io.video import probe_clip
+
+    frames, height, width, _ = probe_clip(clip, args.frames, args.max_side)
+    out = work / name
+    out.mkdir(parents=True, exist_ok=True)
+    scene, report = out / "scene.ply", out / "fit.json"
+    command = tomgs("fit", clip, "-o", scene, "--budget", args.budget, "--device", args.device, "--json", report, "-y")
+    if args.frames:
+        command += ["--frames", args.frames]
+    if args.max_side:
+        command += ["--max-side", str(args.max_side)]
+    print(f"{name}: {frames} frames of {width}x{height}: {' '.join(command[3:])}", flush=True)
+    began = time.perf_counter()
+    done = subprocess.run(command, capture_output=True, text=True)
+    wall = time.perf_counter() - began
+    plan = next((line for line in done.stderr.splitlines() if line.startswith("plan:")), "")
+    if done.returncode != 0:
+        print(done.stderr[-2000:], file=sys.stderr)
+        return dict(case=name, clip=str(clip), error=done.stderr.strip().splitlines()[-1:], wall_s=wall)
+    fit = json.loads(report.read_text())
+    rows = list(csv.DictReader(open(fit["csv"])))
+    phases = fit["phase_seconds"]
+    before = sum(phases.get(k, 0.0) for k in ("read", "poses", "init")) + (fit["wall_seconds"] - sum(phases.values()))
+    return dict(case=name, clip=str(clip), frames=frames, width=width, height=height, budget_s=args.budget,
+                plan=plan, eta_s=round(fit["eta_seconds"], 1), wall_s=round(wall, 1),
+                fit_wall_s=round(fit["wall_seconds"], 1), phases_s={k: round(v, 1) for k, v in phases.items()},
+                peak_host_gib=round(fit["peak_host_mb"] / 1024, 2),
+                peak_gpu_gib=None if fit["peak_gpu_mb"] is None else round(fit["peak_gpu_mb"] / 1024, 2),
+                frames_gib=round(frames * height * width * 3 / 2**30, 2),
+                psnr_at={f"{m // 60}min": psnr_at(rows, before, m) for m in MARKS}, psnr_end=round(fit["clip_psnr"], 2),
+                gaussians=fit["gaussians"], iterations=fit["iterations"])
+
+
+def table(results: list[dict]) -> str:
+    head = ("| case | frames | size | ETA s | wall s | read | poses | init | train | save | host GiB (frames) "
+            "| GPU GiB | PSNR 1/2/5 min | end | Gaussians | iterations |")
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    for r in results:
+        if "error" in r:
+            lines.append(f"| {r['case']} | error: {' '.join(r['error'])} |")
+            continue
+        p = r["phases_s"]
+        at = "/".join("-" if v is None else f"{v:.2f}" for v in r["psnr_at"].values())
+        gpu = "-" if r["peak_gpu_gib"] is None else f"{r['peak_gpu_gib']:.2f}"
+        lines.append(f"| {r['case']} | {r['frames']} | {r['width']}x{r['height']} | {r['eta_s']:.0f} | {r['wall_s']:.0f} "
+                     f"| {p.get('read', 0):.1f} | {p.get('poses', 0):.1f} | {p.get('init', 0):.1f} "
+                     f"| {p.get('train', 0):.1f} | {p.get('save', 0):.1f} | {r['peak_host_gib']:.2f} "
+                     f"({r['frames_gib']:.2f}) | {gpu} | {at} | {r['psnr_end']:.2f} | {r['gaussians']:,} "
+                     f"| {r['iterations']:,} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--clip", action="append", default=[], help="a video to fit as it is (repeatable)")
+    ap.add_argument("--synthetic", default="300,900,1800", help="frame counts of the synthetic clips ('' for none)")
+    ap.add_argument("--size", default="1920x1080", help="size of the synthetic clips")
+    ap.add_argument("--budget", type=float, default=300.0, help="each fit's --budget (the whole command), seconds")
+    ap.add_argument("--device", default="cuda")
+    ap.add_argument("--frames", default=None, help="--frames for every fit")
+    ap.add_argument("--max-side", type=int, default=None, help="--max-side for every fit")
+    ap.add_argument("--work", type=Path, default=Path("phone_video_work"), help="clips and scenes go here")
+    ap.add_argument("--json", type=Path, default=Path("phone_video.json"))
+    ap.add_argument("--quick", action="store_true",
+                    help="CPU smoke check: synthetic 12 and 24 frames at 96x54, --budget 25")
+    args = ap.parse_args()
+    if args.quick:
+        args.synthetic, args.size, args.budget, args.device = "12,24", "96x54", min(args.budget, 25.0), "cpu"
+    args.work.mkdir(parents=True, exist_ok=True)
+    cases = [(Path(c).stem, Path(c)) for c in args.clip]
+    for n in filter(None, args.synthetic.split(",")):
+        cases.append((f"synthetic_{n}_{args.size}", make_synthetic(args.work, int(n), args.size, args.device)))
+    results = []
+    for name, clip in cases:
+        results.append(run_case(name, clip, args, args.work))
+        args.json.write_text(json.dumps(dict(device=args.device, budget_s=args.budget, host=os.uname().nodename,
+                                             results=results), indent=1))
+    print(table(results))
+    print(f"wrote {args.json}")
+
+
+if __name__ == "__main__":
+    main()
