@@ -12,7 +12,6 @@ from tomgs.cli import (
     main,
     overwrite_option,
     phase_bars,
-    progress_bar,
     say,
     user_errors,
     write_json,
@@ -45,10 +44,13 @@ def poses(video, output, masks, frames, method, focal, max_side, json_out, overw
 
     check_file_output(output, overwrite, what="cameras file")
     to_stdout = check_json(json_out, overwrite)
-    clip = read_video(video, frames=frames, max_side=max_side, masks=masks)
-    with progress_bar(2 * len(clip), "poses") as progress:
+    with phase_bars() as bars:
+        clip = read_video(video, frames=frames, max_side=max_side, masks=masks,
+                          progress=lambda done, total: bars("read", done, total))
+        bars("poses", 0, 1)
         cams, _, _, report = estimate_cameras(clip, method=method, focal=focal,
-                                              progress=lambda done, total: progress(done))
+                                              progress=lambda done, total: bars("poses", done, total))
+        bars("poses", 1, 1)
     cams.save(output)
     for note in report.notes:
         say(f"  note: {note}")

@@ -309,6 +309,10 @@ def probe_clip(path, frames=None, max_side: int | None = None) -> tuple[int, int
                 stream = container.streams.video[0]
                 w, h = stream.codec_context.width, stream.codec_context.height
                 count = len(range(len(_video_index(container, stream)[0]))[sel])
+                container.seek(0)
+                first = next(container.decode(stream), None)  # one frame: the display rotation
+                if first is not None and round((first.rotation or 0) / 90) % 2:
+                    w, h = h, w
         except (av.error.FFmpegError, UnicodeDecodeError, ValueError) as e:
             raise InputError(f"cannot open video {path} ({str(e).strip()[:200]}): the file is unreadable or "
                              "corrupt") from None

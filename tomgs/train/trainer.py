@@ -387,6 +387,7 @@ class Trainer:
                     stop_here(stop.signum)
                 if checkpoint is not None and time.perf_counter() - start >= next_ckpt:
                     self.elapsed = time.perf_counter() - start
+                    tick(self.iteration, self.elapsed, "saving a checkpoint")
                     began = time.perf_counter()
                     self.save_checkpoint(checkpoint)
                     saved = Path(checkpoint)
