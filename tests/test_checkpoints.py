@@ -302,7 +302,7 @@ def scheduled_saves(monkeypatch, iterations: int, save_seconds: float = 0.0) -> 
     monkeypatch.setattr(time, "perf_counter", lambda: clock[0])
     monkeypatch.setattr(Trainer, "step", step)
     monkeypatch.setattr(Trainer, "save_checkpoint", save)
-    monkeypatch.setattr(Trainer, "clip_psnr", lambda self: [20.0] * self.num_frames)
+    monkeypatch.setattr(Trainer, "clip_psnr", lambda self, tick=None: [20.0] * self.num_frames)
     trainer.run(checkpoint=Path("unused.ckpt"))
     monkeypatch.undo()
     return saves
