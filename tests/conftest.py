@@ -8,13 +8,25 @@ import shutil
 import pytest
 
 
+def required_program(name: str, install: str) -> str:
+    """Path of the program `name` for tests that run it. Skips when it is not on PATH, unless
+    TOMGS_REQUIRE_<NAME>=1 (CI sets it, after installing it), then fails."""
+    exe = shutil.which(name)
+    if exe is None:
+        flag = f"TOMGS_REQUIRE_{name.upper()}"
+        if os.environ.get(flag) == "1":
+            pytest.fail(f"{flag}=1 but `{name}` is not on PATH ({install})")
+        pytest.skip(f"`{name}` is not on PATH ({install})")
+    return exe
+
+
 @pytest.fixture(scope="session")
 def chromium() -> str:
-    """Path of Debian's Chromium for the browser tests. Skips when it is not installed, unless
-    TOMGS_REQUIRE_CHROMIUM=1 (CI sets it, after installing it), then fails."""
-    exe = shutil.which("chromium")
-    if exe is None:
-        if os.environ.get("TOMGS_REQUIRE_CHROMIUM") == "1":
-            pytest.fail("TOMGS_REQUIRE_CHROMIUM=1 but `chromium` is not on PATH (apt-get install chromium)")
-        pytest.skip("Debian's chromium is not installed (apt-get install chromium)")
-    return exe
+    """Debian's Chromium, for the browser tests."""
+    return required_program("chromium", "Debian: apt-get install chromium")
+
+
+@pytest.fixture(scope="session")
+def blender() -> str:
+    """Blender, for the round trip through its Python (tests/test_blender.py)."""
+    return required_program("blender", "Debian: apt-get install blender python3-numpy")

@@ -1,14 +1,13 @@
 """The Blender round trip with real Blender: tomgs/data/blender_softbody.py (`tomgs example
 blender_softbody.py` prints its installed path) drops a tets cage headless.
 
-Skips when `blender` is not on PATH, unless TOMGS_REQUIRE_BLENDER=1 (CI sets it), then fails.
+Skips when `blender` is not on PATH, unless TOMGS_REQUIRE_BLENDER=1 (CI sets it), then fails
+(the `blender` fixture in conftest.py).
 """
 
 from __future__ import annotations
 
 import itertools
-import os
-import shutil
 import subprocess
 from pathlib import Path
 
@@ -20,16 +19,6 @@ from tomgs.io.tets import Tets, load_sequence, load_tets, save_tets
 SCRIPT = Path(__file__).resolve().parents[1] / "tomgs" / "data" / "blender_softbody.py"
 W = np.array([[1, 0, 0], [0, 0, 1], [0, -1, 0]], np.float64)  # world (OpenCV) -> Blender axes
 FRAMES, DROP = 24, 0.5
-
-
-@pytest.fixture(scope="module")
-def blender():
-    exe = shutil.which("blender")
-    if exe is None:
-        if os.environ.get("TOMGS_REQUIRE_BLENDER") == "1":
-            pytest.fail("TOMGS_REQUIRE_BLENDER=1 but `blender` is not on PATH (apt-get install blender)")
-        pytest.skip("`blender` is not on PATH (Debian: apt-get install blender python3-numpy)")
-    return exe
 
 
 def block_cage(n=2, size=1.0):
