@@ -9,7 +9,6 @@ import itertools
 import json
 import os
 import re
-import shutil
 import signal
 import subprocess
 import sys
@@ -253,7 +252,6 @@ def test_without_viser_it_says_how_to_install_it(demo, monkeypatch):
 
 # ---- in the browser ------------------------------------------------------------------------------
 
-CHROMIUM = shutil.which("chromium")
 WIDTH, HEIGHT = 1280, 720  # the demo's 16:9, so the canvas shows exactly the clip's frame
 PANEL_LEFT = 930  # viser's control panel floats over the canvas right of here
 AXES_TOP = 650  # and its axes gizmo in the lower left corner, below here
@@ -277,14 +275,14 @@ PAGE_JS = """(() => {
 class Chromium:
     """Headless Chromium driven through the DevTools protocol (websockets comes with viser)."""
 
-    def __init__(self, profile, width: int, height: int):
+    def __init__(self, exe: str, profile, width: int, height: int):
         from websockets.sync.client import connect
 
         flags = ["--headless", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
                  "--disable-gpu-sandbox", "--no-first-run", "--disable-background-networking",
                  "--disable-component-update", "--disable-sync", f"--user-data-dir={profile}",
                  f"--window-size={width},{height}", "--remote-debugging-port=0", "about:blank"]
-        self.proc = subprocess.Popen([CHROMIUM, *flags], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        self.proc = subprocess.Popen([exe, *flags], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                                      start_new_session=True)
         port_file = profile / "DevToolsActivePort"
         deadline = time.monotonic() + 60
@@ -343,8 +341,7 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed (apt-get install -y chromium)")
-def test_chromium_shows_the_frames_tomgs_render_draws(demo, tmp_path):
+def test_chromium_shows_the_frames_tomgs_render_draws(demo, tmp_path, chromium):
     """Two frames typed into the time slider of the page: each screenshot is `tomgs render` of its
     frame from the clip camera at the canvas's size (PSNR > 30 dB over the canvas outside the panel;
     measured 41-46 dB: float16 covariances, 8-bit colours and viser's 1% alpha cut are the rest), far
@@ -357,7 +354,7 @@ def test_chromium_shows_the_frames_tomgs_render_draws(demo, tmp_path):
     renders = {k: frame.numpy() for k, frame, _ in render_layers(scene.model.render_inputs(), cams, list(frames),
                                                                 background=BACKGROUND)}
     proc, url = _start(demo)
-    browser = Chromium(tmp_path / "profile", WIDTH, HEIGHT)
+    browser = Chromium(chromium, tmp_path / "profile", WIDTH, HEIGHT)
     shots = {}
     try:
         browser.call("Page.navigate", url=url)
