@@ -88,9 +88,9 @@ def frozen_at(gaussians: dict, t: float, alpha_min: float = ALPHA_MIN) -> dict:
     opacities = gaussians["opacities"].detach()
     at_t = opacity_at(opacities.double(), gaussians["t_means"].detach().double(),
                       gaussians["t_scales"].detach().double(), float(t))
-    keep = at_t >= alpha_min
-    frozen = {name: value.detach()[keep] for name, value in gaussians.items()}
-    frozen["opacities"] = at_t[keep].to(opacities.dtype)
+    rows = (at_t >= alpha_min).nonzero()[:, 0]  # one index for every key: far cheaper than a mask per key
+    frozen = {name: value.detach().index_select(0, rows) for name, value in gaussians.items()}
+    frozen["opacities"] = at_t.index_select(0, rows).to(opacities.dtype)
     frozen["t_means"] = frozen["t_means"].new_full(frozen["t_means"].shape, float(t))
     frozen["t_scales"] = frozen["t_scales"].new_ones(frozen["t_scales"].shape)
     return frozen
