@@ -204,7 +204,7 @@ def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses
     torch.manual_seed(config.seed)
     phases("init", 0, 1, None)
     trainer = Trainer(inputs.frames, views, points, colors, config, device, point_frames=point_frames,
-                      progress=lambda done, total: phases("init", done, total, None), **inputs.hooks)
+                      init_progress=lambda done, total: phases("init", done, total, None), **inputs.hooks)
     trainer.notes[:0] = [*pose_notes, *inputs.notes]
     if saved is not None:
         trainer.load_checkpoint(saved)

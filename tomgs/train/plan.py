@@ -138,7 +138,11 @@ def make_plan(config, frames: int, height: int, width: int, source_pixels: int, 
             reasons.append(f"budget {_duration(limit)}: {config.iterations:,} iterations would take about "
                            f"{_duration(needed)} on {device_type}")
     if budget > 0:
-        train = max(budget - sum(phases.values()) - save(start), 0.1 * budget)
+        before = sum(phases.values()) + save(start)
+        train = max(budget - before, 0.1 * budget)
+        if before > 0.5 * budget:
+            reasons.append(f"reading, poses and saving are estimated at {_duration(before)} of the "
+                           f"{_duration(budget)} budget: training gets what they leave (the fit may run over)")
         if device_type == "cpu" and config.init_points_per_frame is None:
             a, b, c = STEP_COST["cpu"]
             # never below the cloud whose cost matches a step's fixed cost: fewer saves little time

@@ -91,12 +91,13 @@ class Trainer:
     frame (`config.init_t_scale_frames`); the optimiser narrows the windows where the supervised
     pixels change. point_frames: None, or int [P,2], the first and last frame the tracker saw each
     point in: its Gaussian starts alive over those frames (centred on them, sigma half their span,
-    at least `config.init_t_scale_frames`), not over the whole clip."""
+    at least `config.init_t_scale_frames`), not over the whole clip. init_progress: None, or
+    callable(done, total) as the initial Gaussians of each frame are placed."""
 
     def __init__(self, frames: np.ndarray, cameras: Cameras, points: np.ndarray, colors: np.ndarray,
                  config: TrainConfig, device: torch.device, *, weights: np.ndarray | None = None,
                  alpha_targets: np.ndarray | None = None, initial: tuple[GaussianModel, float] | None = None,
-                 wide_fraction: float = 0.0, point_frames: np.ndarray | None = None, progress=None):
+                 wide_fraction: float = 0.0, point_frames: np.ndarray | None = None, init_progress=None):
         frames = np.ascontiguousarray(frames)
         self.num_frames, self.height, self.width = frames.shape[:3]
         self.config = config.replace(max_gaussians=config.cap(self.num_frames, self.height * self.width, device.type))
@@ -119,7 +120,7 @@ class Trainer:
         if initial is None:
             self.model, self.extent = self._initial_model(np.asarray(points, dtype=np.float64).reshape(-1, 3),
                                                           np.asarray(colors, dtype=np.float32).reshape(-1, 3),
-                                                          progress or (lambda done, total: None))
+                                                          init_progress or (lambda done, total: None))
         else:
             self.model, self.extent = initial[0].to(device), float(initial[1])
         self.optimizer = self._optimizer()
@@ -329,8 +330,8 @@ class Trainer:
         a full-clip measurement, a display's heartbeat. With `checkpoint`, the state is saved there
         on the schedule above and on SIGINT / SIGTERM, which then raise FitInterrupted.
 
-        The full-clip PSNR is measured every `eval_interval_s` (further apart when a measurement is
-        slow, so measuring costs at most EVAL_OVERHEAD of the run), and only once `densify_interval`
+        The full-clip PSNR is measured every `eval_interval_s` (later and further apart when a
+        measurement is slow, so measuring costs at most EVAL_OVERHEAD of the run), and only once `densify_interval`
         / 2 steps have passed since the last densification, prune or opacity reset: right after
         one the clip PSNR dips by 2-3 dB for a few dozen steps, a saw-tooth of the schedule rather
         than of the fit. The final measurement is taken wherever the run ends."""
@@ -363,10 +364,11 @@ class Trainer:
                     step_seconds = now - before if step_seconds is None else 0.9 * step_seconds + 0.1 * (now - before)
                 tick(self.iteration, now, None)
                 # until one is measured, a full-clip PSNR costs what RENDER_SHARE of a step costs per frame
-                final_eval = self.eval_seconds or RENDER_SHARE * self.num_frames * (step_seconds or 0.0)
-                out_of_time = 0 < limit <= now + final_eval
+                eval_cost = self.eval_seconds or RENDER_SHARE * self.num_frames * (step_seconds or 0.0)
+                out_of_time = 0 < limit <= now + eval_cost
                 last = self.iteration == c.iterations or out_of_time
-                measure = last or (now >= next_eval and self.iteration - self.densifier.changed_at >= settle)
+                measure = last or (now >= next_eval and EVAL_OVERHEAD * now >= eval_cost
+                                   and self.iteration - self.densifier.changed_at >= settle)
                 if self.iteration % c.log_interval == 0 or measure:
                     clip = None
                     if measure:
