@@ -3,15 +3,16 @@ budget, the Gaussian cap and the initial points, and when it will end (ETA). `fi
 so a user knows from the first second what to expect, and follows it.
 
 Time comes from a cost model per device (seconds per training step: a + b Gaussians + c pixels;
-the same for a full-clip render; decoding and poses per pixel), fitted on a 2-core CPU (the bundled
-clip and DAVIS sizes) and the GPU benchmarks; a plan with a budget ends at the budget whatever the
-model says, since training takes the time the other phases leave.
+the same for a full-clip render; decoding and poses per pixel). The CPU's was fitted on an idle
+2-core machine (the bundled clip at 64x36 and 128x72 with 16k-256k Gaussians; a loaded machine is
+2-3 times slower); the GPU's is a first guess for the benchmarks to correct. A plan with a budget
+ends at the budget whatever the model says, since training takes the time the other phases leave.
 
 Capacity follows the clip and the device. The cap on Gaussians grows with the square root of the
 clip's pixels (frames x width x height; 10M for a DAVIS clip, 90 frames of 854x480, where the paper
-used 10M), bounded on a GPU by its free memory. On a CPU, where every step costs ~8 us per
-Gaussian, the starting cloud is at most what the time left can step MIN_STEPS times, and the cap
-CAP_OVER_START times that.
+used 10M), bounded on a GPU by its free memory. On a CPU, where every step costs ~3.5 us per
+Gaussian (the Warp kernels run serially), the starting cloud is at most what the time left can step
+MIN_STEPS times, and the cap CAP_OVER_START times that.
 """
 
 from __future__ import annotations
@@ -20,15 +21,15 @@ import math
 from dataclasses import dataclass, field
 
 # seconds per training step (render, loss, backward, Adam): a + b * Gaussians + c * pixels
-STEP_COST = {"cpu": (0.25, 8e-6, 2e-6), "cuda": (4e-3, 1.5e-9, 5e-9)}
+STEP_COST = {"cpu": (0.03, 3.5e-6, 4e-6), "cuda": (4e-3, 1.5e-9, 5e-9)}
 # seconds per forward render of one frame (full-clip PSNR, evaluation)
-RENDER_COST = {"cpu": (0.12, 3e-6, 0.7e-6), "cuda": (1e-3, 0.5e-9, 2e-9)}
+RENDER_COST = {"cpu": (0.005, 1.7e-6, 1e-6), "cuda": (1e-3, 0.5e-9, 2e-9)}
 DECODE_COST = 10e-9  # seconds per source pixel decoded and converted (H.264, 2 cores)
 POSE_COST = {"cpu": 1e-6, "cuda": 0.03e-6}  # seconds per fitted pixel of the built-in tracker
 SAVE_COST = (0.5, 0.3e-6)  # seconds to write the scene and plot: a + b * Gaussians
 # when the preset would run longer than this on the device, the fit stops at this budget instead
 DEFAULT_BUDGET = {"cpu": 600.0, "cuda": 3600.0}
-MIN_STEPS = 300  # a CPU fit must be able to step its starting cloud this many times
+MIN_STEPS = 500  # a CPU fit must be able to step its starting cloud this many times
 CAP_OVER_START = 3  # time-bound cap: this many times the starting cloud
 REFERENCE_CAP, REFERENCE_PIXELS = 10_000_000, 90 * 854 * 480  # DAVIS clip: the paper's 10M cap
 MIN_CAP = 100_000
