@@ -175,7 +175,8 @@ def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses
 
     phases("read", 0, 1, None)
     clip = video if isinstance(video, Video) else read_video(
-        video, frames=frames, max_side=max_side, masks=masks, progress=lambda done, total: phases("read", done, total, None))
+        video, frames=frames, max_side=max_side, masks=masks,
+        progress=lambda done, total: phases("read", done, total, None))
     identity = _clip_identity(clip)
     if saved is not None:
         _check_clip(saved["clip"], identity, options, paths["checkpoint"])

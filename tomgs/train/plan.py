@@ -99,7 +99,8 @@ def auto_cap(frames: int, pixels: int, device_type: str, free_bytes: int | None 
     if free_bytes is not None:
         fits = int(GPU_MEMORY_SHARE * max(free_bytes, 0) / GAUSSIAN_BYTES)
         if fits < cap:
-            cap, why = max(fits, MIN_CAP), f"cap {max(fits, MIN_CAP):,}: what {free_bytes / 2**30:.1f} GiB of free GPU memory holds"
+            cap = max(fits, MIN_CAP)
+            why = f"cap {cap:,}: what {free_bytes / 2**30:.1f} GiB of free GPU memory holds"
     return cap, why
 
 
