@@ -168,3 +168,15 @@ def test_full_clip_psnr_is_not_measured_right_after_a_densification():
     assert max(changed.values()) > 0  # it densified
     for iteration in measured[:-1]:
         assert iteration - changed[iteration] >= config.densify_interval // 2, (iteration, changed[iteration])
+
+
+def test_the_eta_is_when_the_iterations_end_when_that_comes_before_the_budget():
+    """A budget caps the ETA; it is not the ETA: on the H100 a 132-frame 720p fit with --budget 300
+    ended its 12,000 iterations after 129 s while the plan said 300 s."""
+    from tomgs.train import preset
+    from tomgs.train.plan import make_plan
+
+    plenty, _ = make_plan(preset("default", max_seconds=3000), 132, 720, 1280, 720 * 1280, "cuda")
+    assert 60 < plenty.eta < 0.5 * plenty.budget and plenty.phases["train"] < 3000
+    tight, _ = make_plan(preset("default", max_seconds=30), 132, 720, 1280, 720 * 1280, "cuda")
+    assert tight.eta == 30

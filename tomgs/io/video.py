@@ -303,7 +303,7 @@ def probe_clip(path, frames=None, max_side: int | None = None) -> tuple[int, int
         import av
 
         try:
-            with av.open(str(path), metadata_errors="ignore") as container:
+            with _open_av(path) as container:
                 if not container.streams.video or container.streams.video[0].codec_context is None:
                     raise InputError(f"cannot open video {path}: no decodable video stream")
                 stream = container.streams.video[0]
@@ -346,7 +346,7 @@ def _read_video_file(path: Path, sel: slice, spec, max_side, report):
 
     fix = "re-encode it (e.g. ffmpeg -i in.mov -c:v libx264 out.mp4) or extract its frames to a folder"
     try:
-        container = av.open(str(path), metadata_errors="ignore")
+        container = _open_av(path)
     except (av.error.FFmpegError, UnicodeDecodeError, ValueError) as e:
         raise InputError(f"cannot open video {path} ({str(e).strip()[:200]}): the file is unreadable or corrupt; "
                          f"{fix}") from None
@@ -467,3 +467,14 @@ def read_video_for(path, cameras) -> np.ndarray:
         raise InputError(f"{path} gives {frames.shape[2]}x{frames.shape[1]} frames but the scene is "
                          f"{cameras.width}x{cameras.height}; give the video the scene was fitted on")
     return frames
+
+
+def _open_av(path):
+    """av.open of a video file, undecodable metadata ignored where PyAV has the option (<= 18; 19
+    dropped it and no longer fails on such metadata)."""
+    import av
+
+    try:
+        return av.open(str(path), metadata_errors="ignore")
+    except TypeError:
+        return av.open(str(path))

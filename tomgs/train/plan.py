@@ -21,11 +21,13 @@ import math
 from dataclasses import dataclass, field
 
 # seconds per training step (render, loss, backward, Adam): a + b * Gaussians + c * pixels
-STEP_COST = {"cpu": (0.03, 3.5e-6, 4e-6), "cuda": (4e-3, 1.5e-9, 5e-9)}
+# (cuda: the H100's, from benchmarks/results/phone_*.json and camel_fit.json: 10-16 ms a step at 0.4-2 Mpx)
+STEP_COST = {"cpu": (0.03, 3.5e-6, 4e-6), "cuda": (6e-3, 0.6e-9, 2.5e-9)}
 # seconds per forward render of one frame (full-clip PSNR, evaluation)
 RENDER_COST = {"cpu": (0.005, 1.7e-6, 1e-6), "cuda": (1e-3, 0.5e-9, 2e-9)}
 DECODE_COST = 10e-9  # seconds per source pixel decoded and converted (H.264, 2 cores)
-POSE_COST = {"cpu": 1e-6, "cuda": 0.03e-6}  # seconds per fitted pixel of the built-in tracker
+POSE_COST = {"cpu": 1e-6, "cuda": 7e-9}  # seconds per fitted pixel of the built-in tracker (H100: 900 x 1080p in 12.7 s)
+SETUP_COST = {"cpu": 0.5, "cuda": 5.0}  # seconds each for the tracker's and the trainer's start (H100: kernels load)
 SAVE_COST = (0.5, 0.3e-6)  # seconds to write the scene and plot: a + b * Gaussians
 # when the preset would run longer than this on the device, the fit stops at this budget instead
 DEFAULT_BUDGET = {"cpu": 600.0, "cuda": 3600.0}
@@ -70,8 +72,9 @@ class FitPlan:
 
     @property
     def eta(self) -> float:
-        """Seconds from the start to the scene file: the budget, else the phases' estimates."""
-        return self.budget if self.budget > 0 else sum(self.phases.values())
+        """Seconds from the start to the scene file: the phases' estimates, at most the budget."""
+        total = sum(self.phases.values())
+        return min(self.budget, total) if self.budget > 0 else total
 
     def summary(self) -> str:
         """One line: what the fit will do and when it ends."""
@@ -114,9 +117,11 @@ def make_plan(config, frames: int, height: int, width: int, source_pixels: int, 
     poses_estimated: the built-in tracker will run. auto_budget: pick DEFAULT_BUDGET where the
     iterations would take longer on this device. free_bytes: a GPU's free memory after the frames."""
     pixels = height * width
+    setup = SETUP_COST.get(device_type, SETUP_COST["cpu"])
     phases = dict(read=DECODE_COST * frames * source_pixels,
-                  poses=POSE_COST.get(device_type, POSE_COST["cpu"]) * frames * pixels if poses_estimated else 0.0,
-                  init=0.5 + 2e-4 * frames)
+                  poses=setup + POSE_COST.get(device_type, POSE_COST["cpu"]) * frames * pixels if poses_estimated
+                  else 0.0,
+                  init=setup + 2e-4 * frames)
     budget, chosen = float(config.max_seconds), False
     reasons = []
     cap, cap_why = (config.max_gaussians, f"cap {config.max_gaussians:,} as asked") \
@@ -157,7 +162,8 @@ def make_plan(config, frames: int, height: int, width: int, source_pixels: int, 
             if config.max_gaussians is None and cap > CAP_OVER_START * max(start, steppable):
                 cap = CAP_OVER_START * max(start, steppable)
                 cap_why = f"cap {cap:,}: {CAP_OVER_START} x what the time left can step {MIN_STEPS} times"
-        phases["train"] = train
+        train = max(budget - sum(phases.values()) - save(start), 0.1 * budget)  # the cloud may have shrunk
+        phases["train"] = min(train, train_estimate(start))  # the iterations may end first
     else:
         phases["train"] = train_estimate(start)
     phases["save"] = save(start)
