@@ -109,6 +109,21 @@ def test_payload_is_the_alive_gaussians_with_their_opacity_baked(demo):
                            atol=1e-6)
 
 
+def test_payload_covariances_fit_float16_for_huge_and_tiny_gaussians():
+    """viser sends covariances as float16: divided by unit^2 none overflows (a fitted background's
+    largest Gaussians are thousands of times the median size), and the median one keeps its value
+    while the range allows (float16 spans 1e9 between its smallest normal and largest value)."""
+    for largest, normal in ((50.0, True), (3000.0, False)):
+        sizes = np.concatenate([np.full(1000, 0.01), [largest]])
+        covariances = np.eye(3)[None] * (sizes**2)[:, None, None]
+        splats = view.Splats(np.zeros((len(sizes), 3), np.float32), covariances.astype(np.float32),
+                             np.zeros((len(sizes), 3), np.float32), np.ones((len(sizes), 1), np.float32),
+                             np.arange(len(sizes)))
+        sent = (splats.covariances / splats.unit() ** 2).astype(np.float16)
+        assert np.isfinite(sent).all()
+        assert sent[0, 0, 0] > (np.finfo(np.float16).tiny if normal else 0)
+
+
 def test_payload_renders_as_the_scene_from_the_clip_camera(demo):
     """The frozen cloud the browser gets is the frame: rasterized back, it equals `tomgs render`."""
     scene = load_scene(demo)

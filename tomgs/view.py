@@ -76,11 +76,19 @@ class Splats:
 
     def unit(self) -> float:
         """A length near the median Gaussian's size: viser stores covariances as float16, so they travel
-        divided by its square (and the node scaled by it) to stay far from float16's underflow."""
+        divided by its square (and the node scaled by it) to stay far from float16's underflow; larger
+        where the biggest Gaussian would overflow float16 (a fitted background's are thousands of
+        times the median: on camel, inf covariances drew nothing)."""
         if not len(self):
             return 1.0
         size = float(np.median(np.sqrt(np.trace(self.covariances, axis1=1, axis2=2) / 3.0)))
+        largest = float(np.abs(self.covariances).max())
+        if math.isfinite(largest):
+            size = max(size, math.sqrt(largest / FLOAT16_ROOM))
         return size if math.isfinite(size) and size > 0 else 1.0
+
+
+FLOAT16_ROOM = 3e4  # the largest covariance entry sent: half of float16's largest finite value (65504)
 
 
 def clip_camera(cameras: Cameras, k: int) -> dict:
