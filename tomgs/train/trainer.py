@@ -146,37 +146,50 @@ class Trainer:
         w2c = self.cameras.viewmats()
         depth = self._median_depth(points, w2c)
         per_frame = c.points_per_frame(self.width * self.height, self.num_frames, self.device.type)
-        xs, cols, ts = [], [], []
         fx, fy, cx, cy = self.cameras.K[0, 0], self.cameras.K[1, 1], self.cameras.K[0, 2], self.cameras.K[1, 2]
+        frame_sigma = frames_to_clip_time(c.init_t_scale_frames, self.num_frames)
+        wide = int(round(self.wide_fraction * per_frame))  # the first `wide` of each frame's points (random)
+        tracked_means, tracked_sigma = self._tracked_windows(len(points), frame_sigma)
+        # sizes: tracked points from their neighbours (few), per-frame points from one sample's
+        # share of the image (many: a neighbour search over them would be quadratic)
+        pixel_size = max(float(np.median(depth)) / float(fx) * math.sqrt(self.width * self.height / per_frame), 1e-6)
+        # float32 arrays on the training device, filled a frame at a time: the host holds one frame's
+        # points, never the whole cloud (7.2M points, ~1.8 GB with their SH, for 900 frames on a GPU)
+        P, total = len(points), len(points) + self.num_frames * per_frame
+        dev = dict(dtype=torch.float32, device=self.device)
+        all_points, all_colors = torch.empty(total, 3, **dev), torch.empty(total, 3, **dev)
+        t_means, start_t_scales = torch.empty(total, **dev), torch.empty(total, **dev)
+        sizes = torch.full((total,), pixel_size, **dev)
+        if P:
+            all_points[:P] = torch.as_tensor(points, dtype=torch.float32)
+            all_colors[:P] = torch.as_tensor(colors, dtype=torch.float32)
+            t_means[:P] = torch.as_tensor(tracked_means, dtype=torch.float32)
+            start_t_scales[:P] = torch.as_tensor(tracked_sigma, dtype=torch.float32)
+            sizes[:P] = nearest_neighbour_distance(torch.as_tensor(points, dtype=torch.float32)).to(self.device)
+        n = P
         for k in range(self.num_frames):
             u, v = self._initial_pixels(k, per_frame, g)
             z = depth[k] * torch.exp(0.1 * torch.randn(len(u), generator=g, dtype=torch.float64))
             cam = torch.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], -1).numpy()
             c2w = self.cameras.c2w[k]
-            xs.append(cam @ c2w[:3, :3].T + c2w[:3, 3])
-            pix = self.frames[k, v.long().clamp(max=self.height - 1), u.long().clamp(max=self.width - 1)]
-            cols.append(pix.float().cpu().numpy() / 255.0)
-            ts.append(np.full(len(u), self.times[k]))
+            m = len(u)
+            all_points[n:n + m] = torch.from_numpy(cam @ c2w[:3, :3].T + c2w[:3, 3]).float()
+            pix = self.frames[k, v.long().clamp(max=self.height - 1).to(self.store),
+                              u.long().clamp(max=self.width - 1).to(self.store)]
+            all_colors[n:n + m] = pix.float().to(self.device) / 255.0
+            early = torch.arange(m, device=self.device) < wide
+            t_means[n:n + m] = torch.where(early, 0.5, float(np.float32(self.times[k])))
+            start_t_scales[n:n + m] = torch.where(early, 1.0, float(np.float32(frame_sigma)))
+            n += m
             progress(k + 1, self.num_frames)
-        frame_sigma = frames_to_clip_time(c.init_t_scale_frames, self.num_frames)
-        wide = int(round(self.wide_fraction * per_frame))  # the first `wide` of each frame's points (random)
-        tracked_means, tracked_sigma = self._tracked_windows(len(points), frame_sigma)
-        start_t_scales = np.concatenate([tracked_sigma, *(np.where(np.arange(len(t)) < wide, 1.0, frame_sigma)
-                                                          for t in ts)])
-        # sizes: tracked points from their neighbours (few), per-frame points from one sample's
-        # share of the image (many: a neighbour search over them would be quadratic)
-        pixel_size = max(float(np.median(depth)) / float(fx) * math.sqrt(self.width * self.height / per_frame), 1e-6)
-        sizes = np.full(len(points) + sum(map(len, ts)), pixel_size)
-        if len(points):
-            sizes[:len(points)] = nearest_neighbour_distance(torch.as_tensor(points, dtype=torch.float32)).numpy()
-        all_points = np.concatenate([points, *xs]) if len(points) else np.concatenate(xs)
-        all_colors = np.concatenate([colors, *cols]) if len(points) else np.concatenate(cols)
-        t_means = np.concatenate([tracked_means, *(np.where(np.arange(len(t)) < wide, 0.5, t) for t in ts)])
-        t_scales = torch.as_tensor(start_t_scales, dtype=torch.float32) if c.temporal else STATIC_T_SCALE
-        model = GaussianModel.from_points(torch.as_tensor(all_points, dtype=torch.float32),
-                                          torch.as_tensor(all_colors, dtype=torch.float32),
-                                          torch.as_tensor(t_means, dtype=torch.float32), t_scales,
-                                          max_sh_degree=c.sh_degree, sizes=torch.as_tensor(sizes, dtype=torch.float32))
+        if n < total:  # frames with no allowed pixel gave none
+            all_points, all_colors, t_means, start_t_scales, sizes = (
+                a[:n].clone() for a in (all_points, all_colors, t_means, start_t_scales, sizes))
+        t_scales = start_t_scales if c.temporal else STATIC_T_SCALE
+        del start_t_scales
+        model = GaussianModel.from_points(all_points, all_colors, t_means, t_scales, max_sh_degree=c.sh_degree,
+                                          sizes=sizes)
+        del all_points, all_colors, t_means, t_scales, sizes
         if c.sh_degree > 0:
             model.sh_degree = c.sh_degree
         else:
