@@ -229,7 +229,7 @@ class Tracker:
                             self.notes, self.timings)
         all_tracks = klt_tracks(gray, static, self.max_corners, progress=lambda k: self._progress(0.5 * T + 0.5 * (k + 1)))
         del static
-        self.clip.gray = None  # the tracks are all that is needed from here on
+        self.clip.gray = self.clip.moving = None  # the tracks are all that is needed from here on
         self.keys = select_keyframes(all_tracks, T, self.side)
         self.tracks, self.key_obs = all_tracks.subset(self.keys)
         self.T = len(self.keys)
