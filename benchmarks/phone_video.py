@@ -80,6 +80,7 @@ def run_case(name: str, clip: Path, args, work: Path) -> dict:
                 plan=plan, eta_s=round(fit["eta_seconds"], 1), wall_s=round(wall, 1),
                 fit_wall_s=round(fit["wall_seconds"], 1), phases_s={k: round(v, 1) for k, v in phases.items()},
                 peak_host_gib=round(fit["peak_host_mb"] / 1024, 2),
+                peak_host_gib_by_phase={k: round(v / 1024, 2) for k, v in fit.get("peak_host_mb_by_phase", {}).items()},
                 peak_gpu_gib=None if fit["peak_gpu_mb"] is None else round(fit["peak_gpu_mb"] / 1024, 2),
                 frames_gib=round(frames * height * width * 3 / 2**30, 2),
                 psnr_at={f"{m // 60}min": psnr_at(rows, before, m) if m <= fit["wall_seconds"] + 5 else None

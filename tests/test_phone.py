@@ -5,6 +5,7 @@ densification."""
 from __future__ import annotations
 
 import csv
+import json
 
 import numpy as np
 import pytest
@@ -105,9 +106,16 @@ def test_fit_prints_its_plan_first_and_a_bar_for_every_phase(long_clip, tmp_path
     assert [p for p in PHASES if p in shown] == list(PHASES)  # each phase's bar, in order
     assert "peak memory" in result.output and "s in all (read" in result.output
     quiet = run("fit", long_clip, "-o", tmp_path / "q.ply", "--frames", "0:4", "--max-side", "32", "--preset",
-                "quick", "--iterations", "3", "--device", "cpu", "--poses", "identity", "-q")
+                "quick", "--iterations", "3", "--device", "cpu", "--poses", "identity", "-q", "--json",
+                tmp_path / "q.json")
     assert quiet.exit_code == 0 and "plan:" not in quiet.output
     assert not any(line.strip() in PHASES for line in quiet.output.splitlines())
+    # where the memory went: the peak so far at the end of each phase (it only rises), as --json reports it
+    report = json.loads((tmp_path / "q.json").read_text())
+    peaks = report["peak_host_mb_by_phase"]
+    assert list(peaks) == ["read", "poses", "init", "train", "save"]
+    assert 0 < peaks["read"] <= peaks["poses"] <= peaks["init"] <= peaks["train"] <= peaks["save"] == \
+        report["peak_host_mb"]
 
 
 def test_the_default_fit_ends_at_a_budget_it_chooses_on_a_cpu(long_clip, tmp_path, monkeypatch):

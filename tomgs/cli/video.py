@@ -157,6 +157,7 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
                                seconds=result.seconds, wall_seconds=result.wall_seconds,
                                phase_seconds=result.phase_seconds, eta_seconds=result.plan.eta,
                                peak_host_mb=result.peak_host_mb, peak_gpu_mb=result.peak_gpu_mb,
+                               peak_host_mb_by_phase=result.peak_host_mb_by_phase,
                                clip_psnr=result.clip_psnr, csv=str(paths["csv"]), plot=str(paths["plot"]),
                                notes=list(result.notes)))
 

@@ -164,13 +164,14 @@ def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses
                          auto_budget=auto_budget)
     if on_plan is not None:
         on_plan(plan)
-    seconds = {}
+    seconds, peaks = {}, {}
     mark = time.perf_counter()
 
     def lap(name):
         nonlocal mark
         now = time.perf_counter()
         seconds[name] = seconds.get(name, 0.0) + now - mark
+        peaks[name] = peak_memory(device)[0]  # monotone: where it rises is where the memory went
         mark = now
 
     phases("read", 0, 1, None)
@@ -245,6 +246,7 @@ def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses
     result.plan, result.phase_seconds = plan, seconds
     result.wall_seconds = time.perf_counter() - started
     result.peak_host_mb, result.peak_gpu_mb = peak_memory(device)
+    result.peak_host_mb_by_phase = peaks
     result.notes[:0] = plan.reasons
     if plan.budget > 0:
         result.notes.append(f"{'chosen ' if plan.budget_chosen else ''}budget {plan.budget:.0f} s for the whole fit: "

@@ -76,6 +76,7 @@ class FitResult:
     wall_seconds: float = 0.0
     peak_host_mb: float = 0.0
     peak_gpu_mb: float | None = None
+    peak_host_mb_by_phase: dict = field(default_factory=dict)  # the peak so far at the end of each phase
 
 
 class Trainer:
