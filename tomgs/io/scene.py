@@ -78,6 +78,7 @@ TRAILER_MAGIC = b"\ntomgs-scene-data\n"
 MAX_TRAILER_JSON = 64 << 20  # settings, notes and edit history: kilobytes; a bigger claim is a damaged file
 CAMERA_RECORD = np.dtype([("c2w", "<f8", (16,)), ("time", "<f8"), ("index", "<i8")])
 TEMPORAL_PROPERTIES = ("t_mean", "t_log_sigma")
+SAVE_CHUNK = 1 << 18  # vertex rows written at a time (64 MiB at SH degree 3)
 NORMALS = ("nx", "ny", "nz")
 _C2W = tuple(f"c2w_{r}{c}" for r in range(4) for c in range(4))  # version 1's camera element
 
@@ -127,26 +128,25 @@ def save_scene(path, model, cameras: Cameras, info: dict | None = None) -> Path:
         raise ValueError("a scene needs at least one camera")
 
     n, degree = len(model), model.max_sh_degree
-    with torch.no_grad():
-        params = {name: getattr(model, name).detach().cpu() for name in
+    with torch.no_grad():  # where the model lives: rows go to the host a chunk at a time (below)
+        params = {name: getattr(model, name).detach() for name in
                   ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest", "t_means", "log_t_scales")}
     bad = [name for name, value in params.items() if not bool(torch.isfinite(value).all())]
     if bad:
         raise ValueError(f"cannot save a scene with non-finite parameters ({', '.join(bad)})")
-    columns = [
-        params["means"],
-        torch.zeros(n, 3),
-        params["sh_dc"].reshape(n, 3),
-        params["sh_rest"].transpose(1, 2).reshape(n, 3 * (params["sh_rest"].shape[1])),  # [N,3,K-1]: channel-major
-        params["opacity_logits"].reshape(n, 1),
-        params["log_scales"],
-        params["quats"],
-        params["t_means"].reshape(n, 1),
-        params["log_t_scales"].reshape(n, 1),
-    ]
-    rows = torch.cat([c.float() for c in columns], dim=1).numpy().astype("<f4")
     names = vertex_properties(degree)
-    assert rows.shape == (n, len(names))
+
+    def rows(start: int, stop: int) -> bytes:
+        """Vertex rows start..stop as little-endian float32 bytes, in `names` order."""
+        p = {name: value[start:stop] for name, value in params.items()}
+        m = stop - start
+        columns = [p["means"], torch.zeros(m, 3, device=p["means"].device), p["sh_dc"].reshape(m, 3),
+                   p["sh_rest"].transpose(1, 2).reshape(m, -1),  # [M,3,K-1]: channel-major, as INRIA
+                   p["opacity_logits"].reshape(m, 1), p["log_scales"], p["quats"], p["t_means"].reshape(m, 1),
+                   p["log_t_scales"].reshape(m, 1)]
+        block = torch.cat([c.float() for c in columns], dim=1).cpu().numpy()
+        assert block.shape == (m, len(names))
+        return block.astype("<f4", copy=False).tobytes()
 
     records = np.empty(len(cameras), CAMERA_RECORD)
     records["c2w"] = cameras.c2w.reshape(len(cameras), 16)
@@ -166,7 +166,8 @@ def save_scene(path, model, cameras: Cameras, info: dict | None = None) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_file(path, durable=True) as tmp, open(tmp, "wb") as f:
         f.write(ply_header(names, n, [HEADER_NOTE]))
-        f.write(np.ascontiguousarray(rows).tobytes())
+        for start in range(0, n, SAVE_CHUNK):  # a chunk at a time: no host copy of the whole cloud
+            f.write(rows(start, min(start + SAVE_CHUNK, n)))
         f.write(TRAILER_MAGIC + struct.pack("<Q", len(text)) + text)
         f.write(records.tobytes())
     return path
