@@ -35,10 +35,10 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from tests.test_export import (  # noqa: E402  (the readers, transcribed once, for tests and this table)
+from tests.scenes import inria_load_ply  # noqa: E402  (the readers, transcribed once, for tests and this table)
+from tests.test_export import (  # noqa: E402
     C0,
     demo_model,
-    inria_load_ply,
     resaved_like_splat_transform,
     stride_summing_parse,
 )

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 
+import numpy as np
 import torch
 import warp as wp
 
@@ -182,3 +183,24 @@ def rewrite_vertex(path, dst, edit):
     trailer = data[len(clip_parts(path)[0]):]
     open(dst, "wb").write(ply_header(rows.dtype.names, len(rows), [HEADER_NOTE]) + rows.tobytes() + trailer)
     return dst
+
+
+def inria_load_ply(path, max_sh_degree: int) -> dict:
+    """graphdeco-inria/gaussian-splatting GaussianModel.load_ply, transcribed (numpy): the first
+    element, names by prefix, the assert on the f_rest_ count for the degree it was started with."""
+    from plyfile import PlyData
+
+    el = PlyData.read(str(path)).elements[0]
+    xyz = np.stack([np.asarray(el[k]) for k in ("x", "y", "z")], axis=1)
+    opacities = np.asarray(el["opacity"])[..., None]
+    dc = np.stack([np.asarray(el[f"f_dc_{i}"]) for i in range(3)], axis=1)[:, :, None]
+    extra = sorted((p.name for p in el.properties if p.name.startswith("f_rest_")), key=lambda x: int(x.split("_")[-1]))
+    assert len(extra) == 3 * (max_sh_degree + 1) ** 2 - 3
+    rest = np.stack([np.asarray(el[k]) for k in extra], axis=1).reshape(len(xyz), 3, -1) if extra else \
+        np.zeros((len(xyz), 3, 0))
+    scales = np.stack([np.asarray(el[p.name]) for p in sorted(
+        (p for p in el.properties if p.name.startswith("scale_")), key=lambda p: int(p.name.split("_")[-1]))], axis=1)
+    rots = np.stack([np.asarray(el[p.name]) for p in sorted(
+        (p for p in el.properties if p.name.startswith("rot")), key=lambda p: int(p.name.split("_")[-1]))], axis=1)
+    return {"means": xyz, "opacity_logits": opacities[:, 0], "sh_dc": dc[:, :, 0], "sh_rest": rest.transpose(0, 2, 1),
+            "log_scales": scales, "quats": rots}

@@ -16,6 +16,7 @@ from click.testing import CliRunner
 from plyfile import PlyData
 
 import tomgs
+from tests.scenes import inria_load_ply
 from tomgs.cameras import Cameras
 from tomgs.cli import main
 from tomgs.demo import demo_scene
@@ -50,25 +51,6 @@ def scene_path(tmp_path_factory):
 
 
 # ---- readers, written from their sources' logic ------------------------------------------------
-
-def inria_load_ply(path, max_sh_degree: int) -> dict:
-    """graphdeco-inria/gaussian-splatting GaussianModel.load_ply, transcribed (numpy): the first
-    element, names by prefix, the assert on the f_rest_ count for the degree it was started with."""
-    el = PlyData.read(str(path)).elements[0]
-    xyz = np.stack([np.asarray(el[k]) for k in ("x", "y", "z")], axis=1)
-    opacities = np.asarray(el["opacity"])[..., None]
-    dc = np.stack([np.asarray(el[f"f_dc_{i}"]) for i in range(3)], axis=1)[:, :, None]
-    extra = sorted((p.name for p in el.properties if p.name.startswith("f_rest_")), key=lambda x: int(x.split("_")[-1]))
-    assert len(extra) == 3 * (max_sh_degree + 1) ** 2 - 3
-    rest = np.stack([np.asarray(el[k]) for k in extra], axis=1).reshape(len(xyz), 3, -1) if extra else \
-        np.zeros((len(xyz), 3, 0))
-    scales = np.stack([np.asarray(el[p.name]) for p in sorted(
-        (p for p in el.properties if p.name.startswith("scale_")), key=lambda p: int(p.name.split("_")[-1]))], axis=1)
-    rots = np.stack([np.asarray(el[p.name]) for p in sorted(
-        (p for p in el.properties if p.name.startswith("rot")), key=lambda p: int(p.name.split("_")[-1]))], axis=1)
-    return {"means": xyz, "opacity_logits": opacities[:, 0], "sh_dc": dc[:, :, 0], "sh_rest": rest.transpose(0, 2, 1),
-            "log_scales": scales, "quats": rots}
-
 
 def stride_summing_parse(path) -> dict:
     """antimatter15/splat's and gsplat.js's PLY parsing: the first 10 kB hold the header, one row

@@ -10,7 +10,7 @@ import torch
 from plyfile import PlyData, PlyElement
 
 import tomgs
-from tests.scenes import clip_parts, patch_clip
+from tests.scenes import clip_parts, inria_load_ply, patch_clip
 from tomgs.cameras import Cameras, intrinsics, look_at
 from tomgs.io import InputError
 from tomgs.io.scene import TRAILER_MAGIC, load_scene, save_scene
@@ -135,23 +135,16 @@ def test_layout_is_inria_first_then_temporal(tmp_path):
 
 
 def test_inria_loader_reads_the_gaussians(tmp_path):
-    """INRIA's GaussianModel.load_ply, transcribed: first element, names matched by prefix."""
+    """INRIA's GaussianModel.load_ply, transcribed (tests.scenes.inria_load_ply): first element, names
+    matched by prefix, the f_rest_ count of its degree asserted."""
     model = random_model(30, 3, 3)
-    el = PlyData.read(str(save_scene(tmp_path / "s.ply", model, random_cameras(2)))).elements[0]
-    xyz = np.stack([np.asarray(el[k]) for k in ("x", "y", "z")], axis=1)
-    opacities = np.asarray(el["opacity"])[..., None]
-    dc = np.stack([np.asarray(el[f"f_dc_{i}"]) for i in range(3)], axis=1)[:, :, None]  # [N,3,1]
-    extra = sorted((p.name for p in el.properties if p.name.startswith("f_rest_")), key=lambda x: int(x.split("_")[-1]))
-    assert len(extra) == 3 * (3 + 1) ** 2 - 3
-    rest = np.stack([np.asarray(el[k]) for k in extra], axis=1).reshape(-1, 3, 15)
-    scales = np.stack([np.asarray(el[p.name]) for p in el.properties if p.name.startswith("scale_")], axis=1)
-    rots = np.stack([np.asarray(el[p.name]) for p in el.properties if p.name.startswith("rot")], axis=1)
-    np.testing.assert_array_equal(xyz, model.means.detach().numpy())
-    np.testing.assert_array_equal(opacities[:, 0], model.opacity_logits.detach().numpy())
-    np.testing.assert_array_equal(dc.transpose(0, 2, 1), model.sh_dc.detach().numpy())
-    np.testing.assert_array_equal(rest.transpose(0, 2, 1), model.sh_rest.detach().numpy())
-    np.testing.assert_array_equal(scales, model.log_scales.detach().numpy())
-    np.testing.assert_array_equal(rots, model.quats.detach().numpy())
+    inria = inria_load_ply(save_scene(tmp_path / "s.ply", model, random_cameras(2)), 3)
+    np.testing.assert_array_equal(inria["means"], model.means.detach().numpy())
+    np.testing.assert_array_equal(inria["opacity_logits"], model.opacity_logits.detach().numpy())
+    np.testing.assert_array_equal(inria["sh_dc"], model.sh_dc.detach().numpy()[:, 0])
+    np.testing.assert_array_equal(inria["sh_rest"], model.sh_rest.detach().numpy())
+    np.testing.assert_array_equal(inria["log_scales"], model.log_scales.detach().numpy())
+    np.testing.assert_array_equal(inria["quats"], model.quats.detach().numpy())
 
 
 def test_degree_zero_has_no_f_rest(tmp_path):

@@ -23,7 +23,7 @@ import torch
 
 from tomgs.cameras import Cameras
 from tomgs.errors import InputError
-from tomgs.io.splats import StaticGaussians
+from tomgs.io.splats import FIELDS, StaticGaussians
 from tomgs.temporal import frozen_at
 
 
@@ -90,8 +90,7 @@ def join(parts: list[StaticGaussians]) -> StaticGaussians:
     """One cloud of several, in order (SH at the highest degree among them, the others padded)."""
     degree = max(p.sh_degree for p in parts)
     parts = [p.with_sh_degree(degree) for p in parts]
-    return StaticGaussians(*(np.concatenate([getattr(p, name) for p in parts]) for name in
-                             ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")))
+    return StaticGaussians(*(np.concatenate([getattr(p, name) for p in parts]) for name in FIELDS))
 
 
 def moment_with_layers(scene, moment: Moment, layers=(), sh_degree: int | None = None) -> StaticGaussians:
@@ -108,8 +107,7 @@ def moment_with_layers(scene, moment: Moment, layers=(), sh_degree: int | None =
     for layer in layers:
         g = static_moment(layer.model, float(layer.cameras.times[moment.position]), sh_degree)
         matrix, keep = place_layer(scene.cameras, layer.cameras, moment.position, behind, g.means)
-        g = StaticGaussians(*(getattr(g, name)[keep] for name in
-                              ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")))
+        g = g.rows(keep)
         means, quats, scales = transform_gaussians(g.means, g.quats, np.exp(g.log_scales.astype(np.float64)), matrix)
         g = StaticGaussians(means.astype(np.float32), quats.astype(np.float32),
                             np.log(scales).astype(np.float32), g.opacity_logits, g.sh_dc, g.sh_rest)

@@ -205,9 +205,7 @@ def load_scene(path, device="cpu", cameras=None) -> Scene:
     elif version == 1:
         header, stored = _read_version_1(ply, comments, path, fix)
     else:  # no tomgs comment: a plain 3DGS file, or a scene that another tool re-saved
-        header, stored = _bare_header(vertex, given, path), None
-    if given is not None:
-        header = dict(header, width=given.width, height=given.height, K=given.K.tolist())
+        header, stored = _bare_header(vertex, path), None
     degree = header["max_sh_degree"]
 
     not_numbers = [p for p in (vertex.dtype.names or ()) if vertex.dtype[p].kind not in "iuf"]
@@ -347,16 +345,14 @@ def _read_version_1(ply, comments: list[str], path: Path, fix: str) -> tuple[dic
     return header, records
 
 
-def _bare_header(vertex, given: Cameras | None, path: Path) -> dict:
+def _bare_header(vertex, path: Path) -> dict:
     """What a PLY without tomgs's comment implies: the SH degree from its f_rest_ count, all active,
-    no info. Raises for an f_rest_ count no SH degree has."""
+    no info (its cameras must be given). Raises for an f_rest_ count no SH degree has."""
     rest = sum(1 for p in (vertex.dtype.names or ()) if p.startswith("f_rest_"))
     degrees = {3 * ((d + 1) ** 2 - 1): d for d in range(4)}
     if rest not in degrees:
         raise InputError(f"{path}: {rest} f_rest_ properties; SH degrees 0..3 have 0, 9, 24 or 45")
-    width, height = (given.width, given.height) if given is not None else (1, 1)
-    return {"max_sh_degree": degrees[rest], "sh_degree": degrees[rest], "info": {}, "width": width,
-            "height": height, "K": [[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]]}
+    return {"max_sh_degree": degrees[rest], "sh_degree": degrees[rest], "info": {}}
 
 
 def _checked_header(text, path: Path, fix: str) -> dict:

@@ -29,9 +29,10 @@ from pathlib import Path
 import numpy as np
 
 from tomgs.outputs import atomic_file
-from tomgs.sh import _C0
+from tomgs.sh import _C0, sh_degree_of
 
 FORMATS = (".ply", ".splat", ".spz")
+FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")  # StaticGaussians' arrays
 
 
 @dataclass
@@ -52,7 +53,11 @@ class StaticGaussians:
 
     @property
     def sh_degree(self) -> int:
-        return int(round(np.sqrt(self.sh_rest.shape[1] + 1))) - 1
+        return sh_degree_of(self.sh_rest.shape[1] + 1)
+
+    def rows(self, index) -> StaticGaussians:
+        """The Gaussians `index` (a bool mask or indices) picks."""
+        return StaticGaussians(*(getattr(self, name)[index] for name in FIELDS))
 
     def with_sh_degree(self, degree: int) -> StaticGaussians:
         """SH truncated or padded with zeros to `degree` (0..3)."""
