@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import torch
 
 from tomgs.errors import RenderError
-from tomgs.sh import sh_degree_of, sh_to_colors
+from tomgs.sh import fused_sh_to_colors, sh_degree_of, sh_to_colors
 
 
 @dataclass
@@ -35,9 +35,12 @@ def _shape_error(name: str, tensor: torch.Tensor, expected: str) -> RenderError:
 
 def prepare_inputs(
     means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width, height, t,
-    background, near, far, dtype: torch.dtype | None,
+    background, near, far, dtype: torch.dtype | None, *, fused_sh: bool = False,
 ) -> RasterInputs:
-    """Check shapes, devices and scalars; evaluate SH into RGB; cast to `dtype` (None keeps means')."""
+    """Check shapes, devices and scalars; evaluate SH into RGB; cast to `dtype` (None keeps means').
+
+    SH is evaluated by tomgs.sh.sh_to_colors in the inputs' dtype (the reference: the torch oracle),
+    or with `fused_sh` by its Warp kernel in float32 (the renderer)."""
     tensors = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
                    t_means=t_means, t_scales=t_scales, viewmat=viewmat, K=K)
     for name, value in tensors.items():
@@ -68,11 +71,9 @@ def prepare_inputs(
         raise RenderError(f"need 0 < near < far, got near={near}, far={far}")
     if colors.dim() == 3:
         sh_degree_of(colors.shape[1])  # raises on a bad coefficient count
-        # a non-finite mean's row looks from the camera as if it sat at the origin: that Gaussian is
-        # culled anyway, and its NaN view direction would reach every gradient of means and viewmat
-        # through the SH backward (0 * NaN)
-        view_from = torch.where(torch.isfinite(means), means, torch.zeros_like(means)) if colors.shape[1] > 1 else means
-        colors = sh_to_colors(colors, view_from, viewmat)
+        # both count a non-finite mean component as 0 (that Gaussian is culled; its NaN view direction
+        # would reach every gradient of means and viewmat through the SH backward)
+        colors = (fused_sh_to_colors if fused_sh else sh_to_colors)(colors, means, viewmat)
     dtype = dtype or means.dtype
     cast = {k: v.to(dtype) for k, v in dict(tensors, colors=colors).items()}
     return RasterInputs(

@@ -293,7 +293,7 @@ def rasterize(
     """
     t_hi, t_lo = _check_scalars(width, height, t, near, far)
     p = prepare_inputs(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width, height, t,
-                          background, near, far, torch.float32)
+                          background, near, far, torch.float32, fused_sh=True)
     frame = _Frame(p.width, p.height, t_hi, t_lo, p.near, p.far)
     if frame.num_tiles * TILE_SIZE * TILE_SIZE > MAX_THREADS:
         raise RenderError(f"a {frame.width}x{frame.height} image is too large to render in one piece: keep "

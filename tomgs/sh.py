@@ -1,7 +1,12 @@
 """Spherical-harmonics colour, degree 0..3 (the 3DGS basis and constants).
 
-Evaluated in torch: it is a handful of fused elementwise ops per Gaussian, autograd differentiates
-it, and the renderer, the reference and the model all share this one definition.
+    eval_sh(sh, dirs)                    the basis, in torch: the one definition, and the oracle
+    sh_to_colors(sh, means, viewmat)     RGB seen from a camera, in torch (any dtype; the reference)
+    fused_sh_to_colors(sh, means, viewmat)
+                                         the same in one Warp kernel forward and one backward, float32
+                                         (the renderer: ~40 torch kernels per direction become one)
+
+tomgs.kernels.sh takes its constants from here.
 """
 
 from __future__ import annotations
@@ -22,6 +27,8 @@ _C3 = (
     1.445305721320277,
     -0.5900435899266435,
 )
+# a view direction is (mean - centre) / max(|mean - centre|, DIR_EPS): torch's normalize, its default eps
+DIR_EPS = 1e-12
 
 
 def sh_degree_of(num_coeffs: int) -> int:
@@ -68,11 +75,79 @@ def eval_sh(sh: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
 def sh_to_colors(sh: torch.Tensor, means: torch.Tensor, viewmat: torch.Tensor) -> torch.Tensor:
     """RGB [N,3] seen from the camera of `viewmat` [4,4] (world->camera) for SH `sh` [N,K,3].
 
-    Follows 3DGS: value + 0.5, clamped at 0 from below. Degree 0 needs no view direction.
+    Follows 3DGS: value + 0.5, clamped at 0 from below. Degree 0 needs no view direction. A mean
+    component that is not finite counts as 0 (and gets no gradient): such a Gaussian is culled by
+    the renderer anyway, and its NaN view direction would reach every gradient of means and viewmat
+    through the backward (0 * NaN). A Gaussian at the camera centre sees direction 0 (DIR_EPS).
     """
     if sh.shape[-2] == 1:
         return torch.clamp_min(_C0 * sh[:, 0] + 0.5, 0.0)
+    means = torch.where(torch.isfinite(means), means, torch.zeros_like(means))
     rot, trans = viewmat[:3, :3], viewmat[:3, 3]
     cam_center = -rot.T @ trans
-    dirs = torch.nn.functional.normalize(means - cam_center, dim=-1)
+    dirs = torch.nn.functional.normalize(means - cam_center, dim=-1, eps=DIR_EPS)
     return torch.clamp_min(eval_sh(sh, dirs) + 0.5, 0.0)
+
+
+def fused_sh_to_colors(sh: torch.Tensor, means: torch.Tensor, viewmat: torch.Tensor) -> torch.Tensor:
+    """`sh_to_colors` in float32 by the Warp kernels of tomgs.kernels.sh, on the inputs' device (CPU
+    or CUDA): RGB [N,3] float32 for SH `sh` [N,K,3], `means` [N,3], `viewmat` [4,4] of any float dtype.
+    Differentiable in all three; the viewmat's gradient is formed only when it is asked for."""
+    if sh.dim() != 3 or sh.shape[2] != 3 or means.shape != (sh.shape[0], 3) or viewmat.shape != (4, 4):
+        raise ValueError(f"need sh [N,K,3], means [N,3], viewmat [4,4]; got {tuple(sh.shape)}, "
+                         f"{tuple(means.shape)}, {tuple(viewmat.shape)}")
+    sh_degree_of(sh.shape[1])
+    return _FusedColors.apply(*(x.to(torch.float32).contiguous() for x in (sh, means, viewmat)))
+
+
+def _dense_rows(grad: torch.Tensor) -> torch.Tensor:
+    """An incoming [N,3] gradient Warp can index as vec3 rows (the renderer hands a strided view)."""
+    return grad.contiguous() if grad.stride(-1) != 1 or 0 in grad.stride() else grad
+
+
+class _FusedColors(torch.autograd.Function):
+    # sh [N,K,3], means [N,3], viewmat [4,4]: float32, contiguous
+    @staticmethod
+    def forward(ctx, sh, means, viewmat):
+        import warp as wp  # here, not at the top: importing tomgs.sh loads no Warp
+
+        from tomgs.kernels import sh as kernels
+        from tomgs.runtime import launch, scope, wrap
+
+        n, degree = sh.shape[0], sh_degree_of(sh.shape[1])
+        colors = torch.empty(n, 3, device=sh.device, dtype=torch.float32)
+        with scope(sh.device) as device:
+            launch(kernels.sh_colors_forward, n, device=device, args=[
+                wrap(sh, wp.vec3), wrap(means, wp.vec3), wrap(viewmat.reshape(1, 4, 4), wp.mat44), degree,
+                wrap(colors, wp.vec3)])
+        ctx.save_for_backward(sh, means, viewmat)
+        return colors
+
+    @staticmethod
+    def backward(ctx, v_colors):
+        import warp as wp
+
+        from tomgs.kernels import sh as kernels
+        from tomgs.runtime import launch, scope, wrap
+
+        sh, means, viewmat = ctx.saved_tensors
+        n, degree = sh.shape[0], sh_degree_of(sh.shape[1])
+        camera_grads = degree > 0 and ctx.needs_input_grad[2]
+        v_sh = torch.empty_like(sh)
+        v_means = torch.empty_like(means) if degree > 0 else None
+        v_offsets = torch.empty_like(means) if camera_grads else None
+        with scope(sh.device) as device:
+            launch(kernels.sh_colors_backward, n, device=device, args=[
+                wrap(sh, wp.vec3), wrap(means, wp.vec3), wrap(viewmat.reshape(1, 4, 4), wp.mat44), degree,
+                wrap(_dense_rows(v_colors), wp.vec3), int(camera_grads), wrap(v_sh, wp.vec3),
+                wrap(means if v_means is None else v_means, wp.vec3),  # unwritten stand-ins
+                wrap(means if v_offsets is None else v_offsets, wp.vec3)])
+        v_viewmat = None
+        if camera_grads:
+            # centre c = -R^T t and every offset is mean - c: with s = sum of dL/d(offset) [3],
+            # dL/dR = t s^T and dL/dt = R s
+            s = v_offsets.sum(0, dtype=torch.float64).to(viewmat.dtype)
+            v_viewmat = torch.zeros_like(viewmat)
+            v_viewmat[:3, :3] = torch.outer(viewmat[:3, 3], s)
+            v_viewmat[:3, 3] = viewmat[:3, :3] @ s
+        return v_sh, v_means, v_viewmat
