@@ -136,10 +136,11 @@ class _FusedColors(torch.autograd.Function):
         v_sh = torch.empty_like(sh)
         v_means = torch.empty_like(means) if degree > 0 else None
         v_offsets = torch.empty_like(means) if camera_grads else None
+        v_colors = _dense_rows(v_colors)  # named: a descriptor does not keep its tensor alive
         with scope(sh.device) as device:
             launch(kernels.sh_colors_backward, n, device=device, args=[
                 wrap(sh, wp.vec3), wrap(means, wp.vec3), wrap(viewmat.reshape(1, 4, 4), wp.mat44), degree,
-                wrap(_dense_rows(v_colors), wp.vec3), int(camera_grads), wrap(v_sh, wp.vec3),
+                wrap(v_colors, wp.vec3), int(camera_grads), wrap(v_sh, wp.vec3),
                 wrap(means if v_means is None else v_means, wp.vec3),  # unwritten stand-ins
                 wrap(means if v_offsets is None else v_offsets, wp.vec3)])
         v_viewmat = None
