@@ -97,7 +97,8 @@ def check_against_oracle(sh, means, viewmat, device, seed=0, w=None) -> dict:
         assert torch.isfinite(v_means).all() and torch.isfinite(v_view).all()
         dist = _offsets(means, viewmat).norm(dim=-1).clamp_min(DIR_EPS)
         means_scale = (sh.abs() * w.abs()[:, None, :]).sum((1, 2)) / dist  # [N]
-        errors["means"] = float(((v_means - ref_means).abs().amax(-1) / means_scale.clamp_min(1e-300)).max()) if n else 0.0
+        per_row = (v_means - ref_means).abs().amax(-1) / means_scale.clamp_min(1e-300)
+        errors["means"] = float(per_row.max()) if n else 0.0
         view_scale = (1.0 + viewmat[:3, 3].abs().max()) * means_scale.sum()
         errors["viewmat"] = float((v_view - ref_view).abs().max() / view_scale.clamp_min(1e-300))
         assert (v_view[3] == 0).all()

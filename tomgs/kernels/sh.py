@@ -122,7 +122,7 @@ def sh_colors_backward(
 ):
     i = wp.tid()
     d = wp.vec3(0.0)
-    n = float(0.0)
+    n = 0.0
     mean = wp.vec3(0.0)
     if degree > 0:
         mean = means[i]
