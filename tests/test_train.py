@@ -54,11 +54,12 @@ def test_adam_is_sparse_on_a_gpu_and_dense_on_a_cpu_unless_asked():
 
 def test_seen_adam_is_adam_on_the_rows_in_view():
     """SeenAdam against torch's Adam in float64 on fresh random gradients: seen rows take Adam's
-    step, unseen rows keep their values and moments; parameters of 1-3 axes and an empty one."""
+    step, unseen rows keep their values and moments; parameters of 1-3 axes and an empty one, and
+    more parameters than one launch takes (kernels/adam.py SLOTS)."""
     g = torch.Generator().manual_seed(7)
     n = 40
     params = [torch.randn(n, 3, generator=g), torch.randn(n, generator=g), torch.randn(n, 1, 3, generator=g),
-              torch.zeros(n, 0, 3)]
+              torch.zeros(n, 0, 3)] + [torch.randn(n, 1 + i % 4, generator=g) for i in range(7)]
     ours = [p.clone().requires_grad_(True) for p in params]
     ref = [p.double().requires_grad_(True) for p in params]
     opt = SeenAdam([dict(params=[p], lr=0.01 * (i + 1)) for i, p in enumerate(ours)], eps=1e-15)
@@ -86,6 +87,8 @@ def test_seen_adam_is_adam_on_the_rows_in_view():
             assert torch.allclose(opt.state[p]["exp_avg"].double(), adam.state[q]["exp_avg"], atol=1e-5)
     with pytest.raises(ValueError, match="rows"):
         opt.step(torch.ones(n + 1, dtype=torch.bool))
+    with pytest.raises(ValueError, match="betas and eps"):
+        SeenAdam([dict(params=[ours[0]]), dict(params=[ours[1]], betas=(0.5, 0.9))])
 
 
 def test_initial_points_per_frame_respect_device_frame_size_and_cap():

@@ -5,6 +5,7 @@
     scope(device)                    context: Warp launches on `device`, on torch's current stream;
                                      yields the Warp device name; RenderError for other device types
     wrap(tensor, dtype=None)         zero-copy Warp array descriptor of a torch tensor
+    wrap_rows(tensor)                the same of a contiguous [N, ...] tensor seen as [N, D]
     launch(kernel, dim, args, device, block_dim=256)
                                      a recorded launch per (kernel, device, block size), re-armed
 
@@ -33,7 +34,7 @@ import warp as wp
 
 from tomgs.errors import RenderError
 
-__all__ = ["init_warp", "warp_device", "scope", "wrap", "launch", "Launches", "ArrayDescriptor"]
+__all__ = ["init_warp", "warp_device", "scope", "wrap", "wrap_rows", "launch", "Launches", "ArrayDescriptor"]
 
 _warp_ready = False
 
@@ -124,12 +125,27 @@ def wrap(tensor: torch.Tensor, dtype=None):
     return ArrayDescriptor(tensor.data_ptr(), 0, len(shape), shape, strides)
 
 
+def wrap_rows(tensor: torch.Tensor):
+    """`wrap` of a contiguous `tensor` [N, ...] viewed as [N, D] (D the product of the other axes),
+    without a torch view call (on a GPU machine each costs microseconds of host time)."""
+    if not tensor.is_contiguous() or tensor.dim() == 0:
+        raise ValueError(f"wrap_rows needs a contiguous tensor of at least one axis, got shape {tuple(tensor.shape)}")
+    rows = tensor.shape[0]
+    cols = tensor.numel() // rows if rows else 0
+    item = tensor.element_size()
+    return ArrayDescriptor(tensor.data_ptr(), 0, 2, (rows, cols), (cols * item, item))
+
+
 def _check_descriptor() -> None:
     """Our descriptors must equal, byte for byte, what `wp.from_torch` (the public build) makes."""
     base = torch.arange(60, dtype=torch.float32).reshape(4, 5, 3)
-    for tensor, dtype in ((base[:, ::2], wp.vec3), (base[:3, :3], wp.mat33), (base[1:, :, 0], None)):
+    rows = base.reshape(4, 15)
+    for ours, tensor, dtype in ((wrap(base[:, ::2], wp.vec3), base[:, ::2], wp.vec3),
+                                (wrap(base[:3, :3], wp.mat33), base[:3, :3], wp.mat33),
+                                (wrap(base[1:, :, 0]), base[1:, :, 0], None),
+                                (wrap_rows(base), rows, None)):
         theirs = wp.from_torch(tensor, dtype, requires_grad=False, return_ctype=True)
-        if bytes(wrap(tensor, dtype)) != bytes(theirs):
+        if bytes(ours) != bytes(theirs):
             raise RuntimeError(f"tomgs.runtime: Warp {wp.__version__} builds array descriptors differently from "
                                "the version tomgs was checked on (1.19.0): update tomgs.runtime.wrap")
 

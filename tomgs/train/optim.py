@@ -2,8 +2,8 @@
 
 `SeenAdam.step(seen)` runs torch.optim.Adam's update on the rows whose Gaussian was in view
 (`seen`, bool [N]) and leaves the other rows and their moments alone (tomgs/kernels/adam.py says
-why). Its state has Adam's layout (step, exp_avg, exp_avg_sq per parameter), so densification's
-moment surgery and checkpoints treat both optimisers alike.
+why), all parameters in one launch. Its state has Adam's layout (step, exp_avg, exp_avg_sq per
+parameter), so densification's moment surgery and checkpoints treat both optimisers alike.
 """
 
 from __future__ import annotations
@@ -14,35 +14,56 @@ import torch
 
 
 class SeenAdam(torch.optim.Optimizer):
+    """Adam on the seen rows. Learning rates may differ by group; betas and eps are the optimiser's."""
+
     def __init__(self, params, lr: float = 1e-3, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8):
         super().__init__(params, dict(lr=lr, betas=betas, eps=eps))
+        for group in self.param_groups:
+            if tuple(group["betas"]) != tuple(betas) or group["eps"] != eps:
+                raise ValueError("SeenAdam takes betas and eps for all groups at once, not per group")
+        self._empty: dict[torch.device, torch.Tensor] = {}  # the stand-in of an unused slot, per device
 
     @torch.no_grad()
     def step(self, seen: torch.Tensor) -> None:
         """One Adam step on the rows where `seen` (bool [N], N = every parameter's first axis) is True."""
         from tomgs.kernels import adam
-        from tomgs.runtime import launch, scope, wrap
+        from tomgs.runtime import launch, scope, wrap, wrap_rows
 
-        seen_bytes = seen.to(torch.uint8)  # held until the launches are queued: the descriptor does not own it
-        seen_d = wrap(seen_bytes)
+        slots = []  # (param, grad, exp_avg, exp_avg_sq, lr, bias1, bias2_sqrt) of every parameter with a gradient
+        beta1, beta2 = self.defaults["betas"]
+        for group in self.param_groups:
+            for p in group["params"]:
+                if p.grad is None or p.numel() == 0:
+                    continue
+                if p.shape[0] != seen.shape[0]:
+                    raise ValueError(f"seen has {seen.shape[0]} rows but the parameter has {p.shape[0]}")
+                state = self.state[p]
+                if not state:
+                    state["step"] = torch.tensor(0.0)
+                    state["exp_avg"] = torch.zeros_like(p)
+                    state["exp_avg_sq"] = torch.zeros_like(p)
+                state["step"] += 1
+                step = float(state["step"])  # a CPU tensor: no wait for the device
+                slots.append((p, p.grad.contiguous(), state["exp_avg"], state["exp_avg_sq"], group["lr"],
+                              1.0 - beta1 ** step, math.sqrt(1.0 - beta2 ** step)))
+        if not slots:
+            return
+        seen = seen.contiguous()  # held until the launches are queued: a descriptor does not own its tensor
+        empty = self._empty.get(seen.device)
+        if empty is None:
+            empty = self._empty[seen.device] = torch.empty(0, 1, device=seen.device)
         with scope(seen.device) as device:
-            for group in self.param_groups:
-                beta1, beta2 = group["betas"]
-                for p in group["params"]:
-                    if p.grad is None or p.numel() == 0:
-                        continue
-                    if p.shape[0] != seen.shape[0]:
-                        raise ValueError(f"seen has {seen.shape[0]} rows but the parameter has {p.shape[0]}")
-                    state = self.state[p]
-                    if not state:
-                        state["step"] = torch.tensor(0.0)
-                        state["exp_avg"] = torch.zeros_like(p)
-                        state["exp_avg_sq"] = torch.zeros_like(p)
-                    state["step"] += 1
-                    step = float(state["step"])  # a CPU tensor: no wait for the device
-                    rows = p.shape[0]
-                    grad = p.grad.contiguous()
-                    views = [wrap(t.view(rows, -1)) for t in (p, grad, state["exp_avg"], state["exp_avg_sq"])]
-                    launch(adam.adam_seen_rows, p.numel(), device=device, args=[
-                        *views, seen_d, group["lr"], beta1, beta2, group["eps"], 1.0 - beta1 ** step,
-                        math.sqrt(1.0 - beta2 ** step)])
+            for first in range(0, len(slots), adam.SLOTS):
+                chunk = slots[first:first + adam.SLOTS]
+                arrays, ends, total = [], [], 0
+                for p, grad, exp_avg, exp_avg_sq, *_ in chunk:
+                    arrays += [wrap_rows(t) for t in (p, grad, exp_avg, exp_avg_sq)]
+                    total += p.numel()
+                    ends.append(total)
+                unused = adam.SLOTS - len(chunk)
+                arrays += [wrap(empty)] * (4 * unused)
+                ends += [total] * unused
+                lr, bias1, bias2_sqrt = ([s[i] for s in chunk] + [1.0] * unused for i in (4, 5, 6))
+                launch(adam.adam_seen_rows, total, device=device, args=[
+                    *arrays, wrap(seen), adam.vec_slots_i(*ends), adam.vec_slots(*lr), adam.vec_slots(*bias1),
+                    adam.vec_slots(*bias2_sqrt), beta1, beta2, self.defaults["eps"]])
