@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from profile_raster import kernel_times  # noqa: E402
+from profile_raster import host_profile, kernel_times  # noqa: E402
 
 import tomgs
 from tomgs.cameras import Cameras, intrinsics
@@ -37,6 +37,7 @@ def main() -> None:
     ap.add_argument("--scene", type=Path, help="a scene fitted to this clip: profile training on from it")
     ap.add_argument("--iters", type=int, default=40)
     ap.add_argument("--device", default="cuda", help="cuda (the profile), or cpu for a dry run of the script")
+    ap.add_argument("--host", action="store_true", help="also print the Python functions that cost host time")
     args = ap.parse_args()
     source = args.clip / "images" if (args.clip / "images").exists() else args.clip
     video = read_video(source)
@@ -78,6 +79,9 @@ def main() -> None:
     print(f"wall {wall:.2f} ms per iteration, GPU kernels {gpu:.2f} ms (gap {wall - gpu:.2f} ms)")
     for name, ms in sorted(per_kernel.items(), key=lambda kv: -kv[1])[:25]:
         print(f"  {ms:8.3f} ms  {name}")
+    if args.host:
+        print(f"\nhost time per iteration, top functions (cumulative over {args.iters} iterations):")
+        host_profile(trainer.step, args.iters)
 
 
 if __name__ == "__main__":

@@ -34,6 +34,21 @@ def kernel_times(step, iters: int) -> dict[str, float]:
     return dict(per_kernel)
 
 
+def host_profile(step, iters: int, top: int = 25) -> None:
+    """Print the Python functions that cost host time over `iters` calls of `step` (cProfile; a wait
+    for the device shows up as the time of the call that waited, e.g. `tolist`)."""
+    import cProfile
+    import pstats
+
+    profiler = cProfile.Profile()
+    profiler.enable()
+    for _ in range(iters):
+        step()
+    torch.cuda.synchronize()
+    profiler.disable()
+    pstats.Stats(profiler).sort_stats("tottime").print_stats(top)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--size", default="854x480")
@@ -74,17 +89,8 @@ def main() -> None:
     for name, ms in sorted(per_kernel.items(), key=lambda kv: -kv[1])[:18]:
         print(f"  {ms:8.3f} ms  {name}")
     if args.host:
-        import cProfile
-        import pstats
-
-        profiler = cProfile.Profile()
-        profiler.enable()
-        for _ in range(args.iters):
-            step()
-        torch.cuda.synchronize()
-        profiler.disable()
         print(f"\nhost time per fwd+bwd, top functions (cumulative over {args.iters} iterations):")
-        pstats.Stats(profiler).sort_stats("tottime").print_stats(25)
+        host_profile(step, args.iters)
 
 
 if __name__ == "__main__":
