@@ -152,11 +152,13 @@ class _Project(torch.autograd.Function):
         v_viewmat_parts = torch.empty(parts, 4, 4, device=means.device, dtype=torch.float32)
         v_K_parts = torch.empty(parts, 4, device=means.device, dtype=torch.float32)
         inputs, radii_d, conics_d = ctx.descriptors
+        # named, so that a dense copy lives until the launch is queued (a descriptor does not own it)
+        v_means2d, v_conics = _dense(v_means2d, conics[:, :2]), _dense(v_conics, conics)
+        v_opacities_t = _dense(v_opacities_t, opacities)
         with scope(means.device) as device:
             launch(project.project_backward, n, device=device, args=[
                 *inputs, frame.width, frame.height, frame.t_hi, frame.t_lo, radii_d, conics_d,
-                wrap(_dense(v_means2d, conics[:, :2]), wp.vec2), wrap(_dense(v_conics, conics), wp.vec3),
-                wrap(_dense(v_opacities_t, opacities)), int(camera_grads),
+                wrap(v_means2d, wp.vec2), wrap(v_conics, wp.vec3), wrap(v_opacities_t), int(camera_grads),
                 wrap(v_means, wp.vec3), wrap(v_quats, wp.vec4), wrap(v_scales, wp.vec3), wrap(v_opacities),
                 wrap(v_t_means), wrap(v_t_scales), wrap(v_viewmat_parts, wp.mat44), wrap(v_K_parts, wp.vec4),
             ])
@@ -225,11 +227,12 @@ class _Rasterize(torch.autograd.Function):
         shared, state = ctx.descriptors
         grads = torch.zeros(means2d.shape[0], 9, device=means2d.device, dtype=torch.float32)  # one fill, four views
         v_means2d, v_conics, v_opacities_t, v_colors = grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 6:9]
-        v_color = _dense(v_color, trans.expand(-1, -1, 3))
+        v_color = _dense(v_color, trans.expand(-1, -1, 3))  # named: alive until the launch is queued
+        v_trans = _dense(v_trans, trans)
         with scope(means2d.device) as wp_device:
             launch(raster.raster_backward, frame.num_tiles * TILE_SIZE * TILE_SIZE, device=wp_device,
                    block_dim=TILE_SIZE * TILE_SIZE, args=[
-                       *shared, *state, wrap(v_color, wp.vec3), wrap(_dense(v_trans, trans)[..., 0]),
+                       *shared, *state, wrap(v_color, wp.vec3), wrap(v_trans[..., 0]),
                        wrap(v_means2d, wp.vec2), wrap(v_conics, wp.vec3), wrap(v_opacities_t), wrap(v_colors, wp.vec3)])
         return v_means2d, v_conics, v_opacities_t, v_colors, None, None, None
 
