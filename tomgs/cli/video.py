@@ -88,11 +88,15 @@ def poses(video, output, masks, frames, method, focal, max_side, json_out, overw
               help="fit one layer (needs --masks): the pixels outside the masks, or the masked object on a plane")
 @click.option("--mask-dilation", type=click.IntRange(0), default=2, show_default=True,
               help="background layer: grow the masks by this many pixels before leaving them out")
+@click.option("--gpus", type=click.IntRange(1), default=None,
+              help="fit N stretches of the clip side by side, one process per GPU (--device cpu: N CPU processes), "
+                   "merged into one scene; default 1, or under torchrun its ranks (docs/multi-gpu.md)")
 @json_option("the fit's summary")
 @overwrite_option
 @user_errors
 def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal, device, max_gaussians, max_seconds,
-        sampling, static_3dgs, opacity_reset, sh_degree, seed, resume, layer, mask_dilation, json_out, overwrite):
+        sampling, static_3dgs, opacity_reset, sh_degree, seed, resume, layer, mask_dilation, gpus, json_out,
+        overwrite):
     """Fit a TOM-GS scene to VIDEO (a video file or a folder of frames).
 
     \b
@@ -103,11 +107,14 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
       tomgs fit clip.mp4 -o scene.ply -y                # start over, replacing scene.* files
       tomgs fit frames/ --masks masks/ --layer background -o bg.ply
       tomgs fit frames/ --masks masks/ --layer foreground -o fg.ply
+      tomgs fit long.mp4 -o scene.ply --gpus 2          # two GPUs, one stretch of the clip each
+      torchrun --nproc_per_node 8 -m tomgs.cli fit long.mp4 -o scene.ply
     """
     from tomgs.train import FitInterrupted, output_paths
     from tomgs.train import fit as fit_scene
     from tomgs.train import preset as make_config
     from tomgs.train.fit import phase_text, process_started
+    from tomgs.train.ranks import ShardFailed, is_leader
 
     started = process_started()
     overrides = dict(iterations=iterations, max_gaussians=max_gaussians, max_seconds=max_seconds, sampling=sampling,
@@ -139,10 +146,15 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
                                focal=focal, device=device, resume=resume, overwrite=overwrite, progress=on_row,
                                layer=layer, mask_dilation=mask_dilation, phases=on_phase,
                                on_plan=lambda plan: say(plan.summary()), auto_budget=iterations is None,
-                               started=started)
+                               started=started, gpus=gpus)
     except FitInterrupted as e:
         click.echo(f"\n{e.message()}", err=True)
         raise SystemExit(e.exit_code) from None
+    except ShardFailed as e:
+        click.echo(f"\n{e}", err=True)
+        raise SystemExit(1) from None
+    if not is_leader():  # a torchrun rank other than 0: rank 0 reports the run
+        return
     paths = output_paths(output)
     memory = f"peak memory {result.peak_host_mb / 1024:.2f} GiB host" + (
         "" if result.peak_gpu_mb is None else f", {result.peak_gpu_mb / 1024:.2f} GiB GPU")
@@ -159,7 +171,7 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
                                peak_host_mb=result.peak_host_mb, peak_gpu_mb=result.peak_gpu_mb,
                                peak_host_mb_by_phase=result.peak_host_mb_by_phase,
                                clip_psnr=result.clip_psnr, csv=str(paths["csv"]), plot=str(paths["plot"]),
-                               notes=list(result.notes)))
+                               notes=list(result.notes), shards=getattr(result, "shards", None)))
 
 
 @main.command("eval")

@@ -81,7 +81,7 @@ PHASES = ("read", "poses", "init", "train", "save")
 def fit(video, output, config: TrainConfig | None = None, *, masks=None, frames=None, max_side=None,
         poses="auto", focal=None, device=None, resume: bool = False, overwrite: bool = False, progress=None,
         pose_progress=None, layer: str | None = None, mask_dilation: int = 2, phases=None, on_plan=None,
-        auto_budget: bool = True, started: float | None = None) -> FitResult:
+        auto_budget: bool = True, started: float | None = None, gpus: int | None = None) -> FitResult:
     """Fit a TOM-GS scene to `video` (a file, a frame folder or a `tomgs.Video`) and save it to `output`.
 
     poses: "auto" (built-in tracker), "identity" (fixed camera, also the ablation), a cameras file,
@@ -100,8 +100,19 @@ def fit(video, output, config: TrainConfig | None = None, *, masks=None, frames=
     first; `phases(name, done, total, text)` follows each phase of PHASES (train counts iterations,
     or seconds of training under a budget; text: the latest log, or None); `progress(row)` hears
     each CSV row and `pose_progress(done, total)` the poses (default: through `phases`).
+
+    gpus: N > 1 fits the clip in N temporal stretches, one process (GPU) each, merged into one scene
+    (tomgs.train.shards; per-rank checkpoints and CSVs beside the output); under torchrun, the ranks
+    torchrun started. None or 1: this process alone.
     """
     from tomgs.render import resolve_device
+    from tomgs.train.ranks import fit_shards, wants_shards
+
+    if wants_shards(gpus):
+        return fit_shards(video, output, config, gpus=gpus, masks=masks, frames=frames, max_side=max_side, poses=poses,
+                          focal=focal, device=device, resume=resume, overwrite=overwrite, progress=progress,
+                          pose_progress=pose_progress, layer=layer, mask_dilation=mask_dilation, phases=phases,
+                          on_plan=on_plan, auto_budget=auto_budget, started=started)
 
     started = time.perf_counter() if started is None else started
     config = config or TrainConfig()

@@ -1,0 +1,332 @@
+"""Temporal shards (tomgs.train.shards, tomgs.train.ranks): the plan of stretches, the exact map of a
+stretch's time to the clip's, the merged curve; bad inputs refused before any work; and two gloo
+processes on a tiny clip: one ordinary scene whose boundary frames are as good as the others, a
+killed rank that stops the run and leaves every checkpoint, and a resume that continues both."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+from test_train import small_config, synthetic_clip
+from tomgs.errors import InputError
+from tomgs.model import GaussianModel
+from tomgs.render import rasterize
+from tomgs.train import fit
+from tomgs.train.ranks import check_shard_outputs
+from tomgs.train.shards import (Stretch, boundary_psnr, local_cameras, merged_history, own_cut, owned_rows, pack,
+                                plan_stretches, rank_paths, reach, stretch_points, unpack)
+
+TESTS = Path(__file__).parent
+FRAMES, WIDTH, HEIGHT = 12, 32, 24
+
+
+@pytest.fixture(scope="module")
+def clip(tmp_path_factory):
+    """A folder of 12 PNG frames of the demo scene (32x24) and its cameras file."""
+    folder = tmp_path_factory.mktemp("clip")
+    images, cams = synthetic_clip(FRAMES, WIDTH, HEIGHT)[:2]
+    (folder / "frames").mkdir()
+    for i, image in enumerate(images):
+        cv2.imwrite(str(folder / "frames" / f"{i:03d}.png"), np.ascontiguousarray(image[..., ::-1]))
+    cams.save(folder / "cams.json")
+    return folder / "frames", folder / "cams.json", images
+
+
+# -- the plan, the time map, the merged curve ---------------------------------------------------------
+
+
+def test_stretches_split_the_clip_evenly_and_overlap_inside_it():
+    stretches = plan_stretches(10, 3, overlap=2)
+    assert [(s.own_lo, s.own_hi) for s in stretches] == [(0, 3), (3, 7), (7, 10)]
+    assert [(s.lo, s.hi) for s in stretches] == [(0, 5), (1, 9), (5, 10)]
+    assert [s.frames for s in plan_stretches(600, 2)] == [300, 300]
+    assert plan_stretches(5, 1)[0] == Stretch(0, 0, 5, 0, 5)
+    with pytest.raises(InputError, match=r"--gpus 4 .* at least 2 frames .* --gpus 2 or fewer"):
+        plan_stretches(5, 4)
+
+
+def random_model(n: int, seed: int, t_lo: float = 0.0, t_hi: float = 1.0, sh_degree: int = 0) -> GaussianModel:
+    """n Gaussians in front of the demo cameras, temporal centres in [t_lo, t_hi]."""
+    g = torch.Generator().manual_seed(seed)
+    rest = (sh_degree + 1) ** 2 - 1
+    return GaussianModel(
+        means=torch.rand(n, 3, generator=g) * torch.tensor([3.0, 2.0, 2.0]) + torch.tensor([-1.5, -1.0, 3.0]),
+        quats=torch.randn(n, 4, generator=g), log_scales=torch.rand(n, 3, generator=g).log() - 1.5,
+        opacity_logits=torch.randn(n, generator=g), sh_dc=torch.randn(n, 1, 3, generator=g) * 0.5,
+        sh_rest=torch.randn(n, rest, 3, generator=g) * 0.1,
+        t_means=t_lo + (t_hi - t_lo) * torch.rand(n, generator=g),
+        log_t_scales=torch.rand(n, generator=g).log() - 1.0, sh_degree=sh_degree)
+
+
+def render(model, cams, k):
+    return rasterize(**model.render_inputs(), viewmat=torch.as_tensor(np.linalg.inv(cams.c2w[k]), dtype=torch.float32),
+                     K=torch.as_tensor(cams.K, dtype=torch.float32), width=cams.width, height=cams.height,
+                     t=float(cams.times[k]))[0]
+
+
+def test_a_stretch_in_clip_time_renders_what_it_rendered_in_its_own_time():
+    """The middle rank of three: its Gaussians, fitted in its stretch's time, mapped to clip time and
+    rendered at the clip's times give the same images; those centred outside its own frames are
+    left to their owner."""
+    _, cams = synthetic_clip(FRAMES, WIDTH, HEIGHT)[:2]
+    stretch = plan_stretches(FRAMES, 3, overlap=1)[1]
+    local = local_cameras(cams, stretch)
+    assert local.times[0] == 0.0 and local.times[-1] == 1.0 and list(local.frame_indices) == list(range(3, 9))
+    model = random_model(400, seed=1, t_lo=-0.1, t_hi=1.1)
+    merged = GaussianModel(**unpack(owned_rows(model, cams.times, stretch), 0))
+    lo, hi = own_cut(cams.times, stretch)
+    assert lo == pytest.approx((cams.times[3] + cams.times[4]) / 2) and hi == pytest.approx((cams.times[7] + cams.times[8]) / 2)
+    assert ((merged.t_means >= lo) & (merged.t_means < hi)).all()
+    assert 0 < len(merged) < len(model)
+    # render only what the merge kept, both ways
+    t0, span = cams.times[stretch.lo], cams.times[stretch.hi - 1] - cams.times[stretch.lo]
+    kept_local = (model.t_means.double() * span + t0 >= lo) & (model.t_means.double() * span + t0 < hi)
+    mine = GaussianModel(**{k: v.detach()[kept_local] for k, v in model.parameters_by_name().items()})
+    with torch.no_grad():
+        for k in range(stretch.frames):
+            a, b = render(mine, local, k), render(merged, cams, stretch.lo + k)
+            assert a.abs().sum() > 0
+            assert torch.allclose(a, b, atol=2e-4), (k, float((a - b).abs().max()))
+
+
+def test_rows_round_trip_and_reach_follows_the_alive_window():
+    model = random_model(50, seed=2, sh_degree=1)
+    rows = pack(model.parameters_by_name())
+    assert rows.shape == (50, 3 + 4 + 3 + 1 + 3 + 9 + 1 + 1)
+    back = unpack(rows, 1)
+    for name, value in model.parameters_by_name().items():
+        assert torch.equal(back[name], value.detach())
+    _, cams = synthetic_clip(FRAMES, WIDTH, HEIGHT)[:2]
+    stretches = plan_stretches(FRAMES, 2)
+    short = GaussianModel(**dict(unpack(pack(model.parameters_by_name())[:2], 1),
+                                 t_means=torch.tensor([0.0, 1.0]), log_t_scales=torch.full((2,), math.log(0.01)),
+                                 opacity_logits=torch.full((2,), 3.0)), sh_degree=1)
+    assert reach(short, cams.times, stretches).tolist() == [[True, False], [False, True]]
+    wide = GaussianModel(**dict(unpack(pack(short.parameters_by_name()), 1), log_t_scales=torch.zeros(2)), sh_degree=1)
+    assert reach(wide, cams.times, stretches).all()
+    dead = GaussianModel(**dict(unpack(pack(short.parameters_by_name()), 1), opacity_logits=torch.full((2,), -9.0)),
+                         sh_degree=1)
+    assert not reach(dead, cams.times, stretches).any()
+
+
+def test_tracked_points_go_to_the_stretches_that_saw_them():
+    points, colors = np.arange(12.0).reshape(4, 3), np.ones((4, 3), np.float32)
+    seen = np.array([[0, 2], [1, 8], [6, 9], [9, 11]])
+    stretch = plan_stretches(12, 2)[0]  # frames 0..5
+    p, c, frames = stretch_points(points, colors, seen, stretch)
+    assert p.tolist() == points[:2].tolist() and frames.tolist() == [[0, 2], [1, 5]]
+    assert stretch_points(points, colors, None, stretch)[2] is None
+
+
+def row(iteration, wall, train, clip="", gaussians=10, memory=100.0):
+    return dict(iteration=iteration, wall_s=wall, train_psnr=train, clip_psnr=clip, gaussians=gaussians,
+                memory_mb=memory)
+
+
+def test_the_merged_curve_weights_ranks_by_frames_and_waits_for_every_rank():
+    a = [row(50, 1.0, 20.0, 21.0), row(100, 2.0, 24.0), row(120, 3.0, 25.0, 26.0)]
+    b = [row(50, 1.5, 30.0, 31.0, memory=300.0), row(100, 2.5, 32.0)]
+    merged = merged_history([a, b], weights=[1, 3])
+    assert [r["wall_s"] for r in merged] == [1.5, 2.0, 2.5, 3.0]  # from the first time both have a row
+    assert merged[0] == row(100, 1.5, 27.5, 28.5, gaussians=20, memory=300.0)
+    assert merged[1]["iteration"] == 150 and merged[1]["clip_psnr"] == ""  # a row without a new measurement
+    assert merged[-1]["clip_psnr"] == pytest.approx((26.0 + 3 * 31.0) / 4)  # each rank's latest
+    assert merged[-1]["iteration"] == 220
+
+
+def test_boundary_psnr_splits_frames_near_each_boundary():
+    stretches = plan_stretches(12, 3)
+    psnr = [30.0] * 12
+    psnr[4], psnr[3] = 20.0, 22.0
+    report = boundary_psnr(psnr, stretches, near=1)
+    assert report["boundaries"] == [dict(frame=4, psnr=21.0), dict(frame=8, psnr=30.0)]
+    assert report["boundary"] == pytest.approx((20 + 22 + 30 + 30) / 4) and report["interior"] == 30.0
+
+
+# -- bad inputs: refused before any work, nothing written -----------------------------------------------
+
+
+def test_bad_sharded_fits_are_refused_before_any_work(clip, tmp_path, monkeypatch):
+    frames, cams, _ = clip
+    out = tmp_path / "scene.ply"
+    kw = dict(device="cpu", poses=str(cams))
+    with pytest.raises(InputError, match=r"--gpus 7 .* 12 frames .* each rank needs at least 2 frames"):
+        fit(frames, out, small_config(10), gpus=7, **kw)
+    with pytest.raises(InputError, match="--layer background with --gpus 2"):
+        fit(frames, out, small_config(10), gpus=2, layer="background", **kw)
+    with pytest.raises(InputError, match="--device cuda:1 with --gpus 2"):
+        fit(frames, out, small_config(10), gpus=2, device="cuda:1", poses=str(cams))
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    with pytest.raises(InputError, match="--gpus 3: this host has 2 GPUs"):
+        fit(frames, out, small_config(10), gpus=3, device="cuda", poses=str(cams))
+    monkeypatch.undo()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_checkpoints_of_another_fit_are_refused_and_kept(tmp_path):
+    out = tmp_path / "scene.ply"
+    paths = rank_paths(out, 3)
+    paths[0]["checkpoint"].write_bytes(b"rank 0")
+    with pytest.raises(InputError, match=r"scene.rank0.ckpt holds an interrupted fit .* --resume .* --overwrite"):
+        check_shard_outputs(out, 2, resume=False, overwrite=False)
+    paths[2]["checkpoint"].write_bytes(b"rank 2")
+    with pytest.raises(InputError, match=r"scene.rank2.ckpt belongs to a fit of 3 or more ranks: resume with the --gpus"):
+        check_shard_outputs(out, 2, resume=True, overwrite=False)
+    (tmp_path / "scene.ckpt").write_bytes(b"one gpu")
+    with pytest.raises(InputError, match="one-GPU fit .* without --gpus"):
+        check_shard_outputs(out, 3, resume=True, overwrite=False)
+    with pytest.raises(InputError, match="no checkpoint of a 2-rank fit"):
+        check_shard_outputs(tmp_path / "other.ply", 2, resume=True, overwrite=False)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.ckpt", "scene.rank0.ckpt", "scene.rank2.ckpt"]
+    check_shard_outputs(out, 2, resume=False, overwrite=True, tidy=True)  # starting over: others' files go
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.rank0.ckpt"]  # rank 0 is replaced when it starts
+
+
+# -- two gloo processes ------------------------------------------------------------------------------------
+
+
+def frame_psnrs(scene_path, images) -> np.ndarray:
+    from tomgs.io.scene import load_scene
+    from tomgs.metrics import psnr
+
+    scene = load_scene(scene_path)
+    with torch.no_grad():
+        return np.array([float(psnr(render(scene.model, scene.cameras, k), torch.as_tensor(images[k]).float() / 255))
+                         for k in range(len(scene.cameras))])
+
+
+def test_two_ranks_fit_one_ordinary_scene(clip, tmp_path):
+    frames, cams, images = clip
+    scene = tmp_path / "scene.ply"
+    report = tmp_path / "fit.json"
+    result = CliRunner().invoke(__import__("tomgs.cli", fromlist=["main"]).main, [
+        "fit", str(frames), "-o", str(scene), "--gpus", "2", "--device", "cpu", "--poses", str(cams),
+        "--preset", "quick", "--iterations", "80", "--json", str(report)], catch_exceptions=False)
+    assert result.exit_code == 0, result.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fit.json", "scene.csv", "scene.ply", "scene.psnr.png",
+                                                          "scene.rank0.csv", "scene.rank1.csv"]
+    shards = json.loads(report.read_text())["shards"]
+    assert [r["own"] for r in shards["per_rank"]] == [[0, 6], [6, 12]]
+    # every frame renders from the scene file alone; boundary frames as good as the others
+    psnr = frame_psnrs(scene, images)
+    assert psnr.shape == (FRAMES,) and np.isfinite(psnr).all()
+    assert np.allclose(psnr, shards["frame_psnr"], atol=0.01)
+    near = boundary_psnr(psnr, plan_stretches(FRAMES, 2), near=2)
+    assert abs(near["boundary"] - near["interior"]) <= 1.0, near
+    alone = min(r["phase1_psnr"] for r in shards["per_rank"])
+    assert psnr.mean() >= alone - 1.0, (psnr.mean(), shards["per_rank"])  # the merge lost nothing worth a dB
+    # error against run time: each rank's log, and one merged curve ending at the scene's full-clip PSNR
+    import csv
+
+    merged = list(csv.DictReader(open(tmp_path / "scene.csv")))
+    assert float(merged[-1]["clip_psnr"]) == pytest.approx(psnr.mean(), abs=0.01)
+    walls = [float(r["wall_s"]) for r in merged]
+    assert walls == sorted(walls)
+    for rank in (0, 1):
+        rows = list(csv.DictReader(open(tmp_path / f"scene.rank{rank}.csv")))
+        assert int(rows[0]["iteration"]) == 25 and int(rows[-1]["iteration"]) > 80  # phase 1, then the refinement
+    # `tomgs info`, `render` and `export` take it as any scene
+    from tomgs.cli import main
+
+    for args in (["info", str(scene)], ["render", str(scene), "-o", str(tmp_path / "render"), "--device", "cpu"],
+                 ["export", str(scene), "-o", str(tmp_path / "moment.ply"), "--time", "0.5"]):
+        done = CliRunner().invoke(main, args, catch_exceptions=False)
+        assert done.exit_code == 0, (args, done.output)
+    assert len(list((tmp_path / "render").glob("*.png"))) == FRAMES
+
+
+ITERATIONS = 150  # of each rank: long enough to be killed in the middle (~10 steps a second here)
+KILLABLE = textwrap.dedent("""
+    import sys
+    sys.path.insert(0, sys.argv[1])
+    from test_train import small_config
+    from tomgs.train import fit
+
+    if __name__ == "__main__":
+        fit(sys.argv[2], sys.argv[3], small_config(int(sys.argv[4]), checkpoint_interval_s=0.2), gpus=2,
+            device="cpu", poses=sys.argv[5])
+""")
+
+
+def start_fit(clip, out: Path, iterations: int) -> subprocess.Popen:
+    frames, cams, _ = clip
+    return subprocess.Popen([sys.executable, "-c", KILLABLE, str(TESTS), str(frames), str(out), str(iterations),
+                             str(cams)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def rank_pids(process: subprocess.Popen, out: Path, timeout: float = 240.0) -> dict[int, int]:
+    """The ranks' pids from their first line on stderr, once both have saved a checkpoint."""
+    pids, began = {}, time.monotonic()
+    while len(pids) < 2:
+        line = process.stderr.readline()
+        assert line or process.poll() is None, "the fit ended before its ranks started"
+        if line.startswith("rank ") and "(pid " in line:
+            pids[int(line.split()[1].split("/")[0])] = int(line.split("(pid ")[1].split(",")[0])
+        assert time.monotonic() - began < timeout
+    while not all(p["checkpoint"].is_file() for p in rank_paths(out, 2)):
+        assert process.poll() is None and time.monotonic() - began < timeout, process.stderr.read()[-2000:]
+        time.sleep(0.05)
+    return pids
+
+
+def test_a_killed_rank_stops_the_run_and_resume_continues_every_rank(clip, tmp_path):
+    frames, cams, images = clip
+    out = tmp_path / "scene.ply"
+    process = start_fit(clip, out, ITERATIONS)
+    pids = rank_pids(process, out)
+    os.kill(pids[1], signal.SIGKILL)
+    stderr = process.communicate(timeout=240)[1]
+    assert process.returncode != 0
+    assert "ShardFailed: rank 1 of 2 was killed by SIGKILL" in stderr, stderr[-3000:]
+    assert "rank 0 stopped at iteration" in stderr and "continue with --resume" in stderr, stderr[-3000:]
+    checkpoints = [p["checkpoint"] for p in rank_paths(out, 2)]
+    assert all(p.is_file() for p in checkpoints) and not out.exists()
+    from tomgs.train.checkpoint import read_checkpoint
+
+    reached = [read_checkpoint(p)["iteration"] for p in checkpoints]
+    assert all(0 < n < ITERATIONS for n in reached), reached
+
+    # another number of ranks is refused, by every rank, before anything is written
+    before = [p.read_bytes() for p in checkpoints]
+    with pytest.raises(InputError, match="was fitted with --gpus 2, this run asks for --gpus 3"):
+        fit(frames, out, small_config(ITERATIONS), gpus=3, device="cpu", poses=str(cams), resume=True)
+    assert [p.read_bytes() for p in checkpoints] == before and not out.exists()
+
+    result = fit(frames, out, small_config(ITERATIONS), gpus=2, device="cpu", poses=str(cams), resume=True)
+    assert out.is_file() and not any(p.exists() for p in checkpoints)
+    assert [r["iterations"] for r in result.shards["per_rank"]] == [ITERATIONS, ITERATIONS]
+    import csv
+
+    for rank in (0, 1):  # each rank's log goes on from its checkpoint: no step twice, phase 1 then the refinement
+        iterations = [int(r["iteration"]) for r in csv.DictReader(open(tmp_path / f"scene.rank{rank}.csv"))]
+        assert iterations == sorted(set(iterations)) and ITERATIONS in iterations and iterations[-1] > ITERATIONS
+    psnr = frame_psnrs(out, images)
+    near = boundary_psnr(psnr, plan_stretches(FRAMES, 2), near=2)
+    assert abs(near["boundary"] - near["interior"]) <= 1.0, near
+
+
+def test_sigterm_to_the_parent_stops_every_rank_with_a_checkpoint(clip, tmp_path):
+    out = tmp_path / "scene.ply"
+    process = start_fit(clip, out, ITERATIONS)
+    rank_pids(process, out)
+    process.send_signal(signal.SIGTERM)
+    stderr = process.communicate(timeout=240)[1]
+    assert "ShardsInterrupted: interrupted (SIGTERM): checkpoints" in stderr, stderr[-3000:]
+    assert "scene.rank0.ckpt (iteration" in stderr and "scene.rank1.ckpt (iteration" in stderr
+    assert process.returncode != 0
+    assert all(p["checkpoint"].is_file() for p in rank_paths(out, 2)) and not out.exists()

@@ -1,0 +1,944 @@
+"""The processes of a sharded fit (tomgs.train.shards): how they start, what each does, how they stop.
+
+Start: `fit(..., gpus=N)` (the CLI's --gpus N) checks the inputs and every output, hands the plan to
+`on_plan`, and spawns N processes on this host (spawn, not fork: CUDA and Warp start clean in each),
+one per GPU (cuda:0 .. cuda:N-1; NCCL between them) or, with device cpu, N CPU processes (gloo).
+Under torchrun (RANK, WORLD_SIZE and LOCAL_RANK in the environment, WORLD_SIZE > 1) every process
+torchrun started is one rank and `fit` runs that rank: `torchrun --nnodes 2 --nproc_per_node 8 ...
+-m tomgs.cli fit ...` fits on two hosts (each host's ranks write their checkpoints and CSVs on that
+host, rank 0 the scene).
+
+Each rank, in order: joins the process group; rank 0 reads the clip and estimates the cameras (or
+takes them from a checkpoint) and broadcasts them, the others then read their stretch; every rank
+checks its checkpoint on resume, and all refuse together when one refuses (before anything is
+written); phase 1 (its Trainer); the merge, the joint refinement and the measurement of its frames
+(tomgs.train.shards); rank 0 writes the scene, the merged CSV and plot; every rank removes its
+checkpoint.
+
+Faults: a rank that raises or dies stops the run. A spawned run's parent then sends SIGTERM to the
+other ranks, which save a checkpoint at their next step boundary as an interrupted fit does
+(tomgs.train.checkpoint.StopSignals), waits for them (SIGKILL after STOP_GRACE_S: a rank blocked in
+a collective with a dead peer never reaches one), and raises ShardFailed naming the rank, its error
+and every checkpoint kept; an InputError when the rank's error was one (a bad input that a rank
+found: a corrupt frame in its stretch, a checkpoint of other options). torchrun's agent stops the
+other ranks the same way (SIGTERM). SIGINT and SIGTERM to the parent go on to every rank (the ranks
+leave the terminal's process group, so that one Ctrl-C is one signal to each), which save and stop;
+the parent raises ShardsInterrupted (a FitInterrupted) naming the checkpoints. Every rank's last
+checkpoint is kept; `resume=True` continues all of them (a rank killed before its first checkpoint
+starts its stretch again).
+
+Python callers: the spawned processes import the caller's main module again, so a script that calls
+fit(..., gpus=N) keeps that call under `if __name__ == "__main__":`.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import sys
+import threading
+import time
+import traceback
+from dataclasses import dataclass, field
+from datetime import timedelta
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import torch
+
+from tomgs.errors import InputError
+from tomgs.train.checkpoint import START_OVER, FitInterrupted, StopSignals, read_checkpoint
+from tomgs.train.shards import REFINE_FRACTION, default_overlap, plan_stretches, rank_paths
+
+GROUP_TIMEOUT = timedelta(hours=1)  # a collective waits this long (rank 0's poses on a long clip come first)
+STOP_GRACE_S = 120.0  # after SIGTERM, a rank's time to save before SIGKILL
+PHASE_MESSAGES_PER_S = 5.0  # progress relayed from rank 0 to the parent at most this often
+
+
+class ShardFailed(RuntimeError):
+    """A rank of a sharded fit failed: `rank`, its error (`error`), and the checkpoints kept
+    (`checkpoints`: rank -> path of the ones on disk)."""
+
+    def __init__(self, message: str, rank: int, error: str, checkpoints: dict[int, Path]):
+        super().__init__(message)
+        self.rank, self.error, self.checkpoints = rank, error, checkpoints
+
+
+class ShardsInterrupted(FitInterrupted):
+    """A sharded fit stopped by SIGINT or SIGTERM; `checkpoints`: rank -> checkpoint kept."""
+
+    def __init__(self, checkpoints: dict[int, Path], signum: int, iterations: dict[int, int] | None = None):
+        self.checkpoints = dict(checkpoints)
+        self.iterations = dict(iterations or {})
+        super().__init__(next(iter(self.checkpoints.values()), None), signum)
+
+    def message(self) -> str:
+        try:
+            name = signal.Signals(self.signum).name
+        except ValueError:
+            name = f"signal {self.signum}"
+        if not self.checkpoints:
+            return f"interrupted ({name}) before the first checkpoint: nothing to resume; run the fit again"
+        kept = ", ".join(f"{path}" + (f" (iteration {self.iterations[r]})" if r in self.iterations else "")
+                         for r, path in sorted(self.checkpoints.items()))
+        return f"interrupted ({name}): checkpoints {kept}; continue with --resume"
+
+
+# -- where we are ------------------------------------------------------------------------------------
+
+
+def torchrun_env() -> tuple[int, int, int, int] | None:
+    """(rank, world size, local rank, local world size) when torchrun (or any launcher that sets
+    RANK, WORLD_SIZE and LOCAL_RANK) started this process with WORLD_SIZE > 1, else None."""
+    try:
+        rank, world, local = (int(os.environ[k]) for k in ("RANK", "WORLD_SIZE", "LOCAL_RANK"))
+    except (KeyError, ValueError):
+        return None
+    if world <= 1:
+        return None
+    return rank, world, local, int(os.environ.get("LOCAL_WORLD_SIZE", world))
+
+
+def wants_shards(gpus: int | None) -> bool:
+    """Whether a fit runs in temporal shards: --gpus above 1, or started by torchrun."""
+    return (gpus is not None and gpus != 1) or torchrun_env() is not None
+
+
+def is_leader() -> bool:
+    """False in a torchrun rank other than 0 (that rank prints nothing: rank 0 speaks for the run)."""
+    env = torchrun_env()
+    return env is None or env[0] == 0
+
+
+@dataclass
+class Job:
+    """Everything a rank needs (pickled to spawned ranks)."""
+
+    video: object  # a path (str) or a tomgs.io.Video
+    output: str
+    config: object  # TrainConfig
+    world: int
+    device_type: str  # "cuda" or "cpu"
+    options: dict  # what a checkpoint records of the options (tomgs.train.fit)
+    masks: object = None
+    frames: object = None
+    max_side: int | None = None
+    poses: object = "auto"
+    focal: float | None = None
+    resume: bool = False
+    overwrite: bool = False
+    auto_budget: bool = True
+    start_time: float = 0.0  # time.time() when the command started: the budget counts from it
+    overlap: int | None = None  # None: default_overlap
+    refine_fraction: float = REFINE_FRACTION
+    store: str | None = None  # init_method of a spawned run (a file:// store); None: env:// (torchrun)
+
+
+# -- the parent: checks, spawn, watch ----------------------------------------------------------------
+
+
+def fit_shards(video, output, config, *, gpus=None, masks=None, frames=None, max_side=None, poses="auto",
+               focal=None, device=None, resume=False, overwrite=False, progress=None, pose_progress=None,
+               layer=None, mask_dilation=2, phases=None, on_plan=None, auto_budget=True, started=None,
+               overlap: int | None = None, refine_fraction: float = REFINE_FRACTION):
+    """`tomgs.train.fit` in temporal shards (this module's docstring): the same arguments, with `gpus`
+    ranks (None: torchrun's WORLD_SIZE), `overlap` frames into each neighbour (None: default) and
+    `refine_fraction` of the training time for the joint refinement (0: none, the union as merged)."""
+    from tomgs.train.fit import _poses_key, process_started
+
+    started = process_started() if started is None else started
+    env = torchrun_env()
+    if env is not None and gpus not in (None, env[1]):
+        raise InputError(f"--gpus {gpus} under torchrun with WORLD_SIZE {env[1]}: leave --gpus out (torchrun's "
+                         f"--nnodes x --nproc_per_node picks the ranks)")
+    world = env[1] if env is not None else int(gpus)
+    if world < 1:
+        raise InputError(f"--gpus {gpus}: give 1 or more")
+    if layer is not None:
+        raise InputError(f"--layer {layer} with --gpus {world}: layers are fitted on one GPU (leave --gpus out)")
+    if not 0.0 <= float(refine_fraction) < 1.0:
+        raise InputError(f"refine_fraction {refine_fraction}: give a share of the training time in [0, 1)")
+    device_type = _device_type(device, world, env)
+    from tomgs.train.config import TrainConfig
+
+    config = config or TrainConfig()
+    options = dict(frames=None if frames is None else str(frames), max_side=None if max_side is None else int(max_side),
+                   layer=None, mask_dilation=None,
+                   masks=masks is not None or (getattr(video, "masks", None) is not None), poses=_poses_key(poses),
+                   focal=None if focal is None else float(focal))
+    job = Job(video=video if not isinstance(video, (str, os.PathLike)) else str(video), output=str(output),
+              config=config, world=world, device_type=device_type, options=options, masks=masks, frames=frames,
+              max_side=max_side, poses=poses, focal=focal, resume=resume, overwrite=overwrite,
+              auto_budget=auto_budget, start_time=time.time() - (time.perf_counter() - started), overlap=overlap,
+              refine_fraction=float(refine_fraction))
+    if env is not None:  # torchrun: this process is one rank
+        rank, _, local_rank, _ = env
+        check_shard_outputs(output, world, resume, overwrite, tidy=rank == 0)
+        plan = _parent_plan(job)
+        if on_plan is not None and rank == 0:
+            on_plan(plan)
+        phases = phases or (lambda *a: None)
+        report = _local_report(rank, progress, phases, pose_progress)
+        summary = run_rank(job, rank, local_rank, report)
+        result = _result(summary, output, started, rank == 0)
+        result.plan = plan
+        return result
+
+    paths = check_shard_outputs(output, world, resume, overwrite, tidy=True)
+    plan = _parent_plan(job)
+    if on_plan is not None:
+        on_plan(plan)
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="tomgs-ranks-") as folder:
+        job.store = "file://" + str(Path(folder) / "store")
+        summary = _spawn_and_watch(job, paths, progress, phases or (lambda *a: None), pose_progress)
+    result = _result(summary, output, started, True)
+    result.plan = plan
+    return result
+
+
+def _device_type(device, world: int, env) -> str:
+    """"cuda" or "cpu" for a run of `world` ranks; InputError for a device it cannot use."""
+    text = "auto" if device is None else str(device)
+    if text == "auto":
+        text = "cuda" if torch.cuda.is_available() else "cpu"
+    if text.startswith("cuda:"):
+        raise InputError(f"--device {text} with --gpus {world}: each rank takes its own GPU (cuda:0 .. cuda:"
+                         f"{world - 1} on each host); give --device cuda")
+    if text not in ("cuda", "cpu"):
+        raise InputError(f"--device {text}: give cpu or cuda (a sharded fit puts one rank on each GPU)")
+    if text == "cuda":
+        if not torch.cuda.is_available():
+            raise InputError(f"--device cuda: torch sees no GPU here; use --device cpu for {world} CPU processes")
+        local = env[3] if env is not None else world
+        count = torch.cuda.device_count()
+        if local > count:
+            raise InputError(f"--gpus {world}: this host has {count} GPU{'s' if count != 1 else ''} "
+                             f"(CUDA_VISIBLE_DEVICES={os.environ.get('CUDA_VISIBLE_DEVICES', 'unset')}); give --gpus "
+                             f"{count} or fewer, or spread the ranks over hosts with torchrun")
+    return text
+
+
+def check_shard_outputs(output, world: int, resume: bool, overwrite: bool, tidy: bool = False) -> dict:
+    """The outputs of a sharded fit (tomgs.train.fit.output_paths plus each rank's checkpoint and CSV)
+    once every one can be written, else InputError saying how to proceed. Resume expects the ranks'
+    checkpoints (at least one) and refuses those of another number of ranks, or a one-GPU fit's
+    checkpoint; without resume, any checkpoint is refused unless `overwrite`. `tidy`: remove, with
+    overwrite, the checkpoints that this run replaces (a one-GPU fit's, other ranks'), and stale
+    temporaries."""
+    import re
+
+    from tomgs.outputs import check_file_output, remove_stale_temporaries
+    from tomgs.train.fit import output_paths
+
+    paths = output_paths(output)
+    if paths["scene"].suffix.lower() != ".ply":
+        raise InputError(f"{output}: a scene is written as .ply; name the output like scene.ply")
+    ranks = rank_paths(output, world)
+    check_file_output(paths["scene"], overwrite, "scene")
+    check_file_output(paths["plot"], overwrite, "PSNR plot")
+    check_file_output(paths["csv"], overwrite or resume, "log")
+    stem = paths["scene"].with_suffix("").name
+    pattern = re.compile(re.escape(stem) + r"\.rank(\d+)\.ckpt$")
+    others = sorted((int(m.group(1)), p) for p in paths["scene"].parent.glob(f"{stem}.rank*.ckpt")
+                    if (m := pattern.match(p.name)) and int(m.group(1)) >= world)
+    single = paths["checkpoint"]
+    have = [r["checkpoint"] for r in ranks if r["checkpoint"].is_file()]
+    if resume:
+        if single.is_file():
+            raise InputError(f"{single} holds an interrupted one-GPU fit of {paths['scene'].name}: resume it without "
+                             f"--gpus, or {START_OVER}")
+        if others:
+            raise InputError(f"{others[0][1]} belongs to a fit of {others[-1][0] + 1} or more ranks: resume with the "
+                             f"--gpus it was started with, or {START_OVER}")
+        if not have:
+            names = ", ".join(str(r["checkpoint"].name) for r in ranks)
+            raise InputError(f"no checkpoint of a {world}-rank fit beside {output} ({names}) to resume from; run "
+                             f"without --resume")
+    elif (have or others or single.is_file()) and not overwrite:
+        found = (have + [p for _, p in others] + ([single] if single.is_file() else []))[0]
+        raise InputError(f"{found} holds an interrupted fit of {paths['scene'].name}: pass --resume to continue it "
+                         f"(with the --gpus it was started with), or --overwrite (-y) to start over (Python: "
+                         f"resume=True or overwrite=True)")
+    for r in ranks:
+        check_file_output(r["checkpoint"], True, "checkpoint")
+        check_file_output(r["csv"], overwrite or resume, "log")
+    if tidy:
+        if overwrite and not resume:
+            for path in [p for _, p in others] + [single]:
+                path.unlink(missing_ok=True)
+        for path in [*paths.values(), *(p for r in ranks for p in r.values())]:
+            remove_stale_temporaries(path)
+    return dict(paths, ranks=ranks)
+
+
+@dataclass
+class ShardPlan:
+    """A sharded fit's plan: one rank's (tomgs.train.plan.FitPlan, for its stretch) and the stretches."""
+
+    rank_plan: object
+    frames: int
+    world: int
+    device: str
+    stretches: list = field(default_factory=list)
+    refine_fraction: float = REFINE_FRACTION
+
+    def __getattr__(self, name):  # budget, eta, phases, reasons, ...: the rank's plan's
+        if name == "rank_plan":
+            raise AttributeError(name)
+        return getattr(self.rank_plan, name)
+
+    def summary(self) -> str:
+        p = self.rank_plan
+        sizes = sorted({s.frames for s in self.stretches})
+        each = "-".join(str(n) for n in (sizes[0], sizes[-1])) if len(sizes) > 1 else str(sizes[0])
+        work = (f"{p.iterations:,} iterations or {_duration(p.budget)}, whichever comes first"
+                if p.budget > 0 else f"{p.iterations:,} iterations")
+        return (f"plan: {self.frames} frames of {p.width}x{p.height} on {self.world} x {self.device}, a stretch of "
+                f"{each} frames each, {work}, the last {self.refine_fraction:.0%} of training joint; start from "
+                f"{p.points_per_frame * self.frames:,} Gaussians, cap {p.cap:,} per rank; ETA {_duration(p.eta)}")
+
+
+def _duration(seconds: float) -> str:
+    from tomgs.train.plan import _duration as duration
+
+    return duration(seconds)
+
+
+def _rank_plan(config, frames: int, height: int, width: int, source: int, device_type: str, auto_budget: bool,
+               free=None):
+    from tomgs.train.plan import make_plan
+
+    return make_plan(config, frames, height, width, source, device_type, poses_estimated=False,
+                     auto_budget=auto_budget, free_bytes=free)
+
+
+def _parent_plan(job: Job) -> ShardPlan:
+    """The plan printed before the ranks start: the largest stretch's, from the clip's index."""
+    from tomgs.io import Video
+    from tomgs.io.video import probe_clip
+
+    if isinstance(job.video, Video):
+        count, height, width = job.video.frames.shape[:3]
+        source = height * width
+    else:
+        count, height, width, source = probe_clip(job.video, job.frames, job.max_side)
+    overlap = default_overlap(count, job.world) if job.overlap is None else job.overlap
+    stretches = plan_stretches(count, job.world, overlap)
+    largest = max(s.frames for s in stretches)
+    plan, _ = _rank_plan(job.config, largest, height, width, source, job.device_type, job.auto_budget)
+    return ShardPlan(plan, count, job.world, job.device_type, stretches, job.refine_fraction)
+
+
+def _spawn_and_watch(job: Job, paths: dict, progress, phases, pose_progress) -> dict:
+    """Start the ranks, relay their progress, stop them all when one fails or a signal arrives, and
+    return rank 0's summary (or raise ShardFailed, InputError, ShardsInterrupted)."""
+    import multiprocessing as mp
+    from multiprocessing.connection import wait
+
+    ctx = mp.get_context("spawn")
+    pipes = [ctx.Pipe(duplex=False) for _ in range(job.world)]
+    procs = [ctx.Process(target=_spawned, args=(rank, job, pipes[rank][1]), name=f"tomgs-rank{rank}", daemon=False)
+             for rank in range(job.world)]
+    readers = {pipes[r][0]: r for r in range(job.world)}
+    outcome: dict[int, tuple[str, dict]] = {}  # rank -> (done | interrupted | failed, payload)
+    died: dict[int, int] = {}  # rank -> exit code, for a rank that ended without a report
+    first_fault: list[int] = []  # ranks in the order their fault was seen
+    signals: list[int] = []
+    stopping = {"at": None}
+
+    def forward(signum, frame):  # the parent's SIGINT / SIGTERM: every rank saves and stops
+        signals.append(signum)
+        for p in procs:
+            if p.is_alive():
+                try:
+                    os.kill(p.pid, signum)
+                except OSError:
+                    pass
+
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            if signal.getsignal(sig) not in (signal.SIG_IGN, None):
+                previous[sig] = signal.signal(sig, forward)
+    try:
+        for p in procs:
+            p.start()
+        for _, writer in pipes:
+            writer.close()  # the parent's copy: a rank's end of file is its own pipe closing
+        while any(p.is_alive() for p in procs) or readers:
+            ready = wait(list(readers) + [p.sentinel for p in procs if p.is_alive()], timeout=0.5)
+            for conn in [c for c in ready if c in readers]:
+                rank = readers[conn]
+                try:
+                    kind, payload = conn.recv()
+                except (EOFError, OSError):
+                    del readers[conn]
+                    continue
+                if kind in ("done", "interrupted", "failed"):
+                    outcome[rank] = (kind, payload)
+                    if kind == "failed":
+                        first_fault.append(rank)
+                elif kind == "phase" and rank == 0:
+                    phases(*payload)
+                elif kind == "poses" and rank == 0 and pose_progress is not None:
+                    pose_progress(*payload)
+                elif kind == "row" and rank == 0 and progress is not None:
+                    try:
+                        progress(payload)
+                    except KeyboardInterrupt:  # the caller's Ctrl-C, as in a one-GPU fit
+                        forward(signal.SIGINT, None)
+            for rank, p in enumerate(procs):
+                if not p.is_alive() and p.exitcode is not None and rank not in outcome and rank not in died \
+                        and not _pending(pipes[rank][0], readers):
+                    died[rank] = p.exitcode
+                    first_fault.append(rank)
+            if first_fault and stopping["at"] is None:
+                stopping["at"] = time.monotonic()
+                for p in procs:
+                    if p.is_alive():
+                        try:
+                            os.kill(p.pid, signal.SIGTERM)
+                        except OSError:
+                            pass
+            if stopping["at"] is not None and time.monotonic() - stopping["at"] > STOP_GRACE_S:
+                for p in procs:
+                    if p.is_alive():
+                        p.kill()
+        for p in procs:
+            p.join()
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    return _verdict(job, paths, procs, outcome, died, first_fault, signals)
+
+
+def _pending(conn, readers) -> bool:
+    """Whether a rank's pipe still holds unread messages (its report arrives after its exit)."""
+    return conn in readers and conn.poll()
+
+
+def _verdict(job: Job, paths: dict, procs, outcome, died, first_fault, signals) -> dict:
+    kept = {r: p["checkpoint"] for r, p in enumerate(paths["ranks"]) if p["checkpoint"].is_file()}
+    if not first_fault and all(outcome.get(r, ("",))[0] == "done" for r in range(job.world)):
+        return outcome[0][1]
+    if signals or not first_fault:  # stopped by a signal (a rank in a collective may fail instead of saving)
+        iterations = {r: payload["iteration"] for r, (kind, payload) in outcome.items()
+                      if kind == "interrupted" and payload.get("iteration") is not None}
+        raise ShardsInterrupted(kept, signals[0] if signals else signal.SIGTERM, iterations)
+    rank = first_fault[0]
+    if rank in died:
+        code = died[rank]
+        error = (f"was killed by {signal.Signals(-code).name}" if code < 0 and -code in signal.Signals._value2member_map_
+                 else f"exited with code {code}")
+        error += f" (pid {procs[rank].pid})"
+    else:
+        payload = outcome[rank][1]
+        inputs = [outcome[r][1]["message"] for r in first_fault
+                  if r in outcome and outcome[r][0] == "failed" and outcome[r][1]["kind"] == "input"]
+        if payload["kind"] == "input":
+            message = payload["message"]
+            raise InputError(message if all(m == message for m in inputs) else f"rank {rank}: {message}")
+        error = f"failed: {payload['kind']}: {payload['message']}"
+        if payload.get("traceback"):
+            sys.stderr.write(f"rank {rank}'s traceback:\n{payload['traceback']}")
+    others = []
+    for r in range(job.world):
+        if r == rank:
+            continue
+        kind, payload = outcome.get(r, ("", {}))
+        if kind == "interrupted":
+            at = f" at iteration {payload['iteration']}" if payload.get("iteration") is not None else ""
+            others.append(f"rank {r} stopped{at}")
+        elif r in died:
+            others.append(f"rank {r} exited ({died[r]})")
+        elif kind == "failed":
+            others.append(f"rank {r} stopped ({payload['kind']})")
+        elif kind == "done":
+            others.append(f"rank {r} finished")
+    keep = ", ".join(f"{path} (rank {r})" for r, path in sorted(kept.items())) or "none yet"
+    message = (f"rank {rank} of {job.world} {error}; the run stopped"
+               + (f" ({'; '.join(others)})" if others else "") + f". Checkpoints kept: {keep}"
+               + ("; continue with --resume" if kept else "; run the fit again"))
+    raise ShardFailed(message, rank, error, kept)
+
+
+def _spawned(rank: int, job: Job, conn) -> None:
+    """A spawned rank: run it, and report how it ended to the parent (`conn`)."""
+    _leave_terminal()
+    last = {"phase": 0.0}
+
+    def report(kind, payload):
+        if kind == "phase":  # throttled: a heartbeat, not a log
+            now = time.monotonic()
+            done, total = payload[1], payload[2]
+            if done < total and now - last["phase"] < 1.0 / PHASE_MESSAGES_PER_S:
+                return
+            last["phase"] = now
+        conn.send((kind, payload))
+
+    try:
+        summary = run_rank(job, rank, rank, report)
+        conn.send(("done", summary))
+    except FitInterrupted as e:
+        conn.send(("interrupted", dict(checkpoint=None if e.checkpoint is None else str(e.checkpoint),
+                                       signum=e.signum, iteration=e.iteration)))
+    except InputError as e:
+        conn.send(("failed", dict(kind="input", message=str(e))))
+    except BaseException as e:  # noqa: BLE001 - every failure goes to the parent, which names it
+        conn.send(("failed", dict(kind=type(e).__name__, message=str(e) or repr(e), traceback=traceback.format_exc())))
+    finally:
+        conn.close()
+
+
+def _leave_terminal() -> None:
+    """A spawned rank: out of the terminal's process group (the parent passes Ctrl-C on, once), and
+    SIGTERM when the parent dies (Linux), so that no rank outlives its run."""
+    try:
+        os.setpgrp()
+    except OSError:
+        pass
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+
+            ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, int(signal.SIGTERM))  # PR_SET_PDEATHSIG
+            if os.getppid() == 1:  # the parent died before prctl
+                os.kill(os.getpid(), signal.SIGTERM)
+        except OSError:
+            pass
+
+
+def _local_report(rank: int, progress, phases, pose_progress):
+    """torchrun: rank 0 reports to this process's callbacks; the others stay quiet."""
+    def report(kind, payload):
+        if rank != 0:
+            return
+        if kind == "phase":
+            phases(*payload)
+        elif kind == "poses" and pose_progress is not None:
+            pose_progress(*payload)
+        elif kind == "row" and progress is not None:
+            progress(payload)
+    return report
+
+
+def _result(summary: dict, output, started: float, leader: bool):
+    """A FitResult from rank 0's summary; its model read back from the scene written."""
+    from tomgs.io.scene import load_scene
+    from tomgs.train.trainer import FitResult
+
+    scene = load_scene(output) if leader else None
+    result = FitResult(model=scene.model if scene else None, cameras=scene.cameras if scene else None,
+                       clip_psnr=float(summary.get("clip_psnr", math.nan)), iterations=int(summary.get("iterations", 0)),
+                       seconds=float(summary.get("seconds", 0.0)), history=list(summary.get("history", [])),
+                       notes=list(summary.get("notes", [])))
+    result.phase_seconds = dict(summary.get("phase_seconds", {}))
+    result.wall_seconds = time.perf_counter() - started
+    result.peak_host_mb = float(summary.get("peak_host_mb", 0.0))
+    result.peak_gpu_mb = summary.get("peak_gpu_mb")
+    result.peak_host_mb_by_phase = dict(summary.get("peak_host_mb_by_phase", {}))
+    result.shards = summary.get("shards")
+    return result
+
+
+# -- one rank ---------------------------------------------------------------------------------------
+
+
+def _init_group(job: Job, rank: int, device: torch.device):
+    """Join the run's process group (NCCL on GPUs, gloo on CPUs); a gloo group for objects beside
+    NCCL. Returns the group for objects."""
+    import torch.distributed as dist
+
+    backend = "nccl" if device.type == "cuda" else "gloo"
+    kwargs = dict(backend=backend, init_method=job.store or "env://", rank=rank, world_size=job.world,
+                  timeout=GROUP_TIMEOUT)
+    if device.type == "cuda":
+        torch.cuda.set_device(device)
+        kwargs["device_id"] = device
+    dist.init_process_group(**kwargs)
+    return dist.new_group(backend="gloo", timeout=GROUP_TIMEOUT) if backend != "gloo" else None
+
+
+def run_rank(job: Job, rank: int, local_rank: int, report) -> dict:
+    """What rank `rank` of `job` does (this module's docstring). `report(kind, payload)` hears
+    ('started', {...}), ('phase', (name, done, total, text)), ('poses', (done, total)) and ('row', row)
+    as they happen. Returns its summary (rank 0's describes the run)."""
+    import torch.distributed as dist
+
+    device = torch.device(f"cuda:{local_rank}") if job.device_type == "cuda" else torch.device("cpu")
+    if device.type == "cpu":
+        local_world = torchrun_env()[3] if torchrun_env() else job.world
+        torch.set_num_threads(max(1, (os.cpu_count() or 1) // local_world))  # the ranks share the cores
+    control = _init_group(job, rank, device)
+    checkpoint = rank_paths(job.output, job.world)[rank]["checkpoint"]
+    try:
+        with StopSignals(immediate=True, checkpoint=lambda: checkpoint if checkpoint.is_file() else None):
+            summary = _run_rank(job, rank, device, control, report)
+    except BaseException:
+        raise  # the process group is left as it is: a collective with a dead peer may never return
+    dist.destroy_process_group()
+    return summary
+
+
+def _run_rank(job: Job, rank: int, device: torch.device, control, report) -> dict:
+    import torch.distributed as dist
+
+    from tomgs.cameras import Cameras
+    from tomgs.train.fit import _check_clip, _check_options, _clip_identity, output_paths, peak_memory
+    from tomgs.train.shards import (all_gather_rows, assemble, frame_psnr, local_cameras, model_of, owned_rows,
+                                    reach, refine, stretch_points)
+    from tomgs.train.trainer import Trainer, write_csv
+
+    world = job.world
+    paths = rank_paths(job.output, world)[rank]
+    outputs = output_paths(job.output)
+    seconds, peaks = {}, {}
+    mark = [time.perf_counter()]
+
+    def lap(name):
+        now = time.perf_counter()
+        seconds[name] = seconds.get(name, 0.0) + now - mark[0]
+        peaks[name] = peak_memory(device)[0]
+        mark[0] = now
+
+    def phase(name, done, total, text=None):
+        report("phase", (name, done, total, text))
+
+    report("started", dict(rank=rank, pid=os.getpid(), device=str(device)))
+    errors = []
+    saved = None
+    if job.resume and paths["checkpoint"].is_file():
+        try:
+            saved = read_checkpoint(paths["checkpoint"])
+            _check_options(saved, job.options, job.config, paths["checkpoint"])
+        except InputError as e:
+            errors.append(str(e))
+
+    # rank 0: the clip, its cameras (once for all), the budget's wall-clock times
+    payload, clip, failure = None, None, None
+    if rank == 0:
+        try:
+            payload, clip = _shared_setup(job, device, saved, phase, report)
+        except InputError as e:
+            payload = dict(error=str(e), input=True)
+        except Exception as e:  # noqa: BLE001 - the other ranks must not wait for a broadcast that never comes
+            payload, failure = dict(error=f"{type(e).__name__}: {e}", input=False), e
+    box = [payload]
+    dist.broadcast_object_list(box, src=0, group=control)
+    payload = box[0]
+    if "error" in payload:
+        if failure is not None:
+            raise failure
+        if payload["input"]:
+            raise InputError(payload["error"])
+        raise RuntimeError(f"rank 0 failed while reading the clip or estimating its cameras: {payload['error']}")
+    cameras = Cameras.from_dict(payload["cameras"], source="rank 0's cameras")
+    overlap = default_overlap(len(cameras), world) if job.overlap is None else job.overlap
+    stretches = plan_stretches(len(cameras), world, overlap)
+    stretch = stretches[rank]
+    sys.stderr.write(f"rank {rank}/{world} (pid {os.getpid()}, {device}): "
+                     f"{stretch.describe(cameras.frame_indices)}\n")
+    sys.stderr.flush()
+
+    # every rank: its frames, checked against its checkpoint; all refuse together
+    frames = None
+    try:
+        if saved is not None and not errors:
+            _check_shard(saved["clip"].get("shard"), stretch, world, paths["checkpoint"])
+        if clip is not None:
+            frames = np.ascontiguousarray(clip.frames[stretch.lo:stretch.hi]).copy()
+            clip = None  # the rest of the clip goes now
+        else:
+            frames = _read_stretch(job, cameras, stretch)
+        identity = _clip_identity(SimpleNamespace(indices=cameras.frame_indices[stretch.lo:stretch.hi],
+                                                  frames=frames, masks=None))
+        if saved is not None and not errors:
+            _check_clip(saved["clip"], identity, job.options, paths["checkpoint"])
+    except InputError as e:
+        errors.append(str(e))
+    everyone = [None] * world
+    dist.all_gather_object(everyone, errors[0] if errors else None, group=control)
+    refused = [e for e in everyone if e is not None]
+    if refused:
+        raise InputError(refused[0])
+    lap("read")
+    if rank == 0:  # rank 0 estimated the cameras inside its reading time; the others waited for them
+        seconds["poses"] = float(payload["pose_seconds_run"])
+        seconds["read"] -= seconds["poses"]
+
+    # phase 1: an ordinary Trainer on the stretch, in its own time
+    phase("init", 0, 1)
+    height, width = frames.shape[1:3]
+    free = None
+    if device.type == "cuda":
+        free = torch.cuda.mem_get_info(device)[0] - frames.nbytes
+    _, config = _rank_plan(job.config, stretch.frames, height, width, height * width, device.type, job.auto_budget,
+                           free)
+    points, colors, point_frames = stretch_points(np.asarray(payload["points"]), np.asarray(payload["colors"]),
+                                                  payload["point_frames"], stretch)
+    torch.manual_seed(config.seed + rank)
+    trainer = Trainer(frames, local_cameras(cameras, stretch), points, colors, config.replace(seed=config.seed + rank),
+                      device, point_frames=point_frames,
+                      init_progress=lambda done, total: phase("init", done, total))
+    trainer.notes[:0] = list(payload["notes"])
+    if saved is not None:
+        trainer.load_checkpoint(saved)
+        write_csv(paths["csv"], trainer.history)  # the log as of the checkpoint
+    else:
+        paths["checkpoint"].unlink(missing_ok=True)  # overwrite, or a rank that never saved: start over
+    trained = bool(saved is not None and saved["clip"].get("shard", {}).get("trained"))
+    trainer.clip = dict(identity, options=job.options, pose_seconds=payload["pose_seconds"],
+                        cameras=payload["cameras"], source=payload["source"],
+                        shard=dict(world=world, rank=rank, lo=stretch.lo, hi=stretch.hi, own_lo=stretch.own_lo,
+                                   own_hi=stretch.own_hi, trained=trained))
+    saved = None
+    phase("init", 1, 1)
+    lap("init")
+    times = payload["times"]
+    if not trained:
+        limit = 0.0
+        if times["phase1_end"] is not None:
+            limit = trainer.elapsed + max(times["phase1_end"] - time.time(), 1.0)
+        tick = _tick(phase, config.iterations, limit)
+        trainer.run(checkpoint=paths["checkpoint"], log_csv=paths["csv"],
+                    progress=(lambda row: report("row", row)), time_limit=limit, tick=tick)
+        trainer.clip["shard"]["trained"] = True
+        trainer.save_checkpoint(paths["checkpoint"])  # a resume from here goes straight to the merge
+    lap("train")
+    phase1_iterations, phase1_seconds, phase1_psnr = trainer.iteration, trainer.elapsed, _last_clip_psnr(trainer)
+
+    # the merge: owned Gaussians in clip time, the union on every rank
+    sh = (trainer.model.max_sh_degree, trainer.model.sh_degree)
+    parts = all_gather_rows(owned_rows(trainer.model, cameras.times, stretch).to(device))
+    extents = [None] * world
+    dist.all_gather_object(extents, float(trainer.extent), group=control)
+    history = list(trainer.history)
+    del trainer
+    union = model_of(torch.cat(parts), *sh).to(device)
+    del parts
+    own = slice(stretch.own_lo - stretch.lo, stretch.own_hi - stretch.lo)
+    own_frames = torch.as_tensor(frames[own], device=device if device.type == "cuda" and _fits(frames[own], device)
+                                 else "cpu")
+    del frames
+    own_cameras = cameras[stretch.own_lo:stretch.own_hi]
+    merged_psnr = frame_psnr(union, own_frames, own_cameras, device)  # the union before refining: a diagnostic
+    refined_steps, refine_seconds, refine_rows = 0, 0.0, []
+    reaches = reach(union, cameras.times, stretches).to(device)
+    if job.refine_fraction > 0:
+        steps = 0 if times["refine_end"] is not None else max(1, round(job.refine_fraction * config.iterations))
+        phase("train", 0, 1, "joint refinement")
+
+        def log(row):
+            history.append(row)
+            write_csv(paths["csv"], history)
+            report("row", row)
+
+        out = refine(union, own_frames, own_cameras, cameras.times, stretches, rank, config,
+                     float(np.mean(extents)), device, steps=steps, until=times["refine_end"],
+                     start_wall=phase1_seconds, start_iteration=phase1_iterations, log_rows=log,
+                     tick=lambda iteration, wall: phase("train", 0, 1, f"joint refinement, step {iteration}"))
+        refined_steps, refine_seconds, refine_rows = out.steps, out.seconds, out.rows
+        if out.stopped_by is not None:
+            raise FitInterrupted(paths["checkpoint"], out.stopped_by, phase1_iterations)
+    final = model_of(assemble(union, reaches, rank), *sh).to(device)
+    del union
+    psnr = frame_psnr(final, own_frames, own_cameras, device)
+    lap("refine")
+
+    # rank 0 writes the scene, the merged log and plot; then nothing is left to resume
+    mine = dict(rank=rank, frames=stretch.frames, own=[stretch.own_lo, stretch.own_hi], lo=stretch.lo, hi=stretch.hi,
+                iterations=phase1_iterations, train_seconds=round(phase1_seconds, 3),
+                steps_per_s=round(phase1_iterations / max(phase1_seconds, 1e-9), 3),
+                phase1_psnr=phase1_psnr, merged_psnr=merged_psnr, frame_psnr=psnr,
+                refine_steps=refined_steps, refine_seconds=round(refine_seconds, 3),
+                refine_steps_per_s=round(refined_steps / max(refine_seconds, 1e-9), 3),
+                history=history, phase_seconds={k: round(v, 3) for k, v in seconds.items()},
+                peak_host_mb=peak_memory(device)[0], peak_gpu_mb=peak_memory(device)[1],
+                gaussians=len(final), extent=extents[rank])
+    everyone = [None] * world
+    dist.all_gather_object(everyone, mine, group=control)
+    summary = dict(rank=rank)
+    if rank == 0:
+        phase("save", 0, 2)
+        summary = _write_outputs(job, everyone, stretches, cameras, payload, final, refine_rows, outputs, config,
+                                 float(np.mean(extents)))
+        phase("save", 1, 2)
+    dist.barrier(group=control)  # the scene is written: the checkpoints have done their work
+    paths["checkpoint"].unlink(missing_ok=True)
+    lap("save")
+    if rank == 0:
+        summary["phase_seconds"] = dict(seconds)
+        summary["peak_host_mb_by_phase"] = dict(peaks)
+        phase("save", 2, 2)
+    dist.barrier(group=control)
+    return summary
+
+
+def _write_outputs(job, everyone, stretches, cameras, payload, final, refine_rows, outputs, config, extent) -> dict:
+    """Rank 0: the scene, the merged CSV and plot; the run's summary."""
+    from tomgs.io.scene import save_scene
+    from tomgs.train.fit import _plot as plot
+    from tomgs.train.shards import boundary_psnr, merged_history
+    from tomgs.train.trainer import write_csv
+
+    frame_psnr = [p for rank in everyone for p in rank["frame_psnr"]]
+    merged_before = [p for rank in everyone for p in rank["merged_psnr"]]
+    clip_psnr = float(np.mean(frame_psnr))
+    weights = [rank["own"][1] - rank["own"][0] for rank in everyone]
+    phase1 = [[row for row in rank["history"] if int(row["iteration"]) <= rank["iterations"]] for rank in everyone]
+    history = merged_history(phase1, weights)
+    start_iteration = sum(rank["iterations"] for rank in everyone)
+    start_wall = max(rank["train_seconds"] for rank in everyone)
+    steps = everyone[0]["refine_steps"]
+    refine_seconds = max(rank["refine_seconds"] for rank in everyone)
+    for row in refine_rows:
+        k = int(row["iteration"]) - everyone[0]["iterations"]
+        history.append(dict(row, iteration=start_iteration + k * len(everyone), gaussians=len(final),
+                            wall_s=round(start_wall + float(row["wall_s"]) - everyone[0]["train_seconds"], 3)))
+    history.append(dict(iteration=start_iteration + steps * len(everyone),
+                        wall_s=round(start_wall + refine_seconds, 3),
+                        train_psnr=history[-1]["train_psnr"] if history else "", clip_psnr=round(clip_psnr, 3),
+                        gaussians=len(final), memory_mb=max(float(r["peak_gpu_mb"] or r["peak_host_mb"])
+                                                            for r in everyone)))
+    boundary = boundary_psnr(frame_psnr, stretches)
+    shards = dict(ranks=len(everyone), overlap=stretches[0].hi - stretches[0].own_hi if len(stretches) > 1 else 0,
+                  refine_fraction=job.refine_fraction, refine_steps=steps, refine_seconds=round(refine_seconds, 3),
+                  merged_psnr_before_refine=round(float(np.mean(merged_before)), 3), clip_psnr=round(clip_psnr, 3),
+                  boundary=boundary, frame_psnr=[round(p, 3) for p in frame_psnr],
+                  per_rank=[{k: rank[k] for k in ("rank", "frames", "own", "iterations", "train_seconds",
+                                                  "steps_per_s", "phase1_psnr", "refine_steps_per_s",
+                                                  "peak_host_mb", "peak_gpu_mb")} for rank in everyone])
+    notes = list(payload["notes"])
+    notes.append(f"{len(everyone)} ranks: " + "; ".join(
+        f"rank {r['rank']} {s.describe(cameras.frame_indices)}, {r['iterations']} iterations "
+        f"({r['steps_per_s']:.1f}/s), {r['phase1_psnr'] if r['phase1_psnr'] is not None else '-'} dB alone"
+        for r, s in zip(everyone, stretches)))
+    notes.append(f"merged: {shards['merged_psnr_before_refine']:.2f} dB before the joint refinement, "
+                 f"{clip_psnr:.2f} dB after {steps} steps on each rank ({refine_seconds:.1f} s); frames within "
+                 f"{boundary['near']} of a boundary {boundary['boundary']} dB, the others {boundary['interior']} dB")
+    info = dict(source=payload["source"], iterations=start_iteration + steps * len(everyone),
+                train_seconds=round(start_wall + refine_seconds, 2), pose_seconds=round(payload["pose_seconds"], 2),
+                clip_psnr=round(clip_psnr, 3), extent=extent, fps=payload["fps"], background=[0.0, 0.0, 0.0],
+                config={k: v for k, v in vars(config).items()}, notes=notes, shards=shards)
+    save_scene(outputs["scene"], final, cameras, info)
+    write_csv(outputs["csv"], history)
+    plot(outputs["plot"], history)
+    return dict(clip_psnr=clip_psnr, iterations=info["iterations"], seconds=info["train_seconds"], history=history,
+                notes=notes, shards=shards, peak_host_mb=max(r["peak_host_mb"] for r in everyone),
+                peak_gpu_mb=(max(r["peak_gpu_mb"] for r in everyone) if everyone[0]["peak_gpu_mb"] is not None
+                             else None))
+
+
+def _shared_setup(job: Job, device, saved, phase, report):
+    """Rank 0: read the clip, estimate its cameras (or take them from a checkpoint of this run), and
+    fix the budget's wall-clock times. Returns (payload for every rank, the clip)."""
+    from tomgs.cameras import Cameras
+    from tomgs.io import Video, read_video
+    from tomgs.poses import estimate_cameras
+    from tomgs.train.fit import _fps
+    from tomgs.train.plan import render_seconds, SAVE_COST
+
+    phase("read", 0, 1)
+    clip = job.video if isinstance(job.video, Video) else read_video(
+        job.video, frames=job.frames, max_side=job.max_side, masks=job.masks,
+        progress=lambda done, total: phase("read", done, total))
+    phase("read", 1, 1)
+    began = time.perf_counter()
+    cameras_dict = saved["clip"].get("cameras") if saved is not None else None
+    if cameras_dict is None and job.resume:
+        for path in (p["checkpoint"] for p in rank_paths(job.output, job.world)[1:]):
+            if path.is_file():  # rank 0 never saved: another rank's checkpoint has the cameras
+                cameras_dict = read_checkpoint(path)["clip"].get("cameras")
+                break
+    notes, points, colors, point_frames = [], np.zeros((0, 3)), np.zeros((0, 3), np.float32), None
+    if cameras_dict is not None:
+        cameras = Cameras.from_dict(cameras_dict, source="the checkpoint's cameras")
+        if len(cameras) != len(clip):
+            raise InputError(f"the checkpoints beside {job.output} were fitted on {len(cameras)} frames, this run "
+                             f"reads {len(clip)}: resume with the --frames it was started with, or {START_OVER}")
+    else:
+        phase("poses", 0, 1)
+        cameras, points, colors, pose_report = estimate_cameras(
+            clip, method=job.poses, focal=job.focal,
+            progress=lambda done, total: (report("poses", (done, total)), phase("poses", done, total)))
+        notes = [f"poses: {pose_report.summary()}", *pose_report.notes]
+        point_frames = pose_report.point_frames
+        phase("poses", 1, 1)
+    pose_seconds = spent = time.perf_counter() - began
+    if saved is not None:
+        pose_seconds = float(saved["clip"].get("pose_seconds", pose_seconds))
+    height, width = clip.frames.shape[1:3]
+    overlap = default_overlap(len(clip), job.world) if job.overlap is None else job.overlap
+    stretches = plan_stretches(len(clip), job.world, overlap)
+    largest = max(s.frames for s in stretches)
+    plan, config = _rank_plan(job.config, largest, height, width, height * width, device.type, job.auto_budget)
+    times = dict(deadline=None, phase1_end=None, refine_end=None)
+    if plan.budget > 0:
+        now = time.time()
+        deadline = job.start_time + plan.budget
+        own = max(s.own_hi - s.own_lo for s in stretches)
+        # after training: the merge, two measurements of a rank's frames, a checkpoint and the scene
+        grown = config.max_gaussians
+        after = 1.0 + 2 * own * render_seconds(device.type, grown, height * width) + 2 * (
+            SAVE_COST[0] + SAVE_COST[1] * grown * job.world)
+        train_end = max(deadline - after, now + 2.0)
+        fraction = job.refine_fraction
+        times = dict(deadline=deadline, phase1_end=now + (1 - fraction) * (train_end - now),
+                     refine_end=train_end if fraction > 0 else None)
+    payload = dict(cameras=cameras.to_dict(), points=np.asarray(points, dtype=np.float64).reshape(-1, 3),
+                   colors=np.asarray(colors, dtype=np.float32).reshape(-1, 3),
+                   point_frames=None if point_frames is None else np.asarray(point_frames, np.int64).reshape(-1, 2),
+                   notes=notes, pose_seconds=round(pose_seconds, 3), pose_seconds_run=spent, fps=_fps(clip),
+                   source=str(getattr(job.video, "path", job.video)), times=times)
+    return payload, clip
+
+
+def _read_stretch(job: Job, cameras, stretch) -> np.ndarray:
+    """uint8 [F,H,W,3]: a rank's frames, read from the clip by their source frame numbers."""
+    from tomgs.io import Video
+    from tomgs.io.video import read_video_for
+
+    if isinstance(job.video, Video):
+        return np.ascontiguousarray(job.video.frames[stretch.lo:stretch.hi])
+    return read_video_for(job.video, cameras[stretch.lo:stretch.hi])
+
+
+def _check_shard(shard, stretch, world: int, checkpoint) -> None:
+    """A rank's checkpoint must be of this run's ranks and stretch."""
+    if not isinstance(shard, dict):
+        raise InputError(f"{checkpoint} is not a checkpoint of a sharded fit: {START_OVER}")
+    if shard.get("world") != world:
+        raise InputError(f"{checkpoint} was fitted with --gpus {shard.get('world')}, this run asks for --gpus {world}: "
+                         f"resume with the --gpus it was started with, or {START_OVER}")
+    if [shard.get(k) for k in ("lo", "hi", "own_lo", "own_hi")] != [stretch.lo, stretch.hi, stretch.own_lo,
+                                                                     stretch.own_hi]:
+        raise InputError(f"{checkpoint} was fitted on positions {shard.get('lo')}..{shard.get('hi')} of the clip, "
+                         f"this run gives rank {stretch.rank} {stretch.lo}..{stretch.hi}: resume with the options it "
+                         f"was started with, or {START_OVER}")
+
+
+def _last_clip_psnr(trainer) -> float | None:
+    measured = [row["clip_psnr"] for row in trainer.history if row["clip_psnr"] != ""]
+    return round(float(measured[-1]), 3) if measured else None
+
+
+def _fits(frames: np.ndarray, device) -> bool:
+    """Whether a rank's own frames may stay on its GPU for the refinement (a quarter of the free memory)."""
+    return frames.nbytes <= 0.25 * torch.cuda.mem_get_info(device)[0]
+
+
+def _tick(phase, iterations: int, time_limit: float):
+    def tick(iteration, seconds, text):
+        if time_limit > 0:
+            phase("train", min(seconds, time_limit), time_limit, text or f"iteration {iteration:,}")
+        else:
+            phase("train", iteration, iterations, text)
+    return tick
+
+
+__all__ = ["ShardFailed", "ShardsInterrupted", "check_shard_outputs", "fit_shards", "is_leader", "run_rank",
+           "torchrun_env", "wants_shards"]

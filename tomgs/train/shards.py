@@ -1,0 +1,460 @@
+"""Temporal shards: several processes (one per GPU) fit one clip, each a stretch of it, into one scene.
+
+TOM-GS shards in time: every Gaussian is static in one world frame and alive in a temporal window,
+so Gaussians fitted for different stretches of a clip live side by side in one scene file.
+
+    tomgs fit clip.mp4 -o scene.ply --gpus 2                               # N processes on this host
+    torchrun --nproc_per_node 2 -m tomgs.cli fit clip.mp4 -o scene.ply     # the same under torchrun
+
+A run (docs/multi-gpu.md; the processes and their faults: tomgs.train.ranks):
+
+1. Rank 0 reads the clip and estimates the cameras once (a resume takes them from a checkpoint) and
+   broadcasts them; every other rank then reads its own stretch (`plan_stretches`: equal runs of
+   frames, `overlap` frames into each neighbour).
+2. Phase 1, no communication: each rank is an ordinary Trainer on its stretch, in the stretch's own
+   clip time (t in [0, 1] over its frames, so learning rates and initial windows mean what they mean
+   in a fit of that many frames), with its own checkpoint and CSV beside the output
+   (scene.rank1.ckpt, scene.rank1.csv), for 1 - `refine_fraction` of the training time.
+3. Merge: each rank keeps the Gaussians whose temporal centre lies in its own stretch (an overlap's
+   copies belong to the rank that owns those frames), maps them to clip time (t -> t0 + span t, an
+   affine map under which o(t) is unchanged), and every rank gathers the union.
+4. Joint refinement, data-parallel, for `refine_fraction` of the training time: a long-lived Gaussian
+   of one stretch is alive in the next, where that rank fitted its own (the union alone double-draws
+   them: 7 dB lost on every frame they reach in the CPU test). Every rank trains the union on its own
+   frames; the gradients of the Gaussians alive in more than one rank's stretch are summed over the
+   ranks at each step (one all_reduce), so each is fitted to every frame it is alive in, and all
+   replicas take the same step; a Gaussian alive in one stretch only is its rank's alone. No
+   densification. A checkpoint is not written here: an interrupted refinement starts again from the
+   phase-1 checkpoints.
+5. Each rank measures its own frames with the assembled scene; rank 0 writes the scene (an ordinary
+   scene file), the merged CSV and its plot; the checkpoints are removed, the per-rank CSVs kept.
+
+Error against run time: scene.rankR.csv is rank R's log (its Trainer's rows in phase 1, then the
+refinement's); scene.csv merges them: until the merge, the frame-weighted mean of the ranks' latest
+rows, then the union's refinement and, last, the full-clip PSNR of the scene written.
+"""
+
+from __future__ import annotations
+
+import math
+import signal
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from tomgs.errors import InputError
+from tomgs.model import PARAM_NAMES, GaussianModel
+
+MIN_STRETCH = 2  # frames per rank: a stretch's own clip time needs two
+REFINE_FRACTION = 0.15  # of the training time, for the joint refinement of the union
+# a Gaussian takes part in a rank's refinement when its alive window, widened by this share of its
+# radius and REFINE_SLACK_FRAMES frames, meets the rank's stretch: the windows move while refining
+REFINE_SLACK = 0.25
+REFINE_SLACK_FRAMES = 2.0
+RANK_FILE = "rank{}"  # scene.rank0.ckpt, scene.rank0.csv beside scene.ply
+
+
+# -- the plan: which frames each rank fits ---------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Stretch:
+    """Rank `rank`'s frames, as positions of the clip: it trains on [lo, hi) and owns [own_lo, own_hi)
+    (its own frames; the rest of [lo, hi) is overlap with a neighbour)."""
+
+    rank: int
+    lo: int
+    hi: int
+    own_lo: int
+    own_hi: int
+
+    @property
+    def frames(self) -> int:
+        return self.hi - self.lo
+
+    def describe(self, frame_numbers=None) -> str:
+        """'frames 300..599' (source frame numbers when given), with the overlap when there is one."""
+        name = (lambda k: int(frame_numbers[k])) if frame_numbers is not None else (lambda k: k)
+        text = f"frames {name(self.own_lo)}..{name(self.own_hi - 1)}"
+        extra = (self.own_lo - self.lo) + (self.hi - self.own_hi)
+        return text + (f" (+{extra} overlap)" if extra else "")
+
+
+def plan_stretches(count: int, world: int, overlap: int = 0) -> list[Stretch]:
+    """`world` stretches of a `count`-frame clip: equal runs of positions (sizes differ by at most
+    one), each reaching `overlap` frames into its neighbours. InputError when a rank would get fewer
+    than MIN_STRETCH frames of its own."""
+    if world < 1:
+        raise InputError(f"--gpus {world}: give 1 or more")
+    if overlap < 0:
+        raise InputError(f"overlap {overlap}: give 0 or more frames")
+    if count < MIN_STRETCH * world:
+        raise InputError(f"--gpus {world} splits the clip's {count} frames into {world} stretches, but each rank needs "
+                         f"at least {MIN_STRETCH} frames of its own: use --gpus {max(count // MIN_STRETCH, 1)} or fewer, "
+                         f"or select more frames (--frames)")
+    bounds = [round(r * count / world) for r in range(world + 1)]
+    return [Stretch(r, max(bounds[r] - overlap, 0), min(bounds[r + 1] + overlap, count), bounds[r], bounds[r + 1])
+            for r in range(world)]
+
+
+def rank_paths(output, world: int) -> list[dict[str, Path]]:
+    """Per rank: its checkpoint and CSV beside the scene (scene.rank0.ckpt, scene.rank0.csv)."""
+    stem = Path(output).with_suffix("")
+    return [dict(checkpoint=Path(f"{stem}.{RANK_FILE.format(r)}.ckpt"), csv=Path(f"{stem}.{RANK_FILE.format(r)}.csv"))
+            for r in range(world)]
+
+
+def default_overlap(count: int, world: int) -> int:
+    """Frames each stretch reaches into its neighbours when not asked: none (measured on the CPU test,
+    docs/multi-gpu.md: the refinement fits the boundary, and overlap frames are frames a rank does
+    not own)."""
+    return 0
+
+
+# -- clip time and stretch time ---------------------------------------------------------------------
+
+
+def stretch_span(times, stretch: Stretch) -> tuple[float, float]:
+    """(t0, span): the stretch's first frame time and the clip time its frames cover; its own clip
+    time is (t - t0) / span."""
+    t0, t1 = float(times[stretch.lo]), float(times[stretch.hi - 1])
+    if not t1 > t0:
+        raise InputError(f"frames {stretch.lo}..{stretch.hi - 1} of the clip share one time ({t0}): a stretch's "
+                         "frames must have increasing times")
+    return t0, t1 - t0
+
+
+def local_cameras(cameras, stretch: Stretch):
+    """The cameras of the stretch's frames with the stretch's own times (first 0, last 1)."""
+    from tomgs.cameras import Cameras
+
+    t0, span = stretch_span(cameras.times, stretch)
+    sub = cameras[stretch.lo:stretch.hi]
+    return Cameras(sub.c2w, sub.K, sub.width, sub.height, (sub.times - t0) / span, sub.frame_indices)
+
+
+def to_clip_time(params: dict, t0: float, span: float) -> dict:
+    """Stored parameters (PARAM_NAMES: tensors [N, ...]) fitted in a stretch's own time, in clip time:
+    t_means -> t0 + span t_means, log_t_scales -> log_t_scales + log(span). o(t) at corresponding
+    times is unchanged (z = (t - m) / sigma is invariant); float64 inside."""
+    out = dict(params)
+    out["t_means"] = (t0 + span * params["t_means"].double()).float()
+    out["log_t_scales"] = (params["log_t_scales"].double() + math.log(span)).float()
+    return out
+
+
+def own_cut(times, stretch: Stretch) -> tuple[float, float]:
+    """The clip-time interval [lo, hi) whose Gaussians the stretch's rank keeps at the merge: from
+    half way between its first own frame and the one before, to half way after its last (open at the
+    clip's ends)."""
+    n = len(times)
+    lo = -math.inf if stretch.own_lo == 0 else 0.5 * (times[stretch.own_lo - 1] + times[stretch.own_lo])
+    hi = math.inf if stretch.own_hi >= n else 0.5 * (times[stretch.own_hi - 1] + times[stretch.own_hi])
+    return float(lo), float(hi)
+
+
+def stretch_points(points, colors, point_frames, stretch: Stretch):
+    """The tracker's points for a stretch: those seen in its frames, with their first and last frame as
+    positions of the stretch (clipped to it). point_frames int [P,2] (clip positions) or None."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    colors = np.asarray(colors, dtype=np.float32).reshape(-1, 3)
+    if point_frames is None or len(points) == 0:
+        return points, colors, None
+    frames = np.asarray(point_frames, dtype=np.int64).reshape(-1, 2)
+    seen = (frames[:, 1] >= stretch.lo) & (frames[:, 0] < stretch.hi)
+    local = np.clip(frames[seen] - stretch.lo, 0, stretch.frames - 1)
+    return points[seen], colors[seen], local
+
+
+# -- rows: a model's parameters as one float32 row per Gaussian --------------------------------------
+
+
+def row_widths(max_sh_degree: int) -> dict[str, int]:
+    rest = 3 * ((max_sh_degree + 1) ** 2 - 1)
+    return dict(means=3, quats=4, log_scales=3, opacity_logits=1, sh_dc=3, sh_rest=rest, t_means=1, log_t_scales=1)
+
+
+def pack(params: dict) -> torch.Tensor:
+    """float32 [N, D]: the stored parameters (PARAM_NAMES) of each Gaussian side by side."""
+    n = params["means"].shape[0]
+    return torch.cat([params[name].detach().reshape(n, -1).float() for name in PARAM_NAMES], dim=1)
+
+
+def unpack(rows: torch.Tensor, max_sh_degree: int) -> dict[str, torch.Tensor]:
+    """`pack`'s inverse: {name: tensor [N, ...]} of rows [N, D]."""
+    widths, n, at, out = row_widths(max_sh_degree), rows.shape[0], 0, {}
+    shapes = dict(means=(3,), quats=(4,), log_scales=(3,), opacity_logits=(), sh_dc=(1, 3),
+                  sh_rest=((max_sh_degree + 1) ** 2 - 1, 3), t_means=(), log_t_scales=())
+    for name in PARAM_NAMES:
+        out[name] = rows[:, at:at + widths[name]].reshape(n, *shapes[name]).contiguous()
+        at += widths[name]
+    if at != rows.shape[1]:
+        raise ValueError(f"rows of width {rows.shape[1]} are not SH degree {max_sh_degree}'s {at}")
+    return out
+
+
+def model_of(rows: torch.Tensor, max_sh_degree: int, sh_degree: int) -> GaussianModel:
+    return GaussianModel(**unpack(rows, max_sh_degree), sh_degree=sh_degree)
+
+
+def owned_rows(model: GaussianModel, times, stretch: Stretch) -> torch.Tensor:
+    """float32 [M, D]: the Gaussians of a rank's model (fitted in its stretch's time) whose temporal
+    centre lies in the stretch's own cut (`own_cut`), in clip time."""
+    t0, span = stretch_span(times, stretch)
+    params = to_clip_time({k: v.detach() for k, v in model.parameters_by_name().items()}, t0, span)
+    lo, hi = own_cut(times, stretch)
+    keep = (params["t_means"].double() >= lo) & (params["t_means"].double() < hi)
+    return pack(params)[keep]
+
+
+def reach(model: GaussianModel, times, stretches: list[Stretch]) -> torch.Tensor:
+    """bool [S, N]: whether Gaussian i may be alive in stretch s's own frames while refining (its alive
+    window widened by REFINE_SLACK and REFINE_SLACK_FRAMES frames meets [first, last] own frame time)."""
+    from tomgs import temporal
+
+    with torch.no_grad():
+        first, last = temporal.alive_window(model.opacities.double(), model.t_means.double(),
+                                            model.t_scales.double())
+        radius = (last - first) / 2
+        margin = REFINE_SLACK * radius.clamp_min(0) + REFINE_SLACK_FRAMES / max(len(times) - 1, 1)
+        first, last = first - margin, last + margin
+        dead = ~(radius >= 0)  # alive at no time (a < 1/255): in no stretch
+        rows = []
+        for s in stretches:
+            t0, t1 = float(times[s.own_lo]), float(times[s.own_hi - 1])
+            rows.append((last >= t0) & (first <= t1) & ~dead)
+        return torch.stack(rows) if rows else torch.zeros(0, len(model), dtype=torch.bool)
+
+
+# -- the merged curve -----------------------------------------------------------------------------
+
+
+def merged_history(histories: list[list[dict]], weights: list[float]) -> list[dict]:
+    """One CSV log (tomgs.train.checkpoint.LOG_FIELDS rows) of ranks that trained side by side: at
+    every time a rank logged (wall_s: each rank's training seconds), each rank's latest row so far
+    combined: iterations and Gaussians summed, memory the largest, PSNRs the `weights`-weighted mean
+    (frames per rank). A full-clip PSNR is given where a rank measured one and every rank has one by
+    then (each rank's latest)."""
+    events = sorted({(float(row["wall_s"]), r, i) for r, rows in enumerate(histories) for i, row in enumerate(rows)})
+    latest: list[dict | None] = [None] * len(histories)
+    clip: list[float | None] = [None] * len(histories)
+    out = []
+    for wall, r, i in events:
+        row = histories[r][i]
+        latest[r] = row
+        measured = row["clip_psnr"] != ""
+        if measured:
+            clip[r] = float(row["clip_psnr"])
+        if any(x is None for x in latest):
+            continue
+
+        def mean(values):
+            pairs = [(w, float(v)) for w, v in zip(weights, values) if v not in ("", None)]
+            total = sum(w for w, _ in pairs)
+            return round(sum(w * v for w, v in pairs) / total, 3) if total > 0 else ""
+
+        merged = dict(iteration=sum(int(x["iteration"]) for x in latest), wall_s=round(wall, 3),
+                      train_psnr=mean([x["train_psnr"] for x in latest]),
+                      clip_psnr=mean(clip) if measured and all(c is not None for c in clip) else "",
+                      gaussians=sum(int(x["gaussians"]) for x in latest),
+                      memory_mb=max(float(x["memory_mb"]) for x in latest))
+        if out and out[-1]["wall_s"] == merged["wall_s"]:
+            if merged["clip_psnr"] == "" and out[-1]["clip_psnr"] != "":
+                merged["clip_psnr"] = out[-1]["clip_psnr"]
+            out[-1] = merged
+        else:
+            out.append(merged)
+    return out
+
+
+def boundary_psnr(frame_psnr, stretches: list[Stretch], near: int = 2) -> dict:
+    """Per-frame PSNRs [T] of a scene split by `stretches`: the mean of the frames within `near` frames
+    of each boundary between two stretches ('boundaries': one per boundary, 'boundary': all of them)
+    and of the others ('interior')."""
+    psnr = np.asarray(frame_psnr, dtype=np.float64)
+    close = np.zeros(len(psnr), dtype=bool)
+    per = []
+    for s in stretches[1:]:
+        lo, hi = max(s.own_lo - near, 0), min(s.own_lo + near, len(psnr))
+        close[lo:hi] = True
+        per.append(dict(frame=int(s.own_lo), psnr=round(float(psnr[lo:hi].mean()), 3)))
+    return dict(boundaries=per, boundary=round(float(psnr[close].mean()), 3) if close.any() else None,
+                interior=round(float(psnr[~close].mean()), 3) if (~close).any() else None, near=near)
+
+
+# -- the joint refinement ---------------------------------------------------------------------------
+
+
+@dataclass
+class Refined:
+    """What the refinement did on one rank: steps, seconds, the last rows it logged."""
+
+    steps: int = 0
+    seconds: float = 0.0
+    rows: list = field(default_factory=list)
+    stopped_by: int | None = None  # a signal number when SIGINT / SIGTERM stopped it
+
+
+def refine(model: GaussianModel, frames: torch.Tensor, cameras, times_all, stretches: list[Stretch], rank: int,
+           config, extent: float, device: torch.device, *, steps: int = 0, until: float | None = None,
+           start_wall: float = 0.0, start_iteration: int = 0, log_rows=None, tick=None) -> Refined:
+    """Train `model` (the union, the same on every rank) jointly: rank `rank` renders its own frames
+    (`frames` uint8 [F,H,W,3] on any device, `cameras` theirs in clip time), the gradients and the
+    'in view' flags of the Gaussians alive in more than one stretch are summed over the ranks each step,
+    so that every replica of those takes the same Adam step. Stops after `steps` steps, or (steps 0) at
+    the wall-clock time `until` (time.time()) that any rank reaches first, or at SIGINT / SIGTERM on any
+    rank (Refined.stopped_by). Needs an initialised default process group. `log_rows(row)` hears a CSV
+    row every config.log_interval steps (wall_s from `start_wall`, iteration from `start_iteration`)."""
+    import torch.distributed as dist
+
+    from tomgs.metrics import psnr, ssim
+    from tomgs.render import rasterize
+    from tomgs.train.checkpoint import StopSignals
+    from tomgs.train.optim import SeenAdam
+    from tomgs.train.sampler import MAX_PSNR, FrameSampler
+
+    c = config
+    world = dist.get_world_size()
+    params = model.parameters_by_name()
+    n = len(model)
+    spans = [stretch_span(times_all, s)[1] for s in stretches]
+    span = float(np.median(spans))
+    # the rates the ranks ended phase 1 with, in clip time (a stretch's t is span times finer)
+    lr = dict(means=c.lr_means_final * extent, quats=c.lr_quats, log_scales=c.lr_scales, opacity_logits=c.lr_opacity,
+              sh_dc=c.lr_sh_dc, sh_rest=c.lr_sh_rest, t_means=c.lr_t_means * span if c.temporal else 0.0,
+              log_t_scales=c.lr_t_scales if c.temporal else 0.0)
+    groups = [dict(params=[p], lr=lr[name], name=name) for name, p in params.items()]
+    sparse = device.type == "cuda" if c.sparse_adam is None else bool(c.sparse_adam)
+    optimizer = SeenAdam(groups, lr=0.0, eps=1e-15) if sparse else \
+        torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=device.type == "cuda")
+    reaches = reach(model, times_all, stretches).to(device)  # [S, N]
+    mine = reaches[rank].nonzero()[:, 0]  # the rows this rank renders
+    shared = (reaches.sum(0) > 1).nonzero()[:, 0]  # the rows whose gradients are summed
+    viewmats = cameras.viewmats(device)
+    K = torch.as_tensor(cameras.K, dtype=torch.float32, device=device)
+    sampler = FrameSampler(len(cameras), c.sampling, c.psnr_momentum, c.seed + 1000 + rank)
+    out = Refined()
+    began = time.perf_counter()
+    recent = []
+    with StopSignals() as stop:
+        while True:
+            k = sampler.sample()
+            inputs = {name: v.index_select(0, mine) for name, v in model.render_inputs().items()}
+            image, _, meta = rasterize(**inputs, viewmat=viewmats[k], K=K, width=cameras.width, height=cameras.height,
+                                       t=float(cameras.times[k]))
+            target = frames[k].to(device, non_blocking=True).float() / 255.0
+            loss = (1 - c.ssim_weight) * (image - target).abs().mean() + c.ssim_weight * (1 - ssim(image, target))
+            loss.backward()
+            seen = torch.zeros(n, dtype=torch.bool, device=device)
+            seen[mine] = (meta["radii"] > 0).any(-1)
+            grads = [p.grad if p.grad is not None else torch.zeros_like(p) for p in params.values()]
+            out.steps += 1
+            done = steps > 0 and out.steps >= steps
+            late = until is not None and time.time() >= until
+            value = psnr(image.detach(), target).clamp(max=MAX_PSNR).reshape(1)
+            flags = torch.tensor([float(stop.signum or 0), float(done or late)], device=device)
+            # one all_reduce: [shared rows' gradients | their 'in view' | PSNR, stop signal, out of steps or time]
+            buffer = torch.cat([g.index_select(0, shared).reshape(-1) for g in grads]
+                               + [seen.index_select(0, shared).float(), value, flags])
+            dist.all_reduce(buffer)
+            at = 0
+            for g in grads:
+                width = g[0].numel() if n else 0
+                g.index_copy_(0, shared, buffer[at:at + len(shared) * width].view(len(shared), *g.shape[1:]))
+                at += len(shared) * width
+            seen.index_copy_(0, shared, buffer[at:at + len(shared)] > 0)
+            for p, g in zip(params.values(), grads):
+                p.grad = g
+            optimizer.step(seen) if sparse else optimizer.step()
+            optimizer.zero_grad(set_to_none=True)
+            total, signum, finished = buffer[-3:].tolist()  # the one wait for the device a step has
+            sampler.update(k, float(value))
+            recent.append(total / world)  # the ranks' mean: the union's training PSNR
+            now = time.perf_counter() - began
+            if tick is not None:
+                tick(start_iteration + out.steps, start_wall + now)
+            if log_rows is not None and (out.steps % c.log_interval == 0 or signum or finished):
+                row = dict(iteration=start_iteration + out.steps, wall_s=round(start_wall + now, 3),
+                           train_psnr=round(float(np.mean(recent)), 3), clip_psnr="", gaussians=n,
+                           memory_mb=round(_memory_mb(device), 1))
+                recent.clear()
+                out.rows.append(row)
+                log_rows(row)
+            if signum:
+                out.stopped_by = stop.signum or signal.SIGTERM  # another rank's signal stops this one too
+                break
+            if finished:
+                break
+    out.seconds = time.perf_counter() - began
+    return out
+
+
+def _memory_mb(device) -> float:
+    if device.type == "cuda":
+        return torch.cuda.max_memory_allocated(device) / 2**20
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+@torch.no_grad()
+def frame_psnr(model: GaussianModel, frames: torch.Tensor, cameras, device, tick=None) -> list[float]:
+    """PSNR [F] of each frame (uint8 [F,H,W,3]) rendered at its camera and time (clip time)."""
+    from tomgs.metrics import psnr
+    from tomgs.render import rasterize
+
+    viewmats = cameras.viewmats(device)
+    K = torch.as_tensor(cameras.K, dtype=torch.float32, device=device)
+    inputs = model.render_inputs()
+    out = []
+    for k in range(len(cameras)):
+        image = rasterize(**inputs, viewmat=viewmats[k], K=K, width=cameras.width, height=cameras.height,
+                          t=float(cameras.times[k]))[0]
+        out.append(psnr(image, frames[k].to(device).float() / 255.0))
+        if tick is not None:
+            tick(k + 1, len(cameras))
+    return torch.stack(out).tolist() if out else []
+
+
+# -- collectives on rows -----------------------------------------------------------------------------
+
+
+def all_gather_rows(rows: torch.Tensor) -> list[torch.Tensor]:
+    """Every rank's rows [n_r, D] (n_r may differ), on every rank, in rank order (default group:
+    `rows` on its device, CUDA under NCCL)."""
+    import torch.distributed as dist
+
+    world = dist.get_world_size()
+    size = torch.tensor([rows.shape[0]], dtype=torch.int64, device=rows.device)
+    sizes = [torch.zeros_like(size) for _ in range(world)]
+    dist.all_gather(sizes, size)
+    sizes = [int(s) for s in sizes]
+    padded = torch.zeros(max(sizes), rows.shape[1], dtype=rows.dtype, device=rows.device)
+    padded[:rows.shape[0]] = rows
+    gathered = [torch.empty_like(padded) for _ in range(world)]
+    dist.all_gather(gathered, padded)
+    return [g[:s] for g, s in zip(gathered, sizes)]
+
+
+def assemble(model: GaussianModel, reaches: torch.Tensor, rank: int) -> torch.Tensor:
+    """The refined union as rows [M, D], the same on every rank: a Gaussian alive in one stretch only
+    as its rank has it, the others as rank 0 has them (replicas of a shared one took the same steps);
+    Gaussians alive in no stretch are left out. `reaches` bool [S, N] from `reach` before refining."""
+    rows = pack(model.parameters_by_name())
+    alone = reaches.sum(0) == 1
+    owner = torch.where(alone, reaches.float().argmax(0), torch.full_like(alone, 0, dtype=torch.int64))
+    mine = (owner == rank) & alone
+    received = all_gather_rows(rows[mine])
+    for r, part in enumerate(received):
+        if r != rank:
+            rows[(owner == r) & alone] = part
+    return rows[reaches.any(0)]
+
+
+__all__ = ["MIN_STRETCH", "REFINE_FRACTION", "Refined", "Stretch", "all_gather_rows", "assemble", "boundary_psnr",
+           "frame_psnr", "local_cameras", "merged_history", "model_of", "own_cut", "owned_rows", "pack",
+           "plan_stretches", "rank_paths", "reach", "refine", "stretch_points", "stretch_span", "to_clip_time",
+           "unpack"]
