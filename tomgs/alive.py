@@ -1,0 +1,377 @@
+"""The alive index: which Gaussians may be alive at each frame, so that a frame's work follows what
+lives in it rather than the whole cloud (DESIGN.md "Principles": no work for the dead).
+
+Frames, in time order, are grouped into buckets of F consecutive frames; bucket b lists every
+Gaussian whose alive window (tomgs.temporal.alive_window, widened by GATHER_SLACK so that float32
+projection never finds one alive outside it) meets the span of b's frame times [lo_b, hi_b], as CSR:
+`offsets` on the host (a frame's rows are a slice, no device sync), `ids` on the device, ascending
+within a bucket (so a subset sorts its tile keys in the order the full cloud would, and composites
+exactly as it does). A frame's rows are its bucket's list: a superset of the Gaussians alive at its
+time; projection still culls exactly.
+
+Bucket size: a Gaussian whose window spans w of the clip sits in about w B + 1 of B buckets, so
+small buckets cost entries and large ones render Gaussians dead at the frame. F is the smallest
+power of two whose index holds at most ENTRIES_PER_GAUSSIAN x N entries (int32 ids: 32 bytes per
+Gaussian at most, 40 with its bucket range; its parameters, gradients and Adam moments take 256 at SH
+degree 0, 976 at degree 3), except that a larger F is taken when it renders within WORK_TOLERANCE as
+much (a clip of Gaussians alive throughout gets one bucket, its rows are then all of them: `rows`
+returns None).
+
+Training moves the windows every step; `TrainingIndex` keeps the index exact under Adam: see there.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import weakref
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from tomgs import temporal
+from tomgs.constants import ALPHA_MIN
+from tomgs.model import activated_opacities, activated_t_scales
+
+# relative and absolute widening of an indexed alive window (tomgs.temporal.alive_radius's slack):
+# float32 projection rounds o(t) near 1/255 either way, the index must never be the narrower
+GATHER_SLACK = 1e-3
+ENTRIES_PER_GAUSSIAN = 8  # the index's memory bound: entries <= this x N
+WORK_TOLERANCE = 1 / 16  # a larger bucket is taken when a frame's rows grow by at most this share
+CHUNK_ENTRIES = 1 << 22  # entries built at a time: the build's scratch memory, whatever N is
+
+
+def windows(opacities: torch.Tensor, t_means: torch.Tensor, t_scales: torch.Tensor,
+            alpha_min: float = ALPHA_MIN) -> tuple[torch.Tensor, torch.Tensor]:
+    """(first, last) float64 [N]: the clip times between which o_i(t) >= alpha_min, widened by
+    GATHER_SLACK (first > last: alive at no time), from the renderer's inputs [N]."""
+    return temporal.alive_window(opacities.double(), t_means.double(), t_scales.double(), alpha_min,
+                                 slack=GATHER_SLACK)
+
+
+@dataclass
+class AliveIndex:
+    """Buckets of frames and the Gaussians that may be alive in each (CSR). Build with `build`."""
+
+    n: int  # Gaussians indexed
+    bucket_of: np.ndarray  # int64 [T]: the bucket of each frame position
+    lo: np.ndarray  # float64 [B]: the first frame time of each bucket (ascending)
+    hi: np.ndarray  # float64 [B]: the last frame time of each bucket (ascending)
+    offsets: list  # [B + 1] ints: bucket b's ids are ids[offsets[b]:offsets[b + 1]]
+    ids: torch.Tensor  # [E] int32 (int64 from 2^31 Gaussians), ascending within a bucket
+    b_first: torch.Tensor  # [N] int32: the first bucket listing each Gaussian
+    b_last: torch.Tensor  # [N] int32: the last one (< b_first: listed nowhere)
+
+    @property
+    def entries(self) -> int:
+        return self.offsets[-1]
+
+    @property
+    def nbytes(self) -> int:
+        """Device memory the index holds (ids and the per-Gaussian bucket range)."""
+        return sum(t.numel() * t.element_size() for t in (self.ids, self.b_first, self.b_last))
+
+    @property
+    def num_buckets(self) -> int:
+        return len(self.lo)
+
+    def rows(self, position: int) -> torch.Tensor | None:
+        """The Gaussians that may be alive at frame `position` (int [M], a view of `ids`), or None
+        when its bucket lists all of them (render the cloud as it is, no gather)."""
+        b = int(self.bucket_of[position])
+        start, end = self.offsets[b], self.offsets[b + 1]
+        return None if end - start == self.n else self.ids[start:end]
+
+    def covers(self, first: torch.Tensor, last: torch.Tensor, rows: torch.Tensor | None) -> torch.Tensor:
+        """bool [M] on the device: every frame time inside [first_i, last_i] (float64 [M], the
+        windows of Gaussians `rows`, None: all) lies in a bucket that lists Gaussian i. No sync."""
+        first, last = _never_when_nan(first, last)
+        b_first = (self.b_first if rows is None else self.b_first.index_select(0, rows)).long()
+        b_last = (self.b_last if rows is None else self.b_last.index_select(0, rows)).long()
+        before, after = self._edges
+        # strictly between the last unlisted frame time before and the first unlisted one after
+        # (none before the first bucket, none after the last: an infinite window is covered there)
+        return (((b_first == 0) | (first > before[b_first]))
+                & ((b_last == self.num_buckets - 1) | (last < after[b_last + 1])))
+
+    @functools.cached_property
+    def _edges(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """float64 [B+1] each on the device: before[b] = hi[b - 1] (-inf for b = 0), the last frame
+        time ahead of bucket b; after[b] = lo[b] (inf for b = B), the first frame time from bucket b."""
+        inf = np.array([math.inf])
+        device = self.ids.device
+        return (torch.as_tensor(np.concatenate([-inf, self.hi]), device=device),
+                torch.as_tensor(np.concatenate([self.lo, inf]), device=device))
+
+
+def _never_when_nan(first: torch.Tensor, last: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """A NaN window (a NaN temporal mean or scale, which projection culls) as alive at no time."""
+    bad = torch.isnan(first) | torch.isnan(last)
+    return first.masked_fill(bad, math.inf), last.masked_fill(bad, -math.inf)
+
+
+def _buckets(sorted_times: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """(lo [B], hi [B]): first and last time of each run of `size` sorted frame times."""
+    starts = np.arange(0, len(sorted_times), size)
+    return sorted_times[starts], sorted_times[np.minimum(starts + size, len(sorted_times)) - 1]
+
+
+def _ranges(first: torch.Tensor, last: torch.Tensor, lo: np.ndarray, hi: np.ndarray):
+    """(b_first, b_last) int64 [N]: the buckets whose span [lo_b, hi_b] meets [first_i, last_i]
+    (a run, as both ends ascend); b_last < b_first when none."""
+    hi_t = torch.as_tensor(hi, device=first.device)
+    lo_t = torch.as_tensor(lo, device=first.device)
+    b_first = torch.searchsorted(hi_t, first, side="left")  # first bucket ending at or after `first`
+    b_last = torch.searchsorted(lo_t, last, side="right") - 1  # last bucket starting at or before `last`
+    return b_first, b_last
+
+
+def _per_bucket(b_first: torch.Tensor, b_last: torch.Tensor, buckets: int) -> torch.Tensor:
+    """int64 [B]: Gaussians listed in each bucket (a difference array over the runs, no mask)."""
+    listed = b_last >= b_first
+    spare = torch.full_like(b_first, buckets + 1)  # unlisted Gaussians count in a slot past the end
+    delta = (torch.bincount(torch.where(listed, b_first, spare), minlength=buckets + 2)
+             - torch.bincount(torch.where(listed, b_last + 1, spare), minlength=buckets + 2))
+    return torch.cumsum(delta, 0)[:buckets]
+
+
+def build(first: torch.Tensor, last: torch.Tensor, times, budget: float = ENTRIES_PER_GAUSSIAN) -> AliveIndex:
+    """The index of Gaussians with alive windows [first_i, last_i] (float64 [N], first > last or
+    NaN: never alive) over frames at `times` ([T] clip times, any order). Host syncs: a few."""
+    times = np.asarray(times, dtype=np.float64).reshape(-1)
+    n, device = int(first.shape[0]), first.device
+    first, last = _never_when_nan(first.double(), last.double())
+    order = np.argsort(times, kind="stable")
+    sorted_times = times[order]
+    count = max(len(times), 1)
+    sizes = [1 << i for i in range(max(count - 1, 0).bit_length())] + [count]  # 1, 2, 4, .., one bucket
+    options = []  # (size, rows rendered over the clip, entries)
+    for size in sizes:
+        lo, hi = _buckets(sorted_times, size)
+        per_bucket = _per_bucket(*_ranges(first, last, lo, hi), len(lo)).tolist()
+        frames = np.diff(np.minimum(np.arange(0, len(lo) + 1) * size, len(times)))
+        options.append((size, float(np.dot(per_bucket, frames)), sum(per_bucket)))
+    fitting = [o for o in options if o[2] <= budget * max(n, 1)] or options[-1:]  # one bucket holds <= N
+    least = min(o[1] for o in fitting)
+    size = max(o[0] for o in fitting if o[1] <= least * (1 + WORK_TOLERANCE))
+
+    lo, hi = _buckets(sorted_times, size)
+    buckets = len(lo)
+    bucket_of = np.empty(len(times), dtype=np.int64)
+    bucket_of[order] = np.arange(len(times)) // size
+    b_first, b_last = _ranges(first, last, lo, hi)
+    per_bucket = _per_bucket(b_first, b_last, buckets)
+    offsets = [0] + torch.cumsum(per_bucket, 0).tolist()
+    id_type = torch.int32 if n < 2**31 else torch.int64
+    ids = torch.empty(offsets[-1], dtype=id_type, device=device)
+    _fill(ids, b_first, b_last, torch.tensor(offsets[:-1], dtype=torch.int64, device=device), buckets)
+    small = torch.int32 if buckets < 2**31 else torch.int64
+    return AliveIndex(n=n, bucket_of=bucket_of, lo=lo, hi=hi, offsets=offsets, ids=ids,
+                      b_first=b_first.to(small), b_last=b_last.to(small))
+
+
+def _fill(ids: torch.Tensor, b_first: torch.Tensor, b_last: torch.Tensor, starts: torch.Tensor, buckets: int) -> None:
+    """Write each Gaussian i into buckets b_first_i .. b_last_i of `ids` (bucket b from starts[b]),
+    ascending within a bucket: Gaussians in chunks of at most CHUNK_ENTRIES entries, each chunk's
+    entries stably sorted by bucket and placed after the earlier chunks' (ids ascend across chunks)."""
+    device = ids.device
+    per_gaussian = (b_last - b_first + 1).clamp_min(0)
+    ends = torch.cumsum(per_gaussian, 0)
+    total = int(ends[-1]) if len(ends) else 0
+    marks = torch.tensor(list(range(CHUNK_ENTRIES, total, CHUNK_ENTRIES)), dtype=torch.int64, device=device)
+    bounds = [0] + torch.searchsorted(ends, marks, side="right").tolist() + [len(ends)]
+    placed = torch.zeros(buckets, dtype=torch.int64, device=device)  # entries written so far per bucket
+    for g0, g1 in zip(bounds[:-1], bounds[1:]):
+        if g1 <= g0:
+            continue
+        counts = per_gaussian[g0:g1]
+        entries = int(counts.sum())
+        gaussian = torch.repeat_interleave(torch.arange(g0, g1, device=device), counts, output_size=entries)
+        run_start = torch.repeat_interleave(torch.cumsum(counts, 0) - counts, counts, output_size=entries)
+        bucket = b_first[gaussian] + (torch.arange(entries, device=device) - run_start)  # [entries]
+        bucket, order = torch.sort(bucket, stable=True)
+        gaussian = gaussian[order]
+        in_chunk = torch.bincount(bucket, minlength=buckets)
+        chunk_start = torch.cumsum(in_chunk, 0) - in_chunk
+        where = starts[bucket] + placed[bucket] + torch.arange(entries, device=device) - chunk_start[bucket]
+        ids[where] = gaussian.to(ids.dtype)
+        placed += in_chunk
+
+
+def index_of(opacities: torch.Tensor, t_means: torch.Tensor, t_scales: torch.Tensor, times,
+             budget: float = ENTRIES_PER_GAUSSIAN) -> AliveIndex:
+    """The index of a fixed cloud (the renderer's inputs [N]) over frames at `times` [T]."""
+    return build(*windows(opacities, t_means, t_scales), times, budget)
+
+
+# -- training: an index that stays exact while Adam moves the windows ------------------------------
+
+# Headroom, in steps of each parameter's learning rate, added to the windows a rebuilt index lists.
+# Less lists fewer dead Gaussians per frame, and more of them outgrow their buckets and become movers
+# (bundled-like clip, 30 frames, SeenAdam: 8 steps lists 45% of the cloud per frame (29% alive) and
+# lets 0.2% escape in 20 steps, 8% in 50; 16 steps lists 49%).
+HEADROOM_STEPS = 8.0
+MOVER_SHARE = 1 / 32  # movers (rendered at every frame) beyond this share of the cloud: rebuild
+REBUILD_EVERY = 200  # steps: a rebuild also narrows the windows that shrank since the last one
+TEMPORAL = ("t_means", "log_t_scales", "opacity_logits")  # the parameters an alive window depends on
+
+
+@functools.lru_cache(maxsize=8)
+def _bias_factor(beta1: float, beta2: float) -> float:
+    """sup over steps t >= 1 of sqrt(1 - beta2^t) / (1 - beta1^t): Adam's bias corrections scale a
+    step by at most this (1 for the default betas). Past 10^6 steps beta1^t < 1e-4 for beta1 <= 0.99999."""
+    t = np.arange(1, 10**6 + 1, dtype=np.float64)
+    return max(1.0, float(np.max(np.sqrt(1 - beta2**t) / (1 - beta1**t)))) * (1 + 1e-4)
+
+
+def adam_reach(param: torch.Tensor, group: dict, state: dict, rows: torch.Tensor | None, *,
+               dense: bool, lookahead: bool) -> torch.Tensor:
+    """float64 [M]: how far Adam can move rows `rows` (None: all) of the 1-D parameter `param`
+    before the index next looks at them (see TrainingIndex), from each row's moments.
+
+    An Adam step is lr m^ / (sqrt(v^) + eps), at most F lr |m| / sqrt(v) with F = `_bias_factor`.
+    Write r = |m| / sqrt(v) for a row now, q = beta1 / sqrt(beta2), c = (1 - beta1)^2 / (1 - beta2):
+    - a step with zero gradient (coasting) scales r by q exactly, so coasting from r moves a row at
+      most F lr q r / (1 - q) in all;
+    - a step with any gradient g gives, by Cauchy-Schwarz over (old moments, g), r' <= sqrt(q^2 r^2
+      + c) <= q r + sqrt(c) (the single spike: 3.16 for the default betas);
+    so: dense Adam (every row coasts every step), read at once: F lr q r / (1 - q); read a step late
+    (`lookahead`: one arbitrary step, then coasting): F lr (q r + sqrt c) / (1 - q); SeenAdam (a row
+    moves only when seen, and then the index checks it): 0 read at once, F lr (q r + sqrt c) late.
+    Both bounds are consistent under coasting: a coasted row's new bound plus the way it moved is
+    its old bound, so rows the index does not check (not rendered: zero gradient) stay inside.
+    Plus float32 rounding of the updates (1e-3 relative, 1e-5 (1 + |p|) absolute)."""
+    beta1, beta2 = group["betas"]
+    if group.get("weight_decay", 0) or group.get("amsgrad", False) or not beta1 < math.sqrt(beta2) or beta1 > 0.99999:
+        raise ValueError("the alive index bounds plain Adam steps (no weight decay or amsgrad, beta1 < sqrt(beta2))")
+    p = param.detach() if rows is None else param.detach().index_select(0, rows)
+    q, c = beta1 / math.sqrt(beta2), (1 - beta1) ** 2 / (1 - beta2)
+    late = 1.0 if lookahead else 0.0
+    if "exp_avg" in state:
+        m = state["exp_avg"] if rows is None else state["exp_avg"].index_select(0, rows)
+        v = state["exp_avg_sq"] if rows is None else state["exp_avg_sq"].index_select(0, rows)
+        m, v = m.double().abs(), v.double()
+        r = torch.where(m == 0, torch.zeros_like(m), m / v.sqrt())  # inf where v underflowed: listed everywhere
+    else:
+        r = torch.zeros(p.shape, dtype=torch.float64, device=p.device)
+    steps = (q * r + math.sqrt(c) * late) * (1 / (1 - q) if dense else late)
+    return _bias_factor(beta1, beta2) * group["lr"] * steps * (1 + 1e-3) + 1e-5 * (1 + p.double().abs())
+
+
+class TrainingIndex:
+    """The alive index of a model under training, exact at every step: `rows(k)` lists every Gaussian
+    alive at frame k's time for the parameters as they are when frame k renders.
+
+    Rows a step does not render get exactly zero gradient (with or without the index: dead at the
+    frame, projection culls them), so under dense Adam they coast and under SeenAdam they stay. A
+    rebuild lists each Gaussian over the windows its parameters can reach by Adam's bound
+    (`adam_reach`) plus HEADROOM_STEPS learning rates. After each optimiser step, `check` recomputes
+    that reach (no headroom) for the rows the step rendered, the only ones a gradient moved, and
+    finds those that now reach a frame outside their buckets; the rest are inside by the bound's
+    consistency. Those become movers, rendered at every frame until the next rebuild (a few rows
+    each, where rebuilding costs O(N)). On a CPU the check is read at once; on a GPU it is read in
+    the next frame's render (`settle`, after that render's one host sync, from a copy made without
+    waiting), so the bound covers one more step (`lookahead`) and the movers join a frame later.
+
+    Rebuilt when the model's parameters are replaced (densification, pruning, opacity reset, a
+    checkpoint loaded), when the temporal learning rates change, when movers pass MOVER_SHARE of
+    the cloud, and every REBUILD_EVERY steps."""
+
+    def __init__(self, times, *, dense: bool, lookahead: bool, headroom: float = HEADROOM_STEPS,
+                 rebuild_every: int = REBUILD_EVERY, budget: float = ENTRIES_PER_GAUSSIAN):
+        self.times = np.asarray(times, dtype=np.float64)
+        self.dense, self.lookahead = bool(dense), bool(lookahead)
+        self.headroom, self.rebuild_every, self.budget = float(headroom), int(rebuild_every), budget
+        self.index: AliveIndex | None = None
+        self.movers: torch.Tensor | None = None  # sorted Gaussian ids rendered at every frame
+        self.stale = True
+        self.pending = None  # (rows, escaped positions [cap], count on the host, event): not read yet
+        self.built_at = 0
+        self.rebuilds = 0
+        self._params: tuple = ()  # weak references to the indexed parameters
+        self._lrs: tuple = ()
+
+    def _groups(self, model, optimizer) -> dict:
+        """name -> (parameter, its group, its Adam state) for the temporal parameters."""
+        params = model.parameters_by_name()
+        return {g["name"]: (params[g["name"]], g, optimizer.state.get(params[g["name"]], {}))
+                for g in optimizer.param_groups if g.get("name") in TEMPORAL}
+
+    def reach(self, model, optimizer, rows: torch.Tensor | None, headroom: float = 0.0):
+        """(first, last) float64 [M]: the windows rows `rows` (None: all) of `model` can reach (see
+        the class), widened by `headroom` learning rates."""
+        move = {name: adam_reach(param, group, state, rows, dense=self.dense, lookahead=self.lookahead)
+                + headroom * group["lr"] for name, (param, group, state) in self._groups(model, optimizer).items()}
+        take = (lambda x: x.detach()) if rows is None else (lambda x: x.detach().index_select(0, rows))
+        opacities = activated_opacities(take(model.opacity_logits).double() + move["opacity_logits"])
+        t_scales = activated_t_scales(take(model.log_t_scales).double() + move["log_t_scales"])
+        first, last = temporal.alive_window(opacities, take(model.t_means).double(), t_scales, slack=GATHER_SLACK)
+        return first - move["t_means"], last + move["t_means"]
+
+    def _current(self, model, optimizer, iteration: int) -> bool:
+        params = model.parameters_by_name()
+        lrs = tuple(g["lr"] for g in optimizer.param_groups if g.get("name") in TEMPORAL)
+        same = (len(self._params) == len(TEMPORAL)
+                and all(ref() is params[name] for ref, name in zip(self._params, TEMPORAL)) and lrs == self._lrs)
+        return same and not self.stale and iteration - self.built_at < self.rebuild_every
+
+    def rows(self, k: int, model, optimizer, iteration: int) -> torch.Tensor | None:
+        """The Gaussians of `model` that may be alive at frame k (int [M] ascending; None: all),
+        rebuilding the index first when it is due."""
+        if self.index is None or not self._current(model, optimizer, iteration):
+            self.rebuild(model, optimizer, iteration)
+        rows = self.index.rows(k)
+        if rows is None or self.movers is None:
+            return rows
+        return torch.unique(torch.cat([rows, self.movers]))  # sorted, and a mover listed here once
+
+    @torch.no_grad()
+    def rebuild(self, model, optimizer, iteration: int) -> None:
+        self.index = build(*self.reach(model, optimizer, None, self.headroom), self.times, self.budget)
+        params = model.parameters_by_name()
+        self._params = tuple(weakref.ref(params[name]) for name in TEMPORAL)
+        self._lrs = tuple(g["lr"] for g in optimizer.param_groups if g.get("name") in TEMPORAL)
+        self.movers, self.stale, self.pending, self.built_at = None, False, None, iteration
+        self.rebuilds += 1
+
+    @torch.no_grad()
+    def check(self, model, optimizer, rows: torch.Tensor | None) -> None:
+        """After the optimiser's step: find the rows a step rendered (`rows`, None: all) that now
+        reach a frame outside their buckets. Read at once, or at `settle` (lookahead)."""
+        if self.index is None or self.stale or len(model) != self.index.n:
+            return
+        out = ~self.index.covers(*self.reach(model, optimizer, rows), rows)
+        room = int(MOVER_SHARE * self.index.n) - (0 if self.movers is None else len(self.movers))
+        where = torch.nonzero_static(out, size=max(room, 0), fill_value=0).squeeze(1)  # no sync
+        count = out.sum()
+        event = None
+        if count.is_cuda:
+            count = count.to("cpu", non_blocking=True)
+            event = torch.cuda.Event()
+            event.record()
+        self.pending = (rows, where, count, event)
+        if not self.lookahead:
+            self.settle()
+
+    def settle(self) -> None:
+        """Read the last check (on a GPU: after a host sync, so the copy is there and nothing waits)
+        and list its escapees at every frame; too many: rebuild instead."""
+        if self.pending is None:
+            return
+        rows, where, count, event = self.pending
+        self.pending = None
+        if event is not None:
+            event.synchronize()
+        count = int(count)
+        if count == 0:
+            return
+        if count > len(where):
+            self.stale = True
+            return
+        escaped = where[:count] if rows is None else rows.index_select(0, where[:count])
+        escaped = escaped.to(self.index.ids.dtype)
+        self.movers = escaped.unique() if self.movers is None else torch.unique(torch.cat([self.movers, escaped]))
+        # listed at every frame now: their bucket range is all of them, so later checks pass them
+        self.index.b_first[escaped] = 0
+        self.index.b_last[escaped] = self.index.num_buckets - 1
