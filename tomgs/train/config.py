@@ -39,6 +39,9 @@ class TrainConfig:
     # hundreds, where that momentum acts as extra steps (the bundled clip in 4 min: 29.57 dense,
     # 29.09 sparse; camel's background layer in 3 min: 22.44 dense, 21.99 sparse)
     sparse_adam: bool | None = None
+    # each step renders only the Gaussians that may be alive at its frame (tomgs.alive: same images
+    # and gradients, work following the ~15% alive instead of all); False renders all (ablation, tests)
+    alive_index: bool = True
     # learning rates (3DGS; means scaled by the scene extent and decayed exponentially)
     lr_means: float = 1.6e-4
     lr_means_final: float = 1.6e-6

@@ -28,14 +28,22 @@ class Densifier:
 
     def observe(self, meta: dict, visible: torch.Tensor) -> None:
         """Accumulate the view-space positional gradient of the Gaussians visible in this frame
-        (`visible`: bool [N], the rasterizer's radii > 0)."""
+        (`visible`: bool [N], the rasterizer's radii > 0). A render of some Gaussians only names
+        them in meta['rows'] (int [M]; its means2d are [M,2]): their rows take its statistics."""
         grad = meta["means2d"].grad
         if grad is None:
             return
         # pixels -> NDC units, the scale the 3DGS threshold is defined in
         scale = torch.tensor([meta["width"] / 2.0, meta["height"] / 2.0], device=grad.device)
-        self.grad_sum += torch.where(visible, (grad * scale).norm(dim=-1), torch.zeros_like(self.grad_sum))
-        self.seen += visible.float()
+        rows = meta.get("rows")
+        if rows is None:
+            self.grad_sum += torch.where(visible, (grad * scale).norm(dim=-1), torch.zeros_like(self.grad_sum))
+            self.seen += visible.float()
+            return
+        visible = visible.index_select(0, rows)
+        norms = (grad * scale).norm(dim=-1)
+        self.grad_sum.index_add_(0, rows, torch.where(visible, norms, torch.zeros_like(norms)))
+        self.seen.index_add_(0, rows, visible.float())
 
     # -- the schedule (gsplat's strategy shape: the trainer calls these two around backward) -------
 

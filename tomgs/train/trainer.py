@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from tomgs.alive import TrainingIndex
 from tomgs.cameras import Cameras
 from tomgs.metrics import psnr, ssim, ssim_map
 from tomgs.model import GaussianModel, nearest_neighbour_distance
@@ -128,6 +129,9 @@ class Trainer:
         self.optimizer = self._optimizer()
         self.sampler = FrameSampler(self.num_frames, config.sampling, config.psnr_momentum, config.seed)
         self.densifier = Densifier(self.config, self.extent, len(self.model), device, config.seed)
+        # which Gaussians each frame renders (rebuilt, not saved: checkpoints leave it out)
+        self.alive = TrainingIndex(self.times, dense=not self.sparse_adam, lookahead=device.type == "cuda") \
+            if config.alive_index else None
         self.iteration = 0
         self.progress = 0.0  # fraction of the run done: iterations or wall-clock budget, whichever is further
         self.elapsed = 0.0  # wall seconds of earlier sessions of a resumed run
@@ -293,12 +297,19 @@ class Trainer:
         return -10.0 * torch.log10(mse)
 
     def render(self, k: int, **kw):
-        return rasterize(**self.model.render_inputs(), viewmat=self.viewmats[k], K=self.K, width=self.width,
-                         height=self.height, t=self.times[k], **kw)
+        """Frame k at its time: (image, alpha, meta) as `rasterize` gives them for the Gaussians that
+        may be alive then (tomgs.alive), meta['rows'] naming them (int [M]; None: all N)."""
+        rows = None if self.alive is None else self.alive.rows(k, self.model, self.optimizer, self.iteration)
+        image, alpha, meta = rasterize(**self.model.render_inputs(rows), viewmat=self.viewmats[k], K=self.K,
+                                       width=self.width, height=self.height, t=self.times[k], **kw)
+        meta["rows"] = rows
+        return image, alpha, meta
 
     def step(self) -> None:
         k = self.sampler.sample()
         image, alpha, meta = self.render(k)
+        if self.alive is not None:
+            self.alive.settle()  # the last step's check: the render's host sync is past it
         self.densifier.step_pre_backward(meta, self.progress)
         target = self.target(k, image)  # once per step: the loss and the sampler's PSNR share it
         self.loss(k, image, alpha, target).backward()
@@ -306,6 +317,9 @@ class Trainer:
         if len(self._measured) >= SAMPLER_LAG:
             self.flush_measurements()
         in_view = (meta["radii"] > 0).any(-1)  # bool [N]: the Gaussians this step's gradient reaches
+        if meta["rows"] is not None:  # [M] of the rendered rows -> [N]
+            in_view = torch.zeros(len(self.model), dtype=torch.bool, device=self.device).index_put_(
+                (meta["rows"],), in_view)
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
                 group["lr"] = self._means_lr()
@@ -313,6 +327,8 @@ class Trainer:
             self.optimizer.step(in_view)
         else:
             self.optimizer.step()
+        if self.alive is not None:
+            self.alive.check(self.model, self.optimizer, meta["rows"])  # only the rendered rows moved freely
         self.optimizer.zero_grad(set_to_none=True)
         self.iteration += 1
         self.densifier.step_post_backward(self.model, self.optimizer, meta, in_view, self.iteration, self.progress)
