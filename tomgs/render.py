@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import torch
 import warp as wp
 
-from tomgs import temporal
+from tomgs import alive, temporal
 from tomgs.constants import ALPHA_MIN, TILE_SIZE
 from tomgs.inputs import RasterInputs, RenderError, prepare_inputs
 from tomgs.kernels import binning, project, raster
@@ -378,19 +378,12 @@ def resolve_device(name: str | None = "auto") -> torch.device:
     return device
 
 
-# relative and absolute widening of a gathered alive window (tomgs.temporal.alive_radius's slack)
-GATHER_SLACK = 1e-3
-
-
 def alive_window(opacities: torch.Tensor, t_means: torch.Tensor, t_scales: torch.Tensor,
                  alpha_min: float = ALPHA_MIN) -> tuple[torch.Tensor, torch.Tensor]:
     """(first [N], last [N]): the times between which o_i(t) >= alpha_min (tomgs.temporal), widened by a
-    hair so that float32 rounding in projection never finds a Gaussian alive outside; first > last when never."""
-    return temporal.alive_window(opacities, t_means, t_scales, alpha_min, slack=GATHER_SLACK)
-
-
-# frames rendered from one gathered set of the Gaussians alive at any of their times
-FRAMES_PER_GATHER = 8
+    hair (tomgs.alive.GATHER_SLACK) so that float32 rounding in projection never finds a Gaussian alive
+    outside; first > last when never."""
+    return temporal.alive_window(opacities, t_means, t_scales, alpha_min, slack=alive.GATHER_SLACK)
 
 
 def render_sequence(gaussians, cameras, indices=None, *, background=None, device=None, to_cpu: bool = True):
@@ -399,19 +392,23 @@ def render_sequence(gaussians, cameras, indices=None, *, background=None, device
     `gaussians`: mapping with means, quats, scales, opacities, colors (RGB or SH), t_means,
     t_scales; or a callable k -> such a mapping, a per-frame cloud (an edit over time, a simulated
     shot). `cameras`: a `tomgs.Cameras`; frame k renders at t = cameras.times[k]. No gradients.
-    Every few frames (every frame for a per-frame cloud) only the Gaussians alive around those
-    frames' times are gathered and rendered, so a long clip pays per frame for what lives in it;
-    `meta` describes that subset. Images come back on the CPU unless `to_cpu` is False.
+    Only the Gaussians that may be alive at a frame's time are gathered and rendered (tomgs.alive:
+    an index over the frames, one gather per bucket of frames in time), so a long clip pays per frame
+    for what lives in it; `meta` describes that subset, meta['rows'] names it (int [M] Gaussian
+    indices; None: all). Images come back on the CPU unless `to_cpu` is False.
     """
     names = ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales")
+    order = list(range(len(cameras)) if indices is None else indices)
 
-    def prepared(g: dict):
+    def prepared(g: dict, times: list):
+        """(inputs on the device, their alive index over `times`, the device)."""
         dev = torch.device(device) if device is not None else g["means"].device
         g = {name: g[name].detach().to(dev) for name in names}
-        return g, alive_window(g["opacities"], g["t_means"], g["t_scales"]), dev
+        return g, alive.index_of(g["opacities"], g["t_means"], g["t_scales"], times), dev
 
-    static = None if callable(gaussians) else prepared(gaussians)
+    static = None if callable(gaussians) or not order else prepared(gaussians, [cameras.times[k] for k in order])
     per_device = {}  # cameras and background on each device a frame lands on (one, in practice)
+    last = {}  # the last gather of a static cloud: (bucket, inputs, rows)
 
     def frame_inputs(dev):
         if dev not in per_device:
@@ -420,21 +417,21 @@ def render_sequence(gaussians, cameras, indices=None, *, background=None, device
         return per_device[dev]
 
     @torch.no_grad()  # inside a helper: a no_grad block around `yield` would leak into the caller
-    def render_chunk(chunk: list) -> list:
-        times = [float(cameras.times[k]) for k in chunk]
-        g, (first, last), dev = static or prepared(gaussians(chunk[0]))
-        keep = (last >= min(times)) & (first <= max(times))
-        alive = g if bool(keep.all()) else {name: value[keep] for name, value in g.items()}
+    def render_frame(position: int, k: int):
+        t = float(cameras.times[k])
+        g, index, dev = static or prepared(gaussians(k), [t])
+        at = position if static else 0
+        bucket = int(index.bucket_of[at])
+        if not static or last.get("bucket") != bucket:  # frames of one bucket share one gather
+            rows = index.rows(at)
+            inputs = g if rows is None else {name: value.index_select(0, rows) for name, value in g.items()}
+            last.update(bucket=bucket, inputs=inputs, rows=rows)
         viewmats, Ks, bg = frame_inputs(dev)
-        out = []
-        for k, t in zip(chunk, times):
-            image, _, meta = rasterize(**alive, viewmat=viewmats[k], K=Ks[k], width=cameras.width,
-                                       height=cameras.height, t=t, background=bg)
-            image = image.clamp(0.0, 1.0)
-            out.append((k, image.cpu() if to_cpu else image, meta))
-        return out
+        image, _, meta = rasterize(**last["inputs"], viewmat=viewmats[k], K=Ks[k], width=cameras.width,
+                                   height=cameras.height, t=t, background=bg)
+        meta["rows"] = last["rows"]
+        image = image.clamp(0.0, 1.0)
+        return k, image.cpu() if to_cpu else image, meta
 
-    order = list(range(len(cameras)) if indices is None else indices)
-    step = FRAMES_PER_GATHER if static else 1
-    for start in range(0, len(order), step):
-        yield from render_chunk(order[start:start + step])
+    for position, k in enumerate(order):
+        yield render_frame(position, k)
