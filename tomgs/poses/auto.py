@@ -1,14 +1,15 @@
 """The built-in, weight-free camera tracker (REFERENCES.md, "Camera poses").
 
-frames (+ moving masks), read one at a time into small gray copies at a working resolution
-(tracks.read_working) -> static-region masks -> KLT tracks -> [fixed camera? -> identity]
--> keyframes (track survival and image motion) -> on the keyframes: init pair (0, j) chosen
-by parallax left after a homography -> focal, when unknown, by self-calibration on a log grid
-and trial reconstructions -> essential matrix (USAC_MAGSAC) + a chirality vote + triangulation
--> PnP (RANSAC + LM) per new keyframe, triangulating new tracks, windowed bundle adjustment ->
-final robust bundle adjustment (focal refined) -> frame 0 = identity, median depth of frame 0's
-points = 1 -> the other frames registered to the keyframes' points (start between their two
-keyframes, one batched pose-only refinement), so the cost grows linearly with the frames.
+frames (+ moving masks), read once, one at a time, into small copies at a working resolution
+(tracks.WorkingFrames) -> static-region masks -> KLT tracks, in one pass that keeps the tracks and
+no copy of any frame -> [fixed camera? -> identity] -> keyframes (track survival and image motion)
+-> on the keyframes: init pair (0, j) chosen by parallax left after a homography -> focal, when
+unknown, by self-calibration on a log grid and trial reconstructions -> essential matrix
+(USAC_MAGSAC) + a chirality vote + triangulation -> PnP (RANSAC + LM) per new keyframe,
+triangulating new tracks, windowed bundle adjustment -> final robust bundle adjustment (focal
+refined) -> frame 0 = identity, median depth of frame 0's points = 1 -> the other frames registered
+to the keyframes' points (start between their two keyframes, one batched pose-only refinement, a
+run of frames at a time), so the cost grows linearly with the frames and the memory with the tracks.
 A clip whose views are all related by homographies (pure rotation, or a very distant scene)
 is solved with rotation-only cameras. Pixel thresholds inside are in working pixels; the
 Solution is in the input frames' pixels.
@@ -25,7 +26,9 @@ import torch
 
 from tomgs.cameras import intrinsics
 from tomgs.poses.ba import bundle_adjust, pick_device, refine_poses, reprojection_errors, so3_exp
-from tomgs.poses.tracks import WORK_SIDE, Tracks, flow_motion_masks, klt_tracks, read_working, robust_fit, select_keyframes
+from tomgs.poses.tracks import KLT, WORK_SIDE, FlowMotion, Tracks, WorkingFrames, robust_fit, select_keyframes
+
+REGISTER_RUN = 1 << 16  # observations refined at once when the frames between keyframes are registered
 
 
 @dataclass
@@ -46,33 +49,48 @@ class Solution:
     keyframes: np.ndarray | None = None  # int [K]: the frames solved in the bundle (None: no keyframes)
 
 
-def static_masks(masks: np.ndarray | None, gray: np.ndarray, notes: list) -> np.ndarray:
-    """bool [T,H,W], True where pixels may be used: given masks [T,H,W] (dilated) or, without
-    them, flow residuals of gray [T,H,W]."""
-    T, H, W = gray.shape
-    if masks is not None:
-        r = max(1, round(0.01 * max(H, W)))
-        kern = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-        moving = np.stack([cv2.dilate(m.astype(np.uint8), kern) > 0 for m in masks])
-    elif T >= 2:
-        moving = flow_motion_masks(gray)
-    else:
-        return np.ones((T, H, W), bool)
-    static = np.logical_not(moving, out=moving)  # in place: a 900-frame mask stack is 0.5 GB
-    bad = static.reshape(T, -1).mean(1) < 0.15
-    if bad.any():  # a mask that leaves almost nothing is more likely wrong than the scene
-        static[bad] = True
-        notes.append(f"{int(bad.sum())} frame(s) masked over 85%: their masks were ignored")
-    return static
+def static_frames(clip: WorkingFrames, notes: list):
+    """Each frame of `clip` with its static mask, in order: (k, gray, colour, static bool [h,w], True
+    where pixels may be used). The mask is the given moving mask dilated or, without masks, flow
+    residuals (then a frame comes out when the next one has been read: its mask needs both pairs)."""
+    T, (w, h) = len(clip), clip.work
+    r = max(1, round(0.01 * max(h, w)))
+    kern = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    flow = FlowMotion(h, w) if clip.masks is None and T >= 2 else None
+    bad, waiting = 0, None  # the frame whose flow mask needs the next one
+
+    def static_of(moving):
+        nonlocal bad
+        static = np.ones((h, w), bool) if moving is None else ~moving
+        if static.mean() < 0.15:  # a mask that leaves almost nothing is more likely wrong than the scene
+            static[:] = True
+            bad += 1
+        return static
+
+    for k, (gray, colour, moving) in enumerate(clip):
+        if moving is not None:
+            yield k, gray, colour, static_of(cv2.dilate(moving.astype(np.uint8), kern) > 0)
+        elif flow is None:
+            yield k, gray, colour, static_of(None)
+        else:
+            done = flow.push(gray)
+            if waiting is not None:
+                yield (*waiting, static_of(done))
+            waiting = (k, gray, colour)
+    if waiting is not None:
+        yield (*waiting, static_of(flow.finish()))
+    if bad:
+        notes.append(f"{bad} frame(s) masked over 85%: their masks were ignored")
 
 
-def is_fixed_camera(gray: np.ndarray, static: np.ndarray, thresh_px: float = 0.3) -> bool:
-    """True if static corners of frame 0 stay within `thresh_px` in a handful of later frames."""
-    T = len(gray)
-    pts = cv2.goodFeaturesToTrack(gray[0], 400, 0.01, 8, mask=static[0].astype(np.uint8) * 255)
+def is_fixed_camera(gray: dict, static0: np.ndarray, thresh_px: float = 0.3) -> bool:
+    """True if static corners of frame 0 stay within `thresh_px` in a handful of later frames.
+    gray: {frame: uint8 [h,w]} holding frame 0 and the later frames to compare (fixed_probes);
+    static0: bool [h,w], frame 0's static mask."""
+    pts = cv2.goodFeaturesToTrack(gray[0], 400, 0.01, 8, mask=static0.astype(np.uint8) * 255)
     if pts is None or len(pts) < 20:
         return False
-    for k in sorted({1, T // 4, T // 2, (3 * T) // 4, T - 1} - {0}):
+    for k in sorted(set(gray) - {0}):
         nxt, st, _ = cv2.calcOpticalFlowPyrLK(gray[0], gray[k], pts, None, winSize=(21, 21), maxLevel=3)
         ok = st.ravel() == 1
         if ok.sum() < 0.5 * len(pts):
@@ -80,6 +98,11 @@ def is_fixed_camera(gray: np.ndarray, static: np.ndarray, thresh_px: float = 0.3
         if np.median(np.linalg.norm((nxt - pts).reshape(-1, 2)[ok], axis=1)) > thresh_px:
             return False
     return True
+
+
+def fixed_probes(T: int) -> set:
+    """The frames is_fixed_camera compares: 0, 1 and the clip's quarters."""
+    return {0, 1, T // 4, T // 2, (3 * T) // 4, T - 1} & set(range(T))
 
 
 def _sample_colors(images: np.ndarray, frame_idx: np.ndarray, xy: np.ndarray) -> np.ndarray:
@@ -175,13 +198,12 @@ class Tracker:
 
     def __init__(self, frames, masks=None, focal=None, progress=None, max_corners=None, K=None,
                  work_side: int = WORK_SIDE, device=None):
-        t0 = time.perf_counter()
         self.T_all = self.T = len(frames)
         self._progress_fn = progress or (lambda done, total: None)
         self._done = 0
-        self.clip = read_working(frames, masks, work_side, progress=lambda k: self._progress(0.5 * (k + 1)))
-        self.timings: dict[str, float] = {"read": time.perf_counter() - t0}
-        self.H, self.W = self.clip.gray.shape[1:]
+        self.clip = WorkingFrames(frames, masks, work_side)  # reads frame 0; the rest when tracked
+        self.timings: dict[str, float] = {}
+        self.W, self.H = self.clip.work
         self.scale = self.clip.scale
         self.K_full = None if K is None else np.asarray(K, dtype=np.float64)
         self.K_given = None if K is None else scale_K(self.K_full, self.scale)
@@ -200,7 +222,7 @@ class Tracker:
         return self.K_given if self.K_given is not None else intrinsics(self.focal, self.W, self.H)
 
     def _progress(self, units: float):
-        """Report progress out of 2 T_all: reading [0, T/2], tracks [T/2, T], keyframes [T, 1.8 T],
+        """Report progress out of 2 T_all: reading and tracking [0, T], keyframes [T, 1.8 T],
         registration [1.8 T, 2 T]; never backwards, and repeated as a heartbeat during long steps."""
         self._done = max(self._done, min(int(units), 2 * self.T_all))
         self._progress_fn(self._done, 2 * self.T_all)
@@ -215,21 +237,35 @@ class Tracker:
 
     # ---- top level -----------------------------------------------------------------------------
 
+    def track(self, probes=()) -> tuple[Tracks | None, np.ndarray, dict]:
+        """One pass over the frames, each read once: static masks and KLT tracks (none for a single
+        frame). Returns (the tracks, frame 0's static mask bool [h,w], {k: gray} of the frames in
+        `probes`); no other copy of a frame outlives its turn."""
+        klt = KLT(self.max_corners) if self.T_all > 1 else None
+        static0, grays = None, {}
+        for k, gray, colour, static in static_frames(self.clip, self.notes):
+            static0 = static if k == 0 else static0
+            if k in probes:
+                grays[k] = gray
+            if klt is not None:
+                klt.add(gray, static, colour)
+            self._progress(k + 1)
+        return None if klt is None else klt.tracks(), static0, grays
+
     def solve(self) -> Solution:
         t0 = time.perf_counter()
-        T, gray = self.T_all, self.clip.gray
-        static = static_masks(self.clip.moving, gray, self.notes)
-        t0 = self._tick("masks", t0)
-        if T == 1 or is_fixed_camera(gray, static):
+        T = self.T_all
+        # the fixed-camera check comes after the pass: deciding first would mean reading twice
+        all_tracks, static0, grays = self.track(fixed_probes(T))
+        if T == 1 or is_fixed_camera(grays, static0):
+            self._tick("tracks", t0)
             self.notes.append("single frame: identity pose" if T == 1 else
                               "fixed camera detected: identity poses, no poses solved")
-            pts, cols = self._unit_depth(static)
+            pts, cols = self._unit_depth(static0)
             self._progress(2 * T)
             return Solution(np.tile(np.eye(4), (T, 1, 1)), self._full_K(), pts, cols, "fixed", float("nan"),
                             self.notes, self.timings)
-        all_tracks = klt_tracks(gray, static, self.max_corners, progress=lambda k: self._progress(0.5 * T + 0.5 * (k + 1)))
-        del static
-        self.clip.gray = self.clip.moving = None  # the tracks are all that is needed from here on
+        del grays, static0
         self.keys = select_keyframes(all_tracks, T, self.side)
         self.tracks, self.key_obs = all_tracks.subset(self.keys)
         self.T = len(self.keys)
@@ -268,11 +304,11 @@ class Tracker:
         W, H = self.clip.size
         return intrinsics(self.focal / self.scale, W, H)
 
-    def _unit_depth(self, static: np.ndarray | None):
-        """Points at depth 1 in front of frame 0 and their colours (frame 0's colour copy)."""
-        img = self.clip.colors[0]
-        return unit_depth_points(img, scale_K(self._full_K(), img.shape[1] / self.clip.size[0]),
-                                 static=None if static is None else static[0])
+    def _unit_depth(self, static0: np.ndarray | None):
+        """Points at depth 1 in front of frame 0 and their colours (frame 0's colour copy); static0:
+        frame 0's static mask bool [h,w] or None."""
+        img = self.clip.first[1]
+        return unit_depth_points(img, scale_K(self._full_K(), img.shape[1] / self.clip.size[0]), static=static0)
 
     def _init_pair(self) -> tuple[int, bool]:
         """(j, general): frame paired with 0, and whether translation is observable.
@@ -595,8 +631,7 @@ class Tracker:
             inliers = lambda err: err <= max(0.5, 4 * float(np.median(err[np.isfinite(err)])))  # as _run_ba
             for iters in (8, 5):  # refine, drop what is far off, refine again
                 self._progress(1.8 * T if iters == 8 else 1.9 * T)
-                R, t, err = refine_poses(R, t, self.X[tr.track[idx]], self.K, slot[tr.frame[idx]], tr.xy[idx],
-                                         fix_translation=rotation, iters=iters, device=self.device)
+                R, t, err = self._refine_runs(R, t, tr, idx, slot[tr.frame[idx]], rotation, iters)
                 idx = idx[inliers(err)]
             ok[idx] = True
             count = np.bincount(slot[tr.frame[idx]], minlength=len(rest))
@@ -609,6 +644,27 @@ class Tracker:
         self.Rw, self.tw, self.obs_ok = Rw, tw, ok
         self.reg = np.ones(T, bool)
         self.keyframes = keys
+
+    def _refine_runs(self, R: np.ndarray, t: np.ndarray, tr: Tracks, idx: np.ndarray, cam: np.ndarray, rotation: bool,
+                     iters: int):
+        """refine_poses of cameras R [C,3,3], t [C,3] on observations idx [N] of tracks `tr` (cam [N]:
+        their camera, nondecreasing), a run of cameras with at most REGISTER_RUN observations at a
+        time: each camera's refinement is its own, so the result is the same, and the memory of the
+        refinement (~1 kB an observation) and of the host's copies is one run's, not the clip's.
+        Returns (R, t, error per observation [N])."""
+        C = len(R)
+        R, t, err = R.copy(), t.copy(), np.empty(len(idx))
+        first = np.searchsorted(cam, np.arange(C + 1))  # camera c's observations: first[c]:first[c + 1]
+        c0 = 0
+        while c0 < C:
+            c1 = min(C, max(c0 + 1, int(np.searchsorted(first, first[c0] + REGISTER_RUN, side="right")) - 1))
+            o0, o1 = first[c0], first[c1]
+            sel = idx[o0:o1]
+            R[c0:c1], t[c0:c1], err[o0:o1] = refine_poses(R[c0:c1], t[c0:c1], self.X[tr.track[sel]], self.K,
+                                                           cam[o0:o1] - c0, tr.xy[sel], fix_translation=rotation,
+                                                           iters=iters, device=self.device)
+            c0 = c1
+        return R, t, err
 
     def _solution(self, mode: str, pts: np.ndarray) -> Solution:
         """The Solution of the current state for points `pts`, in the input frames' pixels."""
@@ -644,13 +700,8 @@ class Tracker:
         return float(np.median(e)), float(1 - self.obs_ok[m].mean())
 
     def _point_colors(self, pts):
-        """float32 [len(pts),3]: each track's colour where it was first seen."""
-        tr = self.tracks
-        m = np.isin(tr.track, pts)
-        t, first = np.unique(tr.track[m], return_index=True)
-        idx = np.flatnonzero(m)[first]
-        s = self.clip.colors.shape[2] / self.W  # colour copies are at most the working size
-        return _sample_colors(self.clip.colors, self.keys[tr.frame[idx]], tr.xy[idx] * s)
+        """float32 [len(pts),3]: each track's colour where it was first seen (sampled while tracking)."""
+        return self.tracks.colors[pts].astype(np.float32) / 255.0
 
     # ---- rotation only -------------------------------------------------------------------------
 
@@ -702,10 +753,10 @@ def known_camera_points(frames, masks, cams):
     cameras have no baseline (e.g. identity poses). frames, masks: as `Tracker` takes them.
     Returns (points [P,3], colors [P,3], median reprojection px of the input frames)."""
     tr = Tracker(frames, masks, cams.focal, K=cams.K)
-    static = static_masks(tr.clip.moving, tr.clip.gray, tr.notes)
+    tracks, static0, _ = tr.track()
     T = tr.T
     if T >= 2:
-        tr.tracks = klt_tracks(tr.clip.gray, static, tr.max_corners)
+        tr.tracks = tracks
         w2c = np.linalg.inv(cams.c2w)
         tr.Rw, tr.tw = w2c[:, :3, :3].copy(), w2c[:, :3, 3].copy()
         tr.reg = np.ones(T, bool)
@@ -719,6 +770,6 @@ def known_camera_points(frames, masks, cams):
             ci, pi, obs, pts, _ = tr._ba_problem(np.ones(T, bool))
             err = reprojection_errors(tr.Rw, tr.tw, tr.X[pts], tr.K, ci, pi, obs)
             return tr.X[pts], tr._point_colors(pts), float(np.median(err)) / tr.scale
-    pts, cols = tr._unit_depth(static)
+    pts, cols = tr._unit_depth(static0)
     # frame 0's camera coordinates -> world
     return pts @ cams.c2w[0, :3, :3].T + cams.c2w[0, :3, 3], cols, float("nan")

@@ -55,9 +55,9 @@ class PoseReport:
 def estimate_cameras(frames, masks=None, method="auto", focal=None, progress=None, device=None):
     """Cameras and a sparse coloured point cloud for a clip.
 
-    frames: uint8 [T,H,W,3] RGB, or any sequence of uint8 [H,W,3] frames (read one at a time:
-            the tracker keeps small gray copies only), or a `tomgs.io.Video`, whose masks are then
-            used by default.
+    frames: uint8 [T,H,W,3] RGB, or any sequence of uint8 [H,W,3] frames (the tracker reads each
+            once, in order, and keeps its tracks, no copy of a frame), or a `tomgs.io.Video`, whose
+            masks are then used by default.
     masks:  bool [T,H,W] (or a sequence of bool [H,W]), True on moving content (ignored for pose
             estimation), or None.
     method: "auto" (the built-in tracker), "identity" (a fixed camera), a path to a cameras

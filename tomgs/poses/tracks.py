@@ -1,4 +1,5 @@
-"""2D side of pose estimation: moving-content masks from dense flow, and KLT feature tracks.
+"""2D side of pose estimation: moving-content masks from dense flow, and KLT feature tracks, made
+one frame at a time as the frames are read (nothing per frame is kept but the tracks).
 
 All image coordinates leaving this module follow tomgs' pixel convention (centres at +0.5):
 OpenCV's feature coordinates put centres at integers, so 0.5 is added on the way out.
@@ -26,67 +27,69 @@ WORK_SIDE = 960  # long side (px) the tracker works at: KLT is sharp there, 1080
 COLOR_SIDE = 480  # long side of the copies kept for point colours (they only seed the Gaussians)
 
 
-@dataclass
-class WorkingClip:
-    """A clip as the tracker keeps it: small copies made one frame at a time, never full frames.
-
-    gray: uint8 [T,h,w] at the working size; colors: uint8 [T,hc,wc,3] RGB (long side at most
-    COLOR_SIDE); moving: bool [T,h,w] (given masks, resized; True = moving) or None;
-    size: (W, H) of the input frames; scale: working / input pixels (<= 1).
-    """
-
-    gray: np.ndarray
-    colors: np.ndarray
-    moving: np.ndarray | None
-    size: tuple[int, int]
-    scale: float
-
-
 def _small(side: int, W: int, H: int) -> tuple[int, int]:
     """(w, h) with the long side at most `side`, aspect kept."""
     s = min(1.0, side / max(W, H))
     return max(1, round(W * s)), max(1, round(H * s))
 
 
-def read_working(frames, masks=None, work_side: int = WORK_SIDE, progress=None) -> WorkingClip:
-    """Read a clip one frame at a time into a WorkingClip.
+class WorkingFrames:
+    """A clip read one frame at a time into small working copies, each frame once and in order. Nothing
+    per frame is kept: the tracker keeps its tracks, never the copies (held for the whole clip they
+    grew a fit's host memory by ~1.4 MiB a frame at 1080p, 2.5 GiB for 1800 frames).
 
-    frames: uint8 [T,H,W,3] RGB or any sequence of uint8 [H,W,3] frames; masks: bool [T,H,W] or a
-    sequence of bool [H,W] (True = moving), or None. Each frame is resized (area averaging) and
-    converted to gray once. progress: callable(k) after frame k. Raises InputError on bad frames.
+    frames: uint8 [T,H,W,3] RGB or any sequence of uint8 [H,W,3]; masks: bool [T,H,W] or a sequence of
+    bool [H,W] (True = moving), or None. Frame 0 is read on construction and its copies stay (`first`).
+    size: (W, H) of the input frames; work: (w, h), long side at most `work_side`; colour: (wc, hc),
+    long side at most COLOR_SIDE; scale: working / input pixels (<= 1). Iterating yields, per frame,
+    (gray uint8 [h,w], colour uint8 [hc,wc,3] RGB, moving bool [h,w] or None). Raises InputError on
+    bad frames or masks.
     """
-    from tomgs.errors import InputError
 
-    T = len(frames)
-    first = np.asarray(frames[0])
-    if first.ndim != 3 or first.shape[-1] != 3 or first.dtype != np.uint8:
-        raise InputError(f"frames must be uint8 [T,H,W,3] with T >= 1, got frame 0 as {first.dtype} {first.shape}")
-    H, W = first.shape[:2]
-    if masks is not None and len(masks) != T:
-        raise InputError(f"masks must be bool [T,H,W] = {(T, H, W)} like the frames, got {len(masks)} masks")
-    w, h = _small(work_side, W, H)
-    wc, hc = _small(COLOR_SIDE, w, h)
-    gray = np.empty((T, h, w), np.uint8)
-    colors = np.empty((T, hc, wc, 3), np.uint8)
-    moving = None if masks is None else np.empty((T, h, w), bool)
-    for k in range(T):
-        f = first if k == 0 else np.asarray(frames[k])
-        if f.shape != first.shape or f.dtype != np.uint8:
-            raise InputError(f"frames must all be uint8 [H,W,3] = {first.shape}: frame {k} is {f.dtype} {f.shape}")
+    def __init__(self, frames, masks=None, work_side: int = WORK_SIDE):
+        from tomgs.errors import InputError
+
+        self.frames, self.masks, self.T = frames, masks, len(frames)
+        first = np.asarray(frames[0])
+        if first.ndim != 3 or first.shape[-1] != 3 or first.dtype != np.uint8:
+            raise InputError(f"frames must be uint8 [T,H,W,3] with T >= 1, got frame 0 as {first.dtype} {first.shape}")
+        self.shape = first.shape
+        H, W = first.shape[:2]
+        if masks is not None and len(masks) != self.T:
+            raise InputError(f"masks must be bool [T,H,W] = {(self.T, H, W)} like the frames, got {len(masks)} masks")
+        self.size, self.work = (W, H), _small(work_side, W, H)
+        self.colour = _small(COLOR_SIDE, *self.work)
+        self.scale = self.work[0] / W
+        self.first = self._copies(first, 0)
+
+    def __len__(self) -> int:
+        return self.T
+
+    def __iter__(self):
+        yield self.first
+        for k in range(1, self.T):
+            yield self._copies(np.asarray(self.frames[k]), k)
+
+    def _copies(self, f: np.ndarray, k: int):
+        """(gray, colour, moving) of frame k from f uint8 [H,W,3]: resized by area averaging, gray once."""
+        from tomgs.errors import InputError
+
+        if f.shape != self.shape or f.dtype != np.uint8:
+            raise InputError(f"frames must all be uint8 [H,W,3] = {self.shape}: frame {k} is {f.dtype} {f.shape}")
+        (W, H), (w, h) = self.size, self.work
         small = f if (w, h) == (W, H) else cv2.resize(f, (w, h), interpolation=cv2.INTER_AREA)
-        gray[k] = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY)
-        colors[k] = small if (wc, hc) == (w, h) else cv2.resize(small, (wc, hc), interpolation=cv2.INTER_AREA)
-        if masks is not None:
-            m = np.asarray(masks[k])
+        gray = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY)
+        colour = small if self.colour == (w, h) else cv2.resize(small, self.colour, interpolation=cv2.INTER_AREA)
+        moving = None
+        if self.masks is not None:
+            m = np.asarray(self.masks[k])
             if m.shape != (H, W):
-                raise InputError(f"masks must be bool [T,H,W] = {(T, H, W)} like the frames, got {m.shape} for "
+                raise InputError(f"masks must be bool [T,H,W] = {(self.T, H, W)} like the frames, got {m.shape} for "
                                  f"frame {k}")
             # any moving pixel under a working pixel makes it moving
-            moving[k] = m if (w, h) == (W, H) else cv2.resize(m.astype(bool).astype(np.uint8) * 255, (w, h),
-                                                                interpolation=cv2.INTER_AREA) > 0
-        if progress is not None:
-            progress(k)
-    return WorkingClip(gray, colors, moving, (W, H), w / W)
+            moving = m.astype(bool) if (w, h) == (W, H) else cv2.resize(
+                m.astype(bool).astype(np.uint8) * 255, (w, h), interpolation=cv2.INTER_AREA) > 0
+        return gray, colour, moving
 
 
 def _sampson(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
@@ -100,64 +103,84 @@ def _sampson(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     return np.sqrt(num / np.maximum(den, 1e-12))
 
 
-def flow_motion_masks(gray: np.ndarray, work_side: int = 320, thresh_px: float = 1.0,
-                      dilate_frac: float = 0.02) -> np.ndarray:
-    """Moving content by flow residuals: bool [T,H,W] (True = moving).
+class FlowMotion:
+    """Moving content by flow residuals, one frame at a time: push each frame's gray uint8 [H,W] in
+    order; a frame's mask (bool [H,W], True = moving) comes out when the next frame is in (it is the
+    union of its two pairs), the last one from finish(). Only the previous frame's small copy and
+    pair mask are kept.
 
     Per consecutive pair: dense DIS flow at `work_side`, a fundamental matrix fitted to a grid of
     flow vectors with LMEDS (robust while the background covers half of the image), and the
     Sampson distance of every pixel's flow to it; pixels above `thresh_px` (work scale) are moving.
     A frame's mask is the union of its two pairs, opened then dilated.
     """
-    T, H, W = gray.shape
-    s = min(1.0, work_side / max(H, W))
-    h, w = max(8, round(H * s)), max(8, round(W * s))
-    small = [cv2.resize(g, (w, h), interpolation=cv2.INTER_AREA) for g in gray]
-    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_FAST)
-    ys, xs = np.mgrid[0:h, 0:w]
-    grid = np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float64)
-    step = max(1, int(np.sqrt(h * w / 2000)))  # ~2000 samples for the robust fit
-    sub = (ys[::step, ::step] * w + xs[::step, ::step]).ravel()
-    pair = np.zeros((max(T - 1, 0), h, w), dtype=bool)
-    for k in range(T - 1):
-        flow = dis.calc(small[k], small[k + 1], None).reshape(-1, 2).astype(np.float64)
-        x2 = grid + flow
-        if np.median(np.linalg.norm(flow[sub], axis=1)) < 0.05:
+
+    def __init__(self, H: int, W: int, work_side: int = 320, thresh_px: float = 1.0, dilate_frac: float = 0.02):
+        s = min(1.0, work_side / max(H, W))
+        self.H, self.W, self.thresh = H, W, thresh_px
+        self.h, self.w = h, w = max(8, round(H * s)), max(8, round(W * s))
+        self.dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_FAST)
+        ys, xs = np.mgrid[0:h, 0:w]
+        self.grid = np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float64)
+        step = max(1, int(np.sqrt(h * w / 2000)))  # ~2000 samples for the robust fit
+        self.sub = (ys[::step, ::step] * w + xs[::step, ::step]).ravel()
+        r = max(1, round(dilate_frac * max(h, w)))
+        self.open_k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (3, 3))
+        self.dil_k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+        self.small = None  # the previous frame at the flow size
+        self.pair = None  # bool [h,w]: the previous frame's pair with the one before it (None: frame 0)
+
+    def push(self, gray: np.ndarray) -> np.ndarray | None:
+        """The previous frame's moving mask, complete now; None for the first frame."""
+        small = cv2.resize(gray, (self.w, self.h), interpolation=cv2.INTER_AREA)
+        out = None
+        if self.small is not None:
+            pair = self._pair(self.small, small)
+            out = self._mask(self.pair, pair)
+            self.pair = pair
+        self.small = small
+        return out
+
+    def finish(self) -> np.ndarray:
+        """The last frame's mask (its one pair; none for a single frame)."""
+        return self._mask(self.pair, None)
+
+    def _pair(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        flow = self.dis.calc(a, b, None).reshape(-1, 2).astype(np.float64)
+        x2 = self.grid + flow
+        if np.median(np.linalg.norm(flow[self.sub], axis=1)) < 0.05:
             # a still background makes F degenerate: the flow magnitude is the residual
             err = np.linalg.norm(flow, axis=1)
         else:
-            F, _ = robust_fit(cv2.findFundamentalMat, grid[sub], x2[sub], cv2.FM_LMEDS)
+            F, _ = robust_fit(cv2.findFundamentalMat, self.grid[self.sub], x2[self.sub], cv2.FM_LMEDS)
             if F is None or F.shape != (3, 3):
-                continue
-            err = _sampson(F, grid, x2)
-        pair[k] = (err > thresh_px).reshape(h, w)
-    r = max(1, round(dilate_frac * max(h, w)))
-    open_k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (3, 3))
-    dil_k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-    out = np.zeros((T, H, W), dtype=bool)
-    for k in range(T):
-        m = np.zeros((h, w), dtype=bool)
-        if k > 0:
-            m |= pair[k - 1]
-        if k < T - 1:
-            m |= pair[k]
-        m = cv2.morphologyEx(m.astype(np.uint8), cv2.MORPH_OPEN, open_k)
-        m = cv2.dilate(m, dil_k)
-        out[k] = cv2.resize(m, (W, H), interpolation=cv2.INTER_NEAREST) > 0
-    return out
+                return np.zeros((self.h, self.w), dtype=bool)
+            err = _sampson(F, self.grid, x2)
+        return (err > self.thresh).reshape(self.h, self.w)
+
+    def _mask(self, before: np.ndarray | None, after: np.ndarray | None) -> np.ndarray:
+        m = np.zeros((self.h, self.w), dtype=bool)
+        for pair in (before, after):
+            if pair is not None:
+                m |= pair
+        m = cv2.morphologyEx(m.astype(np.uint8), cv2.MORPH_OPEN, self.open_k)
+        m = cv2.dilate(m, self.dil_k)
+        return cv2.resize(m, (self.W, self.H), interpolation=cv2.INTER_NEAREST) > 0
 
 
 @dataclass
 class Tracks:
     """Observations of feature tracks, sorted by frame.
 
-    frame: int64 [N]; track: int64 [N] (ids 0..n_tracks-1); xy: float64 [N,2] pixels (+0.5 centres).
+    frame: int64 [N]; track: int64 [N] (ids 0..n_tracks-1); xy: float64 [N,2] pixels (+0.5 centres);
+    colors: uint8 [n_tracks,3], each track's colour where it was first seen, or None.
     """
 
     frame: np.ndarray
     track: np.ndarray
     xy: np.ndarray
     n_tracks: int
+    colors: np.ndarray | None = None
 
     def in_frame(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """(track ids [n], xy [n,2]) observed in frame k."""
@@ -177,7 +200,7 @@ class Tracks:
         sel = np.flatnonzero(np.isin(self.frame, frames))
         renum = np.full(int(frames[-1]) + 1, -1)
         renum[frames] = np.arange(len(frames))
-        return Tracks(renum[self.frame[sel]], self.track[sel], self.xy[sel], self.n_tracks), sel
+        return Tracks(renum[self.frame[sel]], self.track[sel], self.xy[sel], self.n_tracks, self.colors), sel
 
 
 def select_keyframes(tracks: Tracks, T: int, side: int, min_shared: float = 0.7, max_move: float = 0.02,
@@ -198,51 +221,70 @@ def select_keyframes(tracks: Tracks, T: int, side: int, min_shared: float = 0.7,
     return np.array(keys, dtype=np.int64)
 
 
-def klt_tracks(gray: np.ndarray, static: np.ndarray | None, max_corners: int = 1500,
-               fb_thresh: float = 0.7, progress=None) -> Tracks:
-    """KLT tracks over consecutive frames.
+class KLT:
+    """KLT tracks over consecutive frames, one frame at a time: add() each frame in order, then
+    tracks(). Only the previous frame's gray is kept.
 
-    gray: uint8 [T,H,W]; static: bool [T,H,W] (True = usable background) or None.
-    Each step tracks forward and back and keeps points whose round trip lands within
-    `fb_thresh` px, that stay inside the image and on static content, and that agree with a
-    robust fundamental matrix of the pair. New corners fill the image where tracks are sparse.
+    Each step tracks forward and back and keeps points whose round trip lands within `fb_thresh`
+    px, that stay inside the image and on static content, and that agree with a robust
+    fundamental matrix of the pair. New corners fill the image where tracks are sparse; their
+    colour is sampled (nearest pixel) from the frame's colour copy when one is given.
     """
-    T, H, W = gray.shape
-    min_dist = max(5, round(0.012 * max(H, W)))
-    lk = dict(winSize=(15, 15), maxLevel=3, criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
-    frames_l, tracks_l, xy_l = [], [], []
-    pts = np.empty((0, 2), np.float32)
-    ids = np.empty(0, np.int64)
-    next_id = 0
-    for k in range(T):
-        if k > 0 and len(pts):
-            nxt, st, _ = cv2.calcOpticalFlowPyrLK(gray[k - 1], gray[k], pts.reshape(-1, 1, 2), None, **lk)
-            back, st2, _ = cv2.calcOpticalFlowPyrLK(gray[k], gray[k - 1], nxt, None, **lk)
+
+    def __init__(self, max_corners: int = 1500, fb_thresh: float = 0.7):
+        self.max_corners, self.fb_thresh = max_corners, fb_thresh
+        self.lk = dict(winSize=(15, 15), maxLevel=3,
+                       criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+        self.prev = None  # the previous frame's gray
+        self.k = 0
+        self.frames, self.ids, self.xy, self.colors = [], [], [], []
+        self.pts = np.empty((0, 2), np.float32)
+        self.live = np.empty(0, np.int64)  # the track id of each point in self.pts
+        self.next_id = 0
+
+    def add(self, gray: np.ndarray, static: np.ndarray | None = None, colour: np.ndarray | None = None) -> None:
+        """Frame k (the k-th added): gray uint8 [H,W]; static bool [H,W] (True = usable background) or
+        None; colour uint8 [h,w,3] of the same frame at any size, or None."""
+        H, W = gray.shape
+        min_dist = max(5, round(0.012 * max(H, W)))
+        pts, ids = self.pts, self.live
+        if self.prev is not None and len(pts):
+            nxt, st, _ = cv2.calcOpticalFlowPyrLK(self.prev, gray, pts.reshape(-1, 1, 2), None, **self.lk)
+            back, st2, _ = cv2.calcOpticalFlowPyrLK(gray, self.prev, nxt, None, **self.lk)
             nxt, back = nxt.reshape(-1, 2), back.reshape(-1, 2)
-            ok = (st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(back - pts, axis=1) < fb_thresh)
+            ok = (st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(back - pts, axis=1) < self.fb_thresh)
             ok &= (nxt[:, 0] >= 0) & (nxt[:, 0] <= W - 1) & (nxt[:, 1] >= 0) & (nxt[:, 1] <= H - 1)
             if static is not None:
                 xi = np.clip(np.rint(nxt[:, 0]).astype(int), 0, W - 1)
                 yi = np.clip(np.rint(nxt[:, 1]).astype(int), 0, H - 1)
-                ok &= static[k, yi, xi]
+                ok &= static[yi, xi]
             if ok.sum() >= 16 and np.median(np.linalg.norm(nxt[ok] - pts[ok], axis=1)) > 0.1:
                 F, inl = robust_fit(cv2.findFundamentalMat, pts[ok], nxt[ok], cv2.USAC_MAGSAC, 1.0, 0.999)
                 if F is not None and inl is not None and inl.sum() >= 0.5 * ok.sum():
                     ok[np.flatnonzero(ok)[inl.ravel() == 0]] = False
             pts, ids = nxt[ok], ids[ok]
-        if len(pts) < 0.8 * max_corners:
-            mask = np.full((H, W), 255, np.uint8) if static is None else static[k].astype(np.uint8) * 255
+        if len(pts) < 0.8 * self.max_corners:
+            mask = np.full((H, W), 255, np.uint8) if static is None else static.astype(np.uint8) * 255
             for x, y in pts:
                 cv2.circle(mask, (int(x), int(y)), min_dist, 0, -1)
-            new = cv2.goodFeaturesToTrack(gray[k], max_corners - len(pts), 0.01, min_dist, mask=mask, blockSize=7)
+            new = cv2.goodFeaturesToTrack(gray, self.max_corners - len(pts), 0.01, min_dist, mask=mask, blockSize=7)
             if new is not None:
                 new = new.reshape(-1, 2).astype(np.float32)
                 pts = np.concatenate([pts, new])
-                ids = np.concatenate([ids, np.arange(next_id, next_id + len(new))])
-                next_id += len(new)
-        frames_l.append(np.full(len(pts), k, np.int64))
-        tracks_l.append(ids.copy())
-        xy_l.append(pts.astype(np.float64) + 0.5)
-        if progress is not None:
-            progress(k)
-    return Tracks(np.concatenate(frames_l), np.concatenate(tracks_l), np.concatenate(xy_l), next_id)
+                ids = np.concatenate([ids, np.arange(self.next_id, self.next_id + len(new))])
+                self.next_id += len(new)
+                if colour is not None:
+                    xy = (new.astype(np.float64) + 0.5) * (colour.shape[1] / W)
+                    xi = np.clip(np.floor(xy[:, 0]).astype(int), 0, colour.shape[1] - 1)
+                    yi = np.clip(np.floor(xy[:, 1]).astype(int), 0, colour.shape[0] - 1)
+                    self.colors.append(colour[yi, xi])
+        self.frames.append(np.full(len(pts), self.k, np.int64))
+        self.ids.append(ids.copy())
+        self.xy.append(pts.astype(np.float64) + 0.5)
+        self.pts, self.live, self.prev = pts, ids, gray
+        self.k += 1
+
+    def tracks(self) -> Tracks:
+        colors = np.concatenate(self.colors) if self.colors else np.empty((0, 3), np.uint8)
+        return Tracks(np.concatenate(self.frames), np.concatenate(self.ids), np.concatenate(self.xy), self.next_id,
+                      colors if len(colors) == self.next_id else None)
