@@ -432,8 +432,8 @@ def _verdict(job: Job, paths: dict, procs, outcome, died, first_fault, signals) 
     rank = first_fault[0]
     if rank in died:
         code = died[rank]
-        error = (f"was killed by {signal.Signals(-code).name}" if code < 0 and -code in signal.Signals._value2member_map_
-                 else f"exited with code {code}")
+        names = {int(s): s.name for s in signal.Signals}
+        error = f"was killed by {names[-code]}" if code < 0 and -code in names else f"exited with code {code}"
         error += f" (pid {procs[rank].pid})"
     else:
         payload = outcome[rank][1]
@@ -533,7 +533,8 @@ def _result(summary: dict, output, started: float, leader: bool):
 
     scene = load_scene(output) if leader else None
     result = FitResult(model=scene.model if scene else None, cameras=scene.cameras if scene else None,
-                       clip_psnr=float(summary.get("clip_psnr", math.nan)), iterations=int(summary.get("iterations", 0)),
+                       clip_psnr=float(summary.get("clip_psnr", math.nan)),
+                       iterations=int(summary.get("iterations", 0)),
                        seconds=float(summary.get("seconds", 0.0)), history=list(summary.get("history", [])),
                        notes=list(summary.get("notes", [])))
     result.phase_seconds = dict(summary.get("phase_seconds", {}))
@@ -575,207 +576,268 @@ def run_rank(job: Job, rank: int, local_rank: int, report) -> dict:
         torch.set_num_threads(max(1, (os.cpu_count() or 1) // local_world))  # the ranks share the cores
     control = _init_group(job, rank, device)
     checkpoint = rank_paths(job.output, job.world)[rank]["checkpoint"]
-    try:
-        with StopSignals(immediate=True, checkpoint=lambda: checkpoint if checkpoint.is_file() else None):
-            summary = _run_rank(job, rank, device, control, report)
-    except BaseException:
-        raise  # the process group is left as it is: a collective with a dead peer may never return
+    # on an error the process group is left as it is: a collective with a dead peer may never return
+    with StopSignals(immediate=True, checkpoint=lambda: checkpoint if checkpoint.is_file() else None):
+        summary = Rank(job, rank, device, control, report).run()
     dist.destroy_process_group()
     return summary
 
 
-def _run_rank(job: Job, rank: int, device: torch.device, control, report) -> dict:
-    import torch.distributed as dist
+class Rank:
+    """One rank's run, step by step (this module's docstring): `start` (cameras, frames, checks),
+    `phase1` (its Trainer), `merge` (the union and its joint refinement), `finish` (the outputs)."""
 
-    from tomgs.cameras import Cameras
-    from tomgs.train.fit import _check_clip, _check_options, _clip_identity, output_paths, peak_memory
-    from tomgs.train.shards import (all_gather_rows, assemble, frame_psnr, local_cameras, model_of, owned_rows,
-                                    reach, refine, stretch_points)
-    from tomgs.train.trainer import Trainer, write_csv
+    def __init__(self, job: Job, rank: int, device: torch.device, control, report):
+        from tomgs.train.fit import output_paths
 
-    world = job.world
-    paths = rank_paths(job.output, world)[rank]
-    outputs = output_paths(job.output)
-    seconds, peaks = {}, {}
-    mark = [time.perf_counter()]
+        self.job, self.rank, self.device, self.control, self.report = job, rank, device, control, report
+        self.world = job.world
+        self.paths = rank_paths(job.output, job.world)[rank]
+        self.outputs = output_paths(job.output)
+        self.seconds: dict[str, float] = {}
+        self.peaks: dict[str, float] = {}
+        self._mark = time.perf_counter()
 
-    def lap(name):
+    def run(self) -> dict:
+        self.start()
+        self.phase1()
+        self.merge()
+        return self.finish()
+
+    # -- bookkeeping ---------------------------------------------------------------------------
+
+    def lap(self, name: str) -> None:
+        from tomgs.train.fit import peak_memory
+
         now = time.perf_counter()
-        seconds[name] = seconds.get(name, 0.0) + now - mark[0]
-        peaks[name] = peak_memory(device)[0]
-        mark[0] = now
+        self.seconds[name] = self.seconds.get(name, 0.0) + now - self._mark
+        self.peaks[name] = peak_memory(self.device)[0]
+        self._mark = now
 
-    def phase(name, done, total, text=None):
-        report("phase", (name, done, total, text))
+    def phase(self, name, done, total, text=None) -> None:
+        self.report("phase", (name, done, total, text))
 
-    report("started", dict(rank=rank, pid=os.getpid(), device=str(device)))
-    errors = []
-    saved = None
-    if job.resume and paths["checkpoint"].is_file():
+    def gather(self, value) -> list:
+        """`value` of every rank, in rank order (the gloo group: plain Python objects)."""
+        import torch.distributed as dist
+
+        out = [None] * self.world
+        dist.all_gather_object(out, value, group=self.control)
+        return out
+
+    # -- the steps -----------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """The cameras (rank 0, broadcast), this rank's frames, its checkpoint checked; every rank
+        refuses together, before anything is written, when one refuses."""
+        import torch.distributed as dist
+
+        from tomgs.cameras import Cameras
+        from tomgs.train.fit import _check_options
+
+        job, rank = self.job, self.rank
+        self.report("started", dict(rank=rank, pid=os.getpid(), device=str(self.device)))
+        errors, saved = [], None
+        if job.resume and self.paths["checkpoint"].is_file():
+            try:
+                saved = read_checkpoint(self.paths["checkpoint"])
+                _check_options(saved, job.options, job.config, self.paths["checkpoint"])
+            except InputError as e:
+                errors.append(str(e))
+        early = None  # the other ranks read their frames while rank 0 estimates the cameras
+        payload, clip, failure = None, None, None
+        if rank == 0:
+            try:
+                payload, clip = _shared_setup(job, self.device, saved, self.phase, self.report)
+            except InputError as e:
+                payload = dict(error=str(e), input=True)
+            except Exception as e:  # noqa: BLE001 - the others must not wait for a broadcast that never comes
+                payload, failure = dict(error=f"{type(e).__name__}: {e}", input=False), e
+        else:
+            try:
+                early = _read_early(job, rank)
+            except InputError as e:
+                errors.append(str(e))
+        box = [payload]
+        dist.broadcast_object_list(box, src=0, group=self.control)
+        payload = box[0]
+        if "error" in payload:
+            if failure is not None:
+                raise failure
+            if payload["input"]:
+                raise InputError(payload["error"])
+            raise RuntimeError(f"rank 0 failed while reading the clip or estimating its cameras: {payload['error']}")
+        self.payload = payload
+        self.cameras = cameras = Cameras.from_dict(payload["cameras"], source="rank 0's cameras")
+        overlap = default_overlap(len(cameras), self.world) if job.overlap is None else job.overlap
+        self.stretches = plan_stretches(len(cameras), self.world, overlap)
+        self.stretch = stretch = self.stretches[rank]
+        sys.stderr.write(f"rank {rank}/{self.world} (pid {os.getpid()}, {self.device}): "
+                         f"{stretch.describe(cameras.frame_indices)}\n")
+        sys.stderr.flush()
         try:
-            saved = read_checkpoint(paths["checkpoint"])
-            _check_options(saved, job.options, job.config, paths["checkpoint"])
+            if saved is not None and not errors:
+                _check_shard(saved["clip"].get("shard"), stretch, self.world, self.paths["checkpoint"])
+            self.frames, self.identity = self._own_frames(clip, early)
+            clip = None  # rank 0: the rest of the clip goes now
+            if saved is not None and not errors:
+                from tomgs.train.fit import _check_clip
+
+                _check_clip(saved["clip"], self.identity, job.options, self.paths["checkpoint"])
         except InputError as e:
             errors.append(str(e))
+        refused = [e for e in self.gather(errors[0] if errors else None) if e is not None]
+        if refused:
+            raise InputError(refused[0])
+        self.saved = saved
+        self.lap("read")
+        if rank == 0:  # rank 0 estimated the cameras inside its reading time; the others waited for them
+            self.seconds["poses"] = float(payload["pose_seconds_run"])
+            self.seconds["read"] -= self.seconds["poses"]
 
-    # rank 0: the clip, its cameras (once for all), the budget's wall-clock times
-    payload, clip, failure = None, None, None
-    if rank == 0:
-        try:
-            payload, clip = _shared_setup(job, device, saved, phase, report)
-        except InputError as e:
-            payload = dict(error=str(e), input=True)
-        except Exception as e:  # noqa: BLE001 - the other ranks must not wait for a broadcast that never comes
-            payload, failure = dict(error=f"{type(e).__name__}: {e}", input=False), e
-    box = [payload]
-    dist.broadcast_object_list(box, src=0, group=control)
-    payload = box[0]
-    if "error" in payload:
-        if failure is not None:
-            raise failure
-        if payload["input"]:
-            raise InputError(payload["error"])
-        raise RuntimeError(f"rank 0 failed while reading the clip or estimating its cameras: {payload['error']}")
-    cameras = Cameras.from_dict(payload["cameras"], source="rank 0's cameras")
-    overlap = default_overlap(len(cameras), world) if job.overlap is None else job.overlap
-    stretches = plan_stretches(len(cameras), world, overlap)
-    stretch = stretches[rank]
-    sys.stderr.write(f"rank {rank}/{world} (pid {os.getpid()}, {device}): "
-                     f"{stretch.describe(cameras.frame_indices)}\n")
-    sys.stderr.flush()
+    def _own_frames(self, clip, early):
+        """(uint8 [F,H,W,3] of the stretch, what identifies them for a checkpoint)."""
+        from tomgs.train.fit import _clip_identity
 
-    # every rank: its frames, checked against its checkpoint; all refuse together
-    frames = None
-    try:
-        if saved is not None and not errors:
-            _check_shard(saved["clip"].get("shard"), stretch, world, paths["checkpoint"])
+        s, numbers = self.stretch, self.cameras.frame_indices[self.stretch.lo:self.stretch.hi]
         if clip is not None:
-            frames = np.ascontiguousarray(clip.frames[stretch.lo:stretch.hi]).copy()
-            clip = None  # the rest of the clip goes now
+            frames = np.ascontiguousarray(clip.frames[s.lo:s.hi]).copy()
+        elif early is not None and np.array_equal(early.indices, numbers) \
+                and early.frames.shape[1:3] == (self.cameras.height, self.cameras.width):
+            frames = early.frames
         else:
-            frames = _read_stretch(job, cameras, stretch)
-        identity = _clip_identity(SimpleNamespace(indices=cameras.frame_indices[stretch.lo:stretch.hi],
-                                                  frames=frames, masks=None))
-        if saved is not None and not errors:
-            _check_clip(saved["clip"], identity, job.options, paths["checkpoint"])
-    except InputError as e:
-        errors.append(str(e))
-    everyone = [None] * world
-    dist.all_gather_object(everyone, errors[0] if errors else None, group=control)
-    refused = [e for e in everyone if e is not None]
-    if refused:
-        raise InputError(refused[0])
-    lap("read")
-    if rank == 0:  # rank 0 estimated the cameras inside its reading time; the others waited for them
-        seconds["poses"] = float(payload["pose_seconds_run"])
-        seconds["read"] -= seconds["poses"]
+            frames = _read_stretch(self.job, self.cameras, s)
+        identity = _clip_identity(SimpleNamespace(indices=numbers, frames=frames, masks=None))
+        return frames, identity
 
-    # phase 1: an ordinary Trainer on the stretch, in its own time
-    phase("init", 0, 1)
-    height, width = frames.shape[1:3]
-    free = None
-    if device.type == "cuda":
-        free = torch.cuda.mem_get_info(device)[0] - frames.nbytes
-    _, config = _rank_plan(job.config, stretch.frames, height, width, height * width, device.type, job.auto_budget,
-                           free)
-    points, colors, point_frames = stretch_points(np.asarray(payload["points"]), np.asarray(payload["colors"]),
-                                                  payload["point_frames"], stretch)
-    torch.manual_seed(config.seed + rank)
-    trainer = Trainer(frames, local_cameras(cameras, stretch), points, colors, config.replace(seed=config.seed + rank),
-                      device, point_frames=point_frames,
-                      init_progress=lambda done, total: phase("init", done, total))
-    trainer.notes[:0] = list(payload["notes"])
-    if saved is not None:
-        trainer.load_checkpoint(saved)
-        write_csv(paths["csv"], trainer.history)  # the log as of the checkpoint
-    else:
-        paths["checkpoint"].unlink(missing_ok=True)  # overwrite, or a rank that never saved: start over
-    trained = bool(saved is not None and saved["clip"].get("shard", {}).get("trained"))
-    trainer.clip = dict(identity, options=job.options, pose_seconds=payload["pose_seconds"],
-                        cameras=payload["cameras"], source=payload["source"],
-                        shard=dict(world=world, rank=rank, lo=stretch.lo, hi=stretch.hi, own_lo=stretch.own_lo,
-                                   own_hi=stretch.own_hi, trained=trained))
-    saved = None
-    phase("init", 1, 1)
-    lap("init")
-    times = payload["times"]
-    if not trained:
-        limit = 0.0
-        if times["phase1_end"] is not None:
-            limit = trainer.elapsed + max(times["phase1_end"] - time.time(), 1.0)
-        tick = _tick(phase, config.iterations, limit)
-        trainer.run(checkpoint=paths["checkpoint"], log_csv=paths["csv"],
-                    progress=(lambda row: report("row", row)), time_limit=limit, tick=tick)
-        trainer.clip["shard"]["trained"] = True
-        trainer.save_checkpoint(paths["checkpoint"])  # a resume from here goes straight to the merge
-    lap("train")
-    phase1_iterations, phase1_seconds, phase1_psnr = trainer.iteration, trainer.elapsed, _last_clip_psnr(trainer)
+    def phase1(self) -> None:
+        """An ordinary Trainer on the stretch, in the stretch's own time, to the end of phase 1 (or
+        its iterations); its checkpoint marked trained at the end, so a resume goes to the merge."""
+        from tomgs.train.shards import local_cameras, stretch_points
+        from tomgs.train.trainer import Trainer, write_csv
 
-    # the merge: owned Gaussians in clip time, the union on every rank
-    sh = (trainer.model.max_sh_degree, trainer.model.sh_degree)
-    parts = all_gather_rows(owned_rows(trainer.model, cameras.times, stretch).to(device))
-    extents = [None] * world
-    dist.all_gather_object(extents, float(trainer.extent), group=control)
-    history = list(trainer.history)
-    del trainer
-    union = model_of(torch.cat(parts), *sh).to(device)
-    del parts
-    own = slice(stretch.own_lo - stretch.lo, stretch.own_hi - stretch.lo)
-    own_frames = torch.as_tensor(frames[own], device=device if device.type == "cuda" and _fits(frames[own], device)
-                                 else "cpu")
-    del frames
-    own_cameras = cameras[stretch.own_lo:stretch.own_hi]
-    merged_psnr = frame_psnr(union, own_frames, own_cameras, device)  # the union before refining: a diagnostic
-    refined_steps, refine_seconds, refine_rows = 0, 0.0, []
-    reaches = reach(union, cameras.times, stretches).to(device)
-    if job.refine_fraction > 0:
-        steps = 0 if times["refine_end"] is not None else max(1, round(job.refine_fraction * config.iterations))
-        phase("train", 0, 1, "joint refinement")
+        job, stretch, payload, frames = self.job, self.stretch, self.payload, self.frames
+        self.phase("init", 0, 1)
+        height, width = frames.shape[1:3]
+        free = None
+        if self.device.type == "cuda":
+            free = torch.cuda.mem_get_info(self.device)[0] - frames.nbytes
+        _, config = _rank_plan(job.config, stretch.frames, height, width, height * width, self.device.type,
+                               job.auto_budget, free)
+        self.config = config = config.replace(seed=config.seed + self.rank)  # the ranks draw differently
+        points, colors, point_frames = stretch_points(payload["points"], payload["colors"], payload["point_frames"],
+                                                      stretch)
+        torch.manual_seed(config.seed)
+        trainer = Trainer(frames, local_cameras(self.cameras, stretch), points, colors, config, self.device,
+                          point_frames=point_frames, init_progress=lambda done, total: self.phase("init", done, total))
+        trainer.notes[:0] = list(payload["notes"])
+        if self.saved is not None:
+            trainer.load_checkpoint(self.saved)
+            write_csv(self.paths["csv"], trainer.history)  # the log as of the checkpoint
+        else:
+            self.paths["checkpoint"].unlink(missing_ok=True)  # overwrite, or a rank that never saved: start over
+        trained = bool(self.saved is not None and self.saved["clip"].get("shard", {}).get("trained"))
+        trainer.clip = dict(self.identity, options=job.options, pose_seconds=payload["pose_seconds"],
+                            cameras=payload["cameras"], source=payload["source"],
+                            shard=dict(world=self.world, rank=self.rank, lo=stretch.lo, hi=stretch.hi,
+                                       own_lo=stretch.own_lo, own_hi=stretch.own_hi, trained=trained))
+        self.saved = None
+        self.phase("init", 1, 1)
+        self.lap("init")
+        end = payload["times"]["phase1_end"]
+        if not trained:
+            limit = 0.0 if end is None else trainer.elapsed + max(end - time.time(), 1.0)
+            trainer.run(checkpoint=self.paths["checkpoint"], log_csv=self.paths["csv"],
+                        progress=lambda row: self.report("row", row), time_limit=limit,
+                        tick=_tick(self.phase, config.iterations, limit))
+            trainer.clip["shard"]["trained"] = True
+            trainer.save_checkpoint(self.paths["checkpoint"])  # a resume from here goes straight to the merge
+        self.lap("train")
+        measured = [row["clip_psnr"] for row in trainer.history if row["clip_psnr"] != ""]
+        self.alone = dict(iterations=trainer.iteration, seconds=trainer.elapsed, extent=float(trainer.extent),
+                          psnr=round(float(measured[-1]), 3) if measured else None,
+                          sh=(trainer.model.max_sh_degree, trainer.model.sh_degree))
+        self.history = list(trainer.history)
+        self.trainer = trainer
 
-        def log(row):
-            history.append(row)
-            write_csv(paths["csv"], history)
-            report("row", row)
+    def merge(self) -> None:
+        """The union of every rank's owned Gaussians on every rank, its joint refinement, and the
+        scene assembled from it; this rank's own frames measured before and after."""
+        from tomgs.train.shards import all_gather_rows, assemble, frame_psnr, model_of, owned_rows, reach, refine
+        from tomgs.train.trainer import write_csv
 
-        out = refine(union, own_frames, own_cameras, cameras.times, stretches, rank, config,
-                     float(np.mean(extents)), device, steps=steps, until=times["refine_end"],
-                     start_wall=phase1_seconds, start_iteration=phase1_iterations, log_rows=log,
-                     tick=lambda iteration, wall: phase("train", 0, 1, f"joint refinement, step {iteration}"))
-        refined_steps, refine_seconds, refine_rows = out.steps, out.seconds, out.rows
-        if out.stopped_by is not None:
-            raise FitInterrupted(paths["checkpoint"], out.stopped_by, phase1_iterations)
-    final = model_of(assemble(union, reaches, rank), *sh).to(device)
-    del union
-    psnr = frame_psnr(final, own_frames, own_cameras, device)
-    lap("refine")
+        job, stretch, device, alone = self.job, self.stretch, self.device, self.alone
+        parts = all_gather_rows(owned_rows(self.trainer.model, self.cameras.times, stretch).to(device))
+        self.extents = self.gather(alone["extent"])
+        del self.trainer
+        union = model_of(torch.cat(parts), *alone["sh"]).to(device)
+        del parts
+        own = slice(stretch.own_lo - stretch.lo, stretch.own_hi - stretch.lo)
+        keep = device.type == "cuda" and _fits(self.frames[own], device)
+        frames = torch.as_tensor(self.frames[own], device=device if keep else "cpu")
+        del self.frames
+        cameras = self.cameras[stretch.own_lo:stretch.own_hi]
+        self.merged_psnr = frame_psnr(union, frames, cameras, device)  # the union before refining: a diagnostic
+        reaches = reach(union, self.cameras.times, self.stretches).to(device)
+        self.refined = None
+        if job.refine_fraction > 0:
+            end = self.payload["times"]["refine_end"]
+            steps = max(1, round(job.refine_fraction * self.config.iterations))
+            self.phase("train", 0, 1, "joint refinement")
 
-    # rank 0 writes the scene, the merged log and plot; then nothing is left to resume
-    mine = dict(rank=rank, frames=stretch.frames, own=[stretch.own_lo, stretch.own_hi], lo=stretch.lo, hi=stretch.hi,
-                iterations=phase1_iterations, train_seconds=round(phase1_seconds, 3),
-                steps_per_s=round(phase1_iterations / max(phase1_seconds, 1e-9), 3),
-                phase1_psnr=phase1_psnr, merged_psnr=merged_psnr, frame_psnr=psnr,
-                refine_steps=refined_steps, refine_seconds=round(refine_seconds, 3),
-                refine_steps_per_s=round(refined_steps / max(refine_seconds, 1e-9), 3),
-                history=history, phase_seconds={k: round(v, 3) for k, v in seconds.items()},
-                peak_host_mb=peak_memory(device)[0], peak_gpu_mb=peak_memory(device)[1],
-                gaussians=len(final), extent=extents[rank])
-    everyone = [None] * world
-    dist.all_gather_object(everyone, mine, group=control)
-    summary = dict(rank=rank)
-    if rank == 0:
-        phase("save", 0, 2)
-        summary = _write_outputs(job, everyone, stretches, cameras, payload, final, refine_rows, outputs, config,
-                                 float(np.mean(extents)))
-        phase("save", 1, 2)
-    dist.barrier(group=control)  # the scene is written: the checkpoints have done their work
-    paths["checkpoint"].unlink(missing_ok=True)
-    lap("save")
-    if rank == 0:
-        summary["phase_seconds"] = dict(seconds)
-        summary["peak_host_mb_by_phase"] = dict(peaks)
-        phase("save", 2, 2)
-    dist.barrier(group=control)
-    return summary
+            def log(row):
+                self.history.append(row)
+                write_csv(self.paths["csv"], self.history)
+                self.report("row", row)
+
+            self.refined = refine(union, frames, cameras, self.cameras.times, self.stretches, self.rank, self.config,
+                                  float(np.mean(self.extents)), device, steps=steps, until=end,
+                                  start_wall=alone["seconds"], start_iteration=alone["iterations"], log_rows=log,
+                                  tick=lambda iteration, wall: self.phase("train", 0, 1,
+                                                                           f"joint refinement, step {iteration}"))
+            if self.refined.stopped_by is not None:
+                raise FitInterrupted(self.paths["checkpoint"], self.refined.stopped_by, alone["iterations"])
+        self.final = model_of(assemble(union, reaches, self.rank), *alone["sh"]).to(device)
+        del union
+        self.psnr = frame_psnr(self.final, frames, cameras, device)
+        self.lap("refine")
+
+    def finish(self) -> dict:
+        """Rank 0 writes the scene, the merged log and plot; then every rank removes its checkpoint."""
+        import torch.distributed as dist
+
+        from tomgs.train.fit import peak_memory
+
+        alone, refined, stretch = self.alone, self.refined, self.stretch
+        steps, seconds = (refined.steps, refined.seconds) if refined is not None else (0, 0.0)
+        host, gpu = peak_memory(self.device)
+        mine = dict(rank=self.rank, frames=stretch.frames, own=[stretch.own_lo, stretch.own_hi], lo=stretch.lo,
+                    hi=stretch.hi, iterations=alone["iterations"], train_seconds=round(alone["seconds"], 3),
+                    steps_per_s=round(alone["iterations"] / max(alone["seconds"], 1e-9), 3), phase1_psnr=alone["psnr"],
+                    merged_psnr=self.merged_psnr, frame_psnr=self.psnr, refine_steps=steps,
+                    refine_seconds=round(seconds, 3), refine_steps_per_s=round(steps / max(seconds, 1e-9), 3),
+                    merge_seconds=round(self.seconds.get("refine", 0.0), 3),  # gather, measure, refine, assemble
+                    history=self.history, peak_host_mb=host, peak_gpu_mb=gpu, gaussians=len(self.final),
+                    extent=alone["extent"])
+        everyone = self.gather(mine)
+        summary = dict(rank=self.rank)
+        if self.rank == 0:
+            self.phase("save", 0, 2)
+            summary = _write_outputs(self.job, everyone, self.stretches, self.cameras, self.payload, self.final,
+                                     [] if refined is None else refined.rows, self.outputs, self.config,
+                                     float(np.mean(self.extents)))
+            self.phase("save", 1, 2)
+        dist.barrier(group=self.control)  # the scene is written: the checkpoints have done their work
+        self.paths["checkpoint"].unlink(missing_ok=True)
+        self.lap("save")
+        if self.rank == 0:  # the merge and the refinement count as training (shards info has them apart)
+            seconds = dict(self.seconds)
+            seconds["train"] = seconds.get("train", 0.0) + seconds.pop("refine", 0.0)
+            summary["phase_seconds"] = seconds
+            summary["peak_host_mb_by_phase"] = {k: v for k, v in self.peaks.items() if k != "refine"}
+            self.phase("save", 2, 2)
+        dist.barrier(group=self.control)
+        return summary
 
 
 def _write_outputs(job, everyone, stretches, cameras, payload, final, refine_rows, outputs, config, extent) -> dict:
@@ -811,7 +873,8 @@ def _write_outputs(job, everyone, stretches, cameras, payload, final, refine_row
                   boundary=boundary, frame_psnr=[round(p, 3) for p in frame_psnr],
                   per_rank=[{k: rank[k] for k in ("rank", "frames", "own", "iterations", "train_seconds",
                                                   "steps_per_s", "phase1_psnr", "refine_steps_per_s",
-                                                  "peak_host_mb", "peak_gpu_mb")} for rank in everyone])
+                                                  "merge_seconds", "peak_host_mb", "peak_gpu_mb")}
+                            for rank in everyone])
     notes = list(payload["notes"])
     notes.append(f"{len(everyone)} ranks: " + "; ".join(
         f"rank {r['rank']} {s.describe(cameras.frame_indices)}, {r['iterations']} iterations "
@@ -897,6 +960,26 @@ def _shared_setup(job: Job, device, saved, phase, report):
     return payload, clip
 
 
+def _read_early(job: Job, rank: int):
+    """A rank's frames read before rank 0's cameras arrive, when the selection (--frames) names their
+    source frame numbers without the source's length (a range from a start >= 0); None otherwise. The
+    clip's frame count comes from its index (tomgs.io.video.probe_clip)."""
+    from tomgs.io import Video, read_video
+    from tomgs.io.video import parse_frames, probe_clip
+
+    if isinstance(job.video, Video):
+        return None
+    sel = parse_frames(job.frames)
+    if sel.start is not None and sel.start < 0:
+        return None
+    count = probe_clip(job.video, job.frames, job.max_side)[0]
+    overlap = default_overlap(count, job.world) if job.overlap is None else job.overlap
+    stretch = plan_stretches(count, job.world, overlap)[rank]
+    start, step = sel.start or 0, sel.step or 1
+    numbers = slice(start + stretch.lo * step, start + (stretch.hi - 1) * step + 1, step)
+    return read_video(job.video, frames=numbers, max_side=job.max_side)
+
+
 def _read_stretch(job: Job, cameras, stretch) -> np.ndarray:
     """uint8 [F,H,W,3]: a rank's frames, read from the clip by their source frame numbers."""
     from tomgs.io import Video
@@ -919,11 +1002,6 @@ def _check_shard(shard, stretch, world: int, checkpoint) -> None:
         raise InputError(f"{checkpoint} was fitted on positions {shard.get('lo')}..{shard.get('hi')} of the clip, "
                          f"this run gives rank {stretch.rank} {stretch.lo}..{stretch.hi}: resume with the options it "
                          f"was started with, or {START_OVER}")
-
-
-def _last_clip_psnr(trainer) -> float | None:
-    measured = [row["clip_psnr"] for row in trainer.history if row["clip_psnr"] != ""]
-    return round(float(measured[-1]), 3) if measured else None
 
 
 def _fits(frames: np.ndarray, device) -> bool:
