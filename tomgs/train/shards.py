@@ -92,9 +92,9 @@ def plan_stretches(count: int, world: int, overlap: int = 0) -> list[Stretch]:
     if overlap < 0:
         raise InputError(f"overlap {overlap}: give 0 or more frames")
     if count < MIN_STRETCH * world:
-        raise InputError(f"--gpus {world} splits the clip's {count} frames into {world} stretches, but each rank needs "
-                         f"at least {MIN_STRETCH} frames of its own: use --gpus {max(count // MIN_STRETCH, 1)} or fewer, "
-                         f"or select more frames (--frames)")
+        raise InputError(f"--gpus {world} splits the clip's {count} frames into {world} stretches, but each rank "
+                         f"needs at least {MIN_STRETCH} frames of its own: use --gpus "
+                         f"{max(count // MIN_STRETCH, 1)} or fewer, or select more frames (--frames)")
     bounds = [round(r * count / world) for r in range(world + 1)]
     return [Stretch(r, max(bounds[r] - overlap, 0), min(bounds[r + 1] + overlap, count), bounds[r], bounds[r + 1])
             for r in range(world)]
