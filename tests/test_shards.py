@@ -158,6 +158,53 @@ def test_boundary_psnr_splits_frames_near_each_boundary():
     assert report["boundary"] == pytest.approx((20 + 22 + 30 + 30) / 4) and report["interior"] == 30.0
 
 
+def _refine_rank(rank: int, store: str, folder: str) -> None:
+    """A rank of test_the_refinement_keeps_shared_replicas_equal (spawned): refine one union, save it."""
+    import torch.distributed as dist
+
+    from tomgs.train.shards import assemble, refine
+
+    dist.init_process_group("gloo", init_method=store, rank=rank, world_size=2)
+    torch.set_num_threads(1)
+    images, cams = synthetic_clip(FRAMES, WIDTH, HEIGHT)[:2]
+    stretches = plan_stretches(FRAMES, 2)
+    union = random_model(300, seed=5)
+    with torch.no_grad():  # half of them short-lived: alive in one stretch only
+        union.log_t_scales[::2] = math.log(0.01)
+    before = pack(union.parameters_by_name()).clone()
+    reaches = reach(union, cams.times, stretches)
+    s = stretches[rank]
+    out = refine(union, torch.as_tensor(images[s.own_lo:s.own_hi]), cams[s.own_lo:s.own_hi], cams.times, stretches,
+                 rank, small_config(20), 1.0, torch.device("cpu"), steps=20)
+    after = pack(union.parameters_by_name())
+    final = assemble(union, reaches, rank)
+    torch.save(dict(before=before, after=after, final=final, reaches=reaches, steps=out.steps),
+               f"{folder}/rank{rank}.pt")
+    dist.destroy_process_group()
+
+
+def test_the_refinement_keeps_shared_replicas_equal_and_private_rows_their_ranks(tmp_path):
+    """Two gloo processes refine the same union on their own frames: a Gaussian alive in both stretches
+    takes the same steps on both (gradients summed), one alive in one stretch is trained by its rank
+    alone, and both assemble the same scene."""
+    import torch.multiprocessing as mp
+
+    mp.start_processes(_refine_rank, args=(f"file://{tmp_path}/store", str(tmp_path)), nprocs=2, join=True,
+                       start_method="spawn")
+    r0, r1 = (torch.load(tmp_path / f"rank{r}.pt") for r in (0, 1))
+    reaches = r0["reaches"]
+    shared, alone1 = reaches.sum(0) == 2, reaches[1] & ~reaches[0]
+    assert shared.sum() > 10 and alone1.sum() > 10 and r0["steps"] == r1["steps"] == 20
+    assert torch.allclose(r0["after"][shared], r1["after"][shared], atol=1e-6)
+    assert not torch.allclose(r0["after"][shared], r0["before"][shared])  # they did move
+    assert torch.equal(r0["after"][alone1], r0["before"][alone1])  # rank 0 never touches rank 1's own
+    assert not torch.equal(r1["after"][alone1], r1["before"][alone1])
+    assert torch.equal(r0["final"], r1["final"])
+    kept = reaches.any(0)  # the scene: rank 1's own as rank 1 has them, the rest as rank 0 has them
+    expected = torch.where(alone1[:, None], r1["after"], r0["after"])[kept]
+    assert torch.equal(r0["final"], expected)
+
+
 # -- bad inputs: refused before any work, nothing written -----------------------------------------------
 
 

@@ -712,7 +712,7 @@ class Rank:
 
     def phase1(self) -> None:
         """An ordinary Trainer on the stretch, in the stretch's own time, to the end of phase 1 (or
-        its iterations); its checkpoint marked trained at the end, so a resume goes to the merge."""
+        its iterations), with its checkpoints and log beside the output."""
         from tomgs.train.shards import local_cameras, stretch_points
         from tomgs.train.trainer import Trainer, write_csv
 
@@ -736,22 +736,19 @@ class Rank:
             write_csv(self.paths["csv"], trainer.history)  # the log as of the checkpoint
         else:
             self.paths["checkpoint"].unlink(missing_ok=True)  # overwrite, or a rank that never saved: start over
-        trained = bool(self.saved is not None and self.saved["clip"].get("shard", {}).get("trained"))
         trainer.clip = dict(self.identity, options=job.options, pose_seconds=payload["pose_seconds"],
                             cameras=payload["cameras"], source=payload["source"],
                             shard=dict(world=self.world, rank=self.rank, lo=stretch.lo, hi=stretch.hi,
-                                       own_lo=stretch.own_lo, own_hi=stretch.own_hi, trained=trained))
+                                       own_lo=stretch.own_lo, own_hi=stretch.own_hi))
         self.saved = None
         self.phase("init", 1, 1)
         self.lap("init")
+        # a resume trains on as a one-GPU resume does: to its iterations, or for this command's budget
         end = payload["times"]["phase1_end"]
-        if not trained:
-            limit = 0.0 if end is None else trainer.elapsed + max(end - time.time(), 1.0)
-            trainer.run(checkpoint=self.paths["checkpoint"], log_csv=self.paths["csv"],
-                        progress=lambda row: self.report("row", row), time_limit=limit,
-                        tick=_tick(self.phase, config.iterations, limit))
-            trainer.clip["shard"]["trained"] = True
-            trainer.save_checkpoint(self.paths["checkpoint"])  # a resume from here goes straight to the merge
+        limit = 0.0 if end is None else trainer.elapsed + max(end - time.time(), 1.0)
+        trainer.run(checkpoint=self.paths["checkpoint"], log_csv=self.paths["csv"],
+                    progress=lambda row: self.report("row", row), time_limit=limit,
+                    tick=_tick(self.phase, config.iterations, limit))
         self.lap("train")
         measured = [row["clip_psnr"] for row in trainer.history if row["clip_psnr"] != ""]
         self.alone = dict(iterations=trainer.iteration, seconds=trainer.elapsed, extent=float(trainer.extent),
@@ -944,10 +941,11 @@ def _shared_setup(job: Job, device, saved, phase, report):
         now = time.time()
         deadline = job.start_time + plan.budget
         own = max(s.own_hi - s.own_lo for s in stretches)
-        # after training: the merge, two measurements of a rank's frames, a checkpoint and the scene
-        grown = config.max_gaussians
-        after = 1.0 + 2 * own * render_seconds(device.type, grown, height * width) + 2 * (
-            SAVE_COST[0] + SAVE_COST[1] * grown * job.world)
+        # after training: the merge, two measurements of a rank's frames (before and after refining), the
+        # scene; a rank's cloud grows to about twice its start while it densifies (as tomgs.train.plan says)
+        grown = min(config.max_gaussians, 2 * config.init_points_per_frame * largest)
+        after = 1.0 + 2 * own * render_seconds(device.type, grown, height * width) + \
+            SAVE_COST[0] + SAVE_COST[1] * grown * job.world
         train_end = max(deadline - after, now + 2.0)
         fraction = job.refine_fraction
         times = dict(deadline=deadline, phase1_end=now + (1 - fraction) * (train_end - now),

@@ -24,8 +24,8 @@ A run (docs/multi-gpu.md; the processes and their faults: tomgs.train.ranks):
    frames; the gradients of the Gaussians alive in more than one rank's stretch are summed over the
    ranks at each step (one all_reduce), so each is fitted to every frame it is alive in, and all
    replicas take the same step; a Gaussian alive in one stretch only is its rank's alone. No
-   densification. A checkpoint is not written here: an interrupted refinement starts again from the
-   phase-1 checkpoints.
+   densification. A checkpoint is not written here: an interrupted refinement resumes from the ranks'
+   last phase-1 checkpoints.
 5. Each rank measures its own frames with the assembled scene; rank 0 writes the scene (an ordinary
    scene file), the merged CSV and its plot; the checkpoints are removed, the per-rank CSVs kept.
 
