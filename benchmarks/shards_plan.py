@@ -16,16 +16,18 @@ union's Gaussians, the share of Gaussians alive in more than one stretch, the ph
     refinement         per step: a rank's step, plus an all_reduce of the shared rows' gradients
                        (S x (D + 1) x 4 bytes; ring: 2 (R-1)/R of it over the slowest link, plus
                        2 (R-1) latencies), for the refine share of the training time
-    memory             phase 1: a rank's cloud; refinement: the union (R x G) with its gradients and
-                       Adam moments: 4 x R x G x D x 4 bytes on every GPU
+    memory             phase 1: a rank's cloud; the merge: the union's rows (R x G x D x 4 bytes) on
+                       every GPU for a moment; refinement: a rank's part (its own and the shared ones
+                       alive in its stretch) with gradients and Adam moments (4 x part x D x 4 bytes)
 
 Quality: a rank's training steps per frame of its stretch against a one-GPU fit of one stretch in
 the same budget (the goal's reference), turned into dB with the one-GPU curve's slope (dB per doubling
 of training steps, --db-per-doubling: read it off a one-GPU CSV), less what the merge itself costs
 (--merge-db, from benchmarks/shards.py once measured). Refinement steps count as training
 steps times --refine-value (a data-parallel step of the union trains every rank's frames once). The
-table says, per R: the phases, steps per frame, the predicted gap to the reference, the union's GPU
-memory, and which limit binds first (serial share, memory, all_reduce over step time).
+table says, per R: the phases, steps per frame, the predicted gap to the reference, the GPU memory of
+a rank's Gaussians at its peak, and which limit binds first (serial share, memory, all_reduce over
+step time).
 """
 
 from __future__ import annotations
@@ -69,30 +71,31 @@ def model(args, ranks: int, reference_steps: float | None = None) -> dict:
     reference = steps if reference_steps is None else reference_steps
     gap = args.db_per_doubling * math.log2(max(steps, 1e-9) / max(reference, 1e-9))
     gap -= args.merge_db if ranks > 1 else 0.0
-    memory = (4 * union * row_bytes if ranks > 1 else 4 * args.gaussians_per_rank * row_bytes) / GIB
+    part = args.gaussians_per_rank * (1 + (args.shared_fraction if ranks > 1 else 0.0))
+    memory = max(4 * part * row_bytes, union * row_bytes if ranks > 1 else 0.0) / GIB
     limits = []
     if (serial + save) > 0.25 * args.budget:
         limits.append(f"serial {100 * (serial + save) / args.budget:.0f}% of the budget")
     if memory + args.frames_gib_per_rank > args.gpu_gib:
-        limits.append(f"union {memory:.0f} GiB > GPU")
+        limits.append(f"{memory:.0f} GiB > GPU")
     if ranks > 1 and allreduce > step:
         limits.append(f"all_reduce {1000 * allreduce:.0f} ms > a step")
     if left <= 0:
         limits.append("no time left to train")
     return dict(ranks=ranks, hosts=math.ceil(ranks / per_host), frames=frames, serial_s=serial, parallel_s=parallel,
                 merge_s=merge, phase1_s=phase1, refine_s=refine, allreduce_ms=1000 * allreduce, save_s=save,
-                steps=steps, steps_per_frame=steps / args.frames_per_rank, gap_db=gap, union_gib=memory,
+                steps=steps, steps_per_frame=steps / args.frames_per_rank, gap_db=gap, gpu_gib=memory,
                 limits="; ".join(limits) or "-")
 
 
 def table(rows: list[dict]) -> str:
     head = ("| ranks | hosts | frames | serial s | per-rank start s | merge s | phase 1 s | refine s | all_reduce ms "
-            "| save s | steps/frame | gap dB | union GiB/GPU | binds |")
+            "| save s | steps/frame | gap dB | GiB/GPU | binds |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for r in rows:
         lines.append(f"| {r['ranks']} | {r['hosts']} | {r['frames']:,} | {r['serial_s']:.1f} | {r['parallel_s']:.1f} "
                      f"| {r['merge_s']:.2f} | {r['phase1_s']:.0f} | {r['refine_s']:.0f} | {r['allreduce_ms']:.1f} "
-                     f"| {r['save_s']:.1f} | {r['steps_per_frame']:.1f} | {r['gap_db']:+.2f} | {r['union_gib']:.1f} "
+                     f"| {r['save_s']:.1f} | {r['steps_per_frame']:.1f} | {r['gap_db']:+.2f} | {r['gpu_gib']:.1f} "
                      f"| {r['limits']} |")
     return "\n".join(lines)
 

@@ -159,10 +159,11 @@ def test_boundary_psnr_splits_frames_near_each_boundary():
 
 
 def _refine_rank(rank: int, store: str, folder: str) -> None:
-    """A rank of test_the_refinement_keeps_shared_replicas_equal (spawned): refine one union, save it."""
+    """A rank of test_the_refinement_keeps_shared_replicas_equal (spawned): refine its part of one
+    union, assemble the scene, save both."""
     import torch.distributed as dist
 
-    from tomgs.train.shards import assemble, refine
+    from tomgs.train.shards import assemble, halo, model_of, refine
 
     dist.init_process_group("gloo", init_method=store, rank=rank, world_size=2)
     torch.set_num_threads(1)
@@ -171,36 +172,39 @@ def _refine_rank(rank: int, store: str, folder: str) -> None:
     union = random_model(300, seed=5)
     with torch.no_grad():  # half of them short-lived: alive in one stretch only
         union.log_t_scales[::2] = math.log(0.01)
-    before = pack(union.parameters_by_name()).clone()
-    reaches = reach(union, cams.times, stretches)
+    union = pack(union.parameters_by_name())
+    part = halo(union, 0, cams.times, stretches, rank)
+    model = model_of(union[part.rows], 0, 0)
     s = stretches[rank]
-    out = refine(union, torch.as_tensor(images[s.own_lo:s.own_hi]), cams[s.own_lo:s.own_hi], cams.times, stretches,
-                 rank, small_config(20), 1.0, torch.device("cpu"), steps=20)
-    after = pack(union.parameters_by_name())
-    final = assemble(union, reaches, rank)
-    torch.save(dict(before=before, after=after, final=final, reaches=reaches, steps=out.steps),
+    out = refine(model, part, torch.as_tensor(images[s.own_lo:s.own_hi]), cams[s.own_lo:s.own_hi], cams.times,
+                 stretches, small_config(20), 1.0, torch.device("cpu"), steps=20)
+    after = union.clone()
+    after[part.rows] = pack(model.parameters_by_name())
+    final = assemble(model, part)
+    torch.save(dict(before=union, after=after, rows=part.rows, holder=part.holder, final=final, steps=out.steps),
                f"{folder}/rank{rank}.pt")
     dist.destroy_process_group()
 
 
 def test_the_refinement_keeps_shared_replicas_equal_and_private_rows_their_ranks(tmp_path):
-    """Two gloo processes refine the same union on their own frames: a Gaussian alive in both stretches
-    takes the same steps on both (gradients summed), one alive in one stretch is trained by its rank
-    alone, and both assemble the same scene."""
+    """Two gloo processes refine their parts of one union on their own frames: a Gaussian alive in both
+    stretches takes the same steps on both (gradients summed), one alive in one stretch only is its
+    rank's and moves there, and both assemble the same scene from the holders' copies."""
     import torch.multiprocessing as mp
 
     mp.start_processes(_refine_rank, args=(f"file://{tmp_path}/store", str(tmp_path)), nprocs=2, join=True,
                        start_method="spawn")
     r0, r1 = (torch.load(tmp_path / f"rank{r}.pt") for r in (0, 1))
-    reaches = r0["reaches"]
-    shared, alone1 = reaches.sum(0) == 2, reaches[1] & ~reaches[0]
-    assert shared.sum() > 10 and alone1.sum() > 10 and r0["steps"] == r1["steps"] == 20
+    in0, in1 = (torch.zeros(300, dtype=torch.bool).index_fill_(0, r["rows"], True) for r in (r0, r1))
+    shared, alone1 = in0 & in1, in1 & ~in0
+    assert shared.sum() > 10 and alone1.sum() > 10 and (in0 & ~in1).sum() > 10
+    assert r0["steps"] == r1["steps"] == 20 and torch.equal(r0["holder"], r1["holder"])
     assert torch.allclose(r0["after"][shared], r1["after"][shared], atol=1e-6)
     assert not torch.allclose(r0["after"][shared], r0["before"][shared])  # they did move
-    assert torch.equal(r0["after"][alone1], r0["before"][alone1])  # rank 0 never touches rank 1's own
     assert not torch.equal(r1["after"][alone1], r1["before"][alone1])
+    assert (r0["holder"][shared] == 0).all() and (r0["holder"][alone1] == 1).all()
     assert torch.equal(r0["final"], r1["final"])
-    kept = reaches.any(0)  # the scene: rank 1's own as rank 1 has them, the rest as rank 0 has them
+    kept = r0["holder"] >= 0  # the scene: rank 1's own as rank 1 has them, the rest as rank 0 has them
     expected = torch.where(alone1[:, None], r1["after"], r0["after"])[kept]
     assert torch.equal(r0["final"], expected)
 
@@ -218,6 +222,9 @@ def test_bad_sharded_fits_are_refused_before_any_work(clip, tmp_path, monkeypatc
         fit(frames, out, small_config(10), gpus=2, layer="background", **kw)
     with pytest.raises(InputError, match="--device cuda:1 with --gpus 2"):
         fit(frames, out, small_config(10), gpus=2, device="cuda:1", poses=str(cams))
+    if not torch.cuda.is_available():
+        with pytest.raises(InputError, match="--gpus 2: torch sees no GPU here; give --device cpu"):
+            fit(frames, out, small_config(10), gpus=2, poses=str(cams))
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
     with pytest.raises(InputError, match="--gpus 3: this host has 2 GPUs"):

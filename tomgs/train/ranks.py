@@ -204,7 +204,10 @@ def _device_type(device, world: int, env) -> str:
     """"cuda" or "cpu" for a run of `world` ranks; InputError for a device it cannot use."""
     text = "auto" if device is None else str(device)
     if text == "auto":
-        text = "cuda" if torch.cuda.is_available() else "cpu"
+        if not torch.cuda.is_available():  # N CPU processes are asked for by name, not fallen into
+            raise InputError(f"--gpus {world}: torch sees no GPU here; give --device cpu to fit with {world} CPU "
+                             f"processes")
+        text = "cuda"
     if text.startswith("cuda:"):
         raise InputError(f"--device {text} with --gpus {world}: each rank takes its own GPU (cuda:0 .. cuda:"
                          f"{world - 1} on each host); give --device cuda")
@@ -758,24 +761,26 @@ class Rank:
         self.trainer = trainer
 
     def merge(self) -> None:
-        """The union of every rank's owned Gaussians on every rank, its joint refinement, and the
-        scene assembled from it; this rank's own frames measured before and after."""
-        from tomgs.train.shards import all_gather_rows, assemble, frame_psnr, model_of, owned_rows, reach, refine
+        """The union of every rank's owned Gaussians, gathered on every rank; this rank's part of it
+        (its Halo: those that may be alive in its stretch) refined jointly with the other ranks'; the
+        scene assembled from every part; this rank's own frames measured before and after."""
+        from tomgs.train.shards import all_gather_rows, assemble, frame_psnr, halo, model_of, owned_rows, refine
         from tomgs.train.trainer import write_csv
 
         job, stretch, device, alone = self.job, self.stretch, self.device, self.alone
-        parts = all_gather_rows(owned_rows(self.trainer.model, self.cameras.times, stretch).to(device))
+        union = torch.cat(all_gather_rows(owned_rows(self.trainer.model, self.cameras.times, stretch).to(device)))
         self.extents = self.gather(alone["extent"])
         del self.trainer
-        union = model_of(torch.cat(parts), *alone["sh"]).to(device)
-        del parts
+        part = halo(union, alone["sh"][0], self.cameras.times, self.stretches, self.rank)
+        model = model_of(union[part.rows.to(device)], *alone["sh"]).to(device)
+        self.union_size = len(union)
+        del union  # a rank keeps its part only
         own = slice(stretch.own_lo - stretch.lo, stretch.own_hi - stretch.lo)
         keep = device.type == "cuda" and _fits(self.frames[own], device)
         frames = torch.as_tensor(self.frames[own], device=device if keep else "cpu")
         del self.frames
         cameras = self.cameras[stretch.own_lo:stretch.own_hi]
-        self.merged_psnr = frame_psnr(union, frames, cameras, device)  # the union before refining: a diagnostic
-        reaches = reach(union, self.cameras.times, self.stretches).to(device)
+        self.merged_psnr = frame_psnr(model, frames, cameras, device)  # the union before refining: a diagnostic
         self.refined = None
         if job.refine_fraction > 0:
             end = self.payload["times"]["refine_end"]
@@ -787,15 +792,16 @@ class Rank:
                 write_csv(self.paths["csv"], self.history)
                 self.report("row", row)
 
-            self.refined = refine(union, frames, cameras, self.cameras.times, self.stretches, self.rank, self.config,
+            self.refined = refine(model, part, frames, cameras, self.cameras.times, self.stretches, self.config,
                                   float(np.mean(self.extents)), device, steps=steps, until=end,
                                   start_wall=alone["seconds"], start_iteration=alone["iterations"], log_rows=log,
                                   tick=lambda iteration, wall: self.phase("train", 0, 1,
                                                                            f"joint refinement, step {iteration}"))
             if self.refined.stopped_by is not None:
                 raise FitInterrupted(self.paths["checkpoint"], self.refined.stopped_by, alone["iterations"])
-        self.final = model_of(assemble(union, reaches, self.rank), *alone["sh"]).to(device)
-        del union
+        self.halo_size, self.shared_size = len(model), part.total
+        self.final = model_of(assemble(model, part), *alone["sh"]).to(device)
+        del model
         self.psnr = frame_psnr(self.final, frames, cameras, device)
         self.lap("refine")
 
@@ -814,6 +820,7 @@ class Rank:
                     merged_psnr=self.merged_psnr, frame_psnr=self.psnr, refine_steps=steps,
                     refine_seconds=round(seconds, 3), refine_steps_per_s=round(steps / max(seconds, 1e-9), 3),
                     merge_seconds=round(self.seconds.get("refine", 0.0), 3),  # gather, measure, refine, assemble
+                    union=self.union_size, halo=self.halo_size, shared=self.shared_size,
                     history=self.history, peak_host_mb=host, peak_gpu_mb=gpu, gaussians=len(self.final),
                     extent=alone["extent"])
         everyone = self.gather(mine)
@@ -865,12 +872,13 @@ def _write_outputs(job, everyone, stretches, cameras, payload, final, refine_row
                                                             for r in everyone)))
     boundary = boundary_psnr(frame_psnr, stretches)
     shards = dict(ranks=len(everyone), overlap=stretches[0].hi - stretches[0].own_hi if len(stretches) > 1 else 0,
+                  union=everyone[0]["union"], shared=everyone[0]["shared"],
                   refine_fraction=job.refine_fraction, refine_steps=steps, refine_seconds=round(refine_seconds, 3),
                   merged_psnr_before_refine=round(float(np.mean(merged_before)), 3), clip_psnr=round(clip_psnr, 3),
                   boundary=boundary, frame_psnr=[round(p, 3) for p in frame_psnr],
                   per_rank=[{k: rank[k] for k in ("rank", "frames", "own", "iterations", "train_seconds",
                                                   "steps_per_s", "phase1_psnr", "refine_steps_per_s",
-                                                  "merge_seconds", "peak_host_mb", "peak_gpu_mb")}
+                                                  "merge_seconds", "halo", "peak_host_mb", "peak_gpu_mb")}
                             for rank in everyone])
     notes = list(payload["notes"])
     notes.append(f"{len(everyone)} ranks: " + "; ".join(
@@ -942,10 +950,11 @@ def _shared_setup(job: Job, device, saved, phase, report):
         deadline = job.start_time + plan.budget
         own = max(s.own_hi - s.own_lo for s in stretches)
         # after training: the merge, two measurements of a rank's frames (before and after refining), the
-        # scene; a rank's cloud grows to about twice its start while it densifies (as tomgs.train.plan says)
+        # scene written and read back by the parent, the processes ending; a rank's cloud grows to about
+        # twice its start while it densifies (as tomgs.train.plan says)
         grown = min(config.max_gaussians, 2 * config.init_points_per_frame * largest)
-        after = 1.0 + 2 * own * render_seconds(device.type, grown, height * width) + \
-            SAVE_COST[0] + SAVE_COST[1] * grown * job.world
+        after = 2.0 + 2 * own * render_seconds(device.type, grown, height * width) + \
+            2 * (SAVE_COST[0] + SAVE_COST[1] * grown * job.world)
         train_end = max(deadline - after, now + 2.0)
         fraction = job.refine_fraction
         times = dict(deadline=deadline, phase1_end=now + (1 - fraction) * (train_end - now),

@@ -20,12 +20,12 @@ A run (docs/multi-gpu.md; the processes and their faults: tomgs.train.ranks):
    affine map under which o(t) is unchanged), and every rank gathers the union.
 4. Joint refinement, data-parallel, for `refine_fraction` of the training time: a long-lived Gaussian
    of one stretch is alive in the next, where that rank fitted its own (the union alone double-draws
-   them: 7 dB lost on every frame they reach in the CPU test). Every rank trains the union on its own
-   frames; the gradients of the Gaussians alive in more than one rank's stretch are summed over the
-   ranks at each step (one all_reduce), so each is fitted to every frame it is alive in, and all
-   replicas take the same step; a Gaussian alive in one stretch only is its rank's alone. No
-   densification. A checkpoint is not written here: an interrupted refinement resumes from the ranks'
-   last phase-1 checkpoints.
+   them: 4.7 dB lost on the CPU benchmark, 2.5 more at the boundary). Each rank trains its part of the
+   union (its Halo: the Gaussians that may be alive in its stretch) on its own frames; the gradients
+   of the Gaussians in more than one part are summed over the ranks at each step (one all_reduce), so
+   each is fitted to every frame it is alive in, and all replicas take the same step; a Gaussian
+   alive in one stretch only is its rank's alone. No densification. A checkpoint is not written
+   here: an interrupted refinement resumes from the ranks' last phase-1 checkpoints.
 5. Each rank measures its own frames with the assembled scene; rank 0 writes the scene (an ordinary
    scene file), the merged CSV and its plot; the checkpoints are removed, the per-rank CSVs kept.
 
@@ -289,8 +289,42 @@ def boundary_psnr(frame_psnr, stretches: list[Stretch], near: int = 2) -> dict:
 
 
 @dataclass
+class Halo:
+    """Rank `rank`'s part of the union (N Gaussians, in the same order on every rank): the Gaussians
+    that may be alive in its stretch (`reach`), which it alone refines, with the others that share
+    them.
+
+    rows      int64 [M]: their rows of the union, ascending
+    shared    int64 [K]: the positions in `rows` of those alive in another stretch too
+    slots     int64 [K]: their places in the union's list of shared Gaussians (the all_reduce buffer)
+    total     the union's shared Gaussians (the buffer's rows)
+    holder    int64 [N]: the rank whose copy of each Gaussian goes to the scene (the first whose
+              stretch it may be alive in; -1: alive in none, left out)"""
+
+    rank: int
+    rows: torch.Tensor
+    shared: torch.Tensor
+    slots: torch.Tensor
+    total: int
+    holder: torch.Tensor
+
+
+def halo(union: torch.Tensor, max_sh_degree: int, times, stretches: list[Stretch], rank: int) -> Halo:
+    """The Halo of rank `rank` in the union's rows [N, D] (every rank computes every rank's the same)."""
+    with torch.no_grad():
+        reaches = reach(model_of(union, max_sh_degree, 0), times, stretches)  # [S, N]
+    count = reaches.sum(0)
+    is_shared = count > 1
+    slot_of = torch.cumsum(is_shared.long(), 0) - 1  # [N]: a shared Gaussian's place in the buffer
+    rows = reaches[rank].nonzero()[:, 0]
+    shared = is_shared[rows].nonzero()[:, 0]
+    holder = torch.where(count > 0, reaches.long().argmax(0), torch.full_like(count, -1))
+    return Halo(rank, rows, shared, slot_of[rows[shared]], int(is_shared.sum()), holder)
+
+
+@dataclass
 class Refined:
-    """What the refinement did on one rank: steps, seconds, the last rows it logged."""
+    """What the refinement did on one rank: steps, seconds, the rows it logged."""
 
     steps: int = 0
     seconds: float = 0.0
@@ -298,16 +332,17 @@ class Refined:
     stopped_by: int | None = None  # a signal number when SIGINT / SIGTERM stopped it
 
 
-def refine(model: GaussianModel, frames: torch.Tensor, cameras, times_all, stretches: list[Stretch], rank: int,
+def refine(model: GaussianModel, part: Halo, frames: torch.Tensor, cameras, times_all, stretches: list[Stretch],
            config, extent: float, device: torch.device, *, steps: int = 0, until: float | None = None,
            start_wall: float = 0.0, start_iteration: int = 0, log_rows=None, tick=None) -> Refined:
-    """Train `model` (the union, the same on every rank) jointly: rank `rank` renders its own frames
-    (`frames` uint8 [F,H,W,3] on any device, `cameras` theirs in clip time), the gradients and the
-    'in view' flags of the Gaussians alive in more than one stretch are summed over the ranks each step,
-    so that every replica of those takes the same Adam step. Stops after `steps` steps, or (steps 0) at
-    the wall-clock time `until` (time.time()) that any rank reaches first, or at SIGINT / SIGTERM on any
-    rank (Refined.stopped_by). Needs an initialised default process group. `log_rows(row)` hears a CSV
-    row every config.log_interval steps (wall_s from `start_wall`, iteration from `start_iteration`)."""
+    """Train `model` (rank part.rank's Halo of the union: its Gaussians in `part.rows` order) jointly
+    with the other ranks': it renders its own frames (`frames` uint8 [F,H,W,3] on any device,
+    `cameras` theirs in clip time), and the gradients and 'in view' flags of the shared Gaussians are
+    summed over the ranks at each step, so that every replica of one takes the same Adam step. Stops
+    after `steps` steps, or (steps 0) at the wall-clock time `until` (time.time()) that any rank
+    reaches first, or at SIGINT / SIGTERM on any rank (Refined.stopped_by). Needs an initialised
+    default process group. `log_rows(row)` hears a CSV row every config.log_interval steps (wall_s
+    from `start_wall`, iteration from `start_iteration`; train_psnr the ranks' mean)."""
     import torch.distributed as dist
 
     from tomgs.metrics import psnr, ssim
@@ -320,8 +355,7 @@ def refine(model: GaussianModel, frames: torch.Tensor, cameras, times_all, stret
     world = dist.get_world_size()
     params = model.parameters_by_name()
     n = len(model)
-    spans = [stretch_span(times_all, s)[1] for s in stretches]
-    span = float(np.median(spans))
+    span = float(np.median([stretch_span(times_all, s)[1] for s in stretches]))
     # the rates the ranks ended phase 1 with, in clip time (a stretch's t is span times finer)
     lr = dict(means=c.lr_means_final * extent, quats=c.lr_quats, log_scales=c.lr_scales, opacity_logits=c.lr_opacity,
               sh_dc=c.lr_sh_dc, sh_rest=c.lr_sh_rest, t_means=c.lr_t_means * span if c.temporal else 0.0,
@@ -330,42 +364,41 @@ def refine(model: GaussianModel, frames: torch.Tensor, cameras, times_all, stret
     sparse = device.type == "cuda" if c.sparse_adam is None else bool(c.sparse_adam)
     optimizer = SeenAdam(groups, lr=0.0, eps=1e-15) if sparse else \
         torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=device.type == "cuda")
-    reaches = reach(model, times_all, stretches).to(device)  # [S, N]
-    mine = reaches[rank].nonzero()[:, 0]  # the rows this rank renders
-    shared = (reaches.sum(0) > 1).nonzero()[:, 0]  # the rows whose gradients are summed
+    shared, slots = part.shared.to(device), part.slots.to(device)
+    widths = [p[0].numel() if n else 0 for p in params.values()]
     viewmats = cameras.viewmats(device)
     K = torch.as_tensor(cameras.K, dtype=torch.float32, device=device)
-    sampler = FrameSampler(len(cameras), c.sampling, c.psnr_momentum, c.seed + 1000 + rank)
+    sampler = FrameSampler(len(cameras), c.sampling, c.psnr_momentum, c.seed + 1000 + part.rank)
     out = Refined()
     began = time.perf_counter()
     recent = []
     with StopSignals() as stop:
         while True:
             k = sampler.sample()
-            inputs = {name: v.index_select(0, mine) for name, v in model.render_inputs().items()}
-            image, _, meta = rasterize(**inputs, viewmat=viewmats[k], K=K, width=cameras.width, height=cameras.height,
-                                       t=float(cameras.times[k]))
+            image, _, meta = rasterize(**model.render_inputs(), viewmat=viewmats[k], K=K, width=cameras.width,
+                                       height=cameras.height, t=float(cameras.times[k]))
             target = frames[k].to(device, non_blocking=True).float() / 255.0
             loss = (1 - c.ssim_weight) * (image - target).abs().mean() + c.ssim_weight * (1 - ssim(image, target))
             loss.backward()
-            seen = torch.zeros(n, dtype=torch.bool, device=device)
-            seen[mine] = (meta["radii"] > 0).any(-1)
+            seen = (meta["radii"] > 0).any(-1)  # bool [M]
             grads = [p.grad if p.grad is not None else torch.zeros_like(p) for p in params.values()]
             out.steps += 1
             done = steps > 0 and out.steps >= steps
             late = until is not None and time.time() >= until
             value = psnr(image.detach(), target).clamp(max=MAX_PSNR).reshape(1)
+            # one all_reduce: [the union's shared Gaussians x (gradients, 'in view') | PSNR, signal, done]
+            buffer = torch.zeros(part.total, sum(widths) + 1, device=device)
+            buffer[slots] = torch.cat([g.index_select(0, shared).reshape(len(shared), -1) for g in grads]
+                                      + [seen.index_select(0, shared).float()[:, None]], dim=1)
             flags = torch.tensor([float(stop.signum or 0), float(done or late)], device=device)
-            # one all_reduce: [shared rows' gradients | their 'in view' | PSNR, stop signal, out of steps or time]
-            buffer = torch.cat([g.index_select(0, shared).reshape(-1) for g in grads]
-                               + [seen.index_select(0, shared).float(), value, flags])
+            buffer = torch.cat([buffer.reshape(-1), value, flags])
             dist.all_reduce(buffer)
+            summed = buffer[:-3].view(part.total, -1).index_select(0, slots)
             at = 0
-            for g in grads:
-                width = g[0].numel() if n else 0
-                g.index_copy_(0, shared, buffer[at:at + len(shared) * width].view(len(shared), *g.shape[1:]))
-                at += len(shared) * width
-            seen.index_copy_(0, shared, buffer[at:at + len(shared)] > 0)
+            for g, width in zip(grads, widths):
+                g.index_copy_(0, shared, summed[:, at:at + width].reshape(len(shared), *g.shape[1:]))
+                at += width
+            seen.index_copy_(0, shared, summed[:, at] > 0)
             for p, g in zip(params.values(), grads):
                 p.grad = g
             optimizer.step(seen) if sparse else optimizer.step()
@@ -439,22 +472,23 @@ def all_gather_rows(rows: torch.Tensor) -> list[torch.Tensor]:
     return [g[:s] for g, s in zip(gathered, sizes)]
 
 
-def assemble(model: GaussianModel, reaches: torch.Tensor, rank: int) -> torch.Tensor:
-    """The refined union as rows [M, D], the same on every rank: a Gaussian alive in one stretch only
-    as its rank has it, the others as rank 0 has them (replicas of a shared one took the same steps);
-    Gaussians alive in no stretch are left out. `reaches` bool [S, N] from `reach` before refining."""
-    rows = pack(model.parameters_by_name())
-    alone = reaches.sum(0) == 1
-    owner = torch.where(alone, reaches.float().argmax(0), torch.full_like(alone, 0, dtype=torch.int64))
-    mine = (owner == rank) & alone
-    received = all_gather_rows(rows[mine])
-    for r, part in enumerate(received):
-        if r != rank:
-            rows[(owner == r) & alone] = part
-    return rows[reaches.any(0)]
+def assemble(model: GaussianModel, part: Halo) -> torch.Tensor:
+    """The refined union as rows [M, D], the same on every rank: each Gaussian as its holder has it
+    (`Halo.holder`; replicas of a shared one took the same steps), in the union's order, those alive
+    in no stretch left out. `model`: this rank's Halo after refining."""
+    device = model.means.device
+    holder = part.holder.to(device)
+    mine = holder.index_select(0, part.rows.to(device)) == part.rank
+    received = all_gather_rows(pack(model.parameters_by_name())[mine])
+    kept = holder >= 0
+    position = torch.cumsum(kept.long(), 0) - 1  # a kept Gaussian's row of the scene
+    out = torch.empty(int(kept.sum()), received[part.rank].shape[1], device=device)
+    for r, rows in enumerate(received):
+        out[position[holder == r]] = rows
+    return out
 
 
-__all__ = ["MIN_STRETCH", "REFINE_FRACTION", "Refined", "Stretch", "all_gather_rows", "assemble", "boundary_psnr",
-           "frame_psnr", "local_cameras", "merged_history", "model_of", "own_cut", "owned_rows", "pack",
-           "plan_stretches", "rank_paths", "reach", "refine", "stretch_points", "stretch_span", "to_clip_time",
-           "unpack"]
+__all__ = ["MIN_STRETCH", "REFINE_FRACTION", "Halo", "Refined", "Stretch", "all_gather_rows", "assemble",
+           "boundary_psnr", "frame_psnr", "halo", "local_cameras", "merged_history", "model_of", "own_cut",
+           "owned_rows", "pack", "plan_stretches", "rank_paths", "reach", "refine", "stretch_points", "stretch_span",
+           "to_clip_time", "unpack"]
