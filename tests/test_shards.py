@@ -133,20 +133,28 @@ def test_tracked_points_go_to_the_stretches_that_saw_them():
     assert stretch_points(points, colors, None, stretch)[2] is None
 
 
-def row(iteration, wall, train, clip="", gaussians=10, memory=100.0):
-    return dict(iteration=iteration, wall_s=wall, train_psnr=train, clip_psnr=clip, gaussians=gaussians,
-                memory_mb=memory)
+def row(iteration, wall, train, clip="", gaussians=10, memory=100.0, frames=""):
+    from tomgs.train.shards import log_row
+
+    return log_row(iteration=iteration, wall_s=wall, train_psnr=train, clip_psnr=clip, gaussians=gaussians,
+                   memory_mb=memory, clip_frames=frames)
 
 
 def test_the_merged_curve_weights_ranks_by_frames_and_waits_for_every_rank():
-    a = [row(50, 1.0, 20.0, 21.0), row(100, 2.0, 24.0), row(120, 3.0, 25.0, 26.0)]
-    b = [row(50, 1.5, 30.0, 31.0, memory=300.0), row(100, 2.5, 32.0)]
+    from tomgs.train.checkpoint import LOG_FIELDS
+
+    a = [row(50, 1.0, 20.0, 21.0, frames=4), row(100, 2.0, 24.0), row(120, 3.0, 25.0, 26.0, frames=4)]
+    b = [row(50, 1.5, 30.0, 31.0, memory=300.0, frames=12), row(100, 2.5, 32.0)]
     merged = merged_history([a, b], weights=[1, 3])
+    assert all(set(r) == set(LOG_FIELDS) for r in merged)  # rows of the fit's own log
     assert [r["wall_s"] for r in merged] == [1.5, 2.0, 2.5, 3.0]  # from the first time both have a row
-    assert merged[0] == row(100, 1.5, 27.5, 28.5, gaussians=20, memory=300.0)
+    first = {k: merged[0][k] for k in ("iteration", "wall_s", "train_psnr", "clip_psnr", "gaussians", "memory_mb")}
+    assert first == dict(iteration=100, wall_s=1.5, train_psnr=27.5, clip_psnr=28.5, gaussians=20, memory_mb=300.0)
     assert merged[1]["iteration"] == 150 and merged[1]["clip_psnr"] == ""  # a row without a new measurement
     assert merged[-1]["clip_psnr"] == pytest.approx((26.0 + 3 * 31.0) / 4)  # each rank's latest
     assert merged[-1]["iteration"] == 220
+    if "clip_frames" in LOG_FIELDS:
+        assert merged[0]["clip_frames"] == 16 and merged[1]["clip_frames"] == ""
 
 
 def test_boundary_psnr_splits_frames_near_each_boundary():

@@ -848,7 +848,7 @@ def _write_outputs(job, everyone, stretches, cameras, payload, final, refine_row
     """Rank 0: the scene, the merged CSV and plot; the run's summary."""
     from tomgs.io.scene import save_scene
     from tomgs.train.fit import _plot as plot
-    from tomgs.train.shards import boundary_psnr, merged_history
+    from tomgs.train.shards import boundary_psnr, log_row, merged_history
     from tomgs.train.trainer import write_csv
 
     frame_psnr = [p for rank in everyone for p in rank["frame_psnr"]]
@@ -865,11 +865,11 @@ def _write_outputs(job, everyone, stretches, cameras, payload, final, refine_row
         k = int(row["iteration"]) - everyone[0]["iterations"]
         history.append(dict(row, iteration=start_iteration + k * len(everyone), gaussians=len(final),
                             wall_s=round(start_wall + float(row["wall_s"]) - everyone[0]["train_seconds"], 3)))
-    history.append(dict(iteration=start_iteration + steps * len(everyone),
-                        wall_s=round(start_wall + refine_seconds, 3),
-                        train_psnr=history[-1]["train_psnr"] if history else "", clip_psnr=round(clip_psnr, 3),
-                        gaussians=len(final), memory_mb=max(float(r["peak_gpu_mb"] or r["peak_host_mb"])
-                                                            for r in everyone)))
+    history.append(log_row(iteration=start_iteration + steps * len(everyone),
+                           wall_s=round(start_wall + refine_seconds, 3),
+                           train_psnr=history[-1]["train_psnr"] if history else "", clip_psnr=round(clip_psnr, 3),
+                           clip_frames=len(frame_psnr), gaussians=len(final),
+                           memory_mb=max(float(r["peak_gpu_mb"] or r["peak_host_mb"]) for r in everyone)))
     boundary = boundary_psnr(frame_psnr, stretches)
     shards = dict(ranks=len(everyone), overlap=stretches[0].hi - stretches[0].own_hi if len(stretches) > 1 else 0,
                   union=everyone[0]["union"], shared=everyone[0]["shared"],

@@ -232,6 +232,14 @@ def reach(model: GaussianModel, times, stretches: list[Stretch]) -> torch.Tensor
 # -- the merged curve -----------------------------------------------------------------------------
 
 
+def log_row(**values) -> dict:
+    """A row of a fit's CSV log with every field it has (tomgs.train.checkpoint.LOG_FIELDS), "" for
+    those not given."""
+    from tomgs.train.checkpoint import LOG_FIELDS
+
+    return {name: values.get(name, "") for name in LOG_FIELDS}
+
+
 def merged_history(histories: list[list[dict]], weights: list[float]) -> list[dict]:
     """One CSV log (tomgs.train.checkpoint.LOG_FIELDS rows) of ranks that trained side by side: at
     every time a rank logged (wall_s: each rank's training seconds), each rank's latest row so far
@@ -241,6 +249,7 @@ def merged_history(histories: list[list[dict]], weights: list[float]) -> list[di
     events = sorted({(float(row["wall_s"]), r, i) for r, rows in enumerate(histories) for i, row in enumerate(rows)})
     latest: list[dict | None] = [None] * len(histories)
     clip: list[float | None] = [None] * len(histories)
+    frames: list[int | None] = [None] * len(histories)  # the frames each rank's latest clip PSNR covers
     out = []
     for wall, r, i in events:
         row = histories[r][i]
@@ -248,6 +257,7 @@ def merged_history(histories: list[list[dict]], weights: list[float]) -> list[di
         measured = row["clip_psnr"] != ""
         if measured:
             clip[r] = float(row["clip_psnr"])
+            frames[r] = int(row["clip_frames"]) if row.get("clip_frames") not in ("", None) else None
         if any(x is None for x in latest):
             continue
 
@@ -256,14 +266,17 @@ def merged_history(histories: list[list[dict]], weights: list[float]) -> list[di
             total = sum(w for w, _ in pairs)
             return round(sum(w * v for w, v in pairs) / total, 3) if total > 0 else ""
 
-        merged = dict(iteration=sum(int(x["iteration"]) for x in latest), wall_s=round(wall, 3),
-                      train_psnr=mean([x["train_psnr"] for x in latest]),
-                      clip_psnr=mean(clip) if measured and all(c is not None for c in clip) else "",
-                      gaussians=sum(int(x["gaussians"]) for x in latest),
-                      memory_mb=max(float(x["memory_mb"]) for x in latest))
+        complete = measured and all(c is not None for c in clip)
+        covered = [frames[r] for r in range(len(histories))]
+        merged = log_row(iteration=sum(int(x["iteration"]) for x in latest), wall_s=round(wall, 3),
+                         train_psnr=mean([x["train_psnr"] for x in latest]),
+                         clip_psnr=mean(clip) if complete else "",
+                         clip_frames=sum(covered) if complete and None not in covered else "",
+                         gaussians=sum(int(x["gaussians"]) for x in latest),
+                         memory_mb=max(float(x["memory_mb"]) for x in latest))
         if out and out[-1]["wall_s"] == merged["wall_s"]:
             if merged["clip_psnr"] == "" and out[-1]["clip_psnr"] != "":
-                merged["clip_psnr"] = out[-1]["clip_psnr"]
+                merged["clip_psnr"], merged["clip_frames"] = out[-1]["clip_psnr"], out[-1].get("clip_frames", "")
             out[-1] = merged
         else:
             out.append(merged)
@@ -410,9 +423,9 @@ def refine(model: GaussianModel, part: Halo, frames: torch.Tensor, cameras, time
             if tick is not None:
                 tick(start_iteration + out.steps, start_wall + now)
             if log_rows is not None and (out.steps % c.log_interval == 0 or signum or finished):
-                row = dict(iteration=start_iteration + out.steps, wall_s=round(start_wall + now, 3),
-                           train_psnr=round(float(np.mean(recent)), 3), clip_psnr="", gaussians=n,
-                           memory_mb=round(_memory_mb(device), 1))
+                row = log_row(iteration=start_iteration + out.steps, wall_s=round(start_wall + now, 3),
+                              train_psnr=round(float(np.mean(recent)), 3), gaussians=n,
+                              memory_mb=round(_memory_mb(device), 1))
                 recent.clear()
                 out.rows.append(row)
                 log_rows(row)
@@ -489,6 +502,6 @@ def assemble(model: GaussianModel, part: Halo) -> torch.Tensor:
 
 
 __all__ = ["MIN_STRETCH", "REFINE_FRACTION", "Halo", "Refined", "Stretch", "all_gather_rows", "assemble",
-           "boundary_psnr", "frame_psnr", "halo", "local_cameras", "merged_history", "model_of", "own_cut",
+           "boundary_psnr", "frame_psnr", "halo", "local_cameras", "log_row", "merged_history", "model_of", "own_cut",
            "owned_rows", "pack", "plan_stretches", "rank_paths", "reach", "refine", "stretch_points", "stretch_span",
            "to_clip_time", "unpack"]
