@@ -5,6 +5,7 @@ state; `resume` refuses options that change the frames; an all-black clip fits."
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import pickle
@@ -23,6 +24,7 @@ import torch
 from test_train import CPU, small_config, synthetic_clip
 from tomgs.errors import InputError
 from tomgs.train import Trainer, fit, preset
+from tomgs.train.checkpoint import read_checkpoint
 from tomgs.train.sampler import FrameSampler
 
 TESTS = Path(__file__).parent
@@ -302,7 +304,9 @@ def scheduled_saves(monkeypatch, iterations: int, save_seconds: float = 0.0) -> 
     monkeypatch.setattr(time, "perf_counter", lambda: clock[0])
     monkeypatch.setattr(Trainer, "step", step)
     monkeypatch.setattr(Trainer, "save_checkpoint", save)
-    monkeypatch.setattr(Trainer, "clip_psnr", lambda self, tick=None: [20.0] * self.num_frames)
+    monkeypatch.setattr(Trainer, "clip_psnr",
+                        lambda self, tick=None, frames=None: [20.0] * len(range(self.num_frames) if frames is None
+                                                                          else frames))
     trainer.run(checkpoint=Path("unused.ckpt"))
     monkeypatch.undo()
     return saves
@@ -337,6 +341,40 @@ def test_sigint_saves_the_step_it_reached_and_restores_the_handlers(tmp_path):
     state = read_state(checkpoint)
     assert state["iteration"] == 50
     assert_consistent(state)
+
+
+def test_a_checkpoint_from_before_clip_frames_loads_and_resumes(tmp_path):
+    """Rows of a checkpoint written before the log said how many frames a clip PSNR covers load (they
+    covered every frame) and the run resumes from them; a row with another key is still refused."""
+    checkpoint = tmp_path / "run.ckpt"
+
+    def progress(row):
+        if row["iteration"] == 50:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    trainer = trainer_for(100)
+    trainer.config = trainer.config.replace(eval_interval_s=0.0)
+    with pytest.raises(KeyboardInterrupt):
+        trainer.run(checkpoint=checkpoint, progress=progress)
+    state = read_state(checkpoint)
+    assert any(row["clip_psnr"] != "" for row in state["history"]), state["history"]
+    for row in state["history"]:
+        del row["clip_frames"]  # as an older tomgs wrote it
+    torch.save(state, checkpoint)
+    loaded = read_checkpoint(checkpoint)
+    assert all(row["clip_frames"] == (3 if row["clip_psnr"] != "" else "") for row in loaded["history"])
+    resumed = trainer_for(100)
+    resumed.config = resumed.config.replace(eval_interval_s=0.0)
+    resumed.load_checkpoint(checkpoint)
+    result = resumed.run(log_csv=tmp_path / "run.csv")
+    assert result.iterations == 100 and result.history[-1]["clip_frames"] == 3
+    with open(tmp_path / "run.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert rows[0]["clip_frames"] in ("", "3") and rows[-1]["clip_frames"] == "3"
+    state["history"].append(dict(state["history"][-1], evil=1))
+    torch.save(state, checkpoint)
+    with pytest.raises(InputError, match="history rows"):
+        read_checkpoint(checkpoint)
 
 
 def test_a_run_outside_the_main_thread_trains_without_signal_handlers(tmp_path):

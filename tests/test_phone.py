@@ -188,3 +188,71 @@ def test_the_eta_is_when_the_iterations_end_when_that_comes_before_the_budget():
     assert 60 < plenty.eta < 0.5 * plenty.budget and plenty.phases["train"] < 3000
     tight, _ = make_plan(preset("default", max_seconds=30), 132, 720, 1280, 720 * 1280, "cuda")
     assert tight.eta == 30
+
+
+def test_a_long_clip_has_a_clip_psnr_early_over_evenly_spaced_frames(monkeypatch, tmp_path):
+    """Issue 14: a full-clip PSNR was taken only once it cost at most 10% of the run, so a long clip's
+    curve began late (900 frames at 1080p on the H100: none in the first 1.5 minutes). Before the
+    last, a measurement covers evenly spaced frames, as many as 10% of the run so far pays for or as
+    take a second; the CSV says how many (clip_frames); the last covers every frame. On a fake clock a
+    step takes 0.1 s and a frame's render 0.05 s: all 300 frames take 15 s, which the old rule first
+    measured at 150 s."""
+    import time
+
+    from tomgs.cameras import Cameras, intrinsics
+    from tomgs.train import Trainer
+    from tomgs.train.fit import _plot
+
+    from test_train import small_config
+
+    T, clock, asked = 300, [0.0], []
+
+    def step(self):
+        clock[0] += 0.1
+        self.iteration += 1
+
+    def clip_psnr(self, tick=None, frames=None):
+        frames = list(range(self.num_frames)) if frames is None else [int(k) for k in frames]
+        asked.append((self.iteration, frames))
+        clock[0] += 0.05 * len(frames)
+        return [20.0 + self.iteration / 1000] * len(frames)
+
+    cams = Cameras.identity(T, intrinsics(20.0, 16, 9), 16, 9)
+    config = small_config(3000).replace(eval_interval_s=5.0, init_points_per_frame=2)
+    trainer = Trainer(np.zeros((T, 9, 16, 3), np.uint8), cams, np.zeros((0, 3)), np.zeros((0, 3)), config, CPU)
+    monkeypatch.setattr(time, "perf_counter", lambda: clock[0])
+    monkeypatch.setattr(Trainer, "step", step)
+    monkeypatch.setattr(Trainer, "clip_psnr", clip_psnr)
+    result = trainer.run(log_csv=tmp_path / "log.csv")
+    monkeypatch.undo()
+
+    rows = [r for r in result.history if r["clip_psnr"] != ""]
+    assert rows[0]["wall_s"] < 5 and 8 <= rows[0]["clip_frames"] < T, rows[0]
+    early = [r for r in rows if r["wall_s"] < 150]
+    assert len(early) >= 3 and all(r["clip_frames"] < T for r in early), early
+    assert [r["iteration"] for r in rows] == [i for i, _ in asked]
+    for row, (_, frames) in zip(rows, asked):
+        assert row["clip_frames"] == len(frames) and frames[0] == 0 and frames[-1] == T - 1
+        assert np.ptp(np.diff(frames)) <= 1  # evenly spaced
+    assert rows[-1]["iteration"] == 3000 and rows[-1]["clip_frames"] == T and result.clip_psnr == rows[-1]["clip_psnr"]
+    spent = sum(0.05 * len(frames) for _, frames in asked[:-1])
+    assert spent <= 0.12 * rows[-1]["wall_s"], (spent, rows[-1]["wall_s"])
+    with open(tmp_path / "log.csv") as f:
+        logged = list(csv.DictReader(f))
+    assert {r["clip_frames"] for r in logged if r["clip_psnr"] == ""} == {""}
+    assert [int(r["clip_frames"]) for r in logged if r["clip_psnr"] != ""] == [r["clip_frames"] for r in rows]
+    _plot(tmp_path / "log.psnr.png", logged)  # the plot reads the log's rows (strings) as they are written
+    assert (tmp_path / "log.psnr.png").stat().st_size > 1000
+
+
+def test_a_clip_psnr_of_some_frames_is_theirs_of_every_frame():
+    from tomgs.train import Trainer
+
+    from test_train import small_config, synthetic_clip
+
+    images, cams, points, colors = synthetic_clip(6, 32, 18)
+    trainer = Trainer(images, cams, points, colors, small_config(10), CPU)
+    every = trainer.clip_psnr()
+    assert trainer.clip_psnr(frames=[0, 2, 5]) == pytest.approx([every[0], every[2], every[5]], abs=1e-9)
+    with pytest.raises(ValueError, match="frame 6 is not one of the clip's 6"):
+        trainer.clip_psnr(frames=[1, 6])

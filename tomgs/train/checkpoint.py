@@ -15,7 +15,9 @@ After loading, its layout is checked (`check_state`) before a tensor of it is us
     optimizer         the optimiser's state_dict (Adam's layout, moments [N, ...])
     sampler           {psnr: float64 [V], generator: uint8 tensor}
     densifier         {grad_sum: [N], seen: [N], capped: bool, generator: uint8 tensor, changed_at: int}
-    history, notes    the CSV rows (dicts of numbers and "") and the fit's notes (str)
+    history, notes    the CSV rows (dicts of numbers and "") and the fit's notes (str); rows of a
+                      checkpoint written before clip_frames was logged get it on reading (their clip
+                      PSNRs covered every frame)
     clip              what identifies the clip for `fit(resume=True)` (tomgs.train.fit fills it)
 
 Signals: `StopSignals` turns SIGINT and SIGTERM into a request that the training loop reads at a
@@ -43,7 +45,9 @@ from tomgs.outputs import atomic_file
 
 FORMAT = "tomgs-checkpoint"
 VERSION = 1
-LOG_FIELDS = ("iteration", "wall_s", "train_psnr", "clip_psnr", "gaussians", "memory_mb")  # a history row
+# a history row; clip_frames: the frames its clip_psnr covers ("" without one)
+LOG_FIELDS = ("iteration", "wall_s", "train_psnr", "clip_psnr", "clip_frames", "gaussians", "memory_mb")
+ADDED_LOG_FIELDS = ("clip_frames",)  # absent from the rows of older checkpoints
 START_OVER = "pass --overwrite (-y) to start the fit over (Python: overwrite=True)"
 
 
@@ -165,6 +169,8 @@ def read_checkpoint(path) -> dict:
         raise InputError(f"{path} is not a checkpoint tomgs can read ({_load_failure(e)}); nothing in it was run. "
                          f"Delete it, or {START_OVER}") from None
     check_state(state, path)
+    for row in state["history"]:  # an older checkpoint's rows: every clip PSNR covered all the views
+        row.setdefault("clip_frames", state["frames"][0] if row["clip_psnr"] != "" else "")
     return state
 
 
@@ -217,7 +223,7 @@ def check_state(state, path="<checkpoint>", ours: bool = False) -> None:
     if not all(isinstance(n, str) for n in state["notes"]):
         fail("notes that are not text")
     for row in state["history"]:
-        if not isinstance(row, dict) or set(row) != set(LOG_FIELDS) \
+        if not isinstance(row, dict) or not set(LOG_FIELDS) - set(ADDED_LOG_FIELDS) <= set(row) <= set(LOG_FIELDS) \
                 or not all(isinstance(v, (int, float, str)) for v in row.values()):
             fail(f"history rows are not {', '.join(LOG_FIELDS)}")
 

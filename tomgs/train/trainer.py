@@ -7,8 +7,9 @@ over the whole clip, so they fill the object's place in the frames where it cove
 foreground's Gaussians pinned to a plane).
 
 Error against run time is part of the output: every `log_interval` iterations a CSV row
-(iteration, wall seconds, training PSNR, full-clip PSNR when measured, Gaussians, memory), and at
-the end a PNG of PSNR against wall-clock time; the CSV is rewritten atomically at each row.
+(iteration, wall seconds, training PSNR, clip PSNR and the frames it covers when measured, Gaussians,
+memory), and at the end a PNG of PSNR against wall-clock time; the CSV is rewritten atomically at
+each row.
 
 Durability (tomgs/train/checkpoint.py): a checkpoint every `checkpoint_interval_s` seconds of
 training (30 s), spaced further when a save is slow so that saving costs at most
@@ -55,9 +56,14 @@ CSV_FIELDS = LOG_FIELDS
 # A save may cost at most this fraction of the training time: with slow saves (millions of
 # Gaussians, a slow disk) checkpoints are spaced to 1 / CHECKPOINT_OVERHEAD times a save's duration.
 CHECKPOINT_OVERHEAD = 0.05
-# Full-clip PSNR measurements may cost at most this fraction of the run (a long clip's takes seconds).
+# Clip PSNR measurements may cost at most this fraction of the run (a long clip's takes seconds).
 EVAL_OVERHEAD = 0.1
 CHEAP_EVAL = 1.0  # seconds: a measurement this quick is taken whenever it is due
+# Before the last, a measurement the run cannot yet pay for in full covers evenly spaced frames: as
+# many as EVAL_OVERHEAD allows, or up to EVAL_FRAMES that take CHEAP_EVAL, never fewer than
+# MIN_EVAL_FRAMES (a 900-frame 1080p clip's full measurement first fitted the 10% after 1.5 minutes)
+EVAL_FRAMES = 64
+MIN_EVAL_FRAMES = 8
 RENDER_SHARE = 0.5  # a forward render's time over a training step's (CPU, the bundled clip: 0.11 / 0.22 s)
 STATIC_T_SCALE = 1e3  # temporal sigma of every Gaussian of a static fit (clip time: alive throughout)
 
@@ -138,7 +144,7 @@ class Trainer:
         self.history: list[dict] = []
         self.clip: dict = {}  # what identifies the clip, saved with checkpoints (tomgs.train.fit fills it)
         self._measured: list[tuple[int, torch.Tensor]] = []  # (frame, PSNR) not yet given to the sampler
-        self.eval_seconds = 0.0  # how long the last full-clip PSNR took
+        self.eval_frame_seconds = 0.0  # seconds a frame of the last clip PSNR took
 
     # -- set-up --------------------------------------------------------------------------------
 
@@ -342,15 +348,29 @@ class Trainer:
             self._measured.clear()
 
     @torch.no_grad()
-    def clip_psnr(self, tick=None) -> list[float]:
-        """PSNR of every frame (of its weighted pixels), rendered at its time: [T] floats.
-        tick(text) after each frame (a display's heartbeat on long clips)."""
+    def clip_psnr(self, tick=None, frames=None) -> list[float]:
+        """PSNR of every frame, or of `frames` (frame numbers), of its weighted pixels, rendered at its
+        time: floats, one a frame. tick(text) after each frame (a display's heartbeat on long clips)."""
+        frames = range(self.num_frames) if frames is None else [int(k) for k in frames]
         out = []
-        for k in range(self.num_frames):
+        for i, k in enumerate(frames):
+            if not 0 <= k < self.num_frames:
+                raise ValueError(f"clip_psnr: frame {k} is not one of the clip's {self.num_frames}")
             out.append(self._psnr(k, self.render(k)[0]))
             if tick is not None:
-                tick(f"full-clip PSNR {k + 1}/{self.num_frames}")
+                tick(f"clip PSNR {i + 1}/{len(frames)}" + ("" if len(frames) == self.num_frames else " frames"))
         return torch.stack(out).tolist() if out else []
+
+    def eval_frames(self, now: float, frame_seconds: float) -> int:
+        """How many frames a clip PSNR taken `now` seconds into the run covers when a frame takes
+        `frame_seconds`: all when that is under CHEAP_EVAL or EVAL_OVERHEAD of the run so far; else
+        what EVAL_OVERHEAD pays for, or up to EVAL_FRAMES that take CHEAP_EVAL, whichever is more; 0
+        (wait) while that is under MIN_EVAL_FRAMES."""
+        T = self.num_frames
+        if frame_seconds * T < CHEAP_EVAL or EVAL_OVERHEAD * now >= frame_seconds * T:
+            return T
+        count = max(int(EVAL_OVERHEAD * now / frame_seconds), min(int(CHEAP_EVAL / frame_seconds), EVAL_FRAMES))
+        return min(count, T) if count >= min(MIN_EVAL_FRAMES, T) else 0
 
     def run(self, checkpoint: Path | None = None, log_csv: Path | None = None, progress=None, *,
             time_limit: float | None = None, tick=None) -> FitResult:
@@ -361,11 +381,14 @@ class Trainer:
         a full-clip measurement, a display's heartbeat. With `checkpoint`, the state is saved there
         on the schedule above and on SIGINT / SIGTERM, which then raise FitInterrupted.
 
-        The full-clip PSNR is measured every `eval_interval_s` (later and further apart when a
-        measurement is slow, so measuring costs at most EVAL_OVERHEAD of the run), and only once `densify_interval`
-        / 2 steps have passed since the last densification, prune or opacity reset: right after
-        one the clip PSNR dips by 2-3 dB for a few dozen steps, a saw-tooth of the schedule rather
-        than of the fit. The final measurement is taken wherever the run ends."""
+        The clip PSNR is measured every `eval_interval_s` (further apart when a measurement is slow,
+        so measuring costs at most EVAL_OVERHEAD of the run), and only once `densify_interval` / 2
+        steps have passed since the last densification, prune or opacity reset: right after one the
+        clip PSNR dips by 2-3 dB for a few dozen steps, a saw-tooth of the schedule rather than of
+        the fit. A measurement the run cannot yet pay for in full covers evenly spaced frames
+        (`eval_frames`), so a long clip has a curve from its first minute; the final one, taken
+        wherever the run ends, covers every frame. Each row says how many frames its value covers
+        (clip_frames)."""
         c = self.config
         limit = c.max_seconds if time_limit is None else float(time_limit)
         tick = tick or (lambda iteration, seconds, text: None)
@@ -394,20 +417,22 @@ class Trainer:
                 if self.iteration > 1:
                     step_seconds = now - before if step_seconds is None else 0.9 * step_seconds + 0.1 * (now - before)
                 tick(self.iteration, now, None)
-                # until one is measured, a full-clip PSNR costs what RENDER_SHARE of a step costs per frame
-                eval_cost = self.eval_seconds or RENDER_SHARE * self.num_frames * (step_seconds or 0.0)
-                out_of_time = 0 < limit <= now + eval_cost
+                # until one is measured, a frame of the clip PSNR costs what RENDER_SHARE of a step costs
+                frame_seconds = self.eval_frame_seconds or RENDER_SHARE * (step_seconds or 0.0)
+                out_of_time = 0 < limit <= now + frame_seconds * self.num_frames  # the last covers all
                 last = self.iteration == c.iterations or out_of_time
-                affordable = eval_cost < CHEAP_EVAL or EVAL_OVERHEAD * now >= eval_cost
+                count = self.num_frames if last else self.eval_frames(now, frame_seconds)
                 settled = self.iteration - self.densifier.changed_at >= settle
-                measure = last or (now >= next_eval and affordable and settled)
+                measure = last or (now >= next_eval and count > 0 and settled)
                 if self.iteration % c.log_interval == 0 or measure:
                     clip = None
                     if measure:
+                        frames = None if count == self.num_frames else spread(self.num_frames, count)
                         began = time.perf_counter()
-                        clip = float(np.mean(self.clip_psnr(lambda text: tick(self.iteration, now, text))))
-                        self.eval_seconds = time.perf_counter() - began
-                        next_eval = now + max(c.eval_interval_s, self.eval_seconds / EVAL_OVERHEAD)
+                        values = self.clip_psnr(lambda text: tick(self.iteration, now, text), frames)
+                        seconds = time.perf_counter() - began
+                        clip, self.eval_frame_seconds = (float(np.mean(values)), len(values)), seconds / len(values)
+                        next_eval = now + max(c.eval_interval_s, seconds / EVAL_OVERHEAD)
                     row = self._row(now, clip)
                     self.history.append(row)
                     if log_csv is not None:
@@ -434,12 +459,14 @@ class Trainer:
         if stop.signum is not None:  # arrived after the loop's last look: still a step boundary
             stop_here(stop.signum)
         self.elapsed = time.perf_counter() - start
-        final = self.history[-1]["clip_psnr"] if self.history and self.history[-1]["clip_psnr"] != "" \
+        ended = self.history[-1] if self.history else {}
+        final = ended["clip_psnr"] if ended.get("clip_psnr", "") != "" and ended.get("clip_frames") == self.num_frames \
             else float(np.mean(self.clip_psnr()))
         return FitResult(self.model, self.cameras, float(final), self.iteration, self.elapsed, self.history,
                          list(self.notes))
 
-    def _row(self, now: float, clip: float | None) -> dict:
+    def _row(self, now: float, clip: tuple[float, int] | None) -> dict:
+        """The CSV row at `now` seconds; clip: (clip PSNR, the frames it covers) or None."""
         self.flush_measurements()
         seen = self.sampler.psnr[self.sampler.psnr > 0]
         if self.device.type == "cuda":
@@ -450,7 +477,8 @@ class Trainer:
             memory = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
         return dict(iteration=self.iteration, wall_s=round(now, 3),
                     train_psnr=round(float(seen.mean()), 3) if len(seen) else "",
-                    clip_psnr="" if clip is None else round(clip, 3), gaussians=len(self.model),
+                    clip_psnr="" if clip is None else round(clip[0], 3), clip_frames="" if clip is None else clip[1],
+                    gaussians=len(self.model),
                     memory_mb=round(memory, 1))
 
     # -- checkpoints ---------------------------------------------------------------------------
@@ -538,6 +566,11 @@ def _as_uint8(values, shape, name: str, device) -> torch.Tensor:
     if values.dtype != np.uint8:
         values = np.stack([np.rint(np.clip(v.astype(np.float32), 0.0, 1.0) * 255.0).astype(np.uint8) for v in values])
     return torch.as_tensor(values, device=device)
+
+
+def spread(total: int, count: int) -> np.ndarray:
+    """int [count]: `count` of `total` frames evenly spaced, the first and last among them (count >= 1)."""
+    return np.unique(np.linspace(0, total - 1, count).round().astype(np.int64))
 
 
 def write_csv(path: Path, rows: list[dict]) -> None:
