@@ -478,7 +478,7 @@ def all_gather_rows(rows: torch.Tensor) -> list[torch.Tensor]:
     sizes = [torch.zeros_like(size) for _ in range(world)]
     dist.all_gather(sizes, size)
     sizes = [int(s) for s in sizes]
-    padded = torch.zeros(max(sizes), rows.shape[1], dtype=rows.dtype, device=rows.device)
+    padded = torch.zeros(max(max(sizes), 1), rows.shape[1], dtype=rows.dtype, device=rows.device)  # never empty
     padded[:rows.shape[0]] = rows
     gathered = [torch.empty_like(padded) for _ in range(world)]
     dist.all_gather(gathered, padded)
