@@ -10,7 +10,8 @@ Each case runs `tomgs fit CLIP -o scene.ply --budget B --json ...` in its own pr
 resident memory is per process) and records: the ETA its plan printed and the wall time the
 command took, seconds per phase (read, poses, init, train, save), peak host (resident) and GPU
 (torch allocated) memory, the uint8 size of the selected frames (the host budget is that plus
-2 GB), the full-clip PSNR at 1, 2 and 5 minutes of the command's wall time and at the end,
+2 GB), the clip PSNR at 1, 2 and 5 minutes of the command's wall time (and the frames it covers:
+evenly spaced ones before the fit's last measurement, "(N fr.)" in the table) and at the end,
 Gaussians and iterations. Writes JSON to --json and prints a table.
 """
 
@@ -43,12 +44,13 @@ def make_synthetic(work: Path, frames: int, size: str, device: str) -> Path:
 
 
 def psnr_at(rows: list[dict], before_training: float, seconds: float):
-    """The full-clip PSNR measured last at or before `seconds` of the command (training rows count
-    from its start, `before_training` seconds in); None if training had not measured one by then."""
-    best = None
+    """The clip PSNR measured last at or before `seconds` of the command (training rows count from its
+    start, `before_training` seconds in) and the frames it covers (evenly spaced before the last;
+    None from a log without the column); (None, None) if training had not measured one by then."""
+    best = (None, None)
     for row in rows:
         if row["clip_psnr"] and before_training + float(row["wall_s"]) <= seconds:
-            best = float(row["clip_psnr"])
+            best = (float(row["clip_psnr"]), int(row["clip_frames"]) if row.get("clip_frames") else None)
     return best
 
 
@@ -76,6 +78,7 @@ def run_case(name: str, clip: Path, args, work: Path) -> dict:
     rows = list(csv.DictReader(open(fit["csv"])))
     phases = fit["phase_seconds"]
     before = sum(phases.get(k, 0.0) for k in ("read", "poses", "init")) + (fit["wall_seconds"] - sum(phases.values()))
+    marks = {m: psnr_at(rows, before, m) if m <= fit["wall_seconds"] + 5 else (None, None) for m in MARKS}
     return dict(case=name, clip=str(clip), frames=frames, width=width, height=height, budget_s=args.budget,
                 plan=plan, eta_s=round(fit["eta_seconds"], 1), wall_s=round(wall, 1),
                 fit_wall_s=round(fit["wall_seconds"], 1), phases_s={k: round(v, 1) for k, v in phases.items()},
@@ -83,8 +86,8 @@ def run_case(name: str, clip: Path, args, work: Path) -> dict:
                 peak_host_gib_by_phase={k: round(v / 1024, 2) for k, v in fit.get("peak_host_mb_by_phase", {}).items()},
                 peak_gpu_gib=None if fit["peak_gpu_mb"] is None else round(fit["peak_gpu_mb"] / 1024, 2),
                 frames_gib=round(frames * height * width * 3 / 2**30, 2),
-                psnr_at={f"{m // 60}min": psnr_at(rows, before, m) if m <= fit["wall_seconds"] + 5 else None
-                         for m in MARKS},  # None: the command had ended before
+                psnr_at={f"{m // 60}min": marks[m][0] for m in MARKS},  # None: none measured, or ended before
+                psnr_frames_at={f"{m // 60}min": marks[m][1] for m in MARKS},  # frames each covers
                 psnr_end=round(fit["clip_psnr"], 2),
                 gaussians=fit["gaussians"], iterations=fit["iterations"])
 
@@ -98,7 +101,9 @@ def table(results: list[dict]) -> str:
             lines.append(f"| {r['case']} | error: {' '.join(r['error'])} |")
             continue
         p = r["phases_s"]
-        at = "/".join("-" if v is None else f"{v:.2f}" for v in r["psnr_at"].values())
+        covers = r.get("psnr_frames_at", {})
+        at = "/".join("-" if v is None else f"{v:.2f}" + (f" ({covers[m]} fr.)" if covers.get(m) not in (None, r["frames"])
+                                                         else "") for m, v in r["psnr_at"].items())
         gpu = "-" if r["peak_gpu_gib"] is None else f"{r['peak_gpu_gib']:.2f}"
         lines.append(f"| {r['case']} | {r['frames']} | {r['width']}x{r['height']} | {r['eta_s']:.0f} | {r['wall_s']:.0f} "
                      f"| {p.get('read', 0):.1f} | {p.get('poses', 0):.1f} | {p.get('init', 0):.1f} "

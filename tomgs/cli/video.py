@@ -132,8 +132,9 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
 
     def on_row(row):
         last["row"] = row
-        say(f"  iteration {row['iteration']}: {row['wall_s']:.1f} s, {row_text(row)}, full-clip PSNR "
-            f"{row['clip_psnr'] or '-'}", level=2)
+        covers = f" over {row['clip_frames']} frames" if row.get("clip_frames") else ""
+        clip = f"{row['clip_psnr']} dB{covers}" if row["clip_psnr"] != "" else "-"
+        say(f"  iteration {row['iteration']}: {row['wall_s']:.1f} s, {row_text(row)}, clip PSNR {clip}", level=2)
 
     try:
         with phase_bars() as bars:
