@@ -393,3 +393,24 @@ def test_sigterm_to_the_parent_stops_every_rank_with_a_checkpoint(clip, tmp_path
     assert "scene.rank0.ckpt (iteration" in stderr and "scene.rank1.ckpt (iteration" in stderr
     assert process.returncode != 0
     assert all(p["checkpoint"].is_file() for p in rank_paths(out, 2)) and not out.exists()
+
+
+def test_a_failing_caller_stops_every_rank(clip, tmp_path, capfd):
+    """An error in the caller's own callback (here at the first log row) stops the ranks too: none
+    outlives the call, each keeps its checkpoint."""
+    frames, cams, _ = clip
+    out = tmp_path / "scene.ply"
+
+    def progress(row):
+        raise RuntimeError("the caller's display broke")
+
+    with pytest.raises(RuntimeError, match="display broke"):
+        fit(frames, out, small_config(ITERATIONS, checkpoint_interval_s=0.2), gpus=2, device="cpu",
+            poses=str(cams), progress=progress)
+    pids = [int(line.split("(pid ")[1].split(",")[0]) for line in capfd.readouterr().err.splitlines()
+            if line.startswith("rank ") and "(pid " in line]
+    assert len(pids) == 2
+    for pid in pids:
+        with pytest.raises(ProcessLookupError):
+            os.kill(pid, 0)
+    assert not out.exists()

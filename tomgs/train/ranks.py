@@ -353,14 +353,18 @@ def _spawn_and_watch(job: Job, paths: dict, progress, phases, pose_progress) -> 
     signals: list[int] = []
     stopping = {"at": None}
 
-    def forward(signum, frame):  # the parent's SIGINT / SIGTERM: every rank saves and stops
-        signals.append(signum)
+    def send(signum) -> None:
         for p in procs:
             if p.is_alive():
                 try:
                     os.kill(p.pid, signum)
                 except OSError:
                     pass
+
+    def forward(signum, frame):  # the parent's SIGINT / SIGTERM: every rank saves and stops
+        signals.append(signum)
+        stopping["at"] = stopping["at"] or time.monotonic()
+        send(signum)
 
     previous = {}
     if threading.current_thread() is threading.main_thread():
@@ -399,20 +403,19 @@ def _spawn_and_watch(job: Job, paths: dict, progress, phases, pose_progress) -> 
                         and not _pending(pipes[rank][0], readers):
                     died[rank] = p.exitcode
                     first_fault.append(rank)
-            if first_fault and stopping["at"] is None:
-                stopping["at"] = time.monotonic()
-                for p in procs:
-                    if p.is_alive():
-                        try:
-                            os.kill(p.pid, signal.SIGTERM)
-                        except OSError:
-                            pass
+            if first_fault and not stopping.get("faulted"):
+                stopping.update(at=stopping["at"] or time.monotonic(), faulted=True)
+                send(signal.SIGTERM)
             if stopping["at"] is not None and time.monotonic() - stopping["at"] > STOP_GRACE_S:
-                for p in procs:
-                    if p.is_alive():
-                        p.kill()
+                send(signal.SIGKILL)  # blocked in a collective with a dead peer: it keeps its last checkpoint
         for p in procs:
             p.join()
+    except BaseException:  # the parent's own failure (a callback's error): no rank outlives it
+        send(signal.SIGTERM)
+        for p in procs:
+            p.join(STOP_GRACE_S)
+        send(signal.SIGKILL)
+        raise
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)

@@ -20,7 +20,7 @@ A run (docs/multi-gpu.md; the processes and their faults: tomgs.train.ranks):
    affine map under which o(t) is unchanged), and every rank gathers the union.
 4. Joint refinement, data-parallel, for `refine_fraction` of the training time: a long-lived Gaussian
    of one stretch is alive in the next, where that rank fitted its own (the union alone double-draws
-   them: 4.7 dB lost on the CPU benchmark, 2.5 more at the boundary). Each rank trains its part of the
+   them: 4-5 dB lost on the CPU benchmark, 2-2.5 more at the boundary). Each rank trains its part of the
    union (its Halo: the Gaussians that may be alive in its stretch) on its own frames; the gradients
    of the Gaussians in more than one part are summed over the ranks at each step (one all_reduce), so
    each is fitted to every frame it is alive in, and all replicas take the same step; a Gaussian
