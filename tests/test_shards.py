@@ -194,6 +194,7 @@ def _refine_rank(rank: int, store: str, folder: str) -> None:
     dist.destroy_process_group()
 
 
+@pytest.mark.slow  # two processes, each importing torch and Warp
 def test_the_refinement_keeps_shared_replicas_equal_and_private_rows_their_ranks(tmp_path):
     """Two gloo processes refine their parts of one union on their own frames: a Gaussian alive in both
     stretches takes the same steps on both (gradients summed), one alive in one stretch only is its
@@ -273,6 +274,7 @@ def frame_psnrs(scene_path, images) -> np.ndarray:
                          for k in range(len(scene.cameras))])
 
 
+@pytest.mark.slow  # two processes, each importing torch and Warp
 def test_two_ranks_fit_one_ordinary_scene(clip, tmp_path):
     frames, cams, images = clip
     scene = tmp_path / "scene.ply"
@@ -347,6 +349,7 @@ def rank_pids(process: subprocess.Popen, out: Path, timeout: float = 240.0) -> d
     return pids
 
 
+@pytest.mark.slow  # two processes, each importing torch and Warp
 def test_a_killed_rank_stops_the_run_and_resume_continues_every_rank(clip, tmp_path):
     frames, cams, images = clip
     out = tmp_path / "scene.ply"
@@ -383,6 +386,7 @@ def test_a_killed_rank_stops_the_run_and_resume_continues_every_rank(clip, tmp_p
     assert abs(near["boundary"] - near["interior"]) <= 1.0, near
 
 
+@pytest.mark.slow  # two processes, each importing torch and Warp
 def test_sigterm_to_the_parent_stops_every_rank_with_a_checkpoint(clip, tmp_path):
     out = tmp_path / "scene.ply"
     process = start_fit(clip, out, ITERATIONS)
@@ -395,6 +399,7 @@ def test_sigterm_to_the_parent_stops_every_rank_with_a_checkpoint(clip, tmp_path
     assert all(p["checkpoint"].is_file() for p in rank_paths(out, 2)) and not out.exists()
 
 
+@pytest.mark.slow  # two processes, each importing torch and Warp
 def test_a_failing_caller_stops_every_rank(clip, tmp_path, capfd):
     """An error in the caller's own callback (here at the first log row) stops the ranks too: none
     outlives the call, each keeps its checkpoint."""
