@@ -133,39 +133,41 @@ def test_a_frames_work_follows_its_alive_count():
                                       sizes=torch.full((n,), 0.03))
     with torch.no_grad():
         model.opacity_logits.fill_(float(np.log(0.8 / 0.2)))
-    trainer = Trainer(images, cams, np.zeros((0, 3)), np.zeros((0, 3), np.float32), small_config(10), CPU,
-                      initial=(model, 1.0))
-    for k in (0, 37, 99):
-        _, _, meta = trainer.render(k)
-        # the margin for Adam's next steps adds a little, never N
-        assert alive_counts[k] <= meta["radii"].shape[0] <= 1.6 * alive_counts[k] + 40
-        assert meta["rows"].shape == (meta["radii"].shape[0],)
+    # training lists what Adam can move into a frame before the index looks again: under SeenAdam
+    # a step or two, under dense Adam (a CPU's default) also the coasting after them (~32 learning rates)
+    for sparse, most in ((True, 1.6), (False, 2.5)):
+        trainer = Trainer(images, cams, np.zeros((0, 3)), np.zeros((0, 3), np.float32),
+                          small_config(10, sparse_adam=sparse), CPU, initial=(model, 1.0))
+        for k in (0, 37, 99):
+            _, _, meta = trainer.render(k)
+            assert alive_counts[k] <= meta["radii"].shape[0] <= most * alive_counts[k] + 40
+            assert meta["rows"].shape == (meta["radii"].shape[0],)
 
 
 def test_adam_reach_bounds_what_adam_does():
     """adam_reach against torch's Adam and SeenAdam run on 512 rows with gradient histories from
-    tiny to growing geometrically, then the steps it bounds: zero gradients (coasting) for 400 steps,
-    or one arbitrary gradient first (a spike: what a step a check reads late may take). The bound
-    holds, and is within a few times of what the worst row does."""
+    tiny to growing geometrically, then the steps it bounds: s steps with any gradient (spikes of
+    random size and sign) and, for Adam, 400 with zero gradient (coasting). The bound holds, and is
+    within a few times of what the worst row does."""
     g = torch.Generator().manual_seed(4)
     n, history = 512, 1500  # late enough that Adam's bias corrections no longer shrink the steps
     scale = 10.0 ** (-6 + 8 * torch.rand(n, generator=g))
     growth = torch.where(torch.arange(n) % 4 == 0, 1.3, 1.0)  # a quarter: |m| / sqrt(v) near its limit
     noise = torch.rand(n, generator=g)  # per row: from pure noise (0) to one steady sign (1)
 
-    def run(optimizer_type, spike: bool, lookahead: bool, dense: bool):
+    def run(kind: str, spikes: int):
         p = torch.nn.Parameter(torch.randn(n, generator=g))
         group = dict(params=[p], lr=0.01, name="t_means")
-        opt = torch.optim.Adam([group], eps=1e-15) if optimizer_type == "adam" else SeenAdam([group], eps=1e-15)
-        step = (lambda: opt.step()) if optimizer_type == "adam" else (lambda: opt.step(torch.ones(n, dtype=torch.bool)))
+        opt = torch.optim.Adam([group], eps=1e-15) if kind == "adam" else SeenAdam([group], eps=1e-15)
+        step = (lambda: opt.step()) if kind == "adam" else (lambda: opt.step(torch.ones(n, dtype=torch.bool)))
         for j in range(history):
             sign = torch.where(torch.rand(n, generator=g) < noise, 1.0, torch.sign(torch.randn(n, generator=g)))
             p.grad = sign * scale * growth ** max(j - history + 40, 0)
             step()
-        bound = alive.adam_reach(p, opt.param_groups[0], opt.state[p], None, dense=dense, lookahead=lookahead)
+        bound = alive.adam_reach(p, opt.param_groups[0], opt.state[p], None, dense=kind == "adam", spikes=spikes)
         start, far = p.detach().double().clone(), torch.zeros(n, dtype=torch.float64)
-        for j in range(400 if dense else 1):
-            if spike and j == 0:
+        for j in range(spikes + (400 if kind == "adam" else 0)):
+            if j < spikes:
                 p.grad = torch.sign(torch.randn(n, generator=g)) * scale * 10.0 ** (8 * torch.rand(n, generator=g) - 2)
             else:
                 p.grad = torch.zeros(n)
@@ -173,11 +175,10 @@ def test_adam_reach_bounds_what_adam_does():
             far = torch.maximum(far, (p.detach().double() - start).abs())
         return far, bound
 
-    for kind, spike, lookahead, dense in (("adam", False, False, True), ("adam", True, True, True),
-                                          ("seen", True, True, False)):
-        far, bound = run(kind, spike, lookahead, dense)
-        assert bool((far <= bound).all()), (kind, float((far / bound).max()))
-        assert float((far / bound).max()) > 0.3, kind  # and not loose by orders of magnitude
+    for kind, spikes in (("adam", 0), ("adam", 1), ("adam", 2), ("seen", 1), ("seen", 2)):
+        far, bound = run(kind, spikes)
+        assert bool((far <= bound).all()), (kind, spikes, float((far / bound).max()))
+        assert float((far / bound).max()) > 0.3, (kind, spikes)  # and not loose by orders of magnitude
 
 
 def compare_steps(trainer, frames) -> float:
@@ -203,25 +204,26 @@ def compare_steps(trainer, frames) -> float:
     return worst
 
 
-@pytest.mark.parametrize("sparse, lookahead", [(False, False), (True, True)])
-def test_training_with_the_index_takes_the_steps_training_without_takes(sparse, lookahead):
-    """Over 60 steps where the windows move fast (10x the temporal learning rates, no headroom) and
-    densification changes the set: at every step each Gaussian projection finds alive at any frame
-    is in that frame's rows, and the loss and gradients equal those of a render of all N to 1e-6.
-    CPU (dense Adam, checks read at once) and GPU (SeenAdam, read a step late) settings."""
+@pytest.mark.parametrize("sparse, lookahead, faster", [(False, False, 1.0), (True, True, 3.0)])
+def test_training_with_the_index_takes_the_steps_training_without_takes(sparse, lookahead, faster):
+    """Over 60 steps where the windows move (short windows, no headroom, the temporal learning rates
+    x `faster`) and densification changes the set: at every step each Gaussian projection finds alive
+    at any frame is in that frame's rows, and the loss and gradients equal those of a render of all
+    N to 1e-6. CPU (dense Adam, checks read at once) and GPU (SeenAdam, read a step late) settings."""
     steps, frames = 60, 16
     images, cams, points, colors = synthetic_clip(frames, 32, 18)
-    config = small_config(steps, sparse_adam=sparse, lr_t_means=1e-2, lr_t_scales=1e-1, grad_threshold=1e-7,
-                          init_t_scale_frames=0.7).replace(
+    config = small_config(steps, sparse_adam=sparse, lr_t_means=1e-3 * faster, lr_t_scales=1e-2 * faster,
+                          grad_threshold=1e-7, init_t_scale_frames=0.7).replace(
         densify_interval=20, densify_start_fraction=0.3, max_gaussians=3000)
     trainer = Trainer(images, cams, points, colors, config, CPU)
     trainer.alive.lookahead, trainer.alive.headroom = lookahead, 0.0
     start_means = trainer.model.t_means.detach().clone()
-    sizes, movers, worst = {len(trainer.model)}, 0, 0.0
+    sizes, movers, worst, subsets = {len(trainer.model)}, 0, 0.0, 0
     for step in range(steps):
         model = trainer.model
         for k in range(frames):
             rows = trainer.alive.rows(k, model, trainer.optimizer, trainer.iteration)  # what step k would use
+            subsets += rows is not None
             inputs = model.render_inputs()
             found = kernel_alive(*(inputs[x].detach() for x in ("opacities", "t_means", "t_scales")), trainer.times[k])
             assert set(torch.nonzero(found)[:, 0].tolist()) <= as_set(rows, len(model)), (step, k)
@@ -232,9 +234,10 @@ def test_training_with_the_index_takes_the_steps_training_without_takes(sparse, 
         sizes.add(len(trainer.model))
         movers = max(movers, 0 if trainer.alive.movers is None else len(trainer.alive.movers))
     assert worst <= 1e-6
-    assert len(sizes) > 1 and movers > 0 and trainer.alive.rebuilds >= 3  # densified, escaped, rebuilt
+    assert len(sizes) > 1 and movers > 0 and subsets > steps * frames / 2  # densified, escaped, a subset
     kept = min(len(start_means), len(trainer.model))
-    assert float((trainer.model.t_means.detach()[:kept] - start_means[:kept]).abs().max()) > 0.1  # windows moved
+    moved = float((trainer.model.t_means.detach()[:kept] - start_means[:kept]).abs().max())
+    assert moved > 0.5 / (frames - 1)  # windows moved by half a frame and more
 
 
 @pytest.mark.parametrize("sparse", [False, True])

@@ -3,7 +3,7 @@ lives in it rather than the whole cloud (DESIGN.md "Principles": no work for the
 
 Frames, in time order, are grouped into buckets of F consecutive frames; bucket b lists every
 Gaussian whose alive window (tomgs.temporal.alive_window, widened by GATHER_SLACK so that float32
-projection never finds one alive outside it) meets the span of b's frame times [lo_b, hi_b], as CSR:
+projection never finds one alive outside it) holds one of b's frame times, as CSR:
 `offsets` on the host (a frame's rows are a slice, no device sync), `ids` on the device, ascending
 within a bucket (so a subset sorts its tile keys in the order the full cloud would, and composites
 exactly as it does). A frame's rows are its bucket's list: a superset of the Gaussians alive at its
@@ -55,9 +55,9 @@ class AliveIndex:
     """Buckets of frames and the Gaussians that may be alive in each (CSR). Build with `build`."""
 
     n: int  # Gaussians indexed
+    size: int  # frames per bucket (the last bucket may hold fewer)
     bucket_of: np.ndarray  # int64 [T]: the bucket of each frame position
-    lo: np.ndarray  # float64 [B]: the first frame time of each bucket (ascending)
-    hi: np.ndarray  # float64 [B]: the last frame time of each bucket (ascending)
+    times: torch.Tensor  # float64 [T] on the device: the frame times, ascending (bucket b: [b size, (b+1) size))
     offsets: list  # [B + 1] ints: bucket b's ids are ids[offsets[b]:offsets[b + 1]]
     ids: torch.Tensor  # [E] int32 (int64 from 2^31 Gaussians), ascending within a bucket
     b_first: torch.Tensor  # [N] int32: the first bucket listing each Gaussian
@@ -69,12 +69,12 @@ class AliveIndex:
 
     @property
     def nbytes(self) -> int:
-        """Device memory the index holds (ids and the per-Gaussian bucket range)."""
-        return sum(t.numel() * t.element_size() for t in (self.ids, self.b_first, self.b_last))
+        """Device memory the index holds (ids, the per-Gaussian bucket ranges, the frame times)."""
+        return sum(t.numel() * t.element_size() for t in (self.ids, self.b_first, self.b_last, self.times))
 
     @property
     def num_buckets(self) -> int:
-        return len(self.lo)
+        return len(self.offsets) - 1
 
     def rows(self, position: int) -> torch.Tensor | None:
         """The Gaussians that may be alive at frame `position` (int [M], a view of `ids`), or None
@@ -86,116 +86,90 @@ class AliveIndex:
     def covers(self, first: torch.Tensor, last: torch.Tensor, rows: torch.Tensor | None) -> torch.Tensor:
         """bool [M] on the device: every frame time inside [first_i, last_i] (float64 [M], the
         windows of Gaussians `rows`, None: all) lies in a bucket that lists Gaussian i. No sync."""
-        first, last = _never_when_nan(first, last)
+        start, stop = _frame_span(first, last, self.times)
         b_first = (self.b_first if rows is None else self.b_first.index_select(0, rows)).long()
         b_last = (self.b_last if rows is None else self.b_last.index_select(0, rows)).long()
-        before, after = self._edges
-        # strictly between the last unlisted frame time before and the first unlisted one after
-        # (none before the first bucket, none after the last: an infinite window is covered there)
-        return (((b_first == 0) | (first > before[b_first]))
-                & ((b_last == self.num_buckets - 1) | (last < after[b_last + 1])))
-
-    @functools.cached_property
-    def _edges(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """float64 [B+1] each on the device: before[b] = hi[b - 1] (-inf for b = 0), the last frame
-        time ahead of bucket b; after[b] = lo[b] (inf for b = B), the first frame time from bucket b."""
-        inf = np.array([math.inf])
-        device = self.ids.device
-        return (torch.as_tensor(np.concatenate([-inf, self.hi]), device=device),
-                torch.as_tensor(np.concatenate([self.lo, inf]), device=device))
+        return (stop <= start) | ((start // self.size >= b_first) & ((stop - 1) // self.size <= b_last))
 
 
-def _never_when_nan(first: torch.Tensor, last: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """A NaN window (a NaN temporal mean or scale, which projection culls) as alive at no time."""
+def _frame_span(first: torch.Tensor, last: torch.Tensor, times: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(start, stop) int64 [N]: the ascending frame `times` [T] inside [first_i, last_i] are
+    times[start_i:stop_i] (none when stop <= start: dead at every frame; NaN windows too, which
+    projection culls)."""
     bad = torch.isnan(first) | torch.isnan(last)
-    return first.masked_fill(bad, math.inf), last.masked_fill(bad, -math.inf)
-
-
-def _buckets(sorted_times: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
-    """(lo [B], hi [B]): first and last time of each run of `size` sorted frame times."""
-    starts = np.arange(0, len(sorted_times), size)
-    return sorted_times[starts], sorted_times[np.minimum(starts + size, len(sorted_times)) - 1]
-
-
-def _ranges(first: torch.Tensor, last: torch.Tensor, lo: np.ndarray, hi: np.ndarray):
-    """(b_first, b_last) int64 [N]: the buckets whose span [lo_b, hi_b] meets [first_i, last_i]
-    (a run, as both ends ascend); b_last < b_first when none."""
-    hi_t = torch.as_tensor(hi, device=first.device)
-    lo_t = torch.as_tensor(lo, device=first.device)
-    b_first = torch.searchsorted(hi_t, first, side="left")  # first bucket ending at or after `first`
-    b_last = torch.searchsorted(lo_t, last, side="right") - 1  # last bucket starting at or before `last`
-    return b_first, b_last
-
-
-def _per_bucket(b_first: torch.Tensor, b_last: torch.Tensor, buckets: int) -> torch.Tensor:
-    """int64 [B]: Gaussians listed in each bucket (a difference array over the runs, no mask)."""
-    listed = b_last >= b_first
-    spare = torch.full_like(b_first, buckets + 1)  # unlisted Gaussians count in a slot past the end
-    delta = (torch.bincount(torch.where(listed, b_first, spare), minlength=buckets + 2)
-             - torch.bincount(torch.where(listed, b_last + 1, spare), minlength=buckets + 2))
-    return torch.cumsum(delta, 0)[:buckets]
+    start = torch.searchsorted(times, first.masked_fill(bad, math.inf), side="left")
+    stop = torch.searchsorted(times, last.masked_fill(bad, -math.inf), side="right")
+    return start, stop
 
 
 def build(first: torch.Tensor, last: torch.Tensor, times, budget: float = ENTRIES_PER_GAUSSIAN) -> AliveIndex:
     """The index of Gaussians with alive windows [first_i, last_i] (float64 [N], first > last or
-    NaN: never alive) over frames at `times` ([T] clip times, any order). Host syncs: a few."""
+    NaN: never alive) over frames at `times` ([T] clip times, any order): bucket b lists Gaussian i
+    when one of b's frame times lies in its window. Host syncs: three."""
     times = np.asarray(times, dtype=np.float64).reshape(-1)
-    n, device = int(first.shape[0]), first.device
-    first, last = _never_when_nan(first.double(), last.double())
+    n, device, count = int(first.shape[0]), first.device, len(times)
     order = np.argsort(times, kind="stable")
-    sorted_times = times[order]
-    count = max(len(times), 1)
-    sizes = [1 << i for i in range(max(count - 1, 0).bit_length())] + [count]  # 1, 2, 4, .., one bucket
-    options = []  # (size, rows rendered over the clip, entries)
+    sorted_times = torch.as_tensor(times[order], device=device)
+    start, stop = _frame_span(first.double(), last.double(), sorted_times)
+    listed = stop > start
+    # entries and rows rendered over the clip for each bucket size, read back together
+    sizes = [1 << i for i in range(max(count - 1, 0).bit_length())] + [max(count, 1)]  # 1, 2, 4, .., one bucket
+    totals = []
     for size in sizes:
-        lo, hi = _buckets(sorted_times, size)
-        per_bucket = _per_bucket(*_ranges(first, last, lo, hi), len(lo)).tolist()
-        frames = np.diff(np.minimum(np.arange(0, len(lo) + 1) * size, len(times)))
-        options.append((size, float(np.dot(per_bucket, frames)), sum(per_bucket)))
-    fitting = [o for o in options if o[2] <= budget * max(n, 1)] or options[-1:]  # one bucket holds <= N
-    least = min(o[1] for o in fitting)
-    size = max(o[0] for o in fitting if o[1] <= least * (1 + WORK_TOLERANCE))
+        b_first, b_last = start // size, (stop - 1) // size
+        rendered = torch.clamp_max((b_last + 1) * size, count) - b_first * size  # frames of its buckets
+        totals.append(torch.stack([torch.where(listed, b_last - b_first + 1, 0).sum(),
+                                   torch.where(listed, rendered, 0).sum()]))
+    options = [(size, entries, work) for size, (entries, work) in zip(sizes, torch.stack(totals).tolist())]
+    fitting = [o for o in options if o[1] <= budget * max(n, 1)] or options[-1:]  # one bucket holds <= N
+    least = min(o[2] for o in fitting)
+    size = max(o[0] for o in fitting if o[2] <= least * (1 + WORK_TOLERANCE))
 
-    lo, hi = _buckets(sorted_times, size)
-    buckets = len(lo)
-    bucket_of = np.empty(len(times), dtype=np.int64)
-    bucket_of[order] = np.arange(len(times)) // size
-    b_first, b_last = _ranges(first, last, lo, hi)
-    per_bucket = _per_bucket(b_first, b_last, buckets)
+    buckets = (count + size - 1) // size
+    bucket_of = np.empty(count, dtype=np.int64)
+    bucket_of[order] = np.arange(count) // size
+    b_first = torch.where(listed, start // size, 1)  # unlisted: 1 > 0
+    b_last = torch.where(listed, (stop - 1) // size, 0)
+    spare = torch.full_like(b_first, buckets + 1)  # unlisted Gaussians count in a slot past the end
+    delta = (torch.bincount(torch.where(listed, b_first, spare), minlength=buckets + 2)
+             - torch.bincount(torch.where(listed, b_last + 1, spare), minlength=buckets + 2))
+    per_bucket = torch.cumsum(delta, 0)[:buckets]  # Gaussians listed in each bucket
     offsets = [0] + torch.cumsum(per_bucket, 0).tolist()
-    id_type = torch.int32 if n < 2**31 else torch.int64
-    ids = torch.empty(offsets[-1], dtype=id_type, device=device)
-    _fill(ids, b_first, b_last, torch.tensor(offsets[:-1], dtype=torch.int64, device=device), buckets)
+    ids = torch.empty(offsets[-1], dtype=torch.int32 if n < 2**31 else torch.int64, device=device)
     small = torch.int32 if buckets < 2**31 else torch.int64
-    return AliveIndex(n=n, bucket_of=bucket_of, lo=lo, hi=hi, offsets=offsets, ids=ids,
-                      b_first=b_first.to(small), b_last=b_last.to(small))
+    b_first, b_last = b_first.to(small), b_last.to(small)
+    _fill(ids, b_first, b_last, torch.tensor(offsets[:-1], dtype=torch.int64, device=device), buckets)
+    return AliveIndex(n=n, size=size, bucket_of=bucket_of, times=sorted_times, offsets=offsets, ids=ids,
+                      b_first=b_first, b_last=b_last)
 
 
 def _fill(ids: torch.Tensor, b_first: torch.Tensor, b_last: torch.Tensor, starts: torch.Tensor, buckets: int) -> None:
     """Write each Gaussian i into buckets b_first_i .. b_last_i of `ids` (bucket b from starts[b]),
-    ascending within a bucket: Gaussians in chunks of at most CHUNK_ENTRIES entries, each chunk's
-    entries stably sorted by bucket and placed after the earlier chunks' (ids ascend across chunks)."""
+    ascending within a bucket: Gaussians in chunks of about CHUNK_ENTRIES entries, each chunk's
+    entries stably sorted by bucket (the narrowest integer key) and placed after the earlier chunks'."""
     device = ids.device
-    per_gaussian = (b_last - b_first + 1).clamp_min(0)
+    per_gaussian = (b_last.long() - b_first.long() + 1).clamp_min(0)
     ends = torch.cumsum(per_gaussian, 0)
     total = int(ends[-1]) if len(ends) else 0
     marks = torch.tensor(list(range(CHUNK_ENTRIES, total, CHUNK_ENTRIES)), dtype=torch.int64, device=device)
     bounds = [0] + torch.searchsorted(ends, marks, side="right").tolist() + [len(ends)]
     placed = torch.zeros(buckets, dtype=torch.int64, device=device)  # entries written so far per bucket
+    key = torch.int16 if buckets < 2**15 else torch.int32
     for g0, g1 in zip(bounds[:-1], bounds[1:]):
         if g1 <= g0:
             continue
         counts = per_gaussian[g0:g1]
-        entries = int(counts.sum())
+        entries = int(ends[g1 - 1]) - (int(ends[g0 - 1]) if g0 else 0)
         gaussian = torch.repeat_interleave(torch.arange(g0, g1, device=device), counts, output_size=entries)
-        run_start = torch.repeat_interleave(torch.cumsum(counts, 0) - counts, counts, output_size=entries)
-        bucket = b_first[gaussian] + (torch.arange(entries, device=device) - run_start)  # [entries]
-        bucket, order = torch.sort(bucket, stable=True)
-        gaussian = gaussian[order]
+        # entry j of Gaussian i is in bucket b_first_i + j: its base minus where its run starts, plus j
+        base = torch.repeat_interleave(b_first[g0:g1].long() - (torch.cumsum(counts, 0) - counts), counts,
+                                       output_size=entries)
+        bucket, order = torch.sort((base + torch.arange(entries, device=device)).to(key), stable=True)
+        bucket = bucket.long()
         in_chunk = torch.bincount(bucket, minlength=buckets)
-        chunk_start = torch.cumsum(in_chunk, 0) - in_chunk
-        where = starts[bucket] + placed[bucket] + torch.arange(entries, device=device) - chunk_start[bucket]
-        ids[where] = gaussian.to(ids.dtype)
+        # bucket b's entries of this chunk go after those of the earlier chunks
+        shift = starts + placed - (torch.cumsum(in_chunk, 0) - in_chunk)
+        ids[shift[bucket] + torch.arange(entries, device=device)] = gaussian[order].to(ids.dtype)
         placed += in_chunk
 
 
@@ -208,10 +182,8 @@ def index_of(opacities: torch.Tensor, t_means: torch.Tensor, t_scales: torch.Ten
 # -- training: an index that stays exact while Adam moves the windows ------------------------------
 
 # Headroom, in steps of each parameter's learning rate, added to the windows a rebuilt index lists.
-# Less lists fewer dead Gaussians per frame, and more of them outgrow their buckets and become movers
-# (bundled-like clip, 30 frames, SeenAdam: 8 steps lists 45% of the cloud per frame (29% alive) and
-# lets 0.2% escape in 20 steps, 8% in 50; 16 steps lists 49%).
-HEADROOM_STEPS = 8.0
+# Less lists fewer dead Gaussians per frame, and more of them outgrow their buckets and become movers.
+HEADROOM_STEPS = 4.0
 MOVER_SHARE = 1 / 32  # movers (rendered at every frame) beyond this share of the cloud: rebuild
 REBUILD_EVERY = 200  # steps: a rebuild also narrows the windows that shrank since the last one
 TEMPORAL = ("t_means", "log_t_scales", "opacity_logits")  # the parameters an alive window depends on
@@ -226,37 +198,39 @@ def _bias_factor(beta1: float, beta2: float) -> float:
 
 
 def adam_reach(param: torch.Tensor, group: dict, state: dict, rows: torch.Tensor | None, *,
-               dense: bool, lookahead: bool) -> torch.Tensor:
-    """float64 [M]: how far Adam can move rows `rows` (None: all) of the 1-D parameter `param`
-    before the index next looks at them (see TrainingIndex), from each row's moments.
+               dense: bool, spikes: int) -> torch.Tensor:
+    """float64 [M]: how far Adam can move rows `rows` (None: all) of the 1-D parameter `param` in
+    `spikes` steps with any gradients and then, for `dense` Adam, any number with zero gradient
+    (SeenAdam leaves a row alone then), from each row's moments.
 
     An Adam step is lr m^ / (sqrt(v^) + eps), at most F lr |m| / sqrt(v) with F = `_bias_factor`.
     Write r = |m| / sqrt(v) for a row now, q = beta1 / sqrt(beta2), c = (1 - beta1)^2 / (1 - beta2):
     - a step with zero gradient (coasting) scales r by q exactly, so coasting from r moves a row at
       most F lr q r / (1 - q) in all;
     - a step with any gradient g gives, by Cauchy-Schwarz over (old moments, g), r' <= sqrt(q^2 r^2
-      + c) <= q r + sqrt(c) (the single spike: 3.16 for the default betas);
-    so: dense Adam (every row coasts every step), read at once: F lr q r / (1 - q); read a step late
-    (`lookahead`: one arbitrary step, then coasting): F lr (q r + sqrt c) / (1 - q); SeenAdam (a row
-    moves only when seen, and then the index checks it): 0 read at once, F lr (q r + sqrt c) late.
-    Both bounds are consistent under coasting: a coasted row's new bound plus the way it moved is
-    its old bound, so rows the index does not check (not rendered: zero gradient) stay inside.
+      + c) <= q r + sqrt(c) (one spike from rest: 3.16 learning rates for the default betas);
+    so with r_0 = r, r_j = q r_(j-1) + sqrt(c): F lr (r_1 + .. + r_s + [dense] q r_s / (1 - q)).
+    The bound is consistent under coasting (a coasted row's new bound plus the way it moved is its
+    old bound), so a row the index does not look at again stays inside what it was checked for.
     Plus float32 rounding of the updates (1e-3 relative, 1e-5 (1 + |p|) absolute)."""
     beta1, beta2 = group["betas"]
     if group.get("weight_decay", 0) or group.get("amsgrad", False) or not beta1 < math.sqrt(beta2) or beta1 > 0.99999:
         raise ValueError("the alive index bounds plain Adam steps (no weight decay or amsgrad, beta1 < sqrt(beta2))")
     p = param.detach() if rows is None else param.detach().index_select(0, rows)
-    q, c = beta1 / math.sqrt(beta2), (1 - beta1) ** 2 / (1 - beta2)
-    late = 1.0 if lookahead else 0.0
+    q, root_c = beta1 / math.sqrt(beta2), (1 - beta1) / math.sqrt(1 - beta2)
     if "exp_avg" in state:
-        m = state["exp_avg"] if rows is None else state["exp_avg"].index_select(0, rows)
+        m = (state["exp_avg"] if rows is None else state["exp_avg"].index_select(0, rows)).abs()
         v = state["exp_avg_sq"] if rows is None else state["exp_avg_sq"].index_select(0, rows)
-        m, v = m.double().abs(), v.double()
-        r = torch.where(m == 0, torch.zeros_like(m), m / v.sqrt())  # inf where v underflowed: listed everywhere
+        r = torch.where(m == 0, 0.0, m / v.sqrt()).double()  # inf where v underflowed: listed everywhere
     else:
         r = torch.zeros(p.shape, dtype=torch.float64, device=p.device)
-    steps = (q * r + math.sqrt(c) * late) * (1 / (1 - q) if dense else late)
-    return _bias_factor(beta1, beta2) * group["lr"] * steps * (1 + 1e-3) + 1e-5 * (1 + p.double().abs())
+    moved = torch.zeros_like(r)
+    for _ in range(spikes):
+        r = q * r + root_c
+        moved += r
+    if dense:
+        moved += q / (1 - q) * r
+    return (_bias_factor(beta1, beta2) * group["lr"] * (1 + 1e-3)) * moved + 1e-5 * (1 + p.double().abs())
 
 
 class TrainingIndex:
@@ -264,15 +238,17 @@ class TrainingIndex:
     alive at frame k's time for the parameters as they are when frame k renders.
 
     Rows a step does not render get exactly zero gradient (with or without the index: dead at the
-    frame, projection culls them), so under dense Adam they coast and under SeenAdam they stay. A
-    rebuild lists each Gaussian over the windows its parameters can reach by Adam's bound
-    (`adam_reach`) plus HEADROOM_STEPS learning rates. After each optimiser step, `check` recomputes
-    that reach (no headroom) for the rows the step rendered, the only ones a gradient moved, and
-    finds those that now reach a frame outside their buckets; the rest are inside by the bound's
-    consistency. Those become movers, rendered at every frame until the next rebuild (a few rows
-    each, where rebuilding costs O(N)). On a CPU the check is read at once; on a GPU it is read in
-    the next frame's render (`settle`, after that render's one host sync, from a copy made without
-    waiting), so the bound covers one more step (`lookahead`) and the movers join a frame later.
+    frame, projection culls them), so under dense Adam they coast and under SeenAdam they stay.
+    After each optimiser step, `check` bounds for the rows the step rendered, the only ones a
+    gradient moved, the windows they can reach before the index next looks (`adam_reach`: by
+    coasting on a CPU, where the check is read at once; on a GPU it is read in the next frame's
+    render (`settle`, after that render's one host sync, from a copy made without waiting), so the
+    bound allows one more step with any gradient, `lookahead`), and finds those that reach a frame
+    outside their buckets. The rows it does not look at stay inside by the bound's consistency.
+    Those it finds become movers, rendered at every frame until the next rebuild (a few rows each,
+    where rebuilding costs O(N)). A rebuild lists each Gaussian over the windows the check would
+    allow plus one more arbitrary step (a row's first step after it never makes it a mover) and
+    HEADROOM_STEPS learning rates.
 
     Rebuilt when the model's parameters are replaced (densification, pruning, opacity reset, a
     checkpoint loaded), when the temporal learning rates change, when movers pass MOVER_SHARE of
@@ -298,11 +274,12 @@ class TrainingIndex:
         return {g["name"]: (params[g["name"]], g, optimizer.state.get(params[g["name"]], {}))
                 for g in optimizer.param_groups if g.get("name") in TEMPORAL}
 
-    def reach(self, model, optimizer, rows: torch.Tensor | None, headroom: float = 0.0):
-        """(first, last) float64 [M]: the windows rows `rows` (None: all) of `model` can reach (see
-        the class), widened by `headroom` learning rates."""
-        move = {name: adam_reach(param, group, state, rows, dense=self.dense, lookahead=self.lookahead)
-                + headroom * group["lr"] for name, (param, group, state) in self._groups(model, optimizer).items()}
+    def reach(self, model, optimizer, rows: torch.Tensor | None, spikes: int, headroom: float = 0.0):
+        """(first, last) float64 [M]: the windows rows `rows` (None: all) of `model` can reach in
+        `spikes` steps with any gradient, then coasting (`adam_reach`), widened by `headroom`
+        learning rates."""
+        move = {name: adam_reach(param, group, state, rows, dense=self.dense, spikes=spikes) + headroom * group["lr"]
+                for name, (param, group, state) in self._groups(model, optimizer).items()}
         take = (lambda x: x.detach()) if rows is None else (lambda x: x.detach().index_select(0, rows))
         opacities = activated_opacities(take(model.opacity_logits).double() + move["opacity_logits"])
         t_scales = activated_t_scales(take(model.log_t_scales).double() + move["log_t_scales"])
@@ -328,7 +305,11 @@ class TrainingIndex:
 
     @torch.no_grad()
     def rebuild(self, model, optimizer, iteration: int) -> None:
-        self.index = build(*self.reach(model, optimizer, None, self.headroom), self.times, self.budget)
+        # one arbitrary step beyond what the checks allow, so a row's first step after the rebuild
+        # (a spike from rest: three learning rates, and under dense Adam the coasting after it)
+        # never makes it a mover
+        spikes = self.lookahead + 1
+        self.index = build(*self.reach(model, optimizer, None, spikes, self.headroom), self.times, self.budget)
         params = model.parameters_by_name()
         self._params = tuple(weakref.ref(params[name]) for name in TEMPORAL)
         self._lrs = tuple(g["lr"] for g in optimizer.param_groups if g.get("name") in TEMPORAL)
@@ -341,7 +322,7 @@ class TrainingIndex:
         reach a frame outside their buckets. Read at once, or at `settle` (lookahead)."""
         if self.index is None or self.stale or len(model) != self.index.n:
             return
-        out = ~self.index.covers(*self.reach(model, optimizer, rows), rows)
+        out = ~self.index.covers(*self.reach(model, optimizer, rows, int(self.lookahead)), rows)
         room = int(MOVER_SHARE * self.index.n) - (0 if self.movers is None else len(self.movers))
         where = torch.nonzero_static(out, size=max(room, 0), fill_value=0).squeeze(1)  # no sync
         count = out.sum()

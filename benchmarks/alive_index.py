@@ -1,0 +1,113 @@
+"""What the alive index (tomgs.alive, issue 15) saves: a training step and a rendered frame with and
+without it, on a DAVIS-like synthetic cloud where a chosen share of the Gaussians is alive at each
+frame (each Gaussian alive over that share of the clip, centres uniform in time, scattered in front
+of a fixed camera over noise frames).
+
+    python benchmarks/alive_index.py --device cpu --gaussians 200000 --size 160x90
+    python benchmarks/alive_index.py --device cuda --gaussians 4000000 --size 854x480
+
+Prints per mode the training step (ms, steps/s), the frame rate of render_sequence (index) against
+rasterize over every Gaussian, the rows a frame renders against those alive, and the index's
+rebuilds and size. Densification is off: the loop itself is measured.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+
+import numpy as np
+import torch
+
+from tomgs.cameras import Cameras, intrinsics
+from tomgs.model import GaussianModel
+from tomgs.render import rasterize, render_sequence
+from tomgs.train import Trainer, preset
+
+
+def cloud(n: int, share: float, frames: int, device: torch.device, seed: int = 0) -> GaussianModel:
+    """n Gaussians 2-6 units in front of the camera, each alive over `share` of the clip."""
+    g = torch.Generator().manual_seed(seed)
+    depth = 2 + 4 * torch.rand(n, generator=g)
+    xy = (torch.rand(n, 2, generator=g) - 0.5) * depth[:, None] * 1.2
+    points = torch.cat([xy, depth[:, None]], 1)
+    a = 0.5
+    sigma = share / 2 / math.sqrt(2 * math.log(255 * a))  # alive window: share of the clip
+    t_means = torch.rand(n, generator=g) * (1 + share) - share / 2
+    model = GaussianModel.from_points(points, torch.rand(n, 3, generator=g), t_means, sigma, max_sh_degree=0,
+                                      opacity=a, sizes=depth * 2.0 / math.sqrt(n))
+    return model.to(device)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", default="cuda")
+    ap.add_argument("--gaussians", type=int, default=200_000)
+    ap.add_argument("--alive", type=float, default=0.15, help="share of the clip each Gaussian is alive over")
+    ap.add_argument("--frames", type=int, default=60)
+    ap.add_argument("--size", default="160x90", help="WxH")
+    ap.add_argument("--steps", type=int, default=20)
+    ap.add_argument("--sparse-adam", choices=("auto", "on", "off"), default="auto")
+    ap.add_argument("--threads", type=int, default=1, help="torch's CPU threads (a shared machine: 1, or every "
+                    "small op waits ~8 ms for a busy core)")
+    args = ap.parse_args()
+    device = torch.device(args.device)
+    torch.set_num_threads(args.threads)
+    width, height = (int(v) for v in args.size.lower().split("x"))
+    T = args.frames
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    rng = np.random.default_rng(0)
+    frames = rng.integers(0, 256, (T, height, width, 3), dtype=np.uint8)
+    cams = Cameras.create(np.repeat(np.eye(4)[None], T, 0), intrinsics(1.2 * max(width, height), width, height),
+                          width, height)
+    sparse = None if args.sparse_adam == "auto" else args.sparse_adam == "on"
+    out = dict(device=str(device), gaussians=args.gaussians, alive_share=args.alive, frames=T, size=[width, height])
+    for use in (False, True):
+        config = preset("default", iterations=10**6, densify_start_fraction=2.0, log_interval=10**9,
+                        eval_interval_s=1e9, sparse_adam=sparse, alive_index=use)
+        model = cloud(args.gaussians, args.alive, T, device)
+        trainer = Trainer(frames, cams, np.zeros((0, 3)), np.zeros((0, 3), np.float32), config, device,
+                          initial=(model, 4.0))
+        for _ in range(3):  # kernels loaded, the index built
+            trainer.step()
+        sync()
+        start = time.perf_counter()
+        for _ in range(args.steps):
+            trainer.step()
+        sync()
+        step = (time.perf_counter() - start) / args.steps
+        mode = "index" if use else "all"
+        row = dict(step_ms=round(step * 1e3, 2), steps_per_s=round(1 / step, 2))
+        if use:
+            index = trainer.alive.index
+            rendered = [len(trainer.model) if index.rows(k) is None else len(index.rows(k)) for k in range(T)]
+            alive = [int(trainer.model.alive_at(t).sum()) for t in trainer.times]
+            row.update(rows_share=round(float(np.mean(rendered)) / len(trainer.model), 4),
+                       alive_share_measured=round(float(np.mean(alive)) / len(trainer.model), 4),
+                       buckets=index.num_buckets, entries_per_gaussian=round(index.entries / len(trainer.model), 2),
+                       index_mb=round(index.nbytes / 2**20, 1), rebuilds=trainer.alive.rebuilds)
+        out[mode] = row
+    # rendering: render_sequence (the index) against rasterize over every Gaussian, all frames
+    inputs = {k: v.detach() for k, v in cloud(args.gaussians, args.alive, T, device).render_inputs().items()}
+    viewmats, K = cams.viewmats(device), torch.as_tensor(cams.K, dtype=torch.float32, device=device)
+    with torch.no_grad():
+        for name in ("all", "index"):
+            for rep in range(2):  # the first pass loads kernels
+                sync()
+                start = time.perf_counter()
+                if name == "all":
+                    for k in range(T):
+                        rasterize(**inputs, viewmat=viewmats[k], K=K, width=width, height=height, t=float(cams.times[k]))
+                else:
+                    for _ in render_sequence(inputs, cams, device=device, to_cpu=False):
+                        pass
+                sync()
+                seconds = time.perf_counter() - start
+            out[name]["render_fps"] = round(T / seconds, 1)
+    print(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()
