@@ -290,3 +290,57 @@ def test_render_sequence_with_the_index_renders_what_all_gaussians_render():
             assert torch.equal(image, full.clamp(0, 1)), k
             subsets += meta["rows"] is not None and len(meta["rows"]) < n // 2
     assert subsets == 2 * len(order)
+
+
+@pytest.mark.parametrize("dense, spikes, headroom", [(True, 0, 0.0), (True, 1, 4.0), (False, 1, 0.0), (False, 2, 4.0)])
+def test_the_bound_kernel_keeps_the_torch_formula(dense, spikes, headroom):
+    """tomgs/kernels/alive.py against alive.reach_reference (windows) and AliveIndex.covers (the
+    check) on random states: moments from none to a v that underflowed under a live m, a temporal
+    learning rate of 0, opacities across 1/255, NaN and far centres."""
+    g = torch.Generator().manual_seed(6)
+    n = 4000
+    model = GaussianModel.from_points(torch.randn(n, 3, generator=g), torch.rand(n, 3, generator=g),
+                                      torch.rand(n, generator=g) * 1.4 - 0.2, 0.02, max_sh_degree=0)
+    with torch.no_grad():
+        model.log_t_scales.copy_(torch.randn(n, generator=g) * 2 - 4)
+        model.opacity_logits.copy_(torch.randn(n, generator=g) * 4 - 3)  # many near and below 1/255
+        model.t_means[:20] = float("nan")
+        model.t_means[20:40] = 1e6
+    groups = [dict(params=[p], lr=0.0 if name == "log_t_scales" else 0.01 * (1 + i), name=name)
+              for i, (name, p) in enumerate(model.parameters_by_name().items())]
+    optimizer = torch.optim.Adam(groups, eps=1e-15) if dense else SeenAdam(groups, eps=1e-15)
+    for name in ("t_means", "opacity_logits", "log_t_scales"):
+        p = getattr(model, name)
+        m = torch.randn(n, generator=g) * 10.0 ** (-4 * torch.rand(n, generator=g))
+        v = m.square() * 10.0 ** (2 * torch.rand(n, generator=g) - 1.5)
+        m[:100], v[100:200] = 0.0, 0.0  # no momentum; v underflowed under a live m
+        optimizer.state[p] = dict(step=torch.tensor(50.0), exp_avg=m, exp_avg_sq=v)
+    index = alive.TrainingIndex(np.linspace(0, 1, 31), dense=dense, lookahead=False)
+    first, last = index.reach(model, optimizer, spikes, headroom)
+    want_first, want_last = alive.reach_reference(model, optimizer, None, spikes=spikes, dense=dense,
+                                                  headroom=headroom)
+    never = ~(first <= last)  # alive at no time: first > last, or NaN (torch gives NaN where m is)
+    assert torch.equal(never, ~(want_first <= want_last))
+    for got, want in ((first[~never], want_first[~never]), (last[~never], want_last[~never])):
+        same = got == want  # infinite ends
+        close = torch.isclose(got, want, rtol=1e-4, atol=1e-7)  # r in float32 there, float64 here
+        assert bool((same | close).all()), (got[~(same | close)][:5], want[~(same | close)][:5])
+    assert bool(torch.isinf(first[~never]).any() and torch.isfinite(first).any() and never.any())
+    # the check: a narrower index than the reach, so that some rows escape
+    built = alive.build(*alive.reach_reference(model, optimizer, None, spikes=0, dense=False), index.times)
+    index.index, index.stale, index.lookahead = built, False, bool(spikes)
+    rows = torch.arange(0, n, 3, dtype=torch.int32)
+    moved = torch.rand(len(rows), generator=g) < 0.7  # the rows the step gave a gradient: only they are checked
+    want = moved & ~built.covers(*alive.reach_reference(model, optimizer, rows, spikes=int(spikes > 0), dense=dense),
+                                 rows)
+    index.check(model, optimizer, rows, moved)  # read at once (settle) without lookahead
+    if index.lookahead:
+        _, where, count, _ = index.pending
+        assert int(count[0]) == int(want.sum()) > 0
+        index.settle()
+    escaped = rows[want].tolist()
+    if len(escaped) > alive.MOVER_SHARE * n:
+        assert index.stale and index.movers is None
+    else:
+        assert not index.stale and index.movers.tolist() == escaped
+        assert bool((index.index.b_first[rows[want]] == 0).all())  # listed everywhere from now on

@@ -85,7 +85,8 @@ class AliveIndex:
 
     def covers(self, first: torch.Tensor, last: torch.Tensor, rows: torch.Tensor | None) -> torch.Tensor:
         """bool [M] on the device: every frame time inside [first_i, last_i] (float64 [M], the
-        windows of Gaussians `rows`, None: all) lies in a bucket that lists Gaussian i. No sync."""
+        windows of Gaussians `rows`, None: all) lies in a bucket that lists Gaussian i. No sync.
+        (Training checks this in tomgs/kernels/alive.py's `reach_escapes`; this is its torch form.)"""
         start, stop = _frame_span(first, last, self.times)
         b_first = (self.b_first if rows is None else self.b_first.index_select(0, rows)).long()
         b_last = (self.b_last if rows is None else self.b_last.index_select(0, rows)).long()
@@ -213,11 +214,11 @@ def adam_reach(param: torch.Tensor, group: dict, state: dict, rows: torch.Tensor
     The bound is consistent under coasting (a coasted row's new bound plus the way it moved is its
     old bound), so a row the index does not look at again stays inside what it was checked for.
     Plus float32 rounding of the updates (1e-3 relative, 1e-5 (1 + |p|) absolute)."""
-    beta1, beta2 = group["betas"]
-    if group.get("weight_decay", 0) or group.get("amsgrad", False) or not beta1 < math.sqrt(beta2) or beta1 > 0.99999:
-        raise ValueError("the alive index bounds plain Adam steps (no weight decay or amsgrad, beta1 < sqrt(beta2))")
+    scale, q, root_c = _adam_constants(group)
     p = param.detach() if rows is None else param.detach().index_select(0, rows)
-    q, root_c = beta1 / math.sqrt(beta2), (1 - beta1) / math.sqrt(1 - beta2)
+    rounding = 1e-5 * (1 + p.double().abs())
+    if scale == 0:  # a learning rate of 0: the parameter stays, whatever its moments
+        return rounding
     if "exp_avg" in state:
         m = (state["exp_avg"] if rows is None else state["exp_avg"].index_select(0, rows)).abs()
         v = state["exp_avg_sq"] if rows is None else state["exp_avg_sq"].index_select(0, rows)
@@ -230,7 +231,39 @@ def adam_reach(param: torch.Tensor, group: dict, state: dict, rows: torch.Tensor
         moved += r
     if dense:
         moved += q / (1 - q) * r
-    return (_bias_factor(beta1, beta2) * group["lr"] * (1 + 1e-3)) * moved + 1e-5 * (1 + p.double().abs())
+    return scale * moved + rounding
+
+
+def _adam_constants(group: dict) -> tuple[float, float, float]:
+    """(F lr (1 + 1e-3), q, sqrt(c)) of an Adam parameter group (`adam_reach`); ValueError for
+    what its bound does not cover."""
+    beta1, beta2 = group["betas"]
+    if group.get("weight_decay", 0) or group.get("amsgrad", False) or not beta1 < math.sqrt(beta2) or beta1 > 0.99999:
+        raise ValueError("the alive index bounds plain Adam steps (no weight decay or amsgrad, beta1 < sqrt(beta2))")
+    return (_bias_factor(beta1, beta2) * group["lr"] * (1 + 1e-3), beta1 / math.sqrt(beta2),
+            (1 - beta1) / math.sqrt(1 - beta2))
+
+
+def _temporal_groups(model, optimizer) -> dict:
+    """name -> (parameter, its group, its Adam state) for the temporal parameters."""
+    params = model.parameters_by_name()
+    return {g["name"]: (params[g["name"]], g, optimizer.state.get(params[g["name"]], {}))
+            for g in optimizer.param_groups if g.get("name") in TEMPORAL}
+
+
+def reach_reference(model, optimizer, rows: torch.Tensor | None, *, spikes: int, dense: bool,
+                    headroom: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """(first, last) float64 [M]: the widest alive windows rows `rows` (None: all) of `model` can
+    reach in `spikes` steps with any gradient and then coasting (`adam_reach`, plus `headroom`
+    learning rates): the torch form of tomgs/kernels/alive.py's `reach_window`, which tests hold
+    to it."""
+    move = {name: adam_reach(param, group, state, rows, dense=dense, spikes=spikes) + headroom * group["lr"]
+            for name, (param, group, state) in _temporal_groups(model, optimizer).items()}
+    take = (lambda x: x.detach()) if rows is None else (lambda x: x.detach().index_select(0, rows))
+    opacities = activated_opacities(take(model.opacity_logits).double() + move["opacity_logits"])
+    t_scales = activated_t_scales(take(model.log_t_scales).double() + move["log_t_scales"])
+    first, last = temporal.alive_window(opacities, take(model.t_means).double(), t_scales, slack=GATHER_SLACK)
+    return first - move["t_means"], last + move["t_means"]
 
 
 class TrainingIndex:
@@ -239,8 +272,8 @@ class TrainingIndex:
 
     Rows a step does not render get exactly zero gradient (with or without the index: dead at the
     frame, projection culls them), so under dense Adam they coast and under SeenAdam they stay.
-    After each optimiser step, `check` bounds for the rows the step rendered, the only ones a
-    gradient moved, the windows they can reach before the index next looks (`adam_reach`: by
+    After each optimiser step, `check` bounds for the rows the step gave a gradient (rendered and
+    in view), the windows they can reach before the index next looks (`adam_reach`: by
     coasting on a CPU, where the check is read at once; on a GPU it is read in the next frame's
     render (`settle`, after that render's one host sync, from a copy made without waiting), so the
     bound allows one more step with any gradient, `lookahead`), and finds those that reach a frame
@@ -268,23 +301,47 @@ class TrainingIndex:
         self._params: tuple = ()  # weak references to the indexed parameters
         self._lrs: tuple = ()
 
-    def _groups(self, model, optimizer) -> dict:
-        """name -> (parameter, its group, its Adam state) for the temporal parameters."""
-        params = model.parameters_by_name()
-        return {g["name"]: (params[g["name"]], g, optimizer.state.get(params[g["name"]], {}))
-                for g in optimizer.param_groups if g.get("name") in TEMPORAL}
+    def _bound_args(self, model, optimizer, spikes: int, headroom: float) -> tuple[list, list]:
+        """tomgs/kernels/alive.py's arguments from `t_means` to `slack`, and the tensors they point at
+        (held until the launch is queued)."""
+        import warp as wp
 
-    def reach(self, model, optimizer, rows: torch.Tensor | None, spikes: int, headroom: float = 0.0):
-        """(first, last) float64 [M]: the windows rows `rows` (None: all) of `model` can reach in
-        `spikes` steps with any gradient, then coasting (`adam_reach`), widened by `headroom`
-        learning rates."""
-        move = {name: adam_reach(param, group, state, rows, dense=self.dense, spikes=spikes) + headroom * group["lr"]
-                for name, (param, group, state) in self._groups(model, optimizer).items()}
-        take = (lambda x: x.detach()) if rows is None else (lambda x: x.detach().index_select(0, rows))
-        opacities = activated_opacities(take(model.opacity_logits).double() + move["opacity_logits"])
-        t_scales = activated_t_scales(take(model.log_t_scales).double() + move["log_t_scales"])
-        first, last = temporal.alive_window(opacities, take(model.t_means).double(), t_scales, slack=GATHER_SLACK)
-        return first - move["t_means"], last + move["t_means"]
+        from tomgs.runtime import wrap
+
+        groups = _temporal_groups(model, optimizer)
+        if len({tuple(group["betas"]) for _, group, _ in groups.values()}) > 1:
+            raise ValueError("the alive index's kernel takes one pair of Adam betas for the temporal parameters")
+        held, has, scale, room = [], [], [], []
+        q = root_c = 0.0
+        for name in TEMPORAL:
+            param, group, state = groups[name]
+            scale_i, q, root_c = _adam_constants(group)
+            present = "exp_avg" in state
+            held += [param.detach(), state["exp_avg"] if present else param.detach(),
+                     state["exp_avg_sq"] if present else param.detach()]  # the parameter: a stand-in, unread
+            has.append(int(present))
+            scale.append(scale_i)
+            room.append(headroom * group["lr"])
+        params = [wrap(t) for t in held[0::3]]
+        moments = [wrap(t) for pair in zip(held[1::3], held[2::3]) for t in pair]
+        return [*params, *moments, wp.vec3i(*has), wp.vec3d(*scale), wp.vec3d(*room), q, root_c, int(spikes),
+                int(self.dense), GATHER_SLACK], held
+
+    def reach(self, model, optimizer, spikes: int, headroom: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+        """(first, last) float64 [N]: the windows every Gaussian of `model` can reach in `spikes`
+        steps with any gradient, then coasting, widened by `headroom` learning rates (one launch of
+        tomgs/kernels/alive.py; `reach_reference` in torch)."""
+        from tomgs.kernels import alive as kernels
+        from tomgs.runtime import launch, scope, wrap
+
+        n, device = len(model), model.t_means.device
+        first = torch.empty(n, dtype=torch.float64, device=device)
+        last = torch.empty(n, dtype=torch.float64, device=device)
+        args, held = self._bound_args(model, optimizer, spikes, headroom)
+        with scope(device) as wp_device:
+            launch(kernels.reach_windows, n, device=wp_device, args=[*args, wrap(first), wrap(last)])
+        del held
+        return first, last
 
     def _current(self, model, optimizer, iteration: int) -> bool:
         params = model.parameters_by_name()
@@ -294,14 +351,17 @@ class TrainingIndex:
         return same and not self.stale and iteration - self.built_at < self.rebuild_every
 
     def rows(self, k: int, model, optimizer, iteration: int) -> torch.Tensor | None:
-        """The Gaussians of `model` that may be alive at frame k (int [M] ascending; None: all),
-        rebuilding the index first when it is due."""
+        """The Gaussians of `model` that may be alive at frame k (int64 [M] ascending: the gathers'
+        backward adds with them, ~9x slower with int32 on a CPU; None: all), rebuilding the index
+        first when it is due."""
         if self.index is None or not self._current(model, optimizer, iteration):
             self.rebuild(model, optimizer, iteration)
         rows = self.index.rows(k)
-        if rows is None or self.movers is None:
-            return rows
-        return torch.unique(torch.cat([rows, self.movers]))  # sorted, and a mover listed here once
+        if rows is None:
+            return None
+        if self.movers is None:
+            return rows.long()
+        return torch.unique(torch.cat([rows, self.movers]).long())  # sorted, and a mover listed here once
 
     @torch.no_grad()
     def rebuild(self, model, optimizer, iteration: int) -> None:
@@ -309,7 +369,7 @@ class TrainingIndex:
         # (a spike from rest: three learning rates, and under dense Adam the coasting after it)
         # never makes it a mover
         spikes = self.lookahead + 1
-        self.index = build(*self.reach(model, optimizer, None, spikes, self.headroom), self.times, self.budget)
+        self.index = build(*self.reach(model, optimizer, spikes, self.headroom), self.times, self.budget)
         params = model.parameters_by_name()
         self._params = tuple(weakref.ref(params[name]) for name in TEMPORAL)
         self._lrs = tuple(g["lr"] for g in optimizer.param_groups if g.get("name") in TEMPORAL)
@@ -317,15 +377,28 @@ class TrainingIndex:
         self.rebuilds += 1
 
     @torch.no_grad()
-    def check(self, model, optimizer, rows: torch.Tensor | None) -> None:
-        """After the optimiser's step: find the rows a step rendered (`rows`, None: all) that now
-        reach a frame outside their buckets. Read at once, or at `settle` (lookahead)."""
-        if self.index is None or self.stale or len(model) != self.index.n:
+    def check(self, model, optimizer, rows: torch.Tensor | None, moved: torch.Tensor) -> None:
+        """After the optimiser's step: find the rows a step rendered (`rows`, None: all) and gave a
+        gradient (`moved`, bool [M]: in view) that now reach a frame outside their buckets. Read at
+        once, or at `settle` (lookahead)."""
+        from tomgs.kernels import alive as kernels
+        from tomgs.runtime import launch, scope, wrap
+
+        index = self.index
+        if index is None or self.stale or len(model) != index.n:
             return
-        out = ~self.index.covers(*self.reach(model, optimizer, rows, int(self.lookahead)), rows)
-        room = int(MOVER_SHARE * self.index.n) - (0 if self.movers is None else len(self.movers))
+        device = model.t_means.device
+        checked = torch.arange(index.n, dtype=torch.int32, device=device) if rows is None else rows.to(torch.int32)
+        out = torch.empty(len(checked), dtype=torch.bool, device=device)
+        count = torch.zeros(1, dtype=torch.int32, device=device)
+        args, held = self._bound_args(model, optimizer, int(self.lookahead), 0.0)
+        with scope(device) as wp_device:
+            launch(kernels.reach_escapes, len(checked), device=wp_device, args=[
+                wrap(checked), wrap(moved), *args, wrap(index.times), index.size, wrap(index.b_first),
+                wrap(index.b_last), wrap(out), wrap(count)])
+        del held
+        room = int(MOVER_SHARE * index.n) - (0 if self.movers is None else len(self.movers))
         where = torch.nonzero_static(out, size=max(room, 0), fill_value=0).squeeze(1)  # no sync
-        count = out.sum()
         event = None
         if count.is_cuda:
             count = count.to("cpu", non_blocking=True)
@@ -344,7 +417,7 @@ class TrainingIndex:
         self.pending = None
         if event is not None:
             event.synchronize()
-        count = int(count)
+        count = int(count[0])
         if count == 0:
             return
         if count > len(where):

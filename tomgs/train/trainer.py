@@ -322,10 +322,10 @@ class Trainer:
         self._measured.append((k, self._psnr(k, image, target)))
         if len(self._measured) >= SAMPLER_LAG:
             self.flush_measurements()
-        in_view = (meta["radii"] > 0).any(-1)  # bool [N]: the Gaussians this step's gradient reaches
-        if meta["rows"] is not None:  # [M] of the rendered rows -> [N]
+        seen = in_view = (meta["radii"] > 0).any(-1)  # bool [M]: the rendered rows this step's gradient reaches
+        if meta["rows"] is not None:  # -> bool [N]
             in_view = torch.zeros(len(self.model), dtype=torch.bool, device=self.device).index_put_(
-                (meta["rows"],), in_view)
+                (meta["rows"],), seen)
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
                 group["lr"] = self._means_lr()
@@ -334,7 +334,7 @@ class Trainer:
         else:
             self.optimizer.step()
         if self.alive is not None:
-            self.alive.check(self.model, self.optimizer, meta["rows"])  # only the rendered rows moved freely
+            self.alive.check(self.model, self.optimizer, meta["rows"], seen)  # only these moved freely
         self.optimizer.zero_grad(set_to_none=True)
         self.iteration += 1
         self.densifier.step_post_backward(self.model, self.optimizer, meta, in_view, self.iteration, self.progress)
