@@ -54,6 +54,40 @@ def psnr_at(rows: list[dict], before_training: float, seconds: float):
     return best
 
 
+def run_sampled(command: list[str]) -> tuple[subprocess.CompletedProcess, dict]:
+    """Run `command`, sampling its /proc status every 0.1 s: (the finished process, peak GiB of its
+    anonymous memory (RssAnon: what it allocated) and of its file-backed pages (RssFile: mapped library
+    code, e.g. the CUDA libraries, shared and reclaimable)); empty peaks where /proc is not there."""
+    import tempfile
+    import threading
+
+    peaks = {}
+    with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
+        proc = subprocess.Popen(command, stdout=out, stderr=err, text=True)
+
+        def sample():
+            status = Path(f"/proc/{proc.pid}/status")
+            while proc.poll() is None:
+                try:
+                    fields = dict(line.split(":", 1) for line in status.read_text().splitlines() if ":" in line)
+                except OSError:
+                    break
+                for key in ("RssAnon", "RssFile"):
+                    if key in fields:
+                        gib = int(fields[key].split()[0]) / 2**20
+                        peaks[key] = max(peaks.get(key, 0.0), gib)
+                time.sleep(0.1)
+
+        watcher = threading.Thread(target=sample, daemon=True)
+        watcher.start()
+        proc.wait()
+        watcher.join()
+        out.seek(0)
+        err.seek(0)
+        done = subprocess.CompletedProcess(command, proc.returncode, out.read(), err.read())
+    return done, {k: round(v, 2) for k, v in peaks.items()}
+
+
 def run_case(name: str, clip: Path, args, work: Path) -> dict:
     from tomgs.io.video import probe_clip
 
@@ -68,7 +102,7 @@ def run_case(name: str, clip: Path, args, work: Path) -> dict:
         command += ["--max-side", str(args.max_side)]
     print(f"{name}: {frames} frames of {width}x{height}: {' '.join(command[3:])}", flush=True)
     began = time.perf_counter()
-    done = subprocess.run(command, capture_output=True, text=True)
+    done, peaks = run_sampled(command)
     wall = time.perf_counter() - began
     plan = next((line for line in done.stderr.splitlines() if line.startswith("plan:")), "")
     if done.returncode != 0:
@@ -84,6 +118,7 @@ def run_case(name: str, clip: Path, args, work: Path) -> dict:
                 fit_wall_s=round(fit["wall_seconds"], 1), phases_s={k: round(v, 1) for k, v in phases.items()},
                 peak_host_gib=round(fit["peak_host_mb"] / 1024, 2),
                 peak_host_gib_by_phase={k: round(v / 1024, 2) for k, v in fit.get("peak_host_mb_by_phase", {}).items()},
+                peak_anon_gib=peaks.get("RssAnon"), peak_file_gib=peaks.get("RssFile"),
                 peak_gpu_gib=None if fit["peak_gpu_mb"] is None else round(fit["peak_gpu_mb"] / 1024, 2),
                 frames_gib=round(frames * height * width * 3 / 2**30, 2),
                 psnr_at={f"{m // 60}min": marks[m][0] for m in MARKS},  # None: none measured, or ended before
@@ -94,7 +129,7 @@ def run_case(name: str, clip: Path, args, work: Path) -> dict:
 
 def table(results: list[dict]) -> str:
     head = ("| case | frames | size | ETA s | wall s | read | poses | init | train | save | host GiB (frames) "
-            "| GPU GiB | PSNR 1/2/5 min | end | Gaussians | iterations |")
+            "| anon / file GiB | GPU GiB | PSNR 1/2/5 min | end | Gaussians | iterations |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for r in results:
         if "error" in r:
@@ -108,7 +143,7 @@ def table(results: list[dict]) -> str:
         lines.append(f"| {r['case']} | {r['frames']} | {r['width']}x{r['height']} | {r['eta_s']:.0f} | {r['wall_s']:.0f} "
                      f"| {p.get('read', 0):.1f} | {p.get('poses', 0):.1f} | {p.get('init', 0):.1f} "
                      f"| {p.get('train', 0):.1f} | {p.get('save', 0):.1f} | {r['peak_host_gib']:.2f} "
-                     f"({r['frames_gib']:.2f}) | {gpu} | {at} | {r['psnr_end']:.2f} | {r['gaussians']:,} "
+                     f"({r['frames_gib']:.2f}) | {r.get('peak_anon_gib') or '-'} / {r.get('peak_file_gib') or '-'} | {gpu} | {at} | {r['psnr_end']:.2f} | {r['gaussians']:,} "
                      f"| {r['iterations']:,} |")
     return "\n".join(lines)
 
