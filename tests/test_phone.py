@@ -256,3 +256,43 @@ def test_a_clip_psnr_of_some_frames_is_theirs_of_every_frame():
     assert trainer.clip_psnr(frames=[0, 2, 5]) == pytest.approx([every[0], every[2], every[5]], abs=1e-9)
     with pytest.raises(ValueError, match="frame 6 is not one of the clip's 6"):
         trainer.clip_psnr(frames=[1, 6])
+
+
+def test_the_hosts_frames_go_once_the_trainer_has_its_own_copy(tmp_path, monkeypatch):
+    """Issue 14: on a GPU the trainer keeps the clip on the device, and the fit let go of the host's
+    copy only when it returned (1.7 GiB of 4.1 for 300 frames of 1080p on the H100). Here the trainer
+    is given its own copy as a GPU's would be: the decoded frames are freed before training starts;
+    on a CPU, where the trainer's frames are the decoded ones, they stay."""
+    import weakref
+
+    import tomgs.io
+    from tomgs.train import Trainer, fit
+
+    from test_train import small_config
+
+    video = tmp_path / "clip.mp4"
+    assert run("demo", "--frames", 6, "--size", "64x36", "-o", video, "-q", "--device", "cpu").exit_code == 0
+    refs, seen = [], []
+    read = tomgs.io.read_video
+
+    def read_video(*a, **k):
+        clip = read(*a, **k)
+        refs.append(weakref.ref(clip.frames.base if clip.frames.base is not None else clip.frames))
+        return clip
+
+    monkeypatch.setattr(tomgs.io, "read_video", read_video)
+    for copy in (True, False):
+        if copy:
+            own = Trainer.__init__
+
+            def init(self, *a, **k):
+                own(self, *a, **k)
+                self.frames = self.frames.clone()  # as on a GPU: the trainer's own copy
+
+            monkeypatch.setattr(Trainer, "__init__", init)
+        fit(video, tmp_path / f"{copy}.ply", small_config(4), poses="identity", device="cpu",
+            progress=lambda row: seen.append(refs[-1]() is None))
+        if copy:
+            monkeypatch.setattr(Trainer, "__init__", own)
+        assert seen and seen == [copy] * len(seen), (copy, seen)
+        seen.clear()

@@ -229,6 +229,9 @@ def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses
     trainer.clip = dict(identity, options=options, pose_seconds=round(pose_seconds, 3),
                         cameras=None if estimated is None else estimated.to_dict(),
                         source=str(getattr(video, "path", video)))
+    fps = _fps(clip)
+    if _own_copy(trainer.frames, inputs.frames):  # on a GPU: the host's frames go (1.7 GiB for 1080p x 300)
+        clip = inputs = None
     phases("init", 1, 1, None)
     lap("init")
     time_limit = 0.0
@@ -242,7 +245,7 @@ def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses
     info = dict(source=str(getattr(video, "path", video)) if not isinstance(video, Video) else "<Video>",
                 iterations=result.iterations, train_seconds=round(result.seconds, 2),
                 pose_seconds=round(pose_seconds, 2), clip_psnr=round(result.clip_psnr, 3), extent=trainer.extent,
-                fps=_fps(clip), background=[0.0, 0.0, 0.0],
+                fps=fps, background=[0.0, 0.0, 0.0],
                 config={k: v for k, v in vars(config).items()}, notes=result.notes)
     if layer is not None:
         info["layer"] = layer
@@ -265,6 +268,11 @@ def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses
         result.notes.append(f"{'chosen ' if plan.budget_chosen else ''}budget {plan.budget:.0f} s for the whole fit: "
                             f"{result.wall_seconds:.0f} s ({phase_text(seconds)})")
     return result
+
+
+def _own_copy(tensor: torch.Tensor, array: np.ndarray) -> bool:
+    """Whether `tensor` holds its own copy of `array`'s data rather than sharing it."""
+    return tensor.device.type != "cpu" or tensor.data_ptr() != array.__array_interface__["data"][0]
 
 
 def process_started() -> float:
