@@ -57,16 +57,18 @@ def psnr_at(rows: list[dict], before_training: float, seconds: float):
 def run_sampled(command: list[str]) -> tuple[subprocess.CompletedProcess, dict]:
     """Run `command`, sampling its /proc status every 0.1 s: (the finished process, peak GiB of its
     anonymous memory (RssAnon: what it allocated) and of its file-backed pages (RssFile: mapped library
-    code, e.g. the CUDA libraries, shared and reclaimable)); empty peaks where /proc is not there."""
+    code, e.g. the CUDA libraries, shared and reclaimable), and "series": [seconds, RssAnon GiB] every
+    second, to place the peak in the fit's phases); empty where /proc is not there."""
     import tempfile
     import threading
 
-    peaks = {}
+    peaks, series = {}, []
     with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
         proc = subprocess.Popen(command, stdout=out, stderr=err, text=True)
 
         def sample():
             status = Path(f"/proc/{proc.pid}/status")
+            began = time.perf_counter()
             while proc.poll() is None:
                 try:
                     fields = dict(line.split(":", 1) for line in status.read_text().splitlines() if ":" in line)
@@ -76,6 +78,9 @@ def run_sampled(command: list[str]) -> tuple[subprocess.CompletedProcess, dict]:
                     if key in fields:
                         gib = int(fields[key].split()[0]) / 2**20
                         peaks[key] = max(peaks.get(key, 0.0), gib)
+                elapsed = time.perf_counter() - began
+                if "RssAnon" in fields and (not series or elapsed >= series[-1][0] + 1.0):
+                    series.append([round(elapsed, 1), round(int(fields["RssAnon"].split()[0]) / 2**20, 2)])
                 time.sleep(0.1)
 
         watcher = threading.Thread(target=sample, daemon=True)
@@ -85,7 +90,7 @@ def run_sampled(command: list[str]) -> tuple[subprocess.CompletedProcess, dict]:
         out.seek(0)
         err.seek(0)
         done = subprocess.CompletedProcess(command, proc.returncode, out.read(), err.read())
-    return done, {k: round(v, 2) for k, v in peaks.items()}
+    return done, dict({k: round(v, 2) for k, v in peaks.items()}, series=series)
 
 
 def run_case(name: str, clip: Path, args, work: Path) -> dict:
@@ -118,7 +123,7 @@ def run_case(name: str, clip: Path, args, work: Path) -> dict:
                 fit_wall_s=round(fit["wall_seconds"], 1), phases_s={k: round(v, 1) for k, v in phases.items()},
                 peak_host_gib=round(fit["peak_host_mb"] / 1024, 2),
                 peak_host_gib_by_phase={k: round(v / 1024, 2) for k, v in fit.get("peak_host_mb_by_phase", {}).items()},
-                peak_anon_gib=peaks.get("RssAnon"), peak_file_gib=peaks.get("RssFile"),
+                peak_anon_gib=peaks.get("RssAnon"), peak_file_gib=peaks.get("RssFile"), anon_gib_series=peaks.get("series"),
                 peak_gpu_gib=None if fit["peak_gpu_mb"] is None else round(fit["peak_gpu_mb"] / 1024, 2),
                 frames_gib=round(frames * height * width * 3 / 2**30, 2),
                 psnr_at={f"{m // 60}min": marks[m][0] for m in MARKS},  # None: none measured, or ended before
