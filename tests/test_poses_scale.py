@@ -143,6 +143,28 @@ def test_tracker_keeps_no_copy_of_each_frame(W, H, step, T):
     assert per_frame < 0.3 * W * H * 3, per_frame / (W * H * 3)
 
 
+def test_runs_of_observations_change_no_result(monkeypatch):
+    """The bundle adjustment sums its normal equations, the registration refines its cameras and the
+    errors are measured a run of observations at a time (the memory is a run's, not the clip's): the
+    cameras and points are exactly those of one piece."""
+    import tomgs.poses.auto as auto
+    import tomgs.poses.ba as ba
+
+    clip = make_clip(orbit(24, strafe=1.0), width=200, height=150, focal=190.0, seed=4)
+    whole = estimate_cameras(clip.frames, focal=190.0, device="cpu")
+    calls = []
+    refine = auto.refine_poses
+    monkeypatch.setattr(auto, "refine_poses", lambda *a, **k: calls.append(len(a[4])) or refine(*a, **k))
+    monkeypatch.setattr(ba, "BA_RUN", 701)
+    monkeypatch.setattr(ba, "ERROR_RUN", 997)
+    monkeypatch.setattr(auto, "REGISTER_RUN", 600)
+    runs = estimate_cameras(clip.frames, focal=190.0, device="cpu")
+    assert len(calls) >= 6, calls  # two passes, each in runs
+    assert whole[3].mode == runs[3].mode == "general" and len(whole[3].keyframes) < 24
+    assert np.array_equal(whole[0].c2w, runs[0].c2w) and np.array_equal(whole[0].K, runs[0].K)
+    assert np.array_equal(whole[1], runs[1]) and np.array_equal(whole[2], runs[2])
+
+
 def test_progress_is_reported_often(slow_clip):
     clip, _ = slow_clip
     calls = []

@@ -103,6 +103,9 @@ def _reduced_solve(H: torch.Tensor, Z: torch.Tensor, b: torch.Tensor) -> torch.T
         torch.set_num_threads(threads)
 
 
+BA_RUN = 1 << 15  # observations whose Jacobians are built at once (~2 kB each; a 1800-frame clip's keyframes: 0.5 GB)
+
+
 def bundle_adjust(R0: np.ndarray, t0: np.ndarray, X0: np.ndarray, K: np.ndarray,
                   cam_idx: np.ndarray, pt_idx: np.ndarray, obs: np.ndarray,
                   free_cams: np.ndarray, opt_focal: bool = False, fix_translation: bool = False,
@@ -113,6 +116,8 @@ def bundle_adjust(R0: np.ndarray, t0: np.ndarray, X0: np.ndarray, K: np.ndarray,
     pixels; free_cams bool [C]. fix_translation keeps t (rotation-only cameras). The focal stays
     inside focal_bounds (a tiny focal is a degenerate way to shrink every error). device: where
     the algebra runs (pick_device's default); tick: called after each iteration (a heartbeat).
+    The normal equations are summed BA_RUN observations at a time, in order (the same sums as in
+    one piece); what is kept per observation is its indices and its camera-point block W (~250 B).
     Returns numpy (R [C,3,3], t [C,3], X [P,3], K [3,3]).
     """
     K = K.copy()
@@ -134,47 +139,64 @@ def bundle_adjust(R0: np.ndarray, t0: np.ndarray, X0: np.ndarray, K: np.ndarray,
     cols = np.where(s[:, None] >= 0, s[:, None] * cb + np.arange(cb), trash + np.arange(cb))
     cols = T(np.concatenate([cols, np.full((N, 1), fcol)], 1), torch.int64)  # [N, cb + 1]
     keep = T(np.r_[np.arange(nC), [fcol] if opt_focal else []], torch.int64)
-    hidx = (cols[:, :, None] * D + cols[:, None, :]).reshape(-1)
-    zidx = ((3 * pi[:, None, None] + torch.arange(3, device=dev)[None, None, :]) * D + cols[:, :, None]).reshape(-1)
+    runs = [slice(a, min(a + BA_RUN, N)) for a in range(0, N, BA_RUN)]
+    three, nine = torch.arange(3, device=dev), torch.arange(9, device=dev)
     fct = T(fc, torch.int64)
     c = T(K[:2, 2])
     eye3 = torch.eye(3, dtype=torch.float64, device=dev)
     eyeD = torch.eye(D, dtype=torch.float64, device=dev)
 
-    def add(idx, w, n):  # scatter-add of weights w into n bins
-        return torch.zeros(n, dtype=torch.float64, device=dev).index_add_(0, idx, w.reshape(-1))
+    def zeros(n):
+        return torch.zeros(n, dtype=torch.float64, device=dev)
 
     def cost_of(R, t, X, f):
-        return float(_huber(torch.linalg.norm(_project(R[ci], t[ci], X[pi], f, c, obs_t)[1], dim=1), delta).sum())
+        e = torch.empty(N, dtype=torch.float64, device=dev)  # each observation's, then one sum as before
+        for r in runs:
+            e[r] = _huber(torch.linalg.norm(_project(R[ci[r]], t[ci[r]], X[pi[r]], f, c, obs_t[r])[1], dim=1), delta)
+        return float(e.sum())
 
     f = float(K[0, 0])
     cost = cost_of(R, t, X, f)
     lam = 1e-3
+    W = torch.empty(N, cb + 1, 3, dtype=torch.float64, device=dev)  # per observation: A^T B
     for _ in range(iters):
-        Xc, r = _project(R[ci], t[ci], X[pi], f, c, obs_t)
-        du, Jw, sw = _jacobians(Xc, t[ci], r, obs_t, c, f, delta)
-        A = torch.cat([Jw] + ([] if fix_translation else [du]) + [(r + obs_t - c)[:, :, None]], 2) * sw[:, :, None]
-        B = (du @ R[ci]) * sw[:, :, None]
-        rw = r * sw
-        H = add(hidx, A.transpose(1, 2) @ A, D * D).reshape(D, D)
-        g = add(cols.reshape(-1), torch.einsum("nki,nk->ni", A, rw), D)
-        V = add((pi[:, None] * 9 + torch.arange(9, device=dev)).reshape(-1), B.transpose(1, 2) @ B, 9 * P).reshape(P, 3, 3)
-        gp = add((pi[:, None] * 3 + torch.arange(3, device=dev)).reshape(-1), torch.einsum("nki,nk->ni", B, rw), 3 * P)
-        gp = gp.reshape(P, 3)
-        W = A.transpose(1, 2) @ B  # [N, cb+1, 3]
+        H, g, V, gp = zeros(D * D), zeros(D), zeros(9 * P), zeros(3 * P)
+        for r in runs:
+            cr, pr, o = ci[r], pi[r], obs_t[r]
+            Xc, res = _project(R[cr], t[cr], X[pr], f, c, o)
+            du, Jw, sw = _jacobians(Xc, t[cr], res, o, c, f, delta)
+            A = torch.cat([Jw] + ([] if fix_translation else [du]) + [(res + o - c)[:, :, None]], 2) * sw[:, :, None]
+            B = (du @ R[cr]) * sw[:, :, None]
+            rw = res * sw
+            cl = cols[r]
+            H.index_add_(0, (cl[:, :, None] * D + cl[:, None, :]).reshape(-1), (A.transpose(1, 2) @ A).reshape(-1))
+            g.index_add_(0, cl.reshape(-1), torch.einsum("nki,nk->ni", A, rw).reshape(-1))
+            V.index_add_(0, (pr[:, None] * 9 + nine).reshape(-1), (B.transpose(1, 2) @ B).reshape(-1))
+            gp.index_add_(0, (pr[:, None] * 3 + three).reshape(-1), torch.einsum("nki,nk->ni", B, rw).reshape(-1))
+            W[r] = A.transpose(1, 2) @ B  # [n, cb+1, 3]
+        H, V, gp = H.reshape(D, D), V.reshape(P, 3, 3), gp.reshape(P, 3)
         while True:
             Hd = H + lam * torch.diag(torch.diag(H)) + 1e-9 * eyeD
             Vd = V + lam * V * eye3 + 1e-9 * eye3
             Vinv = torch.linalg.inv(Vd)
             L = torch.linalg.cholesky(0.5 * (Vinv + Vinv.transpose(1, 2)))
-            Z = add(zidx, W @ L[pi], 3 * P * D).reshape(3 * P, D)
             Vg = torch.einsum("pij,pj->pi", Vinv, gp)
-            rhs = g - add(cols.reshape(-1), torch.einsum("nij,nj->ni", W, Vg[pi]), D)
+            Z, WVg = zeros(3 * P * D), zeros(D)
+            for r in runs:
+                pr, cl = pi[r], cols[r]
+                zidx = ((3 * pr[:, None, None] + three[None, None, :]) * D + cl[:, :, None]).reshape(-1)
+                Z.index_add_(0, zidx, (W[r] @ L[pr]).reshape(-1))
+                WVg.index_add_(0, cl.reshape(-1), torch.einsum("nij,nj->ni", W[r], Vg[pr]).reshape(-1))
+            Z = Z.reshape(3 * P, D)
+            rhs = g - WVg
             dc = torch.zeros(D, dtype=torch.float64, device=dev)
             if len(keep):
                 dc[keep] = _reduced_solve(Hd[keep][:, keep], Z[:, keep], -rhs[keep])
-            wdc = torch.einsum("nij,ni->nj", W, dc[cols])
-            back = add((pi[:, None] * 3 + torch.arange(3, device=dev)).reshape(-1), wdc, 3 * P).reshape(P, 3)
+            back = zeros(3 * P)
+            for r in runs:
+                back.index_add_(0, (pi[r][:, None] * 3 + three).reshape(-1),
+                                torch.einsum("nij,ni->nj", W[r], dc[cols[r]]).reshape(-1))
+            back = back.reshape(P, 3)
             dX = -torch.einsum("pij,pj->pi", Vinv, gp + back)
             dcam = dc[:nC].reshape(-1, cb)
             R1, t1 = R.clone(), t.clone()
