@@ -344,3 +344,16 @@ def test_the_bound_kernel_keeps_the_torch_formula(dense, spikes, headroom):
     else:
         assert not index.stale and index.movers.tolist() == escaped
         assert bool((index.index.b_first[rows[want]] == 0).all())  # listed everywhere from now on
+
+
+def test_the_index_is_used_where_it_pays():
+    """On a CPU a trainer indexes by default; on a GPU it renders every Gaussian (tomgs.alive.pays_on:
+    on the H100 the gathers cost more than projection's culling), unless asked either way."""
+    from tomgs.alive import pays_on
+
+    assert pays_on(torch.device("cpu")) and pays_on("cpu")
+    assert not pays_on(torch.device("cuda")) and not pays_on("cuda:1")
+    images, cams, points, colors = synthetic_clip(3, 24, 14)
+    for asked, indexed in ((None, True), (False, False), (True, True)):
+        trainer = Trainer(images, cams, points, colors, small_config(5, alive_index=asked), torch.device("cpu"))
+        assert (trainer.alive is not None) is indexed

@@ -392,9 +392,9 @@ def render_sequence(gaussians, cameras, indices=None, *, background=None, device
     `gaussians`: mapping with means, quats, scales, opacities, colors (RGB or SH), t_means,
     t_scales; or a callable k -> such a mapping, a per-frame cloud (an edit over time, a simulated
     shot). `cameras`: a `tomgs.Cameras`; frame k renders at t = cameras.times[k]. No gradients.
-    Only the Gaussians that may be alive at a frame's time are gathered and rendered (tomgs.alive:
-    an index over the frames, one gather per bucket of frames in time), so a long clip pays per frame
-    for what lives in it; `meta` describes that subset, meta['rows'] names it (int [M] Gaussian
+    Where it pays (tomgs.alive.pays_on: a CPU) only the Gaussians that may be alive at a frame's time
+    are gathered and rendered (tomgs.alive: an index over the frames, one gather per bucket of frames
+    in time), so a long clip pays per frame for what lives in it; on a GPU projection culls the dead; `meta` describes that subset, meta['rows'] names it (int [M] Gaussian
     indices; None: all). Images come back on the CPU unless `to_cpu` is False.
     """
     names = ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales")
@@ -404,7 +404,8 @@ def render_sequence(gaussians, cameras, indices=None, *, background=None, device
         """(inputs on the device, their alive index over `times`, the device)."""
         dev = torch.device(device) if device is not None else g["means"].device
         g = {name: g[name].detach().to(dev) for name in names}
-        return g, alive.index_of(g["opacities"], g["t_means"], g["t_scales"], times), dev
+        index = alive.index_of(g["opacities"], g["t_means"], g["t_scales"], times) if alive.pays_on(dev) else None
+        return g, index, dev
 
     static = None if callable(gaussians) or not order else prepared(gaussians, [cameras.times[k] for k in order])
     per_device = {}  # cameras and background on each device a frame lands on (one, in practice)
@@ -421,9 +422,9 @@ def render_sequence(gaussians, cameras, indices=None, *, background=None, device
         t = float(cameras.times[k])
         g, index, dev = static or prepared(gaussians(k), [t])
         at = position if static else 0
-        bucket = int(index.bucket_of[at])
+        bucket = 0 if index is None else int(index.bucket_of[at])
         if not static or last.get("bucket") != bucket:  # frames of one bucket share one gather
-            rows = index.rows(at)
+            rows = None if index is None else index.rows(at)
             inputs = g if rows is None else {name: value.index_select(0, rows) for name, value in g.items()}
             last.update(bucket=bucket, inputs=inputs, rows=rows)
         viewmats, Ks, bg = frame_inputs(dev)

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tomgs.alive import TrainingIndex
+from tomgs.alive import TrainingIndex, pays_on
 from tomgs.cameras import Cameras
 from tomgs.metrics import psnr, ssim, ssim_map
 from tomgs.model import GaussianModel, nearest_neighbour_distance
@@ -136,8 +136,9 @@ class Trainer:
         self.sampler = FrameSampler(self.num_frames, config.sampling, config.psnr_momentum, config.seed)
         self.densifier = Densifier(self.config, self.extent, len(self.model), device, config.seed)
         # which Gaussians each frame renders (rebuilt, not saved: checkpoints leave it out)
+        use_index = pays_on(device) if config.alive_index is None else bool(config.alive_index)
         self.alive = TrainingIndex(self.times, dense=not self.sparse_adam, lookahead=device.type == "cuda") \
-            if config.alive_index else None
+            if use_index else None
         self.iteration = 0
         self.progress = 0.0  # fraction of the run done: iterations or wall-clock budget, whichever is further
         self.elapsed = 0.0  # wall seconds of earlier sessions of a resumed run
