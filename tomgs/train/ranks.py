@@ -752,9 +752,11 @@ class Rank:
         # a resume trains on as a one-GPU resume does: to its iterations, or for this command's budget
         end = payload["times"]["phase1_end"]
         limit = 0.0 if end is None else trainer.elapsed + max(end - time.time(), 1.0)
+        from tomgs.train.fit import _train_ticks
+
         trainer.run(checkpoint=self.paths["checkpoint"], log_csv=self.paths["csv"],
                     progress=lambda row: self.report("row", row), time_limit=limit,
-                    tick=_tick(self.phase, config.iterations, limit))
+                    tick=_train_ticks(self.phase, config.iterations, limit))
         self.lap("train")
         measured = [row["clip_psnr"] for row in trainer.history if row["clip_psnr"] != ""]
         self.alone = dict(iterations=trainer.iteration, seconds=trainer.elapsed, extent=float(trainer.extent),
@@ -779,7 +781,10 @@ class Rank:
         self.union_size = len(union)
         del union  # a rank keeps its part only
         own = slice(stretch.own_lo - stretch.lo, stretch.own_hi - stretch.lo)
-        keep = device.type == "cuda" and _fits(self.frames[own], device)
+        from tomgs.train.trainer import _frame_store
+
+        # the trainer's rule: frames stay on the GPU when they take at most a share of its free memory
+        keep = _frame_store(self.frames[own].nbytes, device).type == "cuda"
         frames = torch.as_tensor(self.frames[own], device=device if keep else "cpu")
         del self.frames
         cameras = self.cameras[stretch.own_lo:stretch.own_hi]
@@ -1012,20 +1017,6 @@ def _check_shard(shard, stretch, world: int, checkpoint) -> None:
         raise InputError(f"{checkpoint} was fitted on positions {shard.get('lo')}..{shard.get('hi')} of the clip, "
                          f"this run gives rank {stretch.rank} {stretch.lo}..{stretch.hi}: resume with the options it "
                          f"was started with, or {START_OVER}")
-
-
-def _fits(frames: np.ndarray, device) -> bool:
-    """Whether a rank's own frames may stay on its GPU for the refinement (a quarter of the free memory)."""
-    return frames.nbytes <= 0.25 * torch.cuda.mem_get_info(device)[0]
-
-
-def _tick(phase, iterations: int, time_limit: float):
-    def tick(iteration, seconds, text):
-        if time_limit > 0:
-            phase("train", min(seconds, time_limit), time_limit, text or f"iteration {iteration:,}")
-        else:
-            phase("train", iteration, iterations, text)
-    return tick
 
 
 __all__ = ["ShardFailed", "ShardsInterrupted", "check_shard_outputs", "fit_shards", "is_leader", "run_rank",
