@@ -15,11 +15,11 @@ from dataclasses import dataclass
 import torch
 import warp as wp
 
-from tomgs import alive, temporal
+from tomgs import alive
 from tomgs.constants import ALPHA_MIN, TILE_SIZE
 from tomgs.inputs import RasterInputs, RenderError, prepare_inputs
 from tomgs.kernels import binning, project, raster
-from tomgs.runtime import launch, scope, wrap
+from tomgs.runtime import indexable, launch, scope, wrap
 
 # The radix sort needs 2 x count slots and counts in int32: 2^30 keeps both inside int32.
 MAX_INTERSECTIONS = 2**30
@@ -103,15 +103,6 @@ class _Frame:
         return self.tiles_x * self.tiles_y
 
 
-def _dense(grad: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor:
-    """An incoming gradient Warp can index: zeros for None; rows may be strided, the last axis must not be."""
-    if grad is None:
-        return torch.zeros_like(like)
-    if grad.dim() > 1 and grad.stride(-1) != 1 or 0 in grad.stride():
-        return grad.contiguous()
-    return grad
-
-
 class _Project(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, t_means, t_scales, viewmat, K, flags, frame: _Frame):
@@ -153,8 +144,8 @@ class _Project(torch.autograd.Function):
         v_K_parts = torch.empty(parts, 4, device=means.device, dtype=torch.float32)
         inputs, radii_d, conics_d = ctx.descriptors
         # named, so that a dense copy lives until the launch is queued (a descriptor does not own it)
-        v_means2d, v_conics = _dense(v_means2d, conics[:, :2]), _dense(v_conics, conics)
-        v_opacities_t = _dense(v_opacities_t, opacities)
+        v_means2d, v_conics = indexable(v_means2d, conics[:, :2]), indexable(v_conics, conics)
+        v_opacities_t = indexable(v_opacities_t, opacities)
         with scope(means.device) as device:
             launch(project.project_backward, n, device=device, args=[
                 *inputs, frame.width, frame.height, frame.t_hi, frame.t_lo, radii_d, conics_d,
@@ -227,8 +218,8 @@ class _Rasterize(torch.autograd.Function):
         shared, state = ctx.descriptors
         grads = torch.zeros(means2d.shape[0], 9, device=means2d.device, dtype=torch.float32)  # one fill, four views
         v_means2d, v_conics, v_opacities_t, v_colors = grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 6:9]
-        v_color = _dense(v_color, trans.expand(-1, -1, 3))  # named: alive until the launch is queued
-        v_trans = _dense(v_trans, trans)
+        v_color = indexable(v_color, trans.expand(-1, -1, 3))  # named: alive until the launch is queued
+        v_trans = indexable(v_trans, trans)
         with scope(means2d.device) as wp_device:
             launch(raster.raster_backward, frame.num_tiles * TILE_SIZE * TILE_SIZE, device=wp_device,
                    block_dim=TILE_SIZE * TILE_SIZE, args=[
@@ -376,14 +367,6 @@ def resolve_device(name: str | None = "auto") -> torch.device:
                                   or (device.index or 0) >= torch.cuda.device_count()):
         raise RenderError(f"device {name!r} is not available on this machine: use cpu (or auto)")
     return device
-
-
-def alive_window(opacities: torch.Tensor, t_means: torch.Tensor, t_scales: torch.Tensor,
-                 alpha_min: float = ALPHA_MIN) -> tuple[torch.Tensor, torch.Tensor]:
-    """(first [N], last [N]): the times between which o_i(t) >= alpha_min (tomgs.temporal), widened by a
-    hair (tomgs.alive.GATHER_SLACK) so that float32 rounding in projection never finds a Gaussian alive
-    outside; first > last when never."""
-    return temporal.alive_window(opacities, t_means, t_scales, alpha_min, slack=alive.GATHER_SLACK)
 
 
 def render_sequence(gaussians, cameras, indices=None, *, background=None, device=None, to_cpu: bool = True):

@@ -6,6 +6,7 @@
                                      yields the Warp device name; RenderError for other device types
     wrap(tensor, dtype=None)         zero-copy Warp array descriptor of a torch tensor
     wrap_rows(tensor)                the same of a contiguous [N, ...] tensor seen as [N, D]
+    indexable(grad, like)            an incoming gradient as a kernel can index it (zeros for None)
     launch(kernel, dim, args, device, block_dim=256)
                                      a recorded launch per (kernel, device, block size), re-armed
 
@@ -34,7 +35,7 @@ import warp as wp
 
 from tomgs.errors import RenderError
 
-__all__ = ["init_warp", "warp_device", "scope", "wrap", "wrap_rows", "launch", "Launches", "ArrayDescriptor"]
+__all__ = ["init_warp", "warp_device", "scope", "wrap", "wrap_rows", "indexable", "launch", "Launches", "ArrayDescriptor"]
 
 _warp_ready = False
 
@@ -123,6 +124,16 @@ def wrap(tensor: torch.Tensor, dtype=None):
     shape = tuple(tensor.shape[:keep]) or (1,)
     strides = tuple(s * item for s in tensor.stride()[:keep]) or (item,)
     return ArrayDescriptor(tensor.data_ptr(), 0, len(shape), shape, strides)
+
+
+def indexable(grad: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor:
+    """An incoming gradient Warp can index: zeros like `like` for None; rows may be strided, the last
+    axis must not be (nor any broadcast axis). Keep the result named until the launch is queued."""
+    if grad is None:
+        return torch.zeros_like(like)
+    if grad.dim() > 1 and grad.stride(-1) != 1 or 0 in grad.stride():
+        return grad.contiguous()
+    return grad
 
 
 def wrap_rows(tensor: torch.Tensor):

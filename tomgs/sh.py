@@ -100,11 +100,6 @@ def fused_sh_to_colors(sh: torch.Tensor, means: torch.Tensor, viewmat: torch.Ten
     return _FusedColors.apply(*(x.to(torch.float32).contiguous() for x in (sh, means, viewmat)))
 
 
-def _dense_rows(grad: torch.Tensor) -> torch.Tensor:
-    """An incoming [N,3] gradient Warp can index as vec3 rows (the renderer hands a strided view)."""
-    return grad.contiguous() if grad.stride(-1) != 1 or 0 in grad.stride() else grad
-
-
 class _FusedColors(torch.autograd.Function):
     # sh [N,K,3], means [N,3], viewmat [4,4]: float32, contiguous
     @staticmethod
@@ -128,7 +123,7 @@ class _FusedColors(torch.autograd.Function):
         import warp as wp
 
         from tomgs.kernels import sh as kernels
-        from tomgs.runtime import launch, scope, wrap
+        from tomgs.runtime import indexable, launch, scope, wrap
 
         sh, means, viewmat = ctx.saved_tensors
         n, degree = sh.shape[0], sh_degree_of(sh.shape[1])
@@ -136,7 +131,7 @@ class _FusedColors(torch.autograd.Function):
         v_sh = torch.empty_like(sh)
         v_means = torch.empty_like(means) if degree > 0 else None
         v_offsets = torch.empty_like(means) if camera_grads else None
-        v_colors = _dense_rows(v_colors)  # named: a descriptor does not keep its tensor alive
+        v_colors = indexable(v_colors, sh[:, 0])  # named: a descriptor does not keep its tensor alive
         with scope(sh.device) as device:
             launch(kernels.sh_colors_backward, n, device=device, args=[
                 wrap(sh, wp.vec3), wrap(means, wp.vec3), wrap(viewmat.reshape(1, 4, 4), wp.mat44), degree,

@@ -13,6 +13,22 @@ import math
 import torch
 
 
+def uses_seen_adam(config, device: torch.device) -> bool:
+    """`config.sparse_adam`, or when it is None: SeenAdam on a GPU, dense Adam on a CPU (TrainConfig says why)."""
+    return device.type == "cuda" if config.sparse_adam is None else bool(config.sparse_adam)
+
+
+def make_adam(params: dict[str, torch.nn.Parameter], lr: dict[str, float], sparse: bool,
+              device: torch.device) -> torch.optim.Optimizer:
+    """One group per parameter (named, with its learning rate `lr[name]`): SeenAdam when `sparse`,
+    else torch's Adam, fused on a GPU (one kernel for all groups; the foreach path took 2 ms at 4.5M
+    Gaussians)."""
+    groups = [dict(params=[p], lr=lr[name], name=name) for name, p in params.items()]
+    if sparse:
+        return SeenAdam(groups, lr=0.0, eps=1e-15)
+    return torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=device.type == "cuda")
+
+
 class SeenAdam(torch.optim.Optimizer):
     """Adam on the seen rows. Learning rates may differ by group; betas and eps are the optimiser's."""
 

@@ -361,8 +361,9 @@ def refine(model: GaussianModel, part: Halo, frames: torch.Tensor, cameras, time
     from tomgs.metrics import psnr, ssim
     from tomgs.render import rasterize
     from tomgs.train.checkpoint import StopSignals
-    from tomgs.train.optim import SeenAdam
+    from tomgs.train.optim import make_adam, uses_seen_adam
     from tomgs.train.sampler import MAX_PSNR, FrameSampler
+    from tomgs.train.trainer import log_memory_mb
 
     c = config
     world = dist.get_world_size()
@@ -373,10 +374,8 @@ def refine(model: GaussianModel, part: Halo, frames: torch.Tensor, cameras, time
     lr = dict(means=c.lr_means_final * extent, quats=c.lr_quats, log_scales=c.lr_scales, opacity_logits=c.lr_opacity,
               sh_dc=c.lr_sh_dc, sh_rest=c.lr_sh_rest, t_means=c.lr_t_means * span if c.temporal else 0.0,
               log_t_scales=c.lr_t_scales if c.temporal else 0.0)
-    groups = [dict(params=[p], lr=lr[name], name=name) for name, p in params.items()]
-    sparse = device.type == "cuda" if c.sparse_adam is None else bool(c.sparse_adam)
-    optimizer = SeenAdam(groups, lr=0.0, eps=1e-15) if sparse else \
-        torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=device.type == "cuda")
+    sparse = uses_seen_adam(c, device)
+    optimizer = make_adam(params, lr, sparse, device)
     shared, slots = part.shared.to(device), part.slots.to(device)
     widths = [p[0].numel() if n else 0 for p in params.values()]
     viewmats = cameras.viewmats(device)
@@ -416,8 +415,9 @@ def refine(model: GaussianModel, part: Halo, frames: torch.Tensor, cameras, time
                 p.grad = g
             optimizer.step(seen) if sparse else optimizer.step()
             optimizer.zero_grad(set_to_none=True)
-            total, signum, finished = buffer[-3:].tolist()  # the one wait for the device a step has
-            sampler.update(k, float(value))
+            # the one wait for the device a step has: the sums and this rank's own PSNR together
+            total, signum, finished, own = torch.cat([buffer[-3:], value]).tolist()
+            sampler.update(k, own)
             recent.append(total / world)  # the ranks' mean: the union's training PSNR
             now = time.perf_counter() - began
             if tick is not None:
@@ -425,7 +425,7 @@ def refine(model: GaussianModel, part: Halo, frames: torch.Tensor, cameras, time
             if log_rows is not None and (out.steps % c.log_interval == 0 or signum or finished):
                 row = log_row(iteration=start_iteration + out.steps, wall_s=round(start_wall + now, 3),
                               train_psnr=round(float(np.mean(recent)), 3), gaussians=n,
-                              memory_mb=round(_memory_mb(device), 1))
+                              memory_mb=round(log_memory_mb(device), 1))
                 recent.clear()
                 out.rows.append(row)
                 log_rows(row)
@@ -436,14 +436,6 @@ def refine(model: GaussianModel, part: Halo, frames: torch.Tensor, cameras, time
                 break
     out.seconds = time.perf_counter() - began
     return out
-
-
-def _memory_mb(device) -> float:
-    if device.type == "cuda":
-        return torch.cuda.max_memory_allocated(device) / 2**20
-    import resource
-
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 @torch.no_grad()

@@ -46,7 +46,7 @@ from tomgs.train.checkpoint import (FORMAT, LOG_FIELDS, START_OVER, VERSION, Fit
                                     write_checkpoint)
 from tomgs.train.config import TrainConfig
 from tomgs.train.densify import Densifier
-from tomgs.train.optim import SeenAdam
+from tomgs.train.optim import make_adam, uses_seen_adam
 from tomgs.train.sampler import FrameSampler
 
 # The sampler hears each step's PSNR up to this many steps late: reading it back every step made the
@@ -125,7 +125,7 @@ class Trainer:
         self.notes: list[str] = []
         self.wide_fraction = float(wide_fraction)
         self.point_frames = None if point_frames is None else np.asarray(point_frames, dtype=np.int64).reshape(-1, 2)
-        self.sparse_adam = device.type == "cuda" if config.sparse_adam is None else bool(config.sparse_adam)
+        self.sparse_adam = uses_seen_adam(config, device)
         if initial is None:
             self.model, self.extent = self._initial_model(np.asarray(points, dtype=np.float64).reshape(-1, 3),
                                                           np.asarray(colors, dtype=np.float32).reshape(-1, 3),
@@ -247,11 +247,7 @@ class Trainer:
         lr = dict(means=c.lr_means * self.extent, quats=c.lr_quats, log_scales=c.lr_scales,
                   opacity_logits=c.lr_opacity, sh_dc=c.lr_sh_dc, sh_rest=c.lr_sh_rest,
                   t_means=c.lr_t_means if c.temporal else 0.0, log_t_scales=c.lr_t_scales if c.temporal else 0.0)
-        groups = [dict(params=[p], lr=lr[name], name=name) for name, p in self.model.parameters_by_name().items()]
-        if self.sparse_adam:
-            return SeenAdam(groups, lr=0.0, eps=1e-15)
-        # fused: one kernel for all groups on the GPU (the foreach path took 2 ms at 4.5M Gaussians)
-        return torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=self.device.type == "cuda")
+        return make_adam(self.model.parameters_by_name(), lr, self.sparse_adam, self.device)
 
     def _means_lr(self) -> float:
         c = self.config
@@ -470,17 +466,11 @@ class Trainer:
         """The CSV row at `now` seconds; clip: (clip PSNR, the frames it covers) or None."""
         self.flush_measurements()
         seen = self.sampler.psnr[self.sampler.psnr > 0]
-        if self.device.type == "cuda":
-            memory = torch.cuda.max_memory_allocated(self.device) / 2**20
-        else:
-            import resource
-
-            memory = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
         return dict(iteration=self.iteration, wall_s=round(now, 3),
                     train_psnr=round(float(seen.mean()), 3) if len(seen) else "",
                     clip_psnr="" if clip is None else round(clip[0], 3), clip_frames="" if clip is None else clip[1],
                     gaussians=len(self.model),
-                    memory_mb=round(memory, 1))
+                    memory_mb=round(log_memory_mb(self.device), 1))
 
     # -- checkpoints ---------------------------------------------------------------------------
 
@@ -575,6 +565,15 @@ def _as_uint8(values, shape, name: str, device) -> torch.Tensor:
 def spread(total: int, count: int) -> np.ndarray:
     """int [count]: `count` of `total` frames evenly spaced, the first and last among them (count >= 1)."""
     return np.unique(np.linspace(0, total - 1, count).round().astype(np.int64))
+
+
+def log_memory_mb(device: torch.device) -> float:
+    """The log's memory column: peak MiB allocated by torch on a GPU, peak resident host memory on a CPU."""
+    if device.type == "cuda":
+        return torch.cuda.max_memory_allocated(device) / 2**20
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux
 
 
 def write_csv(path: Path, rows: list[dict]) -> None:
