@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from tomgs.constants import ALPHA_MIN, TILE_SIZE
-from tomgs.reference import bin_reference, project_reference, tile_rects, tiles_touched_reference
+from tomgs.reference import bin_reference, project_reference, tile_levels, tile_rects, tiles_touched_reference
 from tomgs.render import bin_stage, project_stage
 from scenes import SEED_BASE, devices, random_scene, rel_l2
 
@@ -104,6 +104,14 @@ def near_tile_border(means2d: torch.Tensor, radii: torch.Tensor, tol: float = 1e
     return (torch.minimum(offset, TILE_SIZE - offset) <= tol * (1.0 + edges.abs() / TILE_SIZE)).any(-1)
 
 
+def near_level(means2d, conics, opacities_t, radii, width, height, tol: float = 1e-3) -> torch.Tensor:
+    """[N] where a tile of the box lies within `tol` (relative) of the ellipse's level (float32 may
+    put it on either side)."""
+    pairs = tile_levels(means2d, conics, opacities_t, radii, width, height)
+    close = (pairs["low"] - pairs["level"]).abs() <= tol * pairs["level"]
+    return torch.zeros(len(means2d), dtype=torch.bool).index_put_((pairs["ids"],), close, accumulate=True)
+
+
 def assert_projection_matches(scene: dict, device: str, kinds: dict[str, slice] | None = None) -> dict:
     scene = float32_values(scene)
     ours, ref, ours_in, ref_in = run_projection(scene, device)
@@ -124,12 +132,14 @@ def assert_projection_matches(scene: dict, device: str, kinds: dict[str, slice] 
     torch.testing.assert_close(got["opacities_t"].double(), ref["opacities_t"], rtol=1e-5, atol=1e-7, equal_nan=True)
     torch.testing.assert_close(got["means2d"].double(), ref["means2d"], rtol=1e-4, atol=1e-3)
     torch.testing.assert_close(got["conics"].double(), ref["conics"], rtol=1e-4, atol=1e-6)
-    # tiles touched: exactly the box of the stage's own means2d and radii, and the reference's box
-    # wherever float32 cannot put an edge on the other side of a tile border
+    # tiles touched: exactly the ellipse tiles of the stage's own outputs, and the reference's wherever
+    # float32 cannot put a box edge on the other side of a tile border or a tile on the other side of the level
     width, height = scene["width"], scene["height"]
-    own_boxes = tiles_touched_reference(got["means2d"], got["radii"], width, height)
-    assert torch.equal(got["tiles_touched"].long(), own_boxes)
-    clear = (diff == 0).all(-1) & ~near_tile_border(ref["means2d"], ref["radii"])
+    own = tiles_touched_reference(got["means2d"], got["conics"], got["opacities_t"], got["radii"], width, height)
+    assert torch.equal(got["tiles_touched"].long(), own)
+    ref_values = [ref[k].detach() for k in ("means2d", "conics", "opacities_t")]
+    clear = ((diff == 0).all(-1) & ~near_tile_border(ref["means2d"], ref["radii"])
+             & ~near_level(*ref_values, ref["radii"], width, height))
     assert torch.equal(got["tiles_touched"].long()[clear], ref["tiles_touched"][clear])
 
     # gradients of a random linear loss of the differentiable outputs, culled rows exactly zero
@@ -204,10 +214,28 @@ def test_projection_of_no_gaussians(device):
     assert all(g is None or g.abs().sum() == 0 for g in grads)
 
 
+def random_conics(g: torch.Generator, n: int, sigma_min: float = 0.5, sigma_max: float = 40.0):
+    """(conics [n,3] float32, opacities [n] float32): rotated ellipses of standard deviations from
+    sigma_min to sigma_max px per axis (needles of aspect up to ~80 among them), opacities from just
+    above 1/255 to 1."""
+    log_s = torch.rand(n, 2, generator=g, dtype=torch.float64) * math.log(sigma_max / sigma_min) + math.log(sigma_min)
+    s = torch.exp(log_s)
+    theta = torch.rand(n, generator=g, dtype=torch.float64) * math.pi
+    c, si = torch.cos(theta), torch.sin(theta)
+    a = c * c / s[:, 0] ** 2 + si * si / s[:, 1] ** 2  # conic = R diag(1 / s^2) R^T
+    b = c * si * (1 / s[:, 0] ** 2 - 1 / s[:, 1] ** 2)
+    d = si * si / s[:, 0] ** 2 + c * c / s[:, 1] ** 2
+    opac = torch.where(torch.rand(n, generator=g) < 0.2, ALPHA_MIN * (1 + torch.rand(n, generator=g) * 1e-2),
+                       torch.rand(n, generator=g)).clamp(min=ALPHA_MIN * 1.0001)
+    return torch.stack([a, b, d], -1).float(), opac.float()
+
+
 def random_boxes(seed: int, n: int, width: int, height: int, device: str):
-    """Binning inputs of every awkward kind: (means2d [n,2] float32, radii [n,2] int32, depths [n] float32).
-    Centres on and around tile borders, box edges exactly on them, boxes off screen and partly on,
-    radius (0, 0) (culled) and radii from 1 px to 2^30, and depths with ties."""
+    """Binning inputs of every awkward kind: (means2d [n,2] float32, conics [n,3] float32, opacities [n]
+    float32, radii [n,2] int32, depths [n] float32). Centres on and around tile borders, box edges
+    exactly on them, boxes off screen and partly on, radius (0, 0) (culled) and radii from 1 px to 2^30,
+    random rotated ellipses (inside the box or clipped by it; huge ones in the huge boxes), and depths
+    with ties."""
     g = torch.Generator().manual_seed(SEED_BASE * 1000 + 300 + seed)
     means2d = torch.stack([torch.rand(n, generator=g) * (width + 80) - 40,
                            torch.rand(n, generator=g) * (height + 80) - 40], -1)
@@ -226,13 +254,17 @@ def random_boxes(seed: int, n: int, width: int, height: int, device: str):
     radii[kind == 7, 0] = 0  # a one-axis box: the kernel treats only (0, 0) as culled
     depths = torch.rand(n, generator=g) * 5 + 0.01
     depths[torch.rand(n, generator=g) < 0.3] = 2.5  # ties: equal keys keep Gaussian order
-    return means2d.float().to(device), radii.to(device), depths.float().to(device)
+    conics, opacities = random_conics(g, n)
+    huge = (kind == 3) | (kind == 4)
+    conics[huge] = random_conics(g, int(huge.sum()), 1e3, 1e5)[0]  # every tile of the image
+    return tuple(x.to(device) for x in (means2d.float(), conics, opacities, radii, depths.float()))
 
 
-def assert_binning_matches(means2d, radii, depths, width, height) -> dict:
-    touched = tiles_touched_reference(means2d.cpu(), radii.cpu(), width, height).int().to(means2d.device)
-    ours = bin_stage(means2d, radii, depths, touched, width, height)
-    ref = bin_reference(means2d.cpu(), radii.cpu(), depths.cpu(), width, height)
+def assert_binning_matches(means2d, conics, opacities, radii, depths, width, height) -> dict:
+    ellipses = [x.cpu() for x in (means2d, conics, opacities, radii)]
+    touched = tiles_touched_reference(*ellipses, width, height).int().to(means2d.device)
+    ours = bin_stage(means2d, conics, opacities, radii, depths, touched, width, height)
+    ref = bin_reference(*ellipses, depths.cpu(), width, height)
     tiles = -(-width // TILE_SIZE) * -(-height // TILE_SIZE)
     assert ours["keys"].dtype == torch.int64 and ours["ids"].dtype == torch.int32
     assert ours["ranges"].dtype == torch.int32
@@ -254,10 +286,10 @@ def assert_binning_matches(means2d, radii, depths, width, height) -> dict:
 @pytest.mark.parametrize("size", [(45, 37), (64, 48), (16, 16), (100, 7)])
 def test_binning_matches_reference(seed, size, device):
     width, height = size
-    means2d, radii, depths = random_boxes(seed, 120, width, height, device)
-    ref = assert_binning_matches(means2d, radii, depths, width, height)
+    inputs = random_boxes(seed, 120, width, height, device)
+    ref = assert_binning_matches(*inputs, width, height)
     # the inputs do what they are for: Gaussians of many tiles, of none, and equal keys
-    touched = tiles_touched_reference(means2d.cpu(), radii.cpu(), width, height)
+    touched = tiles_touched_reference(*[x.cpu() for x in inputs[:4]], width, height)
     assert (touched == 0).any() and (touched == len(ref["ranges"])).any()
     if len(ref["ranges"]) > 1:
         assert ((touched > 1) & (touched < len(ref["ranges"]))).any()
@@ -270,10 +302,10 @@ def test_binning_of_projected_gaussians(device):
     scene, _ = extreme_scene(240)
     ours, _, _, _ = run_projection(float32_values(scene), device)
     ours = {k: v.detach() for k, v in ours.items()}
-    out = bin_stage(ours["means2d"], ours["radii"], ours["depths"], ours["tiles_touched"], scene["width"],
+    names = ("means2d", "conics", "opacities_t", "radii", "depths")
+    out = bin_stage(*[ours[k] for k in names[:4]], ours["depths"], ours["tiles_touched"], scene["width"],
                     scene["height"])
-    ref = bin_reference(ours["means2d"].cpu(), ours["radii"].cpu(), ours["depths"].cpu(), scene["width"],
-                        scene["height"])
+    ref = bin_reference(*[ours[k].cpu() for k in names], scene["width"], scene["height"])
     assert torch.equal(out["keys"].cpu(), ref["keys"]) and torch.equal(out["ids"].long().cpu(), ref["ids"])
     assert torch.equal(out["ranges"].long().cpu(), ref["ranges"])
 
@@ -285,7 +317,9 @@ def test_binning_of_nothing(device):
                            (torch.tensor([[10.0, 10.0], [-50.0, 5.0], [5.0, 200.0]]),
                             torch.tensor([[0, 0], [3, 3], [4, 4]], dtype=torch.int32))):
         n = len(means2d)
-        ref = assert_binning_matches(means2d.to(device), radii.to(device), torch.ones(n, device=device), 45, 37)
+        conics, opacities = torch.tensor([[0.1, 0.0, 0.1]]).repeat(n, 1), torch.full((n,), 0.5)
+        ref = assert_binning_matches(*[x.to(device) for x in (means2d, conics, opacities, radii)],
+                                     torch.ones(n, device=device), 45, 37)
         assert len(ref["keys"]) == 0 and (ref["ranges"] == 0).all()
 
 
@@ -295,4 +329,6 @@ def test_tile_rects_by_hand():
     radii = torch.tensor([[0, 0], [0, 1], [100, 2], [2, 2], [8, 8]])
     rects = tile_rects(means2d, radii, 45, 37).tolist()
     assert rects == [[1, 1, 2, 2], [0, 0, 1, 1], [0, 2, 3, 3], [0, 0, 0, 1], [0, 0, 2, 2]]
-    assert tiles_touched_reference(means2d, radii, 45, 37).tolist() == [0, 1, 3, 0, 4]
+    wide = torch.tensor([[1e-6, 0.0, 1e-6]], dtype=torch.float64).repeat(5, 1)  # an ellipse larger than any box
+    opacities = torch.full((5,), 0.5, dtype=torch.float64)
+    assert tiles_touched_reference(means2d, wide, opacities, radii, 45, 37).tolist() == [0, 1, 3, 0, 4]

@@ -5,8 +5,9 @@
     rasterize_reference the whole renderer, dense
 
 Same projection (EWA with 0.3 px dilation, clamped Jacobian, opacity-aware radius), same culls
-(near/far, non-finite, temporal opacity < 1/255, off screen), same binning (tiles of the box
-centre +- radius clamped to the image, keys ordered by tile, then float32 depth, then Gaussian),
+(near/far, non-finite, temporal opacity < 1/255, off screen), same binning (the tiles of the box
+centre +- radius clamped to the image that the Gaussian's alpha >= 1/255 ellipse reaches, keys
+ordered by tile, then float32 depth, then Gaussian),
 same compositing (alpha clamp 0.99, skip alpha < 1/255, stop before T <= 1e-4), but every pixel
 meets every visible Gaussian and autograd provides the gradients. Run them in float64 on small
 scenes; the dense renderer's memory is O(pixels x N).
@@ -103,11 +104,71 @@ def tile_rects(means2d: torch.Tensor, radii: torch.Tensor, width: int, height: i
     return torch.cat([lo, hi], -1).long()
 
 
-def tiles_touched_reference(means2d: torch.Tensor, radii: torch.Tensor, width: int, height: int) -> torch.Tensor:
-    """[N] int64: tiles of each Gaussian's box (`tile_rects`), 0 where radii are (0, 0) (culled)."""
+def tile_levels(means2d: torch.Tensor, conics: torch.Tensor, opacities_t: torch.Tensor, radii: torch.Tensor,
+                width: int, height: int) -> dict[str, torch.Tensor]:
+    """Every (Gaussian, tile of its box) pair, Gaussian by Gaussian, tiles row by row: ids [P] and tiles [P]
+    int64, `low` [P] the minimum of q(d) = d^T conic d over the tile's rectangle of pixel centres (d =
+    pixel - means2d; exact, float64) and `level` [P] the bound on q where the raster may draw (alpha >= 1/255
+    at q <= extent^2, extent as for the radius, in opacities_t's dtype), with the kernel's slack: 2^-10
+    relative and absolute, and 2^-20 (A X^2 + C Y^2) for the raster's float32 power, X, Y = radii + 16."""
+    tiles_x = -(-int(width) // TILE_SIZE)
     rect = tile_rects(means2d, radii, width, height)
-    count = (rect[:, 2] - rect[:, 0]) * (rect[:, 3] - rect[:, 1])
-    return torch.where((radii != 0).any(-1), count, torch.zeros_like(count))
+    span = (rect[:, 2] - rect[:, 0]).clamp_min(0)
+    count = torch.where((radii != 0).any(-1), span * (rect[:, 3] - rect[:, 1]).clamp_min(0), 0)
+    ids = torch.repeat_interleave(torch.arange(len(count), device=means2d.device), count)
+    slot = torch.arange(len(ids), device=means2d.device) - (torch.cumsum(count, 0) - count)[ids]
+    tx = rect[ids, 0] + slot % span[ids].clamp_min(1)
+    ty = rect[ids, 1] + slot // span[ids].clamp_min(1)
+
+    f64 = torch.float64
+    A, B, C = conics.detach().to(f64)[ids].unbind(-1)
+    x0 = TILE_SIZE * tx.to(f64) + 0.5 - means2d.detach().to(f64)[ids, 0]  # the rectangle, relative to the centre
+    y0 = TILE_SIZE * ty.to(f64) + 0.5 - means2d.detach().to(f64)[ids, 1]
+    x1, y1 = x0 + TILE_SIZE - 1, y0 + TILE_SIZE - 1
+
+    def q(x, y):
+        return A * x * x + 2.0 * B * x * y + C * y * y
+
+    # with the centre outside, the minimum lies on an edge (no interior minimum but at d = 0), at a
+    # corner or where the edge's own parabola bottoms out
+    safe_a, safe_c = torch.where(A > 0, A, 1.0), torch.where(C > 0, C, 1.0)
+    lows = [q(x, y) for x in (x0, x1) for y in (y0, y1)]
+    for y in (y0, y1):
+        lows.append(torch.where(A > 0, q(torch.clamp(-B * y / safe_a, x0, x1), y), torch.inf))
+    for x in (x0, x1):
+        lows.append(torch.where(C > 0, q(x, torch.clamp(-B * x / safe_c, y0, y1)), torch.inf))
+    inside = (x0 <= 0) & (0 <= x1) & (y0 <= 0) & (0 <= y1)
+    low = torch.where(inside, torch.zeros_like(A), torch.stack(lows).amin(0))
+
+    opac = opacities_t.detach()
+    extend = torch.clamp(torch.sqrt((2.0 * torch.log(opac / ALPHA_MIN)).clamp_min(0)), max=RADIUS_SIGMAS).to(f64)
+    far_x, far_y = (radii.to(f64) + TILE_SIZE).unbind(-1)
+    noise = conics.detach().to(f64)[:, 0] * far_x ** 2 + conics.detach().to(f64)[:, 2] * far_y ** 2
+    level = extend * extend * (1.0 + 2.0 ** -10) + 2.0 ** -10 + 2.0 ** -20 * noise
+    return dict(ids=ids, tiles=ty * tiles_x + tx, low=low, level=level[ids], underflow=~(A > 0))
+
+
+def ellipse_tiles(means2d: torch.Tensor, conics: torch.Tensor, opacities_t: torch.Tensor, radii: torch.Tensor,
+                  width: int, height: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(ids [M], tiles [M]) int64: the tiles of each Gaussian's box (`tile_rects`; radii (0, 0) = culled)
+    whose pixel centres its ellipse q(d) <= level reaches (`tile_levels`), every tile of the box where the
+    float32 conic's A underflowed to 0, and the box's first tile where none is reached, so that a
+    Gaussian whose box is on screen holds one; Gaussian by Gaussian, tiles row by row."""
+    pairs = tile_levels(means2d, conics, opacities_t, radii, width, height)
+    ids = pairs["ids"]
+    keep = pairs["underflow"] | (pairs["low"] <= pairs["level"])
+    kept = torch.zeros(len(means2d), dtype=torch.long, device=ids.device).index_add_(0, ids, keep.long())
+    first = torch.ones_like(keep)
+    first[1:] = ids[1:] != ids[:-1]
+    keep |= first & (kept[ids] == 0)
+    return ids[keep], pairs["tiles"][keep]
+
+
+def tiles_touched_reference(means2d: torch.Tensor, conics: torch.Tensor, opacities_t: torch.Tensor,
+                            radii: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """[N] int64: how many tiles each Gaussian holds (`ellipse_tiles`), 0 where radii are (0, 0) (culled)."""
+    ids, _ = ellipse_tiles(means2d, conics, opacities_t, radii, width, height)
+    return torch.bincount(ids, minlength=len(means2d))
 
 
 def project_reference(
@@ -130,25 +191,19 @@ def project_reference(
     conics = torch.zeros(n, 3, dtype=dtype, device=p.means.device).index_copy(0, idx, proj["conics"])
     opacities_t = full["opac_t"].index_copy(0, idx, proj["opac_t"])
     return dict(means2d=means2d, conics=conics, depths=full["depth"], radii=radii, opacities_t=opacities_t,
-                tiles_touched=tiles_touched_reference(means2d, radii, p.width, p.height), extent=extent)
+                tiles_touched=tiles_touched_reference(means2d, conics, opacities_t, radii, p.width, p.height),
+                extent=extent)
 
 
-def bin_reference(means2d: torch.Tensor, radii: torch.Tensor, depths: torch.Tensor, width: int, height: int
-                  ) -> dict[str, torch.Tensor]:
-    """Stage 2 alone, with `tomgs.render.bin_stage`'s outputs: every (tile, Gaussian) pair of the boxes
-    means2d +- radii [N,2] (`tile_rects`; radii (0, 0) = culled) as keys [M] int64 `tile << 32 | bits of
-    float32 depth` (depths [N] > 0 where visible), sorted by tile, then depth, then Gaussian; ids [M]
-    int64 the Gaussian of each; tiles [M] int64; ranges [tiles, 2] int64 each tile's [start, end)
-    in them, (0, 0) for a tile nobody touches."""
-    device = means2d.device
+def bin_reference(means2d: torch.Tensor, conics: torch.Tensor, opacities_t: torch.Tensor, radii: torch.Tensor,
+                  depths: torch.Tensor, width: int, height: int) -> dict[str, torch.Tensor]:
+    """Stage 2 alone, with `tomgs.render.bin_stage`'s outputs: every (tile, Gaussian) pair of
+    `ellipse_tiles` (the tiles of the box means2d +- radii [N,2] that the ellipse of conics [N,3] at
+    opacities_t [N] reaches) as keys [M] int64 `tile << 32 | bits of float32 depth` (depths [N] > 0 where
+    visible), sorted by tile, then depth, then Gaussian; ids [M] int64 the Gaussian of each; tiles [M]
+    int64; ranges [tiles, 2] int64 each tile's [start, end) in them, (0, 0) for a tile nobody touches."""
     tiles_x, tiles_y = -(-int(width) // TILE_SIZE), -(-int(height) // TILE_SIZE)
-    rect = tile_rects(means2d, radii, width, height)
-    count = tiles_touched_reference(means2d, radii, width, height)
-    ids = torch.repeat_interleave(torch.arange(len(count), device=device), count)
-    first = torch.cumsum(count, 0) - count  # each Gaussian's first slot
-    slot = torch.arange(len(ids), device=device) - first[ids]
-    span = (rect[:, 2] - rect[:, 0])[ids]
-    tiles = (rect[ids, 1] + slot // span.clamp_min(1)) * tiles_x + rect[ids, 0] + slot % span.clamp_min(1)
+    ids, tiles = ellipse_tiles(means2d, conics, opacities_t, radii, width, height)
     depth_bits = depths.detach().to(torch.float32).view(torch.int32).long()  # a positive float's bits order as it
     keys = (tiles << 32) | depth_bits[ids]
     keys, order = torch.sort(keys, stable=True)  # equal keys keep Gaussian order, as the radix sort does
@@ -199,5 +254,5 @@ def rasterize_reference(
     return image, alpha_out, meta
 
 
-__all__ = ["rasterize_reference", "project_reference", "bin_reference", "tile_rects", "tiles_touched_reference",
-           "quat_to_rotmat"]
+__all__ = ["rasterize_reference", "project_reference", "bin_reference", "tile_rects", "tile_levels", "ellipse_tiles",
+           "tiles_touched_reference", "quat_to_rotmat"]

@@ -162,11 +162,12 @@ class _Project(torch.autograd.Function):
         return v_means, v_quats, v_scales, v_opacities, v_t_means, v_t_scales, v_viewmat, v_K, None, None
 
 
-def _bin(means2d, radii, depths, ends, frame: _Frame, total: int):
+def _bin(means2d, conics, opacities_t, radii, depths, ends, frame: _Frame, total: int):
     """Stage 2: (ranges [tiles, 2] int32 [start, end) into the sorted list, ids [total] int32 Gaussian per
     intersection, keys [total] int64 `tile << 32 | depth bits`, sorted).
 
-    `ends` [N] int64 is the inclusive scan of tiles touched: Gaussian i writes keys [ends[i-1], ends[i]).
+    `ends` [N] int64 is the inclusive scan of tiles touched (binning.tiles_of, which projection counts):
+    Gaussian i writes keys [ends[i-1], ends[i]), the tiles of its box that its ellipse reaches.
     """
     if total > MAX_INTERSECTIONS:
         raise RenderError(
@@ -184,8 +185,8 @@ def _bin(means2d, radii, depths, ends, frame: _Frame, total: int):
         keys_wp = wp.from_torch(keys, requires_grad=False)  # the sort wants full arrays
         ids_wp = wp.from_torch(ids, requires_grad=False)
         launch(binning.write_tile_keys, means2d.shape[0], device=wp_device, args=[
-            wrap(means2d, wp.vec2), wrap(radii, wp.vec2i), wrap(depths), wrap(ends), frame.tiles_x, frame.tiles_y,
-            wrap(keys), wrap(ids),
+            wrap(means2d, wp.vec2), wrap(conics, wp.vec3), wrap(opacities_t), wrap(radii, wp.vec2i), wrap(depths),
+            wrap(ends), frame.tiles_x, frame.tiles_y, wrap(keys), wrap(ids),
         ])
         wp.utils.radix_sort_pairs(keys_wp, ids_wp, total, 0, 32 + tile_bits)
         launch(binning.tile_ranges, total, device=wp_device, args=[wrap(keys), total, wrap(ranges)])
@@ -293,7 +294,7 @@ def rasterize(
         raise RenderError(f"a {frame.width}x{frame.height} image is too large to render in one piece: keep "
                           f"width x height below {MAX_THREADS:,} pixels")
     (means2d, conics, depths, radii, opacities_t, tiles_touched), ends, total = _project_frame(p, frame)
-    ranges, ids, _ = _bin(means2d, radii, depths, ends, frame, total)
+    ranges, ids, _ = _bin(means2d, conics, opacities_t, radii, depths, ends, frame, total)
     color, trans = _Rasterize.apply(means2d, conics, opacities_t, p.colors.contiguous(), ranges, ids, frame)
     image = color if p.background is None else color + trans * p.background
     meta = dict(radii=radii, means2d=means2d, depths=depths, conics=conics, opacities_t=opacities_t,
@@ -335,9 +336,11 @@ def project_stage(
 
 def bin_stage(
     means2d: torch.Tensor,  # [N,2] float32 pixels
+    conics: torch.Tensor,  # [N,3] float32
+    opacities_t: torch.Tensor,  # [N] float32
     radii: torch.Tensor,  # [N,2] int32; (0, 0) = culled
     depths: torch.Tensor,  # [N] float32, > 0 wherever a radius is not zero
-    tiles_touched: torch.Tensor,  # [N] int32: tiles of each Gaussian's box, as projection counts them
+    tiles_touched: torch.Tensor,  # [N] int32: tiles of each Gaussian's ellipse, as projection counts them
     width: int,
     height: int,
 ) -> dict[str, torch.Tensor]:
@@ -348,7 +351,8 @@ def bin_stage(
     frame = _Frame(int(width), int(height), 0.0, 0.0, 0.01, 1e10)
     ends = torch.cumsum(tiles_touched, 0, dtype=torch.int64)
     total = int(ends[-1]) if ends.numel() else 0
-    ranges, ids, keys = _bin(means2d.contiguous(), radii.contiguous(), depths.contiguous(), ends, frame, total)
+    ranges, ids, keys = _bin(means2d.contiguous(), conics.contiguous(), opacities_t.contiguous(), radii.contiguous(),
+                             depths.contiguous(), ends, frame, total)
     return dict(keys=keys, ids=ids, ranges=ranges)
 
 

@@ -1,6 +1,11 @@
 """Stage 2: binning. Each visible Gaussian writes one 64-bit key per tile it touches,
 `tile << 32 | depth bits`, so that one radix sort orders by tile, then front to back.
 The exclusive scan of tiles touched and the sort itself are library primitives run by the caller.
+
+A Gaussian touches the tiles of its box (`tile_rect`) whose pixel centres its ellipse reaches:
+{d : d^T conic d <= level}, the pixels where alpha = o exp(-d^T conic d / 2) can reach 1/255
+(`ellipse_level`). Projection counts them and `write_tile_keys` writes them with the same
+function, `row_tiles`, one tile row at a time, so that the two agree exactly.
 """
 
 import warp as wp
@@ -10,6 +15,19 @@ from tomgs import constants
 wp.set_module_options({"enable_backward": False})
 
 TILE = wp.constant(constants.TILE_SIZE)
+ALPHA_MIN = wp.constant(constants.ALPHA_MIN)
+RADIUS_SIGMAS = wp.constant(constants.RADIUS_SIGMAS)
+# slack on the level: relative and absolute for the float32 log and the raster's fast exp, and 8
+# float32 ulps of the largest terms of the raster's float32 power, which a needle's power cancels
+# down from
+LEVEL_REL = wp.constant(wp.float64(2.0**-10))
+LEVEL_NOISE = wp.constant(wp.float64(2.0**-20))
+
+
+@wp.func
+def opacity_extent(opac: float) -> float:
+    """Standard deviations out to which alpha = opac exp(-x^2 / 2) stays >= 1/255, at most RADIUS_SIGMAS."""
+    return wp.min(RADIUS_SIGMAS, wp.sqrt(wp.max(2.0 * wp.log(opac / ALPHA_MIN), 0.0)))
 
 
 @wp.func
@@ -23,12 +41,90 @@ def tile_rect(center: wp.vec2, radius: wp.vec2i, tiles_x: int, tiles_y: int) -> 
     return wp.vec4i(int(x0), int(y0), int(x1), int(y1))
 
 
+@wp.func
+def ellipse_level(conic: wp.vec3, radius: wp.vec2i, opac: float) -> wp.float64:
+    """Bound on 2 x power = d^T conic d over every pixel of the box's tiles that the raster may draw
+    (alpha >= 1/255): extent^2 plus slack (LEVEL_REL, LEVEL_NOISE), so no drawn pixel is dropped."""
+    extend = wp.float64(opacity_extent(opac))
+    x = wp.float64(radius[0] + TILE)  # the farthest pixel centre of a box tile from the centre
+    y = wp.float64(radius[1] + TILE)
+    terms = wp.float64(conic[0]) * x * x + wp.float64(conic[2]) * y * y
+    return extend * extend * (wp.float64(1.0) + LEVEL_REL) + LEVEL_REL + LEVEL_NOISE * terms
+
+
+@wp.func
+def widen_at(span: wp.vec2d, A: wp.float64, B: wp.float64, D: wp.float64, level: wp.float64,
+             y: wp.float64) -> wp.vec2d:
+    """`span` [lo, hi] widened by the ellipse's x-interval at height y, -B y / A +- sqrt(level A - D y^2) / A
+    (relative to the centre), left as it is where the ellipse does not reach y."""
+    disc = level * A - D * y * y
+    if disc < wp.float64(0.0):
+        return span
+    h = wp.sqrt(disc) / A
+    m = -B * y / A
+    return wp.vec2d(wp.min(span[0], m - h), wp.max(span[1], m + h))
+
+
+@wp.func
+def row_tiles(center: wp.vec2, conic: wp.vec3, level: wp.float64, rect: wp.vec4i, ty: int) -> wp.vec2i:
+    """Tiles [x0, x1) of tile row ty, inside the box's tiles `rect`, whose rectangle of pixel centres
+    meets the ellipse d^T conic d <= level (d = pixel - center); x0 = x1 when none does."""
+    A = wp.float64(conic[0])
+    B = wp.float64(conic[1])
+    C = wp.float64(conic[2])
+    if not (A > wp.float64(0.0)):  # an underflowed conic: keep the box's row
+        return wp.vec2i(rect[0], rect[2])
+    D = A * C - B * B  # products of float32s are exact in float64: the float32 conic's own ellipse
+    tile = wp.float64(TILE)
+    ya = tile * wp.float64(ty) + wp.float64(0.5) - wp.float64(center[1])  # the row's pixel centres, y - cy
+    yb = ya + tile - wp.float64(1.0)
+    # x-range of the ellipse over ya <= y <= yb: the left (right) edge is convex (concave) in y, so its
+    # extreme lies at a band end, unless the ellipse's leftmost (rightmost) point lies inside the band;
+    # with D <= 0 (a float32 conic degenerate to a strip or worse) there is no such point
+    inf = wp.float64(wp.inf)
+    span = widen_at(widen_at(wp.vec2d(inf, -inf), A, B, D, level, ya), A, B, D, level, yb)
+    lo = span[0]
+    hi = span[1]
+    if D > wp.float64(0.0):
+        xe = wp.sqrt(level * C / D)  # half width; the rightmost point is (xe, -B xe / C)
+        ye = B * xe / C
+        if -ye >= ya and -ye <= yb:
+            hi = xe
+        if ye >= ya and ye <= yb:
+            lo = -xe
+    # tile tx holds pixel centres 16 tx + 0.5 .. 16 tx + 15.5
+    cx = wp.float64(center[0])
+    first = wp.ceil((cx + lo - tile + wp.float64(0.5)) / tile)
+    last = wp.floor((cx + hi - wp.float64(0.5)) / tile) + wp.float64(1.0)
+    x0 = int(wp.clamp(first, wp.float64(rect[0]), wp.float64(rect[2])))
+    x1 = int(wp.clamp(last, wp.float64(x0), wp.float64(rect[2])))
+    return wp.vec2i(x0, x1)
+
+
+@wp.func
+def tiles_of(center: wp.vec2, conic: wp.vec3, radius: wp.vec2i, opac: float, tiles_x: int, tiles_y: int) -> int:
+    """How many tiles `write_tile_keys` writes for this Gaussian: its ellipse's tiles, or the box's
+    first tile when the ellipse reaches none (a Gaussian whose box is on screen always holds one, so
+    that counting the Gaussians that hold tiles counts the visible ones)."""
+    rect = tile_rect(center, radius, tiles_x, tiles_y)
+    level = ellipse_level(conic, radius, opac)
+    count = int(0)
+    for ty in range(rect[1], rect[3]):
+        span = row_tiles(center, conic, level, rect, ty)
+        count += span[1] - span[0]
+    if count == 0 and rect[2] > rect[0] and rect[3] > rect[1]:
+        count = 1
+    return count
+
+
 @wp.kernel
 def write_tile_keys(
     means2d: wp.array(dtype=wp.vec2),  # [N]
+    conics: wp.array(dtype=wp.vec3),  # [N]
+    opacities_t: wp.array(dtype=float),  # [N]
     radii: wp.array(dtype=wp.vec2i),  # [N]
     depths: wp.array(dtype=float),  # [N] > 0 for every visible Gaussian
-    ends: wp.array(dtype=wp.int64),  # [N] inclusive scan of tiles touched
+    ends: wp.array(dtype=wp.int64),  # [N] inclusive scan of tiles touched (`tiles_of`)
     tiles_x: int,
     tiles_y: int,
     keys: wp.array(dtype=wp.int64),  # out [>= total] tile << 32 | depth bits
@@ -38,15 +134,25 @@ def write_tile_keys(
     r = radii[i]
     if r[0] == 0 and r[1] == 0:
         return
-    rect = tile_rect(means2d[i], r, tiles_x, tiles_y)
+    center = means2d[i]
+    conic = conics[i]
+    rect = tile_rect(center, r, tiles_x, tiles_y)
+    level = ellipse_level(conic, r, opacities_t[i])
     # a positive float's bit pattern orders like its value
     depth_bits = wp.int64(wp.cast(depths[i], wp.int32))
-    k = int(ends[i]) - (rect[2] - rect[0]) * (rect[3] - rect[1])
+    k = int(0)
+    if i > 0:
+        k = int(ends[i - 1])
+    end = int(ends[i])  # writes stay in this Gaussian's slots even where the counts came from elsewhere
     for ty in range(rect[1], rect[3]):
-        for tx in range(rect[0], rect[2]):
+        span = row_tiles(center, conic, level, rect, ty)
+        for tx in range(span[0], wp.min(span[1], span[0] + end - k)):
             keys[k] = (wp.int64(ty * tiles_x + tx) << wp.int64(32)) | depth_bits
             gaussian_ids[k] = i
             k += 1
+    if k < end:  # the ellipse reached no tile: the box's first one, as `tiles_of` counts
+        keys[k] = (wp.int64(rect[1] * tiles_x + rect[0]) << wp.int64(32)) | depth_bits
+        gaussian_ids[k] = i
 
 
 @wp.kernel

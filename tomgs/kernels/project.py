@@ -14,13 +14,12 @@ float32's resolution of t itself (6e-8 near t = 0.5) are honoured.
 import warp as wp
 
 from tomgs import constants
-from tomgs.kernels.binning import tile_rect
+from tomgs.kernels.binning import opacity_extent, tiles_of
 
 wp.set_module_options({"enable_backward": False})
 
 ALPHA_MIN = wp.constant(constants.ALPHA_MIN)
 EPS2D = wp.constant(constants.EPS2D)
-RADIUS_SIGMAS = wp.constant(constants.RADIUS_SIGMAS)
 FOV_CLAMP = wp.constant(constants.FOV_CLAMP)
 QUAT_EPS = wp.constant(constants.QUAT_EPS)
 MAX_RADIUS = wp.constant(float(2**30))  # keeps radii inside int32; tiles are clamped to the image anyway
@@ -218,7 +217,7 @@ def project_forward(
     center = wp.vec2(K[0, 0] * p[0] / p[2] + K[0, 2], K[1, 1] * p[1] / p[2] + K[1, 2])
 
     # opacity-aware extent: beyond it the Gaussian's alpha is below 1/255 everywhere
-    extend = wp.min(RADIUS_SIGMAS, wp.sqrt(wp.max(2.0 * wp.log(opac / ALPHA_MIN), 0.0)))
+    extend = opacity_extent(opac)
     rx = wp.min(wp.ceil(extend * wp.sqrt(a)), MAX_RADIUS)
     ry = wp.min(wp.ceil(extend * wp.sqrt(c)), MAX_RADIUS)
     finite = wp.isfinite(center) and wp.isfinite(conic) and wp.isfinite(rx) and wp.isfinite(ry)
@@ -228,11 +227,10 @@ def project_forward(
         return
 
     radius = wp.vec2i(int(rx), int(ry))
-    rect = tile_rect(center, radius, tiles_x, tiles_y)
     means2d[i] = center
     conics[i] = conic
     radii[i] = radius
-    tiles_touched[i] = (rect[2] - rect[0]) * (rect[3] - rect[1])
+    tiles_touched[i] = tiles_of(center, conic, radius, opac, tiles_x, tiles_y)
 
 
 @wp.func
