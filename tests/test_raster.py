@@ -301,3 +301,141 @@ def test_an_unfinished_sequence_leaves_gradients_on():
     assert torch.is_grad_enabled()
     del frames
     assert torch.is_grad_enabled()
+
+
+# ---- the batched kernels (tomgs.kernels.raster_batched, the CUDA default) on the CPU ----------------
+
+@pytest.fixture(params=["one_thread_blocks", "cooperative_blocks"])
+def batched_on_cpu(request, monkeypatch):
+    """Composite with the batched kernel pair on the CPU, in blocks of one thread (Warp's CPU model:
+    each thread stages whole batches itself) or of 256 cooperative fibers (`enable_cpu_blocks`:
+    barriers, shared batches and block reductions as on a GPU, so a missing barrier shows)."""
+    from tomgs.render import _Rasterize
+
+    if request.param == "cooperative_blocks":
+        import warp as wp
+
+        # record the other stages' launches first, so that only the raster kernels run as fibers
+        render_both(random_scene(0, n=20, width=16, height=16), "cpu")[0][0].sum().backward()
+        monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
+    monkeypatch.setattr(_Rasterize, "batched", True)
+    return request.param
+
+
+def covering_scene(seed: int, n: int, width: int, height: int, opacity: tuple[float, float],
+                   scale: tuple[float, float] = (0.25, 0.5), spread: float = 0.6) -> dict:
+    """`n` large Gaussians 2-4 units in front of the camera, spread over `spread` z across the view,
+    alive at t: most of them reach every tile of a small image, so the tile lists run to n entries."""
+    scene = random_scene(seed, n=n, width=width, height=height)
+    g = torch.Generator().manual_seed(seed)
+    z = 2.0 + 2.0 * torch.rand(n, generator=g, dtype=torch.float64)
+    means = torch.stack([(torch.rand(n, generator=g, dtype=torch.float64) - 0.5) * spread * z,
+                         (torch.rand(n, generator=g, dtype=torch.float64) - 0.5) * spread * z, z], -1)
+    lo, hi = scale
+    # camera at the origin looking down +z, the image centred: the coverage does not depend on the seed
+    scene.update(means=means, viewmat=torch.eye(4, dtype=torch.float64),
+                 K=torch.tensor([[width, 0.0, width / 2], [0.0, width, height / 2], [0.0, 0.0, 1.0]],
+                                dtype=torch.float64),
+                 scales=lo + (hi - lo) * torch.rand(n, 3, generator=g, dtype=torch.float64),
+                 opacities=opacity[0] + (opacity[1] - opacity[0]) * torch.rand(n, generator=g, dtype=torch.float64),
+                 t_means=torch.full((n,), scene["t"], dtype=torch.float64),
+                 t_scales=torch.full((n,), 10.0, dtype=torch.float64))
+    return scene
+
+
+def assert_batched_matches(scene: dict) -> dict:
+    """The batched pair against the float64 reference (values and gradients, the usual tolerances)
+    and against the per-pixel pair: the same arithmetic per pixel, so the same image to 1e-6."""
+    from tomgs.render import _Rasterize
+
+    meta = assert_matches_reference(scene, "cpu")
+    (image, alpha, _), _, ins, _ = render_both(scene, "cpu")
+    batched = _Rasterize.batched
+    try:
+        _Rasterize.batched = False
+        (pp_image, pp_alpha, _), _, pp_ins, _ = render_both(scene, "cpu")
+    finally:
+        _Rasterize.batched = batched
+    assert (image - pp_image).abs().max() <= 1e-6 and (alpha - pp_alpha).abs().max() <= 1e-6
+    w = torch.rand(image.shape, generator=torch.Generator().manual_seed(3)) - 0.3
+    grads = torch.autograd.grad((image * w).sum() + alpha.sum(), ins[:5])
+    pp_grads = torch.autograd.grad((pp_image * w).sum() + pp_alpha.sum(), pp_ins[:5])
+    for name, grad, pp_grad in zip(INPUT_NAMES, grads, pp_grads):
+        assert rel_l2(grad, pp_grad) <= 1e-5, (name, rel_l2(grad, pp_grad))
+    return meta
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_batched_random_scenes(seed, batched_on_cpu):
+    meta = assert_batched_matches(random_scene(seed))
+    assert 0 < meta["n_visible"] < meta["radii"].shape[0]
+
+
+@pytest.mark.parametrize("size", [(16, 16), (33, 17), (64, 48), (7, 50)])
+def test_batched_image_sizes(size, batched_on_cpu):
+    assert_batched_matches(random_scene(20, n=80, width=size[0], height=size[1]))
+
+
+def raster_end(out: torch.Tensor) -> torch.Tensor:
+    """The raster stage's saved `end` [H, W] (one past each pixel's last composited list entry) of a
+    render whose output `out` is still attached to the graph."""
+    todo, seen = [out.grad_fn], set()
+    while todo:
+        node = todo.pop()
+        if node is None or node in seen:
+            continue
+        seen.add(node)
+        if type(node).__name__ == "_RasterizeBackward":
+            return node.saved_tensors[-1]
+        todo += [parent for parent, _ in node.next_functions]
+    raise AssertionError("no raster stage in the graph")
+
+
+@pytest.mark.parametrize("n", [300, 700])
+def test_batched_deep_tiles(n, batched_on_cpu):
+    """A one-tile list of more than one (300) and more than two (700) batches of 256, faint enough that
+    no pixel saturates: every batch is composited forward and walked back."""
+    scene = covering_scene(80 + n, n, width=16, height=16, opacity=(0.008, 0.015), scale=(0.5, 1.0))
+    meta = assert_batched_matches(scene)
+    assert meta["n_intersections"] == n
+    (_, alpha, _), _, _, _ = render_both(scene, "cpu")
+    assert alpha.max() < 1 - 1e-3  # nothing stopped on transmittance
+    assert int(raster_end(alpha).max()) > 256 * (n // 256)  # the walk back starts in the last batch
+
+
+def test_batched_pixels_saturate_in_different_batches(batched_on_cpu):
+    """Pixels of a 700-entry tile stop on transmittance in each of its 3 batches or never: the pixels
+    that are done keep staging batches for the others."""
+    scene = covering_scene(92, 700, width=16, height=16, opacity=(0.04, 0.08), scale=(0.3, 0.8))
+    meta = assert_batched_matches(scene)
+    assert meta["n_intersections"] == 700
+    (_, alpha, _), _, _, _ = render_both(scene, "cpu")
+    end = raster_end(alpha)
+    batch = (end - 1) // 256
+    assert set(batch.flatten().tolist()) == {0, 1, 2}
+    assert float(alpha.detach().max()) > 0.999 and float(alpha.detach().min()) < 0.9
+
+
+def test_batched_block_stops_when_every_pixel_saturates(batched_on_cpu):
+    """Dense opaque overlap: every pixel of the tile is done within the first batch, so the block
+    leaves the other batches of its 600-entry list alone."""
+    scene = covering_scene(100, 600, width=16, height=16, opacity=(0.9, 0.99), scale=(0.5, 1.0), spread=0.2)
+    meta = assert_batched_matches(scene)
+    assert meta["n_intersections"] == 600
+    (_, alpha, _), _, _, _ = render_both(scene, "cpu")
+    assert int(raster_end(alpha).max()) <= 256 and float(alpha.detach().min()) > 0.998
+
+
+def test_batched_empty_tiles(batched_on_cpu):
+    """Gaussians in one corner of a 4x3-tile image: most tiles have empty lists."""
+    scene = covering_scene(110, 60, width=64, height=48, opacity=(0.2, 0.9), scale=(0.01, 0.05))
+    scene["means"][:, 0] = -0.3 * scene["means"][:, 2]  # a column near the left edge
+    (image, alpha, meta), _, _, _ = render_both(scene, "cpu")
+    assert (alpha[:, 32:] == 0).all() and alpha.max() > 0.5
+    assert_batched_matches(scene)
+
+
+def test_batched_alpha_clamp(batched_on_cpu):
+    """Opacities above 0.99: alpha clamps at 0.99 and passes no gradient through the clamp."""
+    scene = covering_scene(120, 40, width=20, height=18, opacity=(0.992, 1.0), scale=(0.05, 0.2))
+    assert_batched_matches(scene)

@@ -18,7 +18,7 @@ import warp as wp
 from tomgs import alive
 from tomgs.constants import ALPHA_MIN, TILE_SIZE
 from tomgs.inputs import RasterInputs, RenderError, prepare_inputs
-from tomgs.kernels import binning, project, raster
+from tomgs.kernels import binning, project, raster, raster_batched
 from tomgs.runtime import indexable, launch, scope, wrap
 
 # The radix sort needs 2 x count slots and counts in int32: 2^30 keeps both inside int32.
@@ -194,6 +194,23 @@ def _bin(means2d, conics, opacities_t, radii, depths, ends, frame: _Frame, total
 
 
 class _Rasterize(torch.autograd.Function):
+    # Which kernel pair composites: None picks by device, True the batched pair (raster_batched: a
+    # block stages each batch of its tile's list in shared memory), False the per-pixel pair
+    # (raster: every thread loads every entry). The batched pair is made for a GPU; a CPU runs one
+    # thread at a time, where staging only adds copies, so it keeps the per-pixel pair.
+    # Set it to compare the two in one process (tests, A/B timings).
+    batched: bool | None = None
+
+    @staticmethod
+    def _kernels(device: torch.device) -> tuple:
+        """(forward kernel, backward kernel, block width) for a frame on `device`."""
+        if not (device.type == "cuda" if _Rasterize.batched is None else _Rasterize.batched):
+            return raster.raster_forward, raster.raster_backward, TILE_SIZE * TILE_SIZE
+        # a CPU block is one thread unless Warp runs cooperative blocks (wp.config.enable_cpu_blocks);
+        # the width is passed as it will run, so each width gets its own recorded launch
+        block = TILE_SIZE * TILE_SIZE if device.type == "cuda" or wp.config.enable_cpu_blocks else 1
+        return raster_batched.raster_forward_batched, raster_batched.raster_backward_batched, block
+
     @staticmethod
     def forward(ctx, means2d, conics, opacities_t, colors, ranges, ids, frame: _Frame):
         device = means2d.device
@@ -204,11 +221,13 @@ class _Rasterize(torch.autograd.Function):
         shared = [wrap(ranges), wrap(ids), wrap(means2d, wp.vec2), wrap(conics, wp.vec3), wrap(opacities_t),
                   wrap(colors, wp.vec3), frame.width, frame.height, frame.tiles_x]
         state = [wrap(trans[..., 0]), wrap(end)]
+        kernels = _Rasterize._kernels(device)
         with scope(device) as wp_device:
-            launch(raster.raster_forward, frame.num_tiles * TILE_SIZE * TILE_SIZE, device=wp_device,
-                   block_dim=TILE_SIZE * TILE_SIZE, args=[*shared, wrap(color, wp.vec3), *state])
+            launch(kernels[0], frame.num_tiles * TILE_SIZE * TILE_SIZE, device=wp_device, block_dim=kernels[2],
+                   args=[*shared, wrap(color, wp.vec3), *state])
         ctx.frame = frame
         ctx.descriptors = (shared, state)
+        ctx.kernels = kernels  # the backward of the pair that ran
         ctx.save_for_backward(means2d, conics, opacities_t, colors, ranges, ids, trans, end)
         return color, trans
 
@@ -217,15 +236,16 @@ class _Rasterize(torch.autograd.Function):
         means2d, _, _, colors, _, _, trans, _ = ctx.saved_tensors
         frame = ctx.frame
         shared, state = ctx.descriptors
+        _, backward_kernel, block = ctx.kernels
         grads = torch.zeros(means2d.shape[0], 9, device=means2d.device, dtype=torch.float32)  # one fill, four views
         v_means2d, v_conics, v_opacities_t, v_colors = grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 6:9]
         v_color = indexable(v_color, trans.expand(-1, -1, 3))  # named: alive until the launch is queued
         v_trans = indexable(v_trans, trans)
         with scope(means2d.device) as wp_device:
-            launch(raster.raster_backward, frame.num_tiles * TILE_SIZE * TILE_SIZE, device=wp_device,
-                   block_dim=TILE_SIZE * TILE_SIZE, args=[
-                       *shared, *state, wrap(v_color, wp.vec3), wrap(v_trans[..., 0]),
-                       wrap(v_means2d, wp.vec2), wrap(v_conics, wp.vec3), wrap(v_opacities_t), wrap(v_colors, wp.vec3)])
+            launch(backward_kernel, frame.num_tiles * TILE_SIZE * TILE_SIZE, device=wp_device, block_dim=block,
+                   args=[*shared, *state, wrap(v_color, wp.vec3), wrap(v_trans[..., 0]),
+                         wrap(v_means2d, wp.vec2), wrap(v_conics, wp.vec3), wrap(v_opacities_t),
+                         wrap(v_colors, wp.vec3)])
         return v_means2d, v_conics, v_opacities_t, v_colors, None, None, None
 
 

@@ -1,0 +1,216 @@
+"""Stage 3 for CUDA: the per-tile compositing of tomgs.kernels.raster, with each tile's list staged
+through shared memory in batches (the scheme of gsplat and INRIA 3DGS).
+
+One 16x16 tile is one block of 256 threads, thread = pixel as in raster.py. The block walks its
+tile's depth-sorted list in batches of 256 entries: each thread gathers ONE entry's record (mean,
+opacity, conic, colour; the backward also its id) from global memory into shared tiles (coalesced,
+all gathers in flight at once), the block synchronises, then every thread composites its pixel against the batch
+with broadcast reads from shared memory. The per-pixel kernels instead load every entry in every
+thread (through L1), which made them issue bound. Per pixel the arithmetic and its order are those
+of raster.py, so both pairs give the same image to rounding.
+
+Block width: 256 on CUDA; on the CPU Warp runs a block of width 1 (every thread alone: it stages
+the whole batch itself, which gives exactly the per-pixel result), or of 256 cooperative fibers
+with `wp.config.enable_cpu_blocks` (real block semantics: barriers and reductions, for tests).
+Launch 1D over num_tiles * 256 threads with block_dim 256 (or 1), so block b is tile b.
+"""
+
+import warp as wp
+
+from tomgs.kernels.lanes import lane_index, lanes_any, lanes_sum, lanes_sum_vec2, lanes_sum_vec3
+from tomgs.kernels.raster import (ALPHA_MAX, ALPHA_MIN, ONE_MINUS_ALPHA_FLOOR, T_MIN, TILE_PIXELS, gaussian_power,
+                                  pixel_of)
+
+# fast math as in raster.py (the same per-pixel arithmetic, issue bound on the GPU)
+wp.set_module_options({"enable_backward": False, "fast_math": True})
+
+
+@wp.func_native("return WP_TILE_BLOCK_DIM;")
+def block_width() -> int:
+    """Threads per block, as the module was compiled for it (256 on CUDA; 1, or 256 with
+    wp.config.enable_cpu_blocks, on the CPU): a constant to the compiler, unlike wp.block_dim()."""
+    ...
+
+
+@wp.kernel
+def raster_forward_batched(
+    ranges: wp.array2d(dtype=wp.int32),  # [tiles, 2]
+    gaussian_ids: wp.array(dtype=wp.int32),  # [M] depth-sorted per tile
+    means2d: wp.array(dtype=wp.vec2),  # [N]
+    conics: wp.array(dtype=wp.vec3),  # [N]
+    opacities_t: wp.array(dtype=float),  # [N]
+    colors: wp.array(dtype=wp.vec3),  # [N]
+    width: int,
+    height: int,
+    tiles_x: int,
+    out_color: wp.array2d(dtype=wp.vec3),  # out [H, W] premultiplied, no background
+    out_trans: wp.array2d(dtype=float),  # out [H, W] final transmittance
+    out_end: wp.array2d(dtype=wp.int32),  # out [H, W] one past the last composited list entry
+):
+    tid = wp.tid()
+    tile_xy = pixel_of(tid, tiles_x)
+    tile = tile_xy[0]
+    x = tile_xy[1]
+    y = tile_xy[2]
+    inside = x < width and y < height
+    pixel = wp.vec2(float(x) + 0.5, float(y) + 0.5)
+    rank = tid % block_width()  # this thread's place in its block
+    start = ranges[tile, 0]
+    end = ranges[tile, 1]
+    # one batch of records: (mean x, mean y, opacity), conic, colour; 9 KB
+    xy_opacity = wp.tile_empty(shape=TILE_PIXELS, dtype=wp.vec3, storage="shared")
+    conic_batch = wp.tile_empty(shape=TILE_PIXELS, dtype=wp.vec3, storage="shared")
+    color_batch = wp.tile_empty(shape=TILE_PIXELS, dtype=wp.vec3, storage="shared")
+    trans = float(1.0)
+    color = wp.vec3(0.0)
+    last = start
+    done = not inside  # threads outside the image only help stage batches
+    for batch in range(start, end, TILE_PIXELS):
+        # the block stops once every pixel is done; this reduction is also the barrier that keeps
+        # the staging below from overwriting records other threads are still reading
+        if wp.tile_extract(wp.tile_sum(wp.tile(int(done))), 0) == block_width():
+            break
+        count = wp.min(TILE_PIXELS, end - batch)
+        for slot in range(rank, TILE_PIXELS, block_width()):  # one pass on CUDA, 256 on a 1-wide block
+            has = slot < count
+            record = wp.vec3(0.0)
+            conic = wp.vec3(0.0)
+            c = wp.vec3(0.0)
+            if has:
+                g = gaussian_ids[batch + slot]
+                center = means2d[g]
+                record = wp.vec3(center[0], center[1], opacities_t[g])
+                conic = conics[g]
+                c = colors[g]
+            wp.tile_scatter_masked(xy_opacity, slot, record, has)
+            wp.tile_scatter_masked(conic_batch, slot, conic, has)
+            wp.tile_scatter_masked(color_batch, slot, c, has)
+        if not done:
+            for j in range(count):
+                record = wp.tile_extract(xy_opacity, j)
+                power = gaussian_power(wp.vec2(record[0], record[1]), wp.tile_extract(conic_batch, j), pixel)
+                alpha = wp.min(ALPHA_MAX, record[2] * wp.exp(-power))
+                if alpha < ALPHA_MIN:
+                    continue
+                next_trans = trans * (1.0 - alpha)
+                if next_trans <= T_MIN:
+                    done = True
+                    break
+                color += wp.tile_extract(color_batch, j) * (alpha * trans)
+                trans = next_trans
+                last = batch + j + 1
+    if inside:
+        out_color[y, x] = color
+        out_trans[y, x] = trans
+        out_end[y, x] = last
+
+
+@wp.kernel
+def raster_backward_batched(
+    ranges: wp.array2d(dtype=wp.int32),  # [tiles, 2]
+    gaussian_ids: wp.array(dtype=wp.int32),  # [M]
+    means2d: wp.array(dtype=wp.vec2),  # [N]
+    conics: wp.array(dtype=wp.vec3),  # [N]
+    opacities_t: wp.array(dtype=float),  # [N]
+    colors: wp.array(dtype=wp.vec3),  # [N]
+    width: int,
+    height: int,
+    tiles_x: int,
+    out_trans: wp.array2d(dtype=float),  # [H, W] from the forward
+    out_end: wp.array2d(dtype=wp.int32),  # [H, W] from the forward
+    v_color: wp.array2d(dtype=wp.vec3),  # [H, W] dL/d(premultiplied colour)
+    v_trans: wp.array2d(dtype=float),  # [H, W] dL/d(final transmittance)
+    v_means2d: wp.array(dtype=wp.vec2),  # out [N], accumulated (zeroed by the caller)
+    v_conics: wp.array(dtype=wp.vec3),  # out [N], accumulated
+    v_opacities_t: wp.array(dtype=float),  # out [N], accumulated
+    v_colors: wp.array(dtype=wp.vec3),  # out [N], accumulated
+):
+    # The block walks back from its largest `end` in batches, every thread through every batch (no
+    # early return: barriers and the warp-lane sums before the atomics need all threads).
+    tid = wp.tid()
+    tile_xy = pixel_of(tid, tiles_x)
+    tile = tile_xy[0]
+    x = tile_xy[1]
+    y = tile_xy[2]
+    pixel = wp.vec2(float(x) + 0.5, float(y) + 0.5)
+    rank = tid % block_width()
+    start = ranges[tile, 0]
+    end = start  # threads outside the image composite nothing
+    final_trans = float(1.0)
+    dc = wp.vec3(0.0)
+    dt_final = float(0.0)
+    if x < width and y < height:
+        end = out_end[y, x]
+        final_trans = out_trans[y, x]
+        dc = v_color[y, x]
+        dt_final = v_trans[y, x] * final_trans
+    block_end = wp.tile_extract(wp.tile_max(wp.tile(end)), 0)
+    # two batches of records, used in turn: a thread staging batch b + 1 into one half has passed
+    # the barrier of batch b's staging, which every thread reaches only after it has read batch
+    # b - 1 from the other half, so no extra barrier is needed before overwriting; 20 KB
+    id_batch = wp.tile_empty(shape=(2, TILE_PIXELS), dtype=wp.int32, storage="shared")
+    xy_opacity = wp.tile_empty(shape=(2, TILE_PIXELS), dtype=wp.vec3, storage="shared")
+    conic_batch = wp.tile_empty(shape=(2, TILE_PIXELS), dtype=wp.vec3, storage="shared")
+    color_batch = wp.tile_empty(shape=(2, TILE_PIXELS), dtype=wp.vec3, storage="shared")
+    trans = final_trans
+    behind = wp.vec3(0.0)  # colour composited behind the current Gaussian, already weighted
+    lead = lane_index() == 0
+    half = int(0)
+    for batch_end in range(block_end, start, -TILE_PIXELS):
+        count = wp.min(TILE_PIXELS, batch_end - start)
+        # slot s holds list entry batch_end - 1 - s: the batch is stored back to front
+        for slot in range(rank, TILE_PIXELS, block_width()):
+            has = slot < count
+            g = int(0)
+            record = wp.vec3(0.0)
+            conic = wp.vec3(0.0)
+            c = wp.vec3(0.0)
+            if has:
+                g = gaussian_ids[batch_end - 1 - slot]
+                center = means2d[g]
+                record = wp.vec3(center[0], center[1], opacities_t[g])
+                conic = conics[g]
+                c = colors[g]
+            wp.tile_scatter_masked(id_batch, half, slot, g, has)
+            wp.tile_scatter_masked(xy_opacity, half, slot, record, has)
+            wp.tile_scatter_masked(conic_batch, half, slot, conic, has)
+            wp.tile_scatter_masked(color_batch, half, slot, c, has)
+        for j in range(count):
+            k = batch_end - 1 - j
+            record = wp.tile_extract(xy_opacity, half, j)
+            center = wp.vec2(record[0], record[1])
+            conic = wp.tile_extract(conic_batch, half, j)
+            falloff = wp.exp(-gaussian_power(center, conic, pixel))
+            raw_alpha = record[2] * falloff
+            alpha = wp.min(ALPHA_MAX, raw_alpha)
+            used = k < end and alpha >= ALPHA_MIN
+            v_col = wp.vec3(0.0)
+            v_opac = float(0.0)
+            v_conic = wp.vec3(0.0)
+            v_mean = wp.vec2(0.0)
+            if used:
+                one_minus = wp.max(1.0 - alpha, ONE_MINUS_ALPHA_FLOOR)
+                trans = trans / one_minus  # transmittance in front of Gaussian k
+                c = wp.tile_extract(color_batch, half, j)
+                weight = alpha * trans
+                v_col = dc * weight
+                v_alpha = trans * wp.dot(c, dc) - (wp.dot(behind, dc) + dt_final) / one_minus
+                behind += c * weight
+                if raw_alpha <= ALPHA_MAX:  # the 0.99 clamp passes no gradient
+                    v_power = -v_alpha * alpha
+                    d = center - pixel
+                    v_opac = v_alpha * falloff
+                    v_conic = v_power * wp.vec3(0.5 * d[0] * d[0], d[0] * d[1], 0.5 * d[1] * d[1])
+                    v_mean = v_power * wp.vec2(conic[0] * d[0] + conic[1] * d[1], conic[1] * d[0] + conic[2] * d[1])
+            if lanes_any(used):
+                v_col = lanes_sum_vec3(v_col)
+                v_opac = lanes_sum(v_opac)
+                v_conic = lanes_sum_vec3(v_conic)
+                v_mean = lanes_sum_vec2(v_mean)
+                if lead:
+                    g = wp.tile_extract(id_batch, half, j)
+                    wp.atomic_add(v_colors, g, v_col)
+                    wp.atomic_add(v_opacities_t, g, v_opac)
+                    wp.atomic_add(v_conics, g, v_conic)
+                    wp.atomic_add(v_means2d, g, v_mean)
+        half = 1 - half
