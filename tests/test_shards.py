@@ -419,3 +419,32 @@ def test_a_failing_caller_stops_every_rank(clip, tmp_path, capfd):
         with pytest.raises(ProcessLookupError):
             os.kill(pid, 0)
     assert not out.exists()
+
+
+@pytest.mark.slow  # two processes, each importing torch and Warp
+def test_a_budgeted_run_ends_at_its_budget_and_says_where_the_time_went(clip, tmp_path):
+    """Under --budget the refinement ends by what follows it as measured: the call returns within
+    a few seconds of the budget and not past it; every process's phases are in result.timeline, in
+    order, and nothing but the outputs is left beside the scene."""
+    frames, cams, _ = clip
+    out = tmp_path / "scene.ply"
+    budget = 20.0
+    began = time.perf_counter()
+    result = fit(frames, out, small_config(100_000, max_seconds=budget), gpus=2, device="cpu", poses=str(cams))
+    wall = time.perf_counter() - began
+    assert wall <= budget + 1.0 and result.wall_seconds <= budget + 1.0, (wall, result.timeline)
+    assert result.wall_seconds >= budget - 4.0, (result.wall_seconds, result.timeline)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.csv", "scene.ply", "scene.psnr.png",
+                                                          "scene.rank0.csv", "scene.rank1.csv"]
+    timeline = result.timeline
+    assert set(timeline) == {"parent", "rank0", "rank1"}
+    phases = {name: [e["phase"] for e in events] for name, events in timeline.items()}
+    assert phases["parent"] == ["start-up", "plan", "spawn", "ranks", "read back"]
+    for rank in ("rank0", "rank1"):
+        assert {"start-up", "join group", "frames", "init", "phase 1", "gather union", "measure before",
+                "refinement", "assemble", "measure after", "leave group", "exit"} <= set(phases[rank]), phases
+    assert {"read", "poses", "save"} <= set(phases["rank0"]) and "warm up" in phases["rank1"]
+    for events in timeline.values():
+        assert all(0.0 <= e["start"] <= e["end"] <= wall + 1.0 for e in events), events
+    reserve = result.shards["per_rank"][0]["reserve"]
+    assert reserve is not None and reserve["refine_end"] < budget

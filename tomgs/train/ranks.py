@@ -9,11 +9,13 @@ torchrun started is one rank and `fit` runs that rank: `torchrun --nnodes 2 --np
 host, rank 0 the scene).
 
 Each rank, in order: joins the process group; rank 0 reads the clip and estimates the cameras (or
-takes them from a checkpoint) and broadcasts them, the others then read their stretch; every rank
+takes them from a checkpoint) and broadcasts them, the others meanwhile read their stretch and warm
+up (`_warm_up`, in a thread); every rank
 checks its checkpoint on resume, and all refuse together when one refuses (before anything is
 written); phase 1 (its Trainer); the merge, the joint refinement and the measurement of its frames
-(tomgs.train.shards); rank 0 writes the scene, the merged CSV and plot; every rank removes its
-checkpoint.
+(tomgs.train.shards), the refinement ending by what follows it as measured (Rank.merge); rank 0
+writes the scene, the merged CSV and plot; every rank removes its checkpoint and, spawned, leaves
+by os._exit. Each process records its phases (Timeline; FitResult.timeline).
 
 Faults: a rank that raises or dies stops the run. A spawned run's parent then sends SIGTERM to the
 other ranks, which save a checkpoint at their next step boundary as an interrupted fit does
@@ -55,6 +57,12 @@ from tomgs.train.shards import REFINE_FRACTION, default_overlap, plan_stretches,
 GROUP_TIMEOUT = timedelta(hours=1)  # a collective waits this long (rank 0's poses on a long clip come first)
 STOP_GRACE_S = 120.0  # after SIGTERM, a rank's time to save before SIGKILL
 PHASE_MESSAGES_PER_S = 5.0  # progress relayed from rank 0 to the parent at most this often
+# after the refinement's last step, beside what the ranks measure (the final measurement, the gather,
+# the scene's write and read back): the ranks leaving the group and exiting (os._exit: ~0.02 s), the
+# parent joining them, the logs gathered (CPU, gloo, 2 ranks: 0.05-0.1 s in all)
+EXIT_S = 0.5
+SAMPLE_IO_SHARE = 1 / 16  # rank 0 times the scene's write and read back on this share of the union
+MIN_SAMPLE_IO = 20_000  # ... and on at least this many Gaussians
 
 
 class ShardFailed(RuntimeError):
@@ -84,6 +92,42 @@ class ShardsInterrupted(FitInterrupted):
         kept = ", ".join(f"{path}" + (f" (iteration {self.iterations[r]})" if r in self.iterations else "")
                          for r, path in sorted(self.checkpoints.items()))
         return f"interrupted ({name}): checkpoints {kept}; continue with --resume"
+
+
+# -- when each phase ran -----------------------------------------------------------------------------
+
+
+class Timeline:
+    """A process's phases as {phase, start, end}: seconds since the command started (`origin`, a
+    time.time() value: Job.start_time), so that every rank's and the parent's line up."""
+
+    def __init__(self, origin: float):
+        self.origin, self.events = float(origin), []
+
+    def add(self, phase: str, start: float, end: float | None = None) -> None:
+        """A phase from `start` to `end` (time.time() values; end: now)."""
+        end = time.time() if end is None else end
+        self.events.append(dict(phase=phase, start=round(start - self.origin, 3), end=round(end - self.origin, 3)))
+
+    def span(self, phase: str):
+        """Context: the phase from entering to leaving."""
+        import contextlib
+
+        @contextlib.contextmanager
+        def timed():
+            began = time.time()
+            try:
+                yield
+            finally:
+                self.add(phase, began)
+        return timed()
+
+
+def process_start_epoch() -> float:
+    """time.time() at which this process started (tomgs.train.fit.process_started: Linux's /proc)."""
+    from tomgs.train.fit import process_started
+
+    return time.time() - (time.perf_counter() - process_started())
 
 
 # -- where we are ------------------------------------------------------------------------------------
@@ -146,9 +190,11 @@ def fit_shards(video, output, config, *, gpus=None, masks=None, frames=None, max
     """`tomgs.train.fit` in temporal shards (this module's docstring): the same arguments, with `gpus`
     ranks (None: torchrun's WORLD_SIZE), `overlap` frames into each neighbour (None: default) and
     `refine_fraction` of the training time for the joint refinement (0: none, the union as merged)."""
-    from tomgs.train.fit import _poses_key, process_started
+    from tomgs.train.fit import _poses_key
 
-    started = process_started() if started is None else started
+    entered = time.time()
+    # as a one-GPU fit: the budget counts from the call unless told (the CLI: from the process's start)
+    started = time.perf_counter() if started is None else started
     env = torchrun_env()
     if env is not None and gpus not in (None, env[1]):
         raise InputError(f"--gpus {gpus} under torchrun with WORLD_SIZE {env[1]}: leave --gpus out (torchrun's "
@@ -181,22 +227,28 @@ def fit_shards(video, output, config, *, gpus=None, masks=None, frames=None, max
             on_plan(plan)
         phases = phases or (lambda *a: None)
         report = _local_report(rank, progress, phases, pose_progress)
-        summary = run_rank(job, rank, local_rank, report)
+        summary = run_rank(job, rank, local_rank, report, entered=entered)
         result = _result(summary, output, started, rank == 0)
         result.plan = plan
+        result.timeline = summary.get("timelines")  # every rank's phases, to the scene written
         return result
 
+    timeline = Timeline(job.start_time)  # the parent's phases; the ranks' come with their summaries
+    timeline.add("start-up", job.start_time, entered)  # the process, Python, imports, the CLI
     paths = check_shard_outputs(output, world, resume, overwrite, tidy=True)
     plan = _parent_plan(job)
     if on_plan is not None:
         on_plan(plan)
     import tempfile
 
+    timeline.add("plan", entered)
     with tempfile.TemporaryDirectory(prefix="tomgs-ranks-") as folder:
         job.store = "file://" + str(Path(folder) / "store")
-        summary = _spawn_and_watch(job, paths, progress, phases or (lambda *a: None), pose_progress)
-    result = _result(summary, output, started, True)
+        summary = _spawn_and_watch(job, paths, progress, phases or (lambda *a: None), pose_progress, timeline)
+    with timeline.span("read back"):
+        result = _result(summary, output, started, True)
     result.plan = plan
+    result.timeline = dict(summary.get("timeline") or {}, parent=timeline.events)
     return result
 
 
@@ -336,9 +388,11 @@ def _parent_plan(job: Job) -> ShardPlan:
     return ShardPlan(plan, count, job.world, job.device_type, stretches, job.refine_fraction)
 
 
-def _spawn_and_watch(job: Job, paths: dict, progress, phases, pose_progress) -> dict:
+def _spawn_and_watch(job: Job, paths: dict, progress, phases, pose_progress, timeline=None) -> dict:
     """Start the ranks, relay their progress, stop them all when one fails or a signal arrives, and
-    return rank 0's summary (or raise ShardFailed, InputError, ShardsInterrupted)."""
+    return rank 0's summary (or raise ShardFailed, InputError, ShardsInterrupted). `timeline` (a
+    Timeline) hears the spawn and the wait for the ranks; the summary's "timeline" is then every
+    rank's own phases, each with its end seen from here ("exit": its report to its process gone)."""
     import multiprocessing as mp
     from multiprocessing.connection import wait
 
@@ -371,11 +425,17 @@ def _spawn_and_watch(job: Job, paths: dict, progress, phases, pose_progress) -> 
         for sig in (signal.SIGINT, signal.SIGTERM):
             if signal.getsignal(sig) not in (signal.SIG_IGN, None):
                 previous[sig] = signal.signal(sig, forward)
+    reported: dict[int, float] = {}  # rank -> when its last report arrived (time.time())
+    ended: dict[int, float] = {}  # rank -> when its process was seen gone
     try:
+        spawning = time.time()
         for p in procs:
             p.start()
         for _, writer in pipes:
             writer.close()  # the parent's copy: a rank's end of file is its own pipe closing
+        if timeline is not None:
+            timeline.add("spawn", spawning)
+        running = time.time()
         while any(p.is_alive() for p in procs) or readers:
             ready = wait(list(readers) + [p.sentinel for p in procs if p.is_alive()], timeout=0.5)
             for conn in [c for c in ready if c in readers]:
@@ -387,6 +447,7 @@ def _spawn_and_watch(job: Job, paths: dict, progress, phases, pose_progress) -> 
                     continue
                 if kind in ("done", "interrupted", "failed"):
                     outcome[rank] = (kind, payload)
+                    reported[rank] = time.time()
                     if kind == "failed":
                         first_fault.append(rank)
                 elif kind == "phase" and rank == 0:
@@ -399,6 +460,8 @@ def _spawn_and_watch(job: Job, paths: dict, progress, phases, pose_progress) -> 
                     except KeyboardInterrupt:  # the caller's Ctrl-C, as in a one-GPU fit
                         forward(signal.SIGINT, None)
             for rank, p in enumerate(procs):
+                if rank not in ended and not p.is_alive():
+                    ended[rank] = time.time()
                 if not p.is_alive() and p.exitcode is not None and rank not in outcome and rank not in died \
                         and not _pending(pipes[rank][0], readers):
                     died[rank] = p.exitcode
@@ -408,8 +471,11 @@ def _spawn_and_watch(job: Job, paths: dict, progress, phases, pose_progress) -> 
                 send(signal.SIGTERM)
             if stopping["at"] is not None and time.monotonic() - stopping["at"] > STOP_GRACE_S:
                 send(signal.SIGKILL)  # blocked in a collective with a dead peer: it keeps its last checkpoint
-        for p in procs:
+        for rank, p in enumerate(procs):
             p.join()
+            ended.setdefault(rank, time.time())  # gone between the loop's last look and its end
+        if timeline is not None:
+            timeline.add("ranks", running)
     except BaseException:  # the parent's own failure (a callback's error): no rank outlives it
         send(signal.SIGTERM)
         for p in procs:
@@ -419,7 +485,17 @@ def _spawn_and_watch(job: Job, paths: dict, progress, phases, pose_progress) -> 
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-    return _verdict(job, paths, procs, outcome, died, first_fault, signals)
+    summary = _verdict(job, paths, procs, outcome, died, first_fault, signals)
+    if timeline is not None:  # each rank's own phases (its summary's), and its exit as seen from here
+        ranks = {}
+        for rank, (kind, payload) in sorted(outcome.items()):
+            events = list(payload.get("own_timeline") or []) if kind == "done" else []
+            if rank in reported and rank in ended:
+                events.append(dict(phase="exit", start=round(reported[rank] - timeline.origin, 3),
+                                   end=round(max(ended[rank], reported[rank]) - timeline.origin, 3)))
+            ranks[f"rank{rank}"] = events
+        summary = dict(summary, timeline=ranks)
+    return summary
 
 
 def _pending(conn, readers) -> bool:
@@ -474,6 +550,7 @@ def _verdict(job: Job, paths: dict, procs, outcome, died, first_fault, signals) 
 
 def _spawned(rank: int, job: Job, conn) -> None:
     """A spawned rank: run it, and report how it ended to the parent (`conn`)."""
+    entered = time.time()  # the rank's first line of Python (its start-up: the interpreter, torch's import)
     _leave_terminal()
     last = {"phase": 0.0}
 
@@ -487,8 +564,14 @@ def _spawned(rank: int, job: Job, conn) -> None:
         conn.send((kind, payload))
 
     try:
-        summary = run_rank(job, rank, rank, report)
+        summary = run_rank(job, rank, rank, report, entered=entered)
         conn.send(("done", summary))
+        conn.close()
+        # the run's outputs are written and closed, the group left: skip Python's finalisation, which
+        # with torch, Warp and a GPU context loaded took 1-3 s of the budget (CPU, gloo) for nothing
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)
     except FitInterrupted as e:
         conn.send(("interrupted", dict(checkpoint=None if e.checkpoint is None else str(e.checkpoint),
                                        signum=e.signum, iteration=e.iteration)))
@@ -570,22 +653,31 @@ def _init_group(job: Job, rank: int, device: torch.device):
     return dist.new_group(backend="gloo", timeout=GROUP_TIMEOUT) if backend != "gloo" else None
 
 
-def run_rank(job: Job, rank: int, local_rank: int, report) -> dict:
+def run_rank(job: Job, rank: int, local_rank: int, report, entered: float | None = None) -> dict:
     """What rank `rank` of `job` does (this module's docstring). `report(kind, payload)` hears
     ('started', {...}), ('phase', (name, done, total, text)), ('poses', (done, total)) and ('row', row)
-    as they happen. Returns its summary (rank 0's describes the run)."""
+    as they happen. `entered`: time.time() at the process's first line of Python (its start-up ends
+    there). Returns its summary (rank 0's describes the run); "own_timeline" is its phases (Timeline)."""
     import torch.distributed as dist
 
+    timeline = Timeline(job.start_time)
+    entered = time.time() if entered is None else entered
+    timeline.add("start-up", min(process_start_epoch(), entered), entered)
     device = torch.device(f"cuda:{local_rank}") if job.device_type == "cuda" else torch.device("cpu")
     if device.type == "cpu":
         local_world = torchrun_env()[3] if torchrun_env() else job.world
         torch.set_num_threads(max(1, (os.cpu_count() or 1) // local_world))  # the ranks share the cores
-    control = _init_group(job, rank, device)
+    with timeline.span("join group"):  # from the first line: importing tomgs' modules, NCCL's start
+        control = _init_group(job, rank, device)
     checkpoint = rank_paths(job.output, job.world)[rank]["checkpoint"]
     # on an error the process group is left as it is: a collective with a dead peer may never return
     with StopSignals(immediate=True, checkpoint=lambda: checkpoint if checkpoint.is_file() else None):
-        summary = Rank(job, rank, device, control, report).run()
-    dist.destroy_process_group()
+        summary = Rank(job, rank, device, control, report, timeline).run()
+    with timeline.span("leave group"):
+        dist.destroy_process_group()
+    summary["own_timeline"] = timeline.events
+    if "timelines" in summary:
+        summary["timelines"][f"rank{rank}"] = timeline.events
     return summary
 
 
@@ -593,10 +685,11 @@ class Rank:
     """One rank's run, step by step (this module's docstring): `start` (cameras, frames, checks),
     `phase1` (its Trainer), `merge` (the union and its joint refinement), `finish` (the outputs)."""
 
-    def __init__(self, job: Job, rank: int, device: torch.device, control, report):
+    def __init__(self, job: Job, rank: int, device: torch.device, control, report, timeline: Timeline | None = None):
         from tomgs.train.fit import output_paths
 
         self.job, self.rank, self.device, self.control, self.report = job, rank, device, control, report
+        self.timeline = timeline or Timeline(job.start_time)
         self.world = job.world
         self.paths = rank_paths(job.output, job.world)[rank]
         self.outputs = output_paths(job.output)
@@ -650,23 +743,35 @@ class Rank:
                 _check_options(saved, job.options, job.config, self.paths["checkpoint"])
             except InputError as e:
                 errors.append(str(e))
-        early = None  # the other ranks read their frames while rank 0 estimates the cameras
+        # while rank 0 estimates the cameras, the others read their frames and pay their first steps'
+        # one-off costs (tomgs.train.ranks._warm_up); nothing of it changes a result
+        early = None
         payload, clip, failure = None, None, None
         if rank == 0:
             try:
-                payload, clip = _shared_setup(job, self.device, saved, self.phase, self.report)
+                payload, clip = _shared_setup(job, self.device, saved, self.phase, self.report, self.timeline)
             except InputError as e:
                 payload = dict(error=str(e), input=True)
             except Exception as e:  # noqa: BLE001 - the others must not wait for a broadcast that never comes
                 payload, failure = dict(error=f"{type(e).__name__}: {e}", input=False), e
         else:
             try:
-                early = _read_early(job, rank)
+                with self.timeline.span("read early"):
+                    early = _read_early(job, rank)
             except InputError as e:
                 errors.append(str(e))
+            if early is not None:
+                with self.timeline.span("thumbnails"):  # what a checkpoint identifies them by
+                    self.early_identity = _identity_of(early)
+            # beside the wait, joined before phase 1's Trainer: no other rank waits for it
+            self.warming = threading.Thread(target=self._warm_up, name="tomgs-warm-up", daemon=True)
+            self.warming.start()
+        waiting = time.time()
         box = [payload]
         dist.broadcast_object_list(box, src=0, group=self.control)
         payload = box[0]
+        self.timeline.add("wait for cameras" if rank else "send cameras", waiting)
+        began = time.time()
         if "error" in payload:
             if failure is not None:
                 raise failure
@@ -695,11 +800,18 @@ class Rank:
         refused = [e for e in self.gather(errors[0] if errors else None) if e is not None]
         if refused:
             raise InputError(refused[0])
+        self.timeline.add("frames", began)  # its stretch read (or the early read's taken), checked, agreed
         self.saved = saved
         self.lap("read")
         if rank == 0:  # rank 0 estimated the cameras inside its reading time; the others waited for them
             self.seconds["poses"] = float(payload["pose_seconds_run"])
             self.seconds["read"] -= self.seconds["poses"]
+
+    def _warm_up(self) -> None:
+        """A rank other than 0, while rank 0 estimates the cameras (a thread): `_warm_up`."""
+        began = time.time()
+        _warm_up(self.job.config, self.device)
+        self.timeline.add("warm up", began)
 
     def _own_frames(self, clip, early):
         """(uint8 [F,H,W,3] of the stretch, what identifies them for a checkpoint)."""
@@ -711,6 +823,8 @@ class Rank:
         elif early is not None and np.array_equal(early.indices, numbers) \
                 and early.frames.shape[1:3] == (self.cameras.height, self.cameras.width):
             frames = early.frames
+            if getattr(self, "early_identity", None) is not None:  # worked out while rank 0 estimated the cameras
+                return frames, self.early_identity
         else:
             frames = _read_stretch(self.job, self.cameras, s)
         identity = _clip_identity(SimpleNamespace(indices=numbers, frames=frames, masks=None))
@@ -723,7 +837,14 @@ class Rank:
         from tomgs.train.trainer import Trainer, write_csv
 
         job, stretch, payload, frames = self.job, self.stretch, self.payload, self.frames
+        if getattr(self, "warming", None) is not None:
+            waiting = time.time()
+            self.warming.join()
+            self.warming = None
+            if time.time() - waiting > 0.005:
+                self.timeline.add("wait for the warm-up", waiting)
         self.phase("init", 0, 1)
+        initialising = time.time()
         height, width = frames.shape[1:3]
         free = None
         if self.device.type == "cuda":
@@ -749,6 +870,8 @@ class Rank:
         self.saved = None
         self.phase("init", 1, 1)
         self.lap("init")
+        self.timeline.add("init", initialising)
+        training = time.time()
         # a resume trains on as a one-GPU resume does: to its iterations, or for this command's budget
         end = payload["times"]["phase1_end"]
         limit = 0.0 if end is None else trainer.elapsed + max(end - time.time(), 1.0)
@@ -758,6 +881,7 @@ class Rank:
                     progress=lambda row: self.report("row", row), time_limit=limit,
                     tick=_train_ticks(self.phase, config.iterations, limit))
         self.lap("train")
+        self.timeline.add("phase 1", training)
         measured = [row["clip_psnr"] for row in trainer.history if row["clip_psnr"] != ""]
         self.alone = dict(iterations=trainer.iteration, seconds=trainer.elapsed, extent=float(trainer.extent),
                           psnr=round(float(measured[-1]), 3) if measured else None,
@@ -768,17 +892,29 @@ class Rank:
     def merge(self) -> None:
         """The union of every rank's owned Gaussians, gathered on every rank; this rank's part of it
         (its Halo: those that may be alive in its stretch) refined jointly with the other ranks'; the
-        scene assembled from every part; this rank's own frames measured before and after."""
+        scene assembled from every part; this rank's own frames measured before and after.
+
+        Under a budget the refinement ends when what comes after it would reach the deadline, as
+        measured here (`_after_refinement`): the measurement of the rank's frames (timed before the
+        refinement), the gather (timed on the union's), rank 0's scene written and read back (timed
+        on a sample of the union), and EXIT_S for the processes' ends."""
         from tomgs.train.shards import all_gather_rows, assemble, frame_psnr, halo, model_of, owned_rows, refine
         from tomgs.train.trainer import write_csv
 
-        job, stretch, device, alone = self.job, self.stretch, self.device, self.alone
+        job, stretch, device, alone, timeline = self.job, self.stretch, self.device, self.alone, self.timeline
+        began = time.time()
         union = torch.cat(all_gather_rows(owned_rows(self.trainer.model, self.cameras.times, stretch).to(device)))
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        gather_s = time.time() - began
         self.extents = self.gather(alone["extent"])
+        timeline.add("gather union", began)
         del self.trainer
         part = halo(union, alone["sh"][0], self.cameras.times, self.stretches, self.rank)
         model = model_of(union[part.rows.to(device)], *alone["sh"]).to(device)
         self.union_size = len(union)
+        io_s = _time_scene_io(union, alone["sh"], self.cameras, self.outputs["scene"], self.history) \
+            if self.rank == 0 and self.payload["times"]["deadline"] is not None else 0.0
         del union  # a rank keeps its part only
         own = slice(stretch.own_lo - stretch.lo, stretch.own_hi - stretch.lo)
         from tomgs.train.trainer import _frame_store
@@ -788,10 +924,22 @@ class Rank:
         frames = torch.as_tensor(self.frames[own], device=device if keep else "cpu")
         del self.frames
         cameras = self.cameras[stretch.own_lo:stretch.own_hi]
+        measuring = time.time()
         self.merged_psnr = frame_psnr(model, frames, cameras, device)  # the union before refining: a diagnostic
+        # the final measurement renders the whole scene, the one above this rank's part of it: a frame
+        # costs at most in proportion (projection scales with the Gaussians, the raster with those seen)
+        measure_s = (time.time() - measuring) * max(1.0, self.union_size / max(len(model), 1))
+        timeline.add("measure before", measuring)
         self.refined = None
+        self.reserve = None
         if job.refine_fraction > 0:
             end = self.payload["times"]["refine_end"]
+            if end is not None:  # every rank's measured costs, the largest of them, and rank 0's scene
+                costs = self.gather((gather_s + measure_s, io_s))
+                self.reserve = dict(assemble_and_measure=round(max(c[0] for c in costs), 3),
+                                    scene_io=round(costs[0][1], 3), exit=EXIT_S)
+                end = self.payload["times"]["deadline"] - sum(self.reserve.values())
+                self.reserve["refine_end"] = round(end - job.start_time, 3)  # seconds since the command started
             steps = max(1, round(job.refine_fraction * self.config.iterations))
             self.phase("train", 0, 1, "joint refinement")
 
@@ -800,17 +948,23 @@ class Rank:
                 write_csv(self.paths["csv"], self.history)
                 self.report("row", row)
 
+            refining = time.time()
             self.refined = refine(model, part, frames, cameras, self.cameras.times, self.stretches, self.config,
                                   float(np.mean(self.extents)), device, steps=steps, until=end,
                                   start_wall=alone["seconds"], start_iteration=alone["iterations"], log_rows=log,
                                   tick=lambda iteration, wall: self.phase("train", 0, 1,
                                                                            f"joint refinement, step {iteration}"))
+            timeline.add("refinement", refining)
             if self.refined.stopped_by is not None:
                 raise FitInterrupted(self.paths["checkpoint"], self.refined.stopped_by, alone["iterations"])
+        assembling = time.time()
         self.halo_size, self.shared_size = len(model), part.total
         self.final = model_of(assemble(model, part), *alone["sh"]).to(device)
         del model
+        timeline.add("assemble", assembling)
+        measuring = time.time()
         self.psnr = frame_psnr(self.final, frames, cameras, device)
+        timeline.add("measure after", measuring)
         self.lap("refine")
 
     def finish(self) -> dict:
@@ -830,16 +984,21 @@ class Rank:
                     merge_seconds=round(self.seconds.get("refine", 0.0), 3),  # gather, measure, refine, assemble
                     union=self.union_size, halo=self.halo_size, shared=self.shared_size,
                     history=self.history, peak_host_mb=host, peak_gpu_mb=gpu, gaussians=len(self.final),
-                    extent=alone["extent"])
-        everyone = self.gather(mine)
+                    extent=alone["extent"], reserve=self.reserve)
+        timeline = self.timeline
+        with timeline.span("gather logs"):
+            everyone = self.gather(mine)
         summary = dict(rank=self.rank)
         if self.rank == 0:
             self.phase("save", 0, 2)
-            summary = _write_outputs(self.job, everyone, self.stretches, self.cameras, self.payload, self.final,
-                                     [] if refined is None else refined.rows, self.outputs, self.config,
-                                     float(np.mean(self.extents)))
+            with timeline.span("save"):
+                summary = _write_outputs(self.job, everyone, self.stretches, self.cameras, self.payload, self.final,
+                                         [] if refined is None else refined.rows, self.outputs, self.config,
+                                         float(np.mean(self.extents)))
             self.phase("save", 1, 2)
-        dist.barrier(group=self.control)  # the scene is written: the checkpoints have done their work
+        with timeline.span("wait for the scene" if self.rank else "barrier"):
+            dist.barrier(group=self.control)  # the scene is written: the checkpoints have done their work
+        tidying = time.time()
         self.paths["checkpoint"].unlink(missing_ok=True)
         self.lap("save")
         if self.rank == 0:  # the merge and the refinement count as training (shards info has them apart)
@@ -848,8 +1007,41 @@ class Rank:
             summary["phase_seconds"] = seconds
             summary["peak_host_mb_by_phase"] = {k: v for k, v in self.peaks.items() if k != "refine"}
             self.phase("save", 2, 2)
-        dist.barrier(group=self.control)
+        timeline.add("tidy", tidying)
+        # every rank's phases so far, for rank 0's summary (torchrun: what its caller sees of the others)
+        timelines = self.gather(timeline.events)
+        if self.rank == 0:
+            summary["timelines"] = {f"rank{r}": list(events) for r, events in enumerate(timelines)}
         return summary
+
+
+def _time_scene_io(union: torch.Tensor, sh: tuple, cameras, scene: Path, history: list) -> float:
+    """Rank 0, before the refinement: seconds to write a scene of the union's size and read it back
+    (the parent's load_scene), and to draw the plot, as timed here on a sample of the union's rows
+    (SAMPLE_IO_SHARE of them, at least MIN_SAMPLE_IO) written beside the scene and removed; the
+    per-Gaussian time scaled to the whole union (so the sample's fixed costs count several times)."""
+    from tomgs.io.scene import load_scene, save_scene
+    from tomgs.train.fit import _plot as plot
+    from tomgs.train.shards import model_of
+
+    n = len(union)
+    if n == 0:
+        return 0.0
+    step = max(1, min(round(1 / SAMPLE_IO_SHARE), n // MIN_SAMPLE_IO))
+    sample = model_of(union[::step], *sh)
+    path = scene.with_name(f".{scene.stem}.io-sample{scene.suffix}")
+    figure = scene.with_name(f".{scene.stem}.io-sample.png")
+    began = time.perf_counter()
+    try:
+        save_scene(path, sample, cameras, {})
+        load_scene(path)
+        io = (time.perf_counter() - began) * n / len(sample)
+        began = time.perf_counter()
+        plot(figure, history)  # matplotlib's import and a figure like the run's
+        return io + time.perf_counter() - began
+    finally:
+        path.unlink(missing_ok=True)
+        figure.unlink(missing_ok=True)
 
 
 def _write_outputs(job, everyone, stretches, cameras, payload, final, refine_rows, outputs, config, extent) -> dict:
@@ -886,7 +1078,8 @@ def _write_outputs(job, everyone, stretches, cameras, payload, final, refine_row
                   boundary=boundary, frame_psnr=[round(p, 3) for p in frame_psnr],
                   per_rank=[{k: rank[k] for k in ("rank", "frames", "own", "iterations", "train_seconds",
                                                   "steps_per_s", "phase1_psnr", "refine_steps_per_s",
-                                                  "merge_seconds", "halo", "peak_host_mb", "peak_gpu_mb")}
+                                                  "merge_seconds", "halo", "peak_host_mb", "peak_gpu_mb",
+                                                  "reserve")}
                             for rank in everyone])
     notes = list(payload["notes"])
     notes.append(f"{len(everyone)} ranks: " + "; ".join(
@@ -909,7 +1102,52 @@ def _write_outputs(job, everyone, stretches, cameras, payload, final, refine_row
                              else None))
 
 
-def _shared_setup(job: Job, device, saved, phase, report):
+def _identity_of(video) -> dict:
+    """tomgs.train.fit._clip_identity of frames read without masks (a rank's stretch)."""
+    from tomgs.train.fit import _clip_identity
+
+    return _clip_identity(SimpleNamespace(indices=video.indices, frames=video.frames, masks=None))
+
+
+WARM_FRAMES, WARM_SIZE, WARM_STEPS = 4, (32, 24), 3
+
+
+def _warm_up(config, device: torch.device) -> None:
+    """A throwaway Trainer on a tiny made-up clip on `device`: a few steps, a measurement and a
+    frame_psnr, so that what a rank's first steps pay once (the imports torch.optim makes on first
+    use, Warp's start, its kernels loaded on the device, the allocator's first blocks) is paid while
+    rank 0 estimates the cameras, not in the rank's own time. Changes no result: it draws only from
+    its own generators, and phase 1 seeds torch again before its Trainer. A failure here is left to
+    the real steps to show."""
+    from tomgs.cameras import Cameras
+    from tomgs.train.shards import frame_psnr
+    from tomgs.train.trainer import Trainer
+
+    try:
+        if device.type == "cuda":
+            torch.cuda.set_device(device)  # a thread's own: no context on another GPU
+        width, height = WARM_SIZE
+        c2w = np.tile(np.eye(4), (WARM_FRAMES, 1, 1))
+        c2w[:, 0, 3] = np.linspace(-0.1, 0.1, WARM_FRAMES)
+        K = np.array([[40.0, 0, width / 2], [0, 40.0, height / 2], [0, 0, 1]])
+        cameras = Cameras(c2w, K, width, height, np.linspace(0, 1, WARM_FRAMES), np.arange(WARM_FRAMES))
+        g = np.random.default_rng(0)
+        frames = g.integers(0, 256, (WARM_FRAMES, height, width, 3), dtype=np.uint8)
+        points = g.normal(0, 0.5, (64, 3)) + np.array([0.0, 0.0, 3.0])
+        colors = g.random((64, 3)).astype(np.float32)
+        with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
+            trainer = Trainer(frames, cameras, points, colors, config.replace(iterations=WARM_STEPS), device)
+            for _ in range(WARM_STEPS):
+                trainer.step()
+            trainer.clip_psnr()
+            frame_psnr(trainer.model, trainer.frames, cameras, device)
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+    except Exception as e:  # noqa: BLE001 - a warm-up, not the fit
+        sys.stderr.write(f"warm-up skipped: {type(e).__name__}: {e}\n")
+
+
+def _shared_setup(job: Job, device, saved, phase, report, timeline: Timeline | None = None):
     """Rank 0: read the clip, estimate its cameras (or take them from a checkpoint of this run), and
     fix the budget's wall-clock times. Returns (payload for every rank, the clip)."""
     from tomgs.cameras import Cameras
@@ -918,11 +1156,15 @@ def _shared_setup(job: Job, device, saved, phase, report):
     from tomgs.train.fit import _fps
     from tomgs.train.plan import render_seconds, SAVE_COST
 
+    timeline = timeline or Timeline(job.start_time)
     phase("read", 0, 1)
+    reading = time.time()
     clip = job.video if isinstance(job.video, Video) else read_video(
         job.video, frames=job.frames, max_side=job.max_side, masks=job.masks,
         progress=lambda done, total: phase("read", done, total))
     phase("read", 1, 1)
+    timeline.add("read", reading)
+    posing = time.time()
     began = time.perf_counter()
     cameras_dict = saved["clip"].get("cameras") if saved is not None else None
     if cameras_dict is None and job.resume:
@@ -945,6 +1187,7 @@ def _shared_setup(job: Job, device, saved, phase, report):
         point_frames = pose_report.point_frames
         phase("poses", 1, 1)
     pose_seconds = spent = time.perf_counter() - began
+    timeline.add("poses", posing)
     if saved is not None:
         pose_seconds = float(saved["clip"].get("pose_seconds", pose_seconds))
     height, width = clip.frames.shape[1:3]
@@ -957,16 +1200,18 @@ def _shared_setup(job: Job, device, saved, phase, report):
         now = time.time()
         deadline = job.start_time + plan.budget
         own = max(s.own_hi - s.own_lo for s in stretches)
-        # after training: the merge, two measurements of a rank's frames (before and after refining), the
-        # scene written and read back by the parent, the processes ending; a rank's cloud grows to about
-        # twice its start while it densifies (as tomgs.train.plan says)
-        grown = min(config.max_gaussians, 2 * config.init_points_per_frame * largest)
-        after = 2.0 + 2 * own * render_seconds(device.type, grown, height * width) + \
-            2 * (SAVE_COST[0] + SAVE_COST[1] * grown * job.world)
+        # what comes after the refinement, as modelled here to place the end of phase 1 (the refinement
+        # itself ends by what the ranks measure before it: Rank.merge): the final measurement of a
+        # rank's frames with the whole scene, the scene written and read back by the parent, the
+        # processes ending; the scene about the ranks' starting clouds (their densification is
+        # time-bound: on the H200s 2.44M Gaussians each after 72 s from 2.4M)
+        scene = job.world * min(config.max_gaussians, config.init_points_per_frame * largest)
+        after = EXIT_S + own * render_seconds(device.type, scene, height * width) + \
+            2 * (SAVE_COST[0] + SAVE_COST[1] * scene)
         train_end = max(deadline - after, now + 2.0)
         fraction = job.refine_fraction
         times = dict(deadline=deadline, phase1_end=now + (1 - fraction) * (train_end - now),
-                     refine_end=train_end if fraction > 0 else None)
+                     refine_end=train_end if fraction > 0 else None, after_model=round(after, 3))
     payload = dict(cameras=cameras.to_dict(), points=np.asarray(points, dtype=np.float64).reshape(-1, 3),
                    colors=np.asarray(colors, dtype=np.float32).reshape(-1, 3),
                    point_frames=None if point_frames is None else np.asarray(point_frames, np.int64).reshape(-1, 2),

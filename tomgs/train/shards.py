@@ -352,8 +352,8 @@ def refine(model: GaussianModel, part: Halo, frames: torch.Tensor, cameras, time
     with the other ranks': it renders its own frames (`frames` uint8 [F,H,W,3] on any device,
     `cameras` theirs in clip time), and the gradients and 'in view' flags of the shared Gaussians are
     summed over the ranks at each step, so that every replica of one takes the same Adam step. Stops
-    after `steps` steps, or (steps 0) at the wall-clock time `until` (time.time()) that any rank
-    reaches first, or at SIGINT / SIGTERM on any rank (Refined.stopped_by). Needs an initialised
+    after `steps` steps, or before the wall-clock time `until` (time.time()) that any rank reaches
+    first (when a step as long as its latest would end past it), or at SIGINT / SIGTERM on any rank (Refined.stopped_by). Needs an initialised
     default process group. `log_rows(row)` hears a CSV row every config.log_interval steps (wall_s
     from `start_wall`, iteration from `start_iteration`; train_psnr the ranks' mean)."""
     import torch.distributed as dist
@@ -384,6 +384,7 @@ def refine(model: GaussianModel, part: Halo, frames: torch.Tensor, cameras, time
     out = Refined()
     began = time.perf_counter()
     recent = []
+    step_s, stepped = 0.0, began  # the latest step's seconds
     with StopSignals() as stop:
         while True:
             k = sampler.sample()
@@ -396,7 +397,8 @@ def refine(model: GaussianModel, part: Halo, frames: torch.Tensor, cameras, time
             grads = [p.grad if p.grad is not None else torch.zeros_like(p) for p in params.values()]
             out.steps += 1
             done = steps > 0 and out.steps >= steps
-            late = until is not None and time.time() >= until
+            # stop when the next step would end past `until` (the last step: the time of the latest)
+            late = until is not None and time.time() + step_s >= until
             value = psnr(image.detach(), target).clamp(max=MAX_PSNR).reshape(1)
             # one all_reduce: [the union's shared Gaussians x (gradients, 'in view') | PSNR, signal, done]
             buffer = torch.zeros(part.total, sum(widths) + 1, device=device)
@@ -417,6 +419,7 @@ def refine(model: GaussianModel, part: Halo, frames: torch.Tensor, cameras, time
             optimizer.zero_grad(set_to_none=True)
             # the one wait for the device a step has: the sums and this rank's own PSNR together
             total, signum, finished, own = torch.cat([buffer[-3:], value]).tolist()
+            step_s, stepped = time.perf_counter() - stepped, time.perf_counter()
             sampler.update(k, own)
             recent.append(total / world)  # the ranks' mean: the union's training PSNR
             now = time.perf_counter() - began
