@@ -20,7 +20,11 @@ Each scene is then rendered here at every frame it was fitted on and compared wi
 renders, PSNR): mean PSNR; per-boundary PSNR (the frames within --near frames of each boundary between
 the N stretches, the same frames for every case that has them, against the others); steps per second
 per rank (phase 1 of a sharded fit: its ranks' own; one GPU: iterations over training seconds); plus
-Gaussians, iterations, wall time and seconds per phase. Writes WORK/<case>/result.json as each case
+Gaussians, iterations, wall time and seconds per phase; and where the wall time went: each case's
+timeline (a sharded fit's FitResult.timeline: the parent's and every rank's phases from the
+command's start, process start-up, waits for rank 0, warm-up, merge, refinement, final measurement,
+save, exit; a one-GPU fit's phases laid end to end) and budget_left_s (the budget less the time the
+fit took to return), as a table per case at the end of shards.md. Writes WORK/<case>/result.json as each case
 ends, and OUT/shards.json, OUT/shards.md (every case found in WORK) and each case's CSV logs to OUT.
 Cases already in WORK are kept unless --redo: a run split over several commands (--cases) adds up.
 """
@@ -151,12 +155,25 @@ def run_case(spec_path: Path) -> None:
                gaussians=len(result.model), peak_gpu_gib=None if result.peak_gpu_mb is None else
                round(result.peak_gpu_mb / 1024, 2), eval_s=round(eval_s, 1), shards=getattr(result, "shards", None),
                device=torch.cuda.get_device_name(0) if spec["device"] == "cuda" else "cpu")
+    out["budget_left_s"] = round(spec["budget"] - wall, 2)  # when the fit returned, against its budget
+    out["timeline"] = getattr(result, "timeline", None) or one_process_timeline(result.phase_seconds, wall)
     if out["shards"] is None:
         out["steps_per_s"] = [round(result.iterations / max(result.seconds, 1e-9), 2)]
     else:
         out["steps_per_s"] = [r["steps_per_s"] for r in out["shards"]["per_rank"]]
         out["shards"] = {k: v for k, v in out["shards"].items() if k != "frame_psnr"}
     (folder / "result.json").write_text(json.dumps(out, indent=1))
+
+
+def one_process_timeline(seconds: dict, wall: float) -> dict:
+    """A one-GPU fit's phases laid end to end after its start-up (what its wall time leaves of them),
+    as a sharded fit's timeline has them (seconds since the command started)."""
+    at = max(wall - sum(seconds.values()), 0.0)
+    events = [dict(phase="start-up", start=0.0, end=round(at, 3))]
+    for name, length in seconds.items():
+        events.append(dict(phase=name, start=round(at, 3), end=round(at + length, 3)))
+        at += length
+    return dict(fit=events)
 
 
 def evaluate(scene_path: Path, clip: str, device: str) -> tuple[list[float], float]:
@@ -209,7 +226,8 @@ def summarize(work: Path, out: Path, args, count: int) -> dict:
             close = np.abs(positions - (b - 0.5)) < args.near  # the frames within `near` of the cut
             near |= close
             per.append(round(float(psnr[close].mean()), 3) if close.any() else None)
-        rows.append(dict(name=name, frames=len(psnr), psnr=r["psnr"], boundary=per,
+        rows.append(dict(name=name, frames=len(psnr), psnr=r["psnr"], boundary=per, budget_left_s=r.get("budget_left_s"),
+                         timeline=r.get("timeline"),
                          boundary_all=round(float(psnr[near].mean()), 3) if near.any() else None,
                          interior=round(float(psnr[~near].mean()), 3) if (~near).any() else None,
                          steps_per_s=r["steps_per_s"], iterations=r["iterations"], gaussians=r["gaussians"],
@@ -249,6 +267,7 @@ def markdown(report: dict) -> str:
                      f"{r['iterations']:,} | {r['gaussians']:,} | {r['wall_s']:.0f} "
                      f"| {r['phase_s'].get('train', 0):.0f} | {before} | "
                      f"{'-' if r['refine_steps'] is None else r['refine_steps']} |")
+    lines += timeline_markdown(report)
     goal = report["goal"]
     if goal:
         lines += ["", f"Goal ({report['gpus']} GPUs fit {report['gpus']} times the frames to the same PSNR, within "
@@ -256,6 +275,24 @@ def markdown(report: dict) -> str:
                       f"{goal['sharded_psnr']:.2f} dB: {goal['gap_db']:+.2f} dB, "
                       f"{'met' if goal['goal_met'] else 'not met'}."]
     return "\n".join(lines) + "\n"
+
+
+def timeline_markdown(report: dict) -> list[str]:
+    """Each case's wall time phase by phase: every process's phases (the parent, each rank; a one-GPU
+    fit's laid end to end), seconds since the command started, and where it ended against the budget."""
+    lines = []
+    for r in report["cases"]:
+        if not r.get("timeline"):
+            continue
+        left = r.get("budget_left_s")
+        lines += ["", f"### {r['name']}: timeline (s since the command started; budget {report['budget_s']:.0f} s"
+                      + (f", returned {left:.1f} s before it)" if left is not None else ")"), "",
+                  "| process | phase | start | end | s |", "|---|---|---|---|---|"]
+        for process, events in sorted(r["timeline"].items(), key=lambda kv: (kv[0] != "parent", kv[0])):
+            for e in events:
+                lines.append(f"| {process} | {e['phase']} | {e['start']:.2f} | {e['end']:.2f} | "
+                             f"{e['end'] - e['start']:.2f} |")
+    return lines
 
 
 def warm_up(args, work: Path) -> None:
