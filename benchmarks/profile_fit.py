@@ -22,11 +22,13 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from davis import render_fps  # noqa: E402
 from profile_raster import host_profile, kernel_times  # noqa: E402
 
 import tomgs
 from tomgs.cameras import Cameras, intrinsics
 from tomgs.io import read_video
+from tomgs.render import _Rasterize
 from tomgs.train import Trainer, preset
 
 
@@ -38,7 +40,11 @@ def main() -> None:
     ap.add_argument("--iters", type=int, default=40)
     ap.add_argument("--device", default="cuda", help="cuda (the profile), or cpu for a dry run of the script")
     ap.add_argument("--host", action="store_true", help="also print the Python functions that cost host time")
+    ap.add_argument("--raster", choices=["auto", "batched", "per-pixel"], default="auto",
+                    help="the compositing kernel pair (auto: batched on CUDA); for A/B timings in one command")
+    ap.add_argument("--fps", action="store_true", help="with --scene: also time render_sequence over every frame (3 passes)")
     args = ap.parse_args()
+    _Rasterize.batched = {"auto": None, "batched": True, "per-pixel": False}[args.raster]
     source = args.clip / "images" if (args.clip / "images").exists() else args.clip
     video = read_video(source)
     T, H, W = video.frames.shape[:3]
@@ -71,6 +77,8 @@ def main() -> None:
         trainer.step()
     sync()
     wall = (time.perf_counter() - start) / args.iters * 1e3
+    if args.fps and args.scene is not None:
+        print(f"render_sequence: {render_fps(args.scene, device):.1f} fps over {T} frames ({args.raster} kernels)")
     if device.type != "cuda":
         print(f"wall {wall:.2f} ms per iteration (no kernel profile on {device})")
         return

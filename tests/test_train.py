@@ -241,3 +241,14 @@ def test_initial_cloud_is_built_a_frame_at_a_time_not_on_the_host():
     total = frames * per_frame + 200
     assert len(model) == total
     assert peak < total * 4  # less than one float32 per point in Python / NumPy memory (old: ~100 bytes)
+
+
+@pytest.mark.parametrize("frames, size", [(6, (48, 32)), (8, (40, 32))])
+def test_frames_and_cameras_that_disagree_are_refused(frames, size):
+    from tomgs.errors import InputError
+
+    images, cams, points, colors = synthetic_clip(8, 48, 32)
+    other = np.zeros((frames, size[1], size[0], 3), np.uint8)
+    with pytest.raises(InputError, match="one camera per frame"):
+        Trainer(other, cams, points, colors, small_config(10), CPU)
+    Trainer(images, cams, points, colors, small_config(10), CPU)  # agreeing: accepted

@@ -109,6 +109,10 @@ class Trainer:
                  wide_fraction: float = 0.0, point_frames: np.ndarray | None = None, init_progress=None):
         frames = np.ascontiguousarray(frames)
         self.num_frames, self.height, self.width = frames.shape[:3]
+        if len(cameras) != self.num_frames or (cameras.width, cameras.height) != (self.width, self.height):
+            raise InputError(f"{self.num_frames} frames of {self.width}x{self.height} but {len(cameras)} cameras of "
+                             f"{cameras.width}x{cameras.height}: give one camera per frame, at the frames' size "
+                             f"(the same --frames and size the scene was fitted with)")
         self.config = config.replace(max_gaussians=config.cap(self.num_frames, self.height * self.width, device.type))
         self.device = device
         self.cameras = cameras
