@@ -1,0 +1,210 @@
+"""Host work per `tomgs.rasterize` forward + backward: torch ops, Warp launches and Python time.
+
+Runs the scene of bench_raster.py (training path: every Gaussian input requires grad, the camera
+does not) at a tiny size, where the kernels cost next to nothing, so what is measured is what the
+host spends issuing a frame. Per iteration it reports
+
+- torch ops: top-level aten calls (torch.profiler, CPU activity), split into forward (rasterize)
+  and backward (loss.backward(); the loss's own two ops excluded), with their names;
+- Warp launches: tomgs.runtime.launch calls, direct wp.launch calls and radix sorts;
+- host wall time: forward and backward, median of --iters (no profiler attached);
+- Python time per stage: cProfile's cumulative time of tomgs' stage functions.
+
+    python benchmarks/host_ops.py                      # CPU, 32x32, 64 Gaussians, temporal
+    python benchmarks/host_ops.py --device cuda --size 854x480 --n 1M --variant temporal
+
+On a GPU the wall times include no device waits but the one host sync of the forward (the
+intersection count), and a real scene's kernels may be longer than the host's issue time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import json
+import pstats
+import statistics
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+import torch
+import warp as wp
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_raster import camera, make_scene, parse_count, parse_size, temporal_scales  # noqa: E402
+
+import tomgs  # noqa: E402
+from tomgs import runtime  # noqa: E402
+
+# the functions whose cumulative Python time makes a stage (file suffix, function name)
+STAGES = [
+    ("render.py", "rasterize"), ("render.py", "_check_scalars"), ("inputs.py", "prepare_inputs"),
+    ("render.py", "_project_frame"), ("render.py", "forward"), ("render.py", "_bin"),
+    ("render.py", "backward"), ("runtime.py", "__call__"), ("runtime.py", "wrap"), ("runtime.py", "indexable"),
+    ("runtime.py", "scope"), ("render.py", "_kernels"),
+]
+
+
+class LaunchCounter:
+    """Counts Warp launches by patching tomgs.runtime.Launches, wp.launch and the radix sort."""
+
+    def __init__(self):
+        self.counts = Counter()
+        self.seconds = 0.0  # time inside launches (on a CPU this includes running the kernel)
+        recorded, direct, sort = runtime.Launches.__call__, wp.launch, wp.utils.radix_sort_pairs
+
+        def counted(name, fn):
+            def call(*args, **kwargs):
+                self.counts[name] += 1
+                t0 = time.perf_counter()
+                try:
+                    return fn(*args, **kwargs)
+                finally:
+                    self.seconds += time.perf_counter() - t0
+            return call
+
+        runtime.Launches.__call__ = counted("recorded launch", recorded)
+        wp.launch = counted("wp.launch", direct)
+        wp.utils.radix_sort_pairs = counted("radix sort", sort)
+
+
+def top_level_ops(prof) -> tuple[Counter, Counter]:
+    """(forward, backward) Counters of aten op names called directly (not from inside another aten op).
+    Backward: ops under an autograd engine node; the rest is the forward."""
+    fwd, bwd = Counter(), Counter()
+    for evt in prof.events():
+        if not evt.name.startswith("aten::"):
+            continue
+        parent, in_backward, nested = evt.cpu_parent, False, False
+        while parent is not None:
+            if parent.name.startswith("aten::"):
+                nested = True
+                break
+            if parent.name.startswith("autograd::engine::evaluate_function"):
+                in_backward = True
+            parent = parent.cpu_parent
+        if not nested:
+            (bwd if in_backward else fwd)[evt.name] += 1
+    return fwd, bwd
+
+
+def stage_times(profiler: cProfile.Profile, iters: int) -> dict[str, float]:
+    """Cumulative microseconds per iteration of the STAGES functions (cProfile adds its own overhead)."""
+    stats = pstats.Stats(profiler).stats
+    out = {}
+    for (filename, _, name), (_, _, _, cumulative, _) in stats.items():
+        for suffix, wanted in STAGES:
+            if name == wanted and filename.endswith(suffix) and "tomgs" in filename:
+                key = f"{suffix[:-3]}.{name}"
+                out[key] = out.get(key, 0.0) + cumulative / iters * 1e6
+    return dict(sorted(out.items(), key=lambda kv: -kv[1]))
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--size", default="32x32")
+    ap.add_argument("--n", default="64")
+    ap.add_argument("--variant", default="temporal", choices=["static", "temporal"])
+    ap.add_argument("--iters", type=int, default=200)
+    ap.add_argument("--json", default=None, help="also write the figures to this file")
+    args = ap.parse_args(argv)
+    width, height = parse_size(args.size)
+    n = parse_count(args.n)
+    dev = torch.device(args.device)
+    cuda = dev.type == "cuda"
+    sync = torch.cuda.synchronize if cuda else (lambda: None)
+
+    P = make_scene(n, 0, dev)
+    P["t_scales"] = (temporal_scales(P["opacities"], 0.1) if args.variant == "temporal"
+                     else torch.full((n,), 1e3, device=dev))
+    for v in P.values():
+        v.requires_grad_(True)
+    viewmat, K = camera(width, height, dev)
+    w_img = torch.rand(height, width, 3, device=dev)
+    w_alpha = torch.rand(height, width, 1, device=dev)
+
+    def forward(t=0.5):
+        return tomgs.rasterize(P["means"], P["quats"], P["scales"], P["opacities"], P["colors"], P["t_means"],
+                               P["t_scales"], viewmat, K, width, height, t)
+
+    def backward(out):
+        img, alpha, _ = out
+        ((img * w_img).sum() + (alpha * w_alpha).sum()).backward()
+
+    def step():
+        for v in P.values():
+            v.grad = None
+        backward(forward())
+
+    for _ in range(10):
+        step()
+    sync()
+
+    # host wall time, no profiler attached
+    fwd_us, bwd_us = [], []
+    for _ in range(args.iters):
+        for v in P.values():
+            v.grad = None
+        sync()
+        t0 = time.perf_counter()
+        out = forward()
+        t1 = time.perf_counter()
+        backward(out)
+        t2 = time.perf_counter()
+        sync()
+        fwd_us.append((t1 - t0) * 1e6)
+        bwd_us.append((t2 - t1) * 1e6)
+
+    counter = LaunchCounter()
+    ops_iters = 5
+    with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
+        for _ in range(ops_iters):
+            step()
+        sync()
+    fwd_ops, bwd_ops = top_level_ops(prof)
+    # the loss (2 x mul, sum, add) and its backward are the benchmark's, not the rasterizer's
+    loss_fwd = Counter({"aten::mul": 2, "aten::sum": 2, "aten::add": 1})
+    fwd_ops = Counter({k: v / ops_iters for k, v in (fwd_ops - Counter({k: v * ops_iters for k, v in
+                                                                           loss_fwd.items()})).items()})
+    bwd_ops = Counter({k: v / ops_iters for k, v in bwd_ops.items()})
+    launches = {k: v / ops_iters for k, v in counter.counts.items()}
+
+    counter.counts.clear()
+    counter.seconds = 0.0
+    profiler = cProfile.Profile()
+    profiler.enable()
+    for _ in range(args.iters):
+        step()
+    sync()
+    profiler.disable()
+    stages = stage_times(profiler, args.iters)
+
+    result = dict(
+        device=str(dev), size=args.size, n=n, variant=args.variant, iters=args.iters,
+        fwd_us=statistics.median(fwd_us), bwd_us=statistics.median(bwd_us),
+        fwd_ops=sum(fwd_ops.values()), bwd_ops=sum(bwd_ops.values()), launches=launches,
+        launch_us=counter.seconds / args.iters * 1e6, stages_us=stages,
+        fwd_op_names=dict(fwd_ops.most_common()), bwd_op_names=dict(bwd_ops.most_common()),
+    )
+    print(f"{dev} {args.size} N={n:,} {args.variant}, median of {args.iters}:")
+    print(f"  host wall: forward {result['fwd_us']:.0f} us, backward (with the loss's) {result['bwd_us']:.0f} us, "
+          f"total {result['fwd_us'] + result['bwd_us']:.0f} us")
+    print(f"  torch ops per frame: forward {result['fwd_ops']:g}, backward {result['bwd_ops']:g} "
+          f"(the loss's 5 forward ops excluded; its backward's included)")
+    print(f"  Warp launches per frame: {sum(launches.values()):g} {launches}")
+    print(f"  forward ops: {', '.join(f'{k[6:]} {v:g}' for k, v in fwd_ops.most_common())}")
+    print(f"  backward ops: {', '.join(f'{k[6:]} {v:g}' for k, v in bwd_ops.most_common())}")
+    print(f"  Python time per stage (cProfile, cumulative us per frame, inflated by the profiler; launches "
+          f"{result['launch_us']:.0f} us incl. CPU kernels):")
+    for name, us in stages.items():
+        print(f"    {us:8.1f}  {name}")
+    if args.json:
+        Path(args.json).write_text(json.dumps(result, indent=1))
+    return result
+
+
+if __name__ == "__main__":
+    main()
