@@ -37,6 +37,44 @@ def gaussian_power(center: wp.vec2, conic: wp.vec3, pixel: wp.vec2) -> float:
     return 0.5 * (conic[0] * d[0] * d[0] + conic[2] * d[1] * d[1]) + conic[1] * d[0] * d[1]
 
 
+@wp.func
+def unblend(alpha: float, raw_alpha: float, falloff: float, trans: float, behind: wp.vec3, c: wp.vec3, dc: wp.vec3,
+            dt_final: float, center: wp.vec2, conic: wp.vec3, pixel: wp.vec2):
+    """One composited Gaussian of a pixel, walked back to front (the backward of one blend).
+
+    In: its alpha (clamped) and raw_alpha = o exp(-power), falloff = exp(-power), the transmittance
+    behind it, the colour composited behind it (weighted), its colour, dL/d(pixel colour), and
+    dL/d(final transmittance) x final transmittance. Out: (transmittance in front of it, colour
+    behind including it, dL/d colour, dL/d opacity_t, dL/d conic, dL/d mean2d)."""
+    one_minus = wp.max(1.0 - alpha, ONE_MINUS_ALPHA_FLOOR)
+    trans = trans / one_minus
+    weight = alpha * trans
+    v_alpha = trans * wp.dot(c, dc) - (wp.dot(behind, dc) + dt_final) / one_minus
+    v_opac = float(0.0)
+    v_conic = wp.vec3(0.0)
+    v_mean = wp.vec2(0.0)
+    if raw_alpha <= ALPHA_MAX:  # the 0.99 clamp passes no gradient
+        v_power = -v_alpha * alpha
+        d = center - pixel
+        v_opac = v_alpha * falloff
+        v_conic = v_power * wp.vec3(0.5 * d[0] * d[0], d[0] * d[1], 0.5 * d[1] * d[1])
+        v_mean = v_power * wp.vec2(conic[0] * d[0] + conic[1] * d[1], conic[1] * d[0] + conic[2] * d[1])
+    return trans, behind + c * weight, dc * weight, v_opac, v_conic, v_mean
+
+
+@wp.func
+def pixel_backward_state(out_trans: wp.array2d(dtype=float), out_end: wp.array2d(dtype=wp.int32),
+                         v_color: wp.array2d(dtype=wp.vec3), v_trans: wp.array2d(dtype=float), x: int, y: int,
+                         width: int, height: int, start: int):
+    """What the backward of pixel (x, y) starts from: (one past its last composited entry, its final
+    transmittance, dL/d colour, dL/d final transmittance x final transmittance). A thread outside the
+    image composites nothing (end = start) but still walks with its block."""
+    if x < width and y < height:
+        final_trans = out_trans[y, x]
+        return out_end[y, x], final_trans, v_color[y, x], v_trans[y, x] * final_trans
+    return start, float(1.0), wp.vec3(0.0), float(0.0)
+
+
 @wp.kernel
 def raster_forward(
     ranges: wp.array2d(dtype=wp.int32),  # [tiles, 2]
@@ -108,15 +146,8 @@ def raster_backward(
     y = tile_xy[2]
     pixel = wp.vec2(float(x) + 0.5, float(y) + 0.5)
     start = ranges[tile, 0]
-    end = start  # lanes outside the image composite nothing
-    final_trans = float(1.0)
-    dc = wp.vec3(0.0)
-    dt_final = float(0.0)
-    if x < width and y < height:
-        end = out_end[y, x]
-        final_trans = out_trans[y, x]
-        dc = v_color[y, x]
-        dt_final = v_trans[y, x] * final_trans
+    end, final_trans, dc, dt_final = pixel_backward_state(out_trans, out_end, v_color, v_trans, x, y, width, height,
+                                                          start)
     trans = final_trans
     behind = wp.vec3(0.0)  # colour composited behind the current Gaussian, already weighted
     lead = lane_index() == 0
@@ -133,19 +164,8 @@ def raster_backward(
         v_conic = wp.vec3(0.0)
         v_mean = wp.vec2(0.0)
         if used:
-            one_minus = wp.max(1.0 - alpha, ONE_MINUS_ALPHA_FLOOR)
-            trans = trans / one_minus  # transmittance in front of Gaussian k
-            c = colors[g]
-            weight = alpha * trans
-            v_col = dc * weight
-            v_alpha = trans * wp.dot(c, dc) - (wp.dot(behind, dc) + dt_final) / one_minus
-            behind += c * weight
-            if raw_alpha <= ALPHA_MAX:  # the 0.99 clamp passes no gradient
-                v_power = -v_alpha * alpha
-                d = center - pixel
-                v_opac = v_alpha * falloff
-                v_conic = v_power * wp.vec3(0.5 * d[0] * d[0], d[0] * d[1], 0.5 * d[1] * d[1])
-                v_mean = v_power * wp.vec2(conic[0] * d[0] + conic[1] * d[1], conic[1] * d[0] + conic[2] * d[1])
+            trans, behind, v_col, v_opac, v_conic, v_mean = unblend(alpha, raw_alpha, falloff, trans, behind,
+                                                                    colors[g], dc, dt_final, center, conic, pixel)
         if lanes_any(used):
             v_col = lanes_sum_vec3(v_col)
             v_opac = lanes_sum(v_opac)

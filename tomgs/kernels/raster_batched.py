@@ -18,8 +18,8 @@ Launch 1D over num_tiles * 256 threads with block_dim 256 (or 1), so block b is 
 import warp as wp
 
 from tomgs.kernels.lanes import lane_index, lanes_any, lanes_sum, lanes_sum_vec2, lanes_sum_vec3
-from tomgs.kernels.raster import (ALPHA_MAX, ALPHA_MIN, ONE_MINUS_ALPHA_FLOOR, T_MIN, TILE_PIXELS, gaussian_power,
-                                  pixel_of)
+from tomgs.kernels.raster import (ALPHA_MAX, ALPHA_MIN, T_MIN, TILE_PIXELS, gaussian_power, pixel_backward_state,
+                                  pixel_of, unblend)
 
 # fast math as in raster.py (the same per-pixel arithmetic, issue bound on the GPU)
 wp.set_module_options({"enable_backward": False, "fast_math": True})
@@ -135,15 +135,8 @@ def raster_backward_batched(
     pixel = wp.vec2(float(x) + 0.5, float(y) + 0.5)
     rank = tid % block_width()
     start = ranges[tile, 0]
-    end = start  # threads outside the image composite nothing
-    final_trans = float(1.0)
-    dc = wp.vec3(0.0)
-    dt_final = float(0.0)
-    if x < width and y < height:
-        end = out_end[y, x]
-        final_trans = out_trans[y, x]
-        dc = v_color[y, x]
-        dt_final = v_trans[y, x] * final_trans
+    end, final_trans, dc, dt_final = pixel_backward_state(out_trans, out_end, v_color, v_trans, x, y, width, height,
+                                                          start)
     block_end = wp.tile_extract(wp.tile_max(wp.tile(end)), 0)
     # two batches of records, used in turn: a thread staging batch b + 1 into one half has passed
     # the barrier of batch b's staging, which every thread reaches only after it has read batch
@@ -189,19 +182,9 @@ def raster_backward_batched(
             v_conic = wp.vec3(0.0)
             v_mean = wp.vec2(0.0)
             if used:
-                one_minus = wp.max(1.0 - alpha, ONE_MINUS_ALPHA_FLOOR)
-                trans = trans / one_minus  # transmittance in front of Gaussian k
-                c = wp.tile_extract(color_batch, half, j)
-                weight = alpha * trans
-                v_col = dc * weight
-                v_alpha = trans * wp.dot(c, dc) - (wp.dot(behind, dc) + dt_final) / one_minus
-                behind += c * weight
-                if raw_alpha <= ALPHA_MAX:  # the 0.99 clamp passes no gradient
-                    v_power = -v_alpha * alpha
-                    d = center - pixel
-                    v_opac = v_alpha * falloff
-                    v_conic = v_power * wp.vec3(0.5 * d[0] * d[0], d[0] * d[1], 0.5 * d[1] * d[1])
-                    v_mean = v_power * wp.vec2(conic[0] * d[0] + conic[1] * d[1], conic[1] * d[0] + conic[2] * d[1])
+                trans, behind, v_col, v_opac, v_conic, v_mean = unblend(
+                    alpha, raw_alpha, falloff, trans, behind, wp.tile_extract(color_batch, half, j), dc, dt_final,
+                    center, conic, pixel)
             if lanes_any(used):
                 v_col = lanes_sum_vec3(v_col)
                 v_opac = lanes_sum(v_opac)
