@@ -166,48 +166,115 @@ def test_boundary_psnr_splits_frames_near_each_boundary():
     assert report["boundary"] == pytest.approx((20 + 22 + 30 + 30) / 4) and report["interior"] == 30.0
 
 
+RATES = dict(means=1.6e-6, quats=1e-3, log_scales=5e-3, opacity_logits=5e-2, sh_dc=2.5e-3, sh_rest=1.25e-4,
+             t_means=1e-3, log_t_scales=1e-2)
+
+
+def _phase1(rank: int, stretch, cams):
+    """Rank `rank`'s stand-in for phase 1: Gaussians in its stretch's time (half of them short-lived:
+    alive in one stretch only) and an optimiser that took 3 + 2 rank Adam steps on made-up gradients
+    (so the ranks' states and step counts differ)."""
+    from tomgs.train.optim import make_adam
+
+    model = random_model(150, seed=5 + rank, t_lo=-0.1, t_hi=1.1)
+    with torch.no_grad():
+        model.log_t_scales[::2] = math.log(0.02)
+        model.t_means[1::2] = 0.5  # the long-lived ones centred in the stretch: its own, reaching the other's
+    params = model.parameters_by_name()
+    optimizer = make_adam(params, RATES, False, torch.device("cpu"))
+    g = torch.Generator().manual_seed(100 + rank)
+    for _ in range(3 + 2 * rank):
+        for p in params.values():
+            p.grad = torch.randn(p.shape, generator=g) * 10.0 ** float(torch.randint(-4, 1, (), generator=g))
+        optimizer.step()
+    return model, optimizer
+
+
 def _refine_rank(rank: int, store: str, folder: str) -> None:
-    """A rank of test_the_refinement_keeps_shared_replicas_equal (spawned): refine its part of one
-    union, assemble the scene, save both."""
+    """A rank of test_the_refinement_keeps_shared_replicas_equal (spawned): gather the union of both
+    ranks' stand-ins for phase 1 with their Adam states (as Rank.merge does), refine its part, assemble
+    the scene, save what each step saw."""
     import torch.distributed as dist
 
-    from tomgs.train.shards import assemble, halo, model_of, refine
+    from tomgs.train.optim import adam_estimates
+    from tomgs.train.shards import assemble, gather_union, halo, model_of, refine, refine_optimizer
 
     dist.init_process_group("gloo", init_method=store, rank=rank, world_size=2)
     torch.set_num_threads(1)
     images, cams = synthetic_clip(FRAMES, WIDTH, HEIGHT)[:2]
     stretches = plan_stretches(FRAMES, 2)
-    union = random_model(300, seed=5)
-    with torch.no_grad():  # half of them short-lived: alive in one stretch only
-        union.log_t_scales[::2] = math.log(0.01)
-    union = pack(union.parameters_by_name())
+    s = stretches[rank]
+    model1, optimizer1 = _phase1(rank, s, cams)
+    gathered = gather_union(model1, optimizer1, cams.times, s)
+    union = gathered.rows
     part = halo(union, 0, cams.times, stretches, rank)
     model = model_of(union[part.rows], 0, 0)
-    s = stretches[rank]
-    out = refine(model, part, torch.as_tensor(images[s.own_lo:s.own_hi]), cams[s.own_lo:s.own_hi], cams.times,
-                 stretches, small_config(20), 1.0, torch.device("cpu"), steps=20)
+    moments = gathered.moments[part.rows]
+    primed = refine_optimizer(model, gathered.rates, small_config(20), torch.device("cpu"), moments, gathered.steps)
+    start = {name: (e[0].clone(), e[1].clone(), e[2]) for name, e in adam_estimates(primed).items()}
+    raw = {g["name"]: {k: v.clone() for k, v in primed.state[g["params"][0]].items()} for g in primed.param_groups}
+    own = owned_rows(model1, cams.times, s)  # phase 1's rows this rank handed to the union, and their states
+    t0, span = float(cams.times[s.lo]), float(cams.times[s.hi - 1] - cams.times[s.lo])
+    lo, hi = own_cut(cams.times, s)
+    t = model1.t_means.detach().double() * span + t0
+    mask = (t >= lo) & (t < hi)
+    phase1 = {name: (e[0][mask], e[1][mask], e[2]) for name, e in adam_estimates(optimizer1).items()}
+    out = refine(model, part, torch.as_tensor(images[s.own_lo:s.own_hi]), cams[s.own_lo:s.own_hi],
+                 small_config(20), gathered.rates, torch.device("cpu"), moments=moments, adam_steps=gathered.steps,
+                 steps=20)
     after = union.clone()
     after[part.rows] = pack(model.parameters_by_name())
     final = assemble(model, part)
-    torch.save(dict(before=union, after=after, rows=part.rows, holder=part.holder, final=final, steps=out.steps),
-               f"{folder}/rank{rank}.pt")
+    torch.save(dict(before=union, after=after, rows=part.rows, holder=part.holder, final=final, steps=out.steps,
+                    own=own, phase1=phase1, span=span, start=start, raw=raw, rates=gathered.rates,
+                    adam_steps=gathered.steps), f"{folder}/rank{rank}.pt")
     dist.destroy_process_group()
 
 
 @pytest.mark.slow  # two processes, each importing torch and Warp
 def test_the_refinement_keeps_shared_replicas_equal_and_private_rows_their_ranks(tmp_path):
-    """Two gloo processes refine their parts of one union on their own frames: a Gaussian alive in both
-    stretches takes the same steps on both (gradients summed), one alive in one stretch only is its
-    rank's and moves there, and both assemble the same scene from the holders' copies."""
+    """Two gloo processes gather the union of their phase-1 Gaussians with each one's Adam state, and
+    refine their parts on their own frames: each row's Adam starts from the state of the rank that
+    fitted it (its moment estimates, in clip time), the same on both ranks where it is shared; a
+    Gaussian alive in both stretches takes the same steps on both (gradients summed), one alive in
+    one stretch only is its rank's and moves there, and both assemble the same scene from the
+    holders' copies."""
     import torch.multiprocessing as mp
 
     mp.start_processes(_refine_rank, args=(f"file://{tmp_path}/store", str(tmp_path)), nprocs=2, join=True,
                        start_method="spawn")
     r0, r1 = (torch.load(tmp_path / f"rank{r}.pt") for r in (0, 1))
-    in0, in1 = (torch.zeros(300, dtype=torch.bool).index_fill_(0, r["rows"], True) for r in (r0, r1))
+    n = len(r0["before"])
+    assert torch.equal(r0["before"], r1["before"]) and torch.equal(r0["before"], torch.cat([r0["own"], r1["own"]]))
+    in0, in1 = (torch.zeros(n, dtype=torch.bool).index_fill_(0, r["rows"], True) for r in (r0, r1))
     shared, alone1 = in0 & in1, in1 & ~in0
     assert shared.sum() > 10 and alone1.sum() > 10 and (in0 & ~in1).sum() > 10
     assert r0["steps"] == r1["steps"] == 20 and torch.equal(r0["holder"], r1["holder"])
+
+    # the refinement's Adam: each row's phase-1 estimates from the rank that owned it (t_means' in clip
+    # time: over span and span^2), the step counts the ranks' largest, the rates phase 1's in clip time
+    assert r0["adam_steps"] == r1["adam_steps"] == {name: 5 for name in r0["adam_steps"]}
+    assert r0["rates"] == r1["rates"] and r0["rates"]["means"] == RATES["means"]
+    assert r0["rates"]["t_means"] == pytest.approx(RATES["t_means"] * (r0["span"] + r1["span"]) / 2)
+    for name in r0["phase1"]:
+        first = torch.cat([r0["phase1"][name][0], r1["phase1"][name][0]])
+        second = torch.cat([r0["phase1"][name][1], r1["phase1"][name][1]])
+        assert r0["phase1"][name][2] == 3 and r1["phase1"][name][2] == 5
+        if name == "t_means":
+            spans = torch.cat([torch.full((len(r["own"]),), float(r["span"])) for r in (r0, r1)])
+            first, second = first / spans, second / spans ** 2
+        assert first.numel() == 0 or first.abs().sum() > 0
+        for r in (r0, r1):
+            got_first, got_second, step = r["start"][name]
+            assert step == 5
+            assert torch.allclose(got_first, first[r["rows"]], rtol=1e-5, atol=0), name
+            assert torch.allclose(got_second, second[r["rows"]], rtol=1e-5, atol=0), name
+        # replicas of a shared Gaussian start from one state, bit for bit
+        at0, at1 = (torch.zeros(n, dtype=torch.long).index_copy_(0, r["rows"], torch.arange(len(r["rows"])))
+                    for r in (r0, r1))
+        for key in ("exp_avg", "exp_avg_sq"):
+            assert torch.equal(r0["raw"][name][key][at0[shared]], r1["raw"][name][key][at1[shared]]), (name, key)
+
     assert torch.allclose(r0["after"][shared], r1["after"][shared], atol=1e-6)
     assert not torch.allclose(r0["after"][shared], r0["before"][shared])  # they did move
     assert not torch.equal(r1["after"][alone1], r1["before"][alone1])

@@ -83,3 +83,46 @@ class SeenAdam(torch.optim.Optimizer):
                 launch(adam.adam_seen_rows, total, device=device, args=[
                     *arrays, wrap(seen), adam.vec_slots_i(*ends), adam.vec_slots(*lr), adam.vec_slots(*bias1),
                     adam.vec_slots(*bias2_sqrt), beta1, beta2, self.defaults["eps"]])
+
+
+def adam_estimates(optimizer: torch.optim.Optimizer) -> dict[str, tuple[torch.Tensor, torch.Tensor, int]]:
+    """Per named group (make_adam's): its parameter's Adam moment estimates, bias-corrected
+    (exp_avg / (1 - beta1^step), exp_avg_sq / (1 - beta2^step): what its next update starts from,
+    whatever number of steps made them; zeros where it has no state yet), and its step count."""
+    out = {}
+    for group in optimizer.param_groups:
+        (p,) = group["params"]
+        beta1, beta2 = group["betas"]
+        state = optimizer.state.get(p, {})
+        step = int(float(state["step"])) if "step" in state else 0
+        if step == 0:
+            out[group["name"]] = (torch.zeros_like(p.detach()), torch.zeros_like(p.detach()), 0)
+            continue
+        out[group["name"]] = (state["exp_avg"].detach() / (1.0 - beta1 ** step),
+                              state["exp_avg_sq"].detach() / (1.0 - beta2 ** step), step)
+    return out
+
+
+def prime_adam(optimizer: torch.optim.Optimizer, estimates: dict[str, tuple[torch.Tensor, torch.Tensor]],
+               steps: dict[str, int]) -> None:
+    """Start `optimizer` (make_adam's, no step taken) from moment estimates (`adam_estimates`' first
+    two, rows matching its parameters): each named group's state as if `steps[name]` steps had ended
+    at them (the moments biased again by that count), so that its next update is the one the
+    optimiser that made them would have taken after as many steps. Groups not named, or with no
+    steps, start fresh. Through load_state_dict: the state takes the layout the optimiser's device
+    and mode want (fused Adam's step on the GPU, SeenAdam's on the host)."""
+    saved = optimizer.state_dict()
+    for index, group in enumerate(optimizer.param_groups):
+        name, (p,) = group["name"], group["params"]
+        step = int(steps.get(name, 0))
+        if name not in estimates or step <= 0:
+            continue
+        first, second = estimates[name]
+        if first.shape != p.shape or second.shape != p.shape:
+            raise ValueError(f"{name}: estimates of shape {tuple(first.shape)} for a parameter of {tuple(p.shape)}")
+        beta1, beta2 = group["betas"]
+        (position,) = saved["param_groups"][index]["params"]
+        saved["state"][position] = dict(step=torch.tensor(float(step)),
+                                        exp_avg=(first * (1.0 - beta1 ** step)).to(p.device, p.dtype),
+                                        exp_avg_sq=(second * (1.0 - beta2 ** step)).to(p.device, p.dtype))
+    optimizer.load_state_dict(saved)

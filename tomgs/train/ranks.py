@@ -177,6 +177,7 @@ class Job:
     start_time: float = 0.0  # time.time() when the command started: the budget counts from it
     overlap: int | None = None  # None: default_overlap
     refine_fraction: float = REFINE_FRACTION
+    carry_adam: bool = True  # the refinement goes on from each row's phase-1 Adam state (False: a fresh Adam)
     store: str | None = None  # init_method of a spawned run (a file:// store); None: env:// (torchrun)
 
 
@@ -186,10 +187,12 @@ class Job:
 def fit_shards(video, output, config, *, gpus=None, masks=None, frames=None, max_side=None, poses="auto",
                focal=None, device=None, resume=False, overwrite=False, progress=None, pose_progress=None,
                layer=None, mask_dilation=2, phases=None, on_plan=None, auto_budget=True, started=None,
-               overlap: int | None = None, refine_fraction: float = REFINE_FRACTION):
+               overlap: int | None = None, refine_fraction: float = REFINE_FRACTION, carry_adam: bool = True):
     """`tomgs.train.fit` in temporal shards (this module's docstring): the same arguments, with `gpus`
     ranks (None: torchrun's WORLD_SIZE), `overlap` frames into each neighbour (None: default) and
-    `refine_fraction` of the training time for the joint refinement (0: none, the union as merged)."""
+    `refine_fraction` of the training time for the joint refinement (0: none, the union as merged);
+    `carry_adam=False` starts the refinement from a fresh Adam instead of each Gaussian's phase-1
+    state (a comparison: docs/multi-gpu.md)."""
     from tomgs.train.fit import _poses_key
 
     entered = time.time()
@@ -218,7 +221,7 @@ def fit_shards(video, output, config, *, gpus=None, masks=None, frames=None, max
               config=config, world=world, device_type=device_type, options=options, masks=masks, frames=frames,
               max_side=max_side, poses=poses, focal=focal, resume=resume, overwrite=overwrite,
               auto_budget=auto_budget, start_time=time.time() - (time.perf_counter() - started), overlap=overlap,
-              refine_fraction=float(refine_fraction))
+              refine_fraction=float(refine_fraction), carry_adam=bool(carry_adam))
     if env is not None:  # torchrun: this process is one rank
         rank, _, local_rank, _ = env
         check_shard_outputs(output, world, resume, overwrite, tidy=rank == 0)
@@ -898,20 +901,24 @@ class Rank:
         measured here (`_after_refinement`): the measurement of the rank's frames (timed before the
         refinement), the gather (timed on the union's), rank 0's scene written and read back (timed
         on a sample of the union), and EXIT_S for the processes' ends."""
-        from tomgs.train.shards import all_gather_rows, assemble, frame_psnr, halo, model_of, owned_rows, refine
+        from tomgs.train.shards import assemble, frame_psnr, gather_union, halo, model_of, refine
         from tomgs.train.trainer import write_csv
 
         job, stretch, device, alone, timeline = self.job, self.stretch, self.device, self.alone, self.timeline
         began = time.time()
-        union = torch.cat(all_gather_rows(owned_rows(self.trainer.model, self.cameras.times, stretch).to(device)))
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        gather_s = time.time() - began
+        # the union, with each row's Adam state from the rank that fitted it (the refinement goes on from it)
+        gathered = gather_union(self.trainer.model, self.trainer.optimizer, self.cameras.times, stretch,
+                                carry=job.refine_fraction > 0 and job.carry_adam)
+        union, gather_s = gathered.rows, gathered.gather_s
+        gathered.rows = None  # `union` alone holds them (dropped below)
         self.extents = self.gather(alone["extent"])
         timeline.add("gather union", began)
         del self.trainer
         part = halo(union, alone["sh"][0], self.cameras.times, self.stretches, self.rank)
-        model = model_of(union[part.rows.to(device)], *alone["sh"]).to(device)
+        rows = part.rows.to(device)
+        model = model_of(union[rows], *alone["sh"]).to(device)
+        moments = None if gathered.moments is None else gathered.moments[rows]
+        gathered.moments = None  # a rank keeps its part only
         self.union_size = len(union)
         io_s = _time_scene_io(union, alone["sh"], self.cameras, self.outputs["scene"], self.history) \
             if self.rank == 0 and self.payload["times"]["deadline"] is not None else 0.0
@@ -949,8 +956,8 @@ class Rank:
                 self.report("row", row)
 
             refining = time.time()
-            self.refined = refine(model, part, frames, cameras, self.cameras.times, self.stretches, self.config,
-                                  float(np.mean(self.extents)), device, steps=steps, until=end,
+            self.refined = refine(model, part, frames, cameras, self.config, gathered.rates, device, moments=moments,
+                                  adam_steps=gathered.steps, steps=steps, until=end,
                                   start_wall=alone["seconds"], start_iteration=alone["iterations"], log_rows=log,
                                   tick=lambda iteration, wall: self.phase("train", 0, 1,
                                                                            f"joint refinement, step {iteration}"))
