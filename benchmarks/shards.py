@@ -15,6 +15,9 @@ a GPU, 100,000 iterations, so that every fit ends at its budget:
     full_{N}gpu         --gpus N on the whole clip (temporal shards, docs/multi-gpu.md)
     full_{N}gpu_r{F}    the same with a refinement fraction F (--refine, repeatable; 0: the union as merged)
     full_{N}gpu_o{K}    the same with stretches reaching K frames into their neighbours (--overlap)
+    full_{N}gpu_fresh   the same with the refinement starting from a fresh Adam (--fresh-adam), not from each
+                        Gaussian's phase-1 Adam state (the default since the refinement's first steps were seen
+                        to knock converged Gaussians about: docs/multi-gpu.md)
 
 Each scene is then rendered here at every frame it was fitted on and compared with the clip (float
 renders, PSNR): mean PSNR; per-boundary PSNR (the frames within --near frames of each boundary between
@@ -72,6 +75,9 @@ def cases(args, count: int) -> list[dict]:
     for frames in args.overlap:
         out.append(dict(name=f"full_{n}gpu_o{frames}", positions=None, gpus=n, overlap=frames,
                         visible=",".join(map(str, range(n))), group=f"full_{n}gpu_o{frames}"))
+    if args.fresh_adam:
+        out.append(dict(name=f"full_{n}gpu_fresh", positions=None, gpus=n, carry_adam=False,
+                        visible=",".join(map(str, range(n))), group=f"full_{n}gpu_fresh"))
     return out
 
 
@@ -85,7 +91,7 @@ def run_group(specs: list[dict], args, clip: Path, work: Path) -> None:
         folder.mkdir(parents=True)
         spec = dict(spec, clip=str(clip), budget=args.budget, device=args.device, poses=args.poses,
                     max_side=args.max_side, frames_spec=_frames_spec(spec, args), folder=str(folder),
-                    iterations=args.iterations)
+                    iterations=args.iterations, log_interval=args.log_interval)
         (folder / "spec.json").write_text(json.dumps(spec, indent=1))
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         if args.device == "cuda":
@@ -134,6 +140,8 @@ def run_case(spec_path: Path) -> None:
     overrides = dict(max_seconds=spec["budget"])
     if spec.get("iterations"):
         overrides["iterations"] = spec["iterations"]
+    if spec.get("log_interval"):
+        overrides["log_interval"] = spec["log_interval"]
     config = preset("default", **overrides)
     kwargs = dict(frames=spec["frames_spec"], max_side=spec["max_side"], poses=spec["poses"], device=spec["device"],
                   overwrite=True, started=started)
@@ -141,7 +149,8 @@ def run_case(spec_path: Path) -> None:
     if spec["gpus"]:
         from tomgs.train.ranks import fit_shards
 
-        extra = {k: spec[key] for k, key in (("refine_fraction", "refine"), ("overlap", "overlap")) if key in spec}
+        extra = {k: spec[key] for k, key in (("refine_fraction", "refine"), ("overlap", "overlap"),
+                                             ("carry_adam", "carry_adam")) if key in spec}
         result = fit_shards(spec["clip"], scene, config, gpus=spec["gpus"], **kwargs, **extra)
     else:
         result = fit(spec["clip"], scene, config, **kwargs)
@@ -161,8 +170,27 @@ def run_case(spec_path: Path) -> None:
         out["steps_per_s"] = [round(result.iterations / max(result.seconds, 1e-9), 2)]
     else:
         out["steps_per_s"] = [r["steps_per_s"] for r in out["shards"]["per_rank"]]
+        out["refine_start"] = refine_start(folder, out["shards"]["per_rank"])
         out["shards"] = {k: v for k, v in out["shards"].items() if k != "frame_psnr"}
     (folder / "result.json").write_text(json.dumps(out, indent=1))
+
+
+def refine_start(folder: Path, per_rank: list[dict]) -> dict:
+    """The refinement's training PSNR row by row (the ranks' mean, from rank 0's CSV: [step, wall s,
+    dB]) against where phase 1 left it (each rank's last phase-1 row, frame-weighted): the dip a fresh
+    optimiser makes shows here. Also its lowest row and the first row back at phase 1's level."""
+    import csv
+
+    logs = [list(csv.DictReader(open(folder / f"scene.rank{r['rank']}.csv"))) for r in per_rank]
+    ends = [[row for row in rows if int(row["iteration"]) <= r["iterations"] and row["train_psnr"] != ""][-1]
+            for rows, r in zip(logs, per_rank)]
+    weights = [r["own"][1] - r["own"][0] for r in per_rank]
+    before = sum(w * float(row["train_psnr"]) for w, row in zip(weights, ends)) / sum(weights)
+    curve = [[int(row["iteration"]) - per_rank[0]["iterations"], float(row["wall_s"]), float(row["train_psnr"])]
+             for row in logs[0] if int(row["iteration"]) > per_rank[0]["iterations"] and row["train_psnr"] != ""]
+    lowest = min(curve, key=lambda c: c[2]) if curve else None
+    back = next((c[0] for c in curve if c[2] >= before), None)
+    return dict(phase1_end_psnr=round(before, 3), curve=curve, lowest=lowest, back_at_step=back)
 
 
 def one_process_timeline(seconds: dict, wall: float) -> dict:
@@ -233,7 +261,7 @@ def summarize(work: Path, out: Path, args, count: int) -> dict:
                          steps_per_s=r["steps_per_s"], iterations=r["iterations"], gaussians=r["gaussians"],
                          wall_s=r["wall_s"], phase_s=r["phase_s"], peak_gpu_gib=r["peak_gpu_gib"],
                          merged_before_refine=(r["shards"] or {}).get("merged_psnr_before_refine"),
-                         refine_steps=(r["shards"] or {}).get("refine_steps")))
+                         refine_steps=(r["shards"] or {}).get("refine_steps"), refine_start=r.get("refine_start")))
     halves = [results[n] for n in results if results[n]["group"] == "halves"]
     reference = None
     if len(halves) == args.gpus:  # frame-weighted: the mean over the whole clip of the parts' frames
@@ -267,6 +295,7 @@ def markdown(report: dict) -> str:
                      f"{r['iterations']:,} | {r['gaussians']:,} | {r['wall_s']:.0f} "
                      f"| {r['phase_s'].get('train', 0):.0f} | {before} | "
                      f"{'-' if r['refine_steps'] is None else r['refine_steps']} |")
+    lines += refine_markdown(report)
     lines += timeline_markdown(report)
     goal = report["goal"]
     if goal:
@@ -275,6 +304,25 @@ def markdown(report: dict) -> str:
                       f"{goal['sharded_psnr']:.2f} dB: {goal['gap_db']:+.2f} dB, "
                       f"{'met' if goal['goal_met'] else 'not met'}."]
     return "\n".join(lines) + "\n"
+
+
+def refine_markdown(report: dict) -> list[str]:
+    """The refinement's first rows per sharded case: its training PSNR (the ranks' mean, each row the
+    mean of the steps since the last) against where phase 1 left it."""
+    rows = [r for r in report["cases"] if r.get("refine_start") and r["refine_start"]["curve"]]
+    if not rows:
+        return []
+    lines = ["", "Refinement start: training PSNR (ranks' mean) at the end of phase 1, the refinement's first "
+                 "rows (step: dB), its lowest row, and the first row back at phase 1's level.", "",
+             "| case | phase 1 end | first rows | lowest | back at step | last row |", "|---|---|---|---|---|---|"]
+    for r in rows:
+        s = r["refine_start"]
+        first = ", ".join(f"{c[0]}: {c[2]:.2f}" for c in s["curve"][:6])
+        low = s["lowest"]
+        lines.append(f"| {r['name']} | {s['phase1_end_psnr']:.2f} | {first} | {low[0]}: {low[2]:.2f} | "
+                     f"{'-' if s['back_at_step'] is None else s['back_at_step']} | "
+                     f"{s['curve'][-1][0]}: {s['curve'][-1][2]:.2f} |")
+    return lines
 
 
 def timeline_markdown(report: dict) -> list[str]:
@@ -330,6 +378,11 @@ def main() -> None:
                     help="also the sharded fit with this refinement fraction (0: the union without refinement)")
     ap.add_argument("--overlap", type=int, action="append", default=[],
                     help="also the sharded fit with stretches reaching this many frames into their neighbours")
+    ap.add_argument("--fresh-adam", action="store_true",
+                    help="also the sharded fit with its refinement starting from a fresh Adam (full_Ngpu_fresh)")
+    ap.add_argument("--log-interval", type=int, default=None,
+                    help="steps between CSV rows of every fit (default: the preset's 50); the refinement's start, "
+                         "row by row")
     ap.add_argument("--cases", default="halves,full_1gpu,full_Ngpu,variants",
                     help="which groups to run: halves, full_1gpu, full_Ngpu, variants")
     ap.add_argument("--redo", action="store_true", help="run cases whose result is already in --work")
@@ -363,7 +416,7 @@ def main() -> None:
     groups: dict[str, list[dict]] = {}
     for spec in cases(args, count):
         group = spec["group"]
-        key = "variants" if "_r" in group or "_o" in group else group
+        key = "variants" if "_r" in group or "_o" in group or group.endswith("_fresh") else group
         if key not in wanted:
             continue
         if not args.redo and (args.work / spec["name"] / "result.json").is_file():
