@@ -166,6 +166,45 @@ def test_boundary_psnr_splits_frames_near_each_boundary():
     assert report["boundary"] == pytest.approx((20 + 22 + 30 + 30) / 4) and report["interior"] == 30.0
 
 
+@pytest.mark.parametrize("sparse", [False, True])
+def test_an_adam_primed_with_another_ones_estimates_takes_its_next_step(sparse):
+    """prime_adam from adam_estimates: an optimiser made on copies of the parameters goes on exactly as
+    the one that made them (dense Adam and SeenAdam), whatever the step count it is primed at, its
+    estimates are the ones given; and a parameter it was given no estimates for starts fresh."""
+    from tomgs.train.optim import adam_estimates, make_adam, prime_adam
+
+    g = torch.Generator().manual_seed(3)
+    params = {name: torch.nn.Parameter(torch.randn(20, 3, generator=g)) for name in ("a", "b", "c")}
+    rates = dict(a=1e-2, b=1e-3, c=1e-3)
+    seen = torch.rand(20, generator=g) > 0.3
+    optimizer = make_adam(params, rates, sparse, torch.device("cpu"))
+
+    def step(opt, grads):
+        for p, grad in zip(opt.param_groups, grads):
+            p["params"][0].grad = grad.clone()
+        opt.step(seen) if sparse else opt.step()
+
+    for _ in range(4):
+        step(optimizer, [torch.randn(20, 3, generator=g) for _ in params])
+    made = adam_estimates(optimizer)
+    assert {name: e[2] for name, e in made.items()} == dict(a=4, b=4, c=4)
+    copies = {name: torch.nn.Parameter(p.detach().clone()) for name, p in params.items()}
+    primed = make_adam(copies, rates, sparse, torch.device("cpu"))
+    prime_adam(primed, {name: e[:2] for name, e in made.items() if name != "c"}, dict(a=4, b=4, c=4))
+    assert not primed.state[copies["c"]]
+    grads = [torch.randn(20, 3, generator=g) for _ in params]
+    step(optimizer, grads)
+    step(primed, grads)
+    assert torch.equal(copies["a"], params["a"]) and torch.equal(copies["b"], params["b"])
+    assert not torch.allclose(copies["c"], params["c"])  # a fresh start: a full learning rate
+    later = make_adam({name: torch.nn.Parameter(p.detach().clone()) for name, p in params.items()}, rates, sparse,
+                      torch.device("cpu"))
+    prime_adam(later, {name: e[:2] for name, e in made.items()}, dict(a=900, b=900, c=900))
+    for name, (first, second, count) in adam_estimates(later).items():
+        assert count == 900
+        assert torch.allclose(first, made[name][0], rtol=1e-5) and torch.allclose(second, made[name][1], rtol=1e-5)
+
+
 RATES = dict(means=1.6e-6, quats=1e-3, log_scales=5e-3, opacity_logits=5e-2, sh_dc=2.5e-3, sh_rest=1.25e-4,
              t_means=1e-3, log_t_scales=1e-2)
 
