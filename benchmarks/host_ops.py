@@ -5,7 +5,7 @@ does not) at a tiny size, where the kernels cost next to nothing, so what is mea
 host spends issuing a frame. Per iteration it reports
 
 - torch ops: top-level aten calls (torch.profiler, CPU activity), split into forward (rasterize)
-  and backward (loss.backward(); the loss's own two ops excluded), with their names;
+  and backward (loss.backward(), the loss's backward and AccumulateGrad included), with their names;
 - Warp launches: tomgs.runtime.launch calls, direct wp.launch calls and radix sorts;
 - host wall time: forward and backward, median of --iters (no profiler attached);
 - Python time per stage: cProfile's cumulative time of tomgs' stage functions.
@@ -165,8 +165,8 @@ def main(argv=None) -> dict:
             step()
         sync()
     fwd_ops, bwd_ops = top_level_ops(prof)
-    # the loss (2 x mul, sum, add) and its backward are the benchmark's, not the rasterizer's
-    loss_fwd = Counter({"aten::mul": 2, "aten::sum": 2, "aten::add": 1})
+    # the loss (2 x mul, 2 x sum, add, the backward's seed) is the benchmark's, not the rasterizer's
+    loss_fwd = Counter({"aten::mul": 2, "aten::sum": 2, "aten::add": 1, "aten::ones_like": 1})
     fwd_ops = Counter({k: v / ops_iters for k, v in (fwd_ops - Counter({k: v * ops_iters for k, v in
                                                                            loss_fwd.items()})).items()})
     bwd_ops = Counter({k: v / ops_iters for k, v in bwd_ops.items()})
@@ -193,7 +193,7 @@ def main(argv=None) -> dict:
     print(f"  host wall: forward {result['fwd_us']:.0f} us, backward (with the loss's) {result['bwd_us']:.0f} us, "
           f"total {result['fwd_us'] + result['bwd_us']:.0f} us")
     print(f"  torch ops per frame: forward {result['fwd_ops']:g}, backward {result['bwd_ops']:g} "
-          f"(the loss's 5 forward ops excluded; its backward's included)")
+          f"(the loss's 5 ops and its backward's seed excluded; its backward's ops included)")
     print(f"  Warp launches per frame: {sum(launches.values()):g} {launches}")
     print(f"  forward ops: {', '.join(f'{k[6:]} {v:g}' for k, v in fwd_ops.most_common())}")
     print(f"  backward ops: {', '.join(f'{k[6:]} {v:g}' for k, v in bwd_ops.most_common())}")

@@ -439,3 +439,24 @@ def test_batched_alpha_clamp(batched_on_cpu):
     """Opacities above 0.99: alpha clamps at 0.99 and passes no gradient through the clamp."""
     scene = covering_scene(120, 40, width=20, height=18, opacity=(0.992, 1.0), scale=(0.05, 0.2))
     assert_batched_matches(scene)
+
+
+@pytest.mark.parametrize("cooperative", [False, True])
+def test_frame_counts_come_with_the_sync(cooperative, monkeypatch):
+    """meta's n_visible and n_alive are summed per block on the device and read with the intersection
+    count (Python ints): equal to counting the per-Gaussian outputs, over several blocks and a partial
+    one, also in 256-fiber blocks on the CPU (block sums as on a GPU)."""
+    import warp as wp
+
+    from tomgs import render, runtime
+
+    if cooperative:  # fresh recorded launches, so that every kernel runs in blocks of 256 fibers
+        monkeypatch.setattr(render, "launch", runtime.Launches())
+        monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
+    scene = random_scene(1, n=700)
+    names = ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales", "viewmat", "K")
+    _, _, meta = tomgs.rasterize(*(scene[k].float() for k in names), scene["width"], scene["height"], scene["t"])
+    assert isinstance(meta["n_visible"], int) and isinstance(meta["n_alive"], int)
+    assert meta["n_visible"] == int((meta["radii"] > 0).any(-1).sum()) > 256
+    assert meta["n_alive"] == int((meta["opacities_t"] >= ALPHA_MIN).sum())
+    assert 0 < meta["n_visible"] < meta["n_alive"] < 700

@@ -75,9 +75,10 @@ def prepare_inputs(
         # would reach every gradient of means and viewmat through the SH backward)
         colors = (fused_sh_to_colors if fused_sh else sh_to_colors)(colors, means, viewmat)
     dtype = dtype or means.dtype
-    cast = {k: v.to(dtype) for k, v in dict(tensors, colors=colors).items()}
+    # no .to() call where the dtype already matches: each is a dispatched op (host time on a GPU machine)
+    cast = {k: v if v.dtype == dtype else v.to(dtype) for k, v in dict(tensors, colors=colors).items()}
     return RasterInputs(
         **cast,
-        background=None if background is None else background.to(dtype),
+        background=background if background is None or background.dtype == dtype else background.to(dtype),
         width=int(width), height=int(height), t=float(t), near=float(near), far=float(far),
     )

@@ -16,10 +16,10 @@ import torch
 import warp as wp
 
 from tomgs import alive
-from tomgs.constants import ALPHA_MIN, TILE_SIZE
+from tomgs.constants import TILE_SIZE
 from tomgs.inputs import RasterInputs, RenderError, prepare_inputs
 from tomgs.kernels import binning, project, raster, raster_batched
-from tomgs.runtime import indexable, launch, scope, wrap
+from tomgs.runtime import NO_ARRAY, indexable, launch, scope, wrap
 
 # The radix sort needs 2 x count slots and counts in int32: 2^30 keeps both inside int32.
 MAX_INTERSECTIONS = 2**30
@@ -89,6 +89,7 @@ class _Frame:
     t_lo: float
     near: float
     far: float
+    device: str  # the Warp device its launches go to ("cpu", "cuda:N"), inside a runtime.scope
 
     @property
     def tiles_x(self) -> int:
@@ -103,9 +104,18 @@ class _Frame:
         return self.tiles_x * self.tiles_y
 
 
+# Host time per frame (a GPU machine's CPU spends 10-60 us per torch op or launch, and a 1M-Gaussian
+# temporal frame is host bound): stages pass Warp descriptors along instead of re-wrapping tensors,
+# gradients nobody asked for are not materialised, and what needs no intersection count is
+# allocated before the frame's one host sync. benchmarks/host_ops.py counts ops and launches.
+
+
 class _Project(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means, quats, scales, opacities, t_means, t_scales, viewmat, K, flags, frame: _Frame):
+    def forward(ctx, means, quats, scales, opacities, t_means, t_scales, viewmat, K, flags, frame: _Frame,
+                wrapped: dict):
+        """Outputs (means2d [N,2], conics [N,3], depths [N], radii [N,2] int32, opacities_t [N],
+        tiles_touched [N] int32); their descriptors, and the camera's, go into `wrapped` by name."""
         n = means.shape[0]
         f32 = dict(device=means.device, dtype=torch.float32)
         means2d = torch.empty(n, 2, **f32)
@@ -116,18 +126,20 @@ class _Project(torch.autograd.Function):
         tiles_touched = torch.empty(n, device=means.device, dtype=torch.int32)
         # descriptors of the inputs are built once and reused by the backward (their tensors are saved)
         inputs = [wrap(means, wp.vec3), wrap(quats, wp.vec4), wrap(scales, wp.vec3), wrap(opacities), wrap(t_means),
-                  wrap(t_scales), wrap(viewmat.reshape(1, 4, 4), wp.mat44), wrap(K.reshape(1, 3, 3), wp.mat33)]
-        radii_d, conics_d = wrap(radii, wp.vec2i), wrap(conics, wp.vec3)
-        with scope(means.device) as device:
-            launch(project.project_forward, n, device=device, args=[
-                *inputs, frame.width, frame.height, frame.t_hi, frame.t_lo, frame.near, frame.far, frame.tiles_x,
-                frame.tiles_y, wrap(means2d, wp.vec2), conics_d, wrap(depths), radii_d, wrap(opacities_t),
-                wrap(tiles_touched), wrap(flags),
-            ])
+                  wrap(t_scales), wrap(viewmat, wp.mat44), wrap(K, wp.mat33)]
+        wrapped.update(means2d=wrap(means2d, wp.vec2), conics=wrap(conics, wp.vec3), depths=wrap(depths),
+                       radii=wrap(radii, wp.vec2i), opacities_t=wrap(opacities_t),
+                       tiles_touched=wrap(tiles_touched), viewmat=inputs[6], K=inputs[7])
+        launch(project.project_forward, n, device=frame.device, args=[
+            *inputs, frame.width, frame.height, frame.t_hi, frame.t_lo, frame.near, frame.far, frame.tiles_x,
+            frame.tiles_y, wrapped["means2d"], wrapped["conics"], wrapped["depths"], wrapped["radii"],
+            wrapped["opacities_t"], wrapped["tiles_touched"], wrap(flags),
+        ])
         ctx.frame = frame
-        ctx.descriptors = (inputs, radii_d, conics_d)
+        ctx.descriptors = (inputs, wrapped["radii"], wrapped["conics"])
         ctx.save_for_backward(means, quats, scales, opacities, t_means, t_scales, viewmat, K, radii, conics)
         ctx.mark_non_differentiable(depths, radii, tiles_touched)
+        ctx.set_materialize_grads(False)  # no zero-filled gradients for depths, radii, tiles (never read)
         return means2d, conics, depths, radii, opacities_t, tiles_touched
 
     @staticmethod
@@ -139,19 +151,22 @@ class _Project(torch.autograd.Function):
         v_means, v_quats, v_scales = torch.empty_like(means), torch.empty_like(quats), torch.empty_like(scales)
         v_opacities, v_t_means, v_t_scales = (torch.empty_like(opacities), torch.empty_like(t_means),
                                               torch.empty_like(t_scales))
-        parts = n if camera_grads else 0  # per-Gaussian camera partials only when someone asked
-        v_viewmat_parts = torch.empty(parts, 4, 4, device=means.device, dtype=torch.float32)
-        v_K_parts = torch.empty(parts, 4, device=means.device, dtype=torch.float32)
         inputs, radii_d, conics_d = ctx.descriptors
         # named, so that a dense copy lives until the launch is queued (a descriptor does not own it)
-        v_means2d, v_conics = indexable(v_means2d, conics[:, :2]), indexable(v_conics, conics)
+        v_means2d, v_conics = indexable(v_means2d, conics, n, 2), indexable(v_conics, conics)
         v_opacities_t = indexable(v_opacities_t, opacities)
+        if camera_grads:  # per-Gaussian camera partials only when someone asked
+            v_viewmat_parts = torch.empty(n, 4, 4, device=means.device, dtype=torch.float32)
+            v_K_parts = torch.empty(n, 4, device=means.device, dtype=torch.float32)
+            parts = [wrap(v_viewmat_parts, wp.mat44), wrap(v_K_parts, wp.vec4)]
+        else:
+            parts = [NO_ARRAY, NO_ARRAY]
         with scope(means.device) as device:
             launch(project.project_backward, n, device=device, args=[
                 *inputs, frame.width, frame.height, frame.t_hi, frame.t_lo, radii_d, conics_d,
                 wrap(v_means2d, wp.vec2), wrap(v_conics, wp.vec3), wrap(v_opacities_t), int(camera_grads),
                 wrap(v_means, wp.vec3), wrap(v_quats, wp.vec4), wrap(v_scales, wp.vec3), wrap(v_opacities),
-                wrap(v_t_means), wrap(v_t_scales), wrap(v_viewmat_parts, wp.mat44), wrap(v_K_parts, wp.vec4),
+                wrap(v_t_means), wrap(v_t_scales), *parts,
             ])
         v_viewmat = v_K = None
         if camera_grads:
@@ -159,38 +174,50 @@ class _Project(torch.autograd.Function):
             fx, fy, cx, cy = v_K_parts.sum(0).unbind()
             zero = torch.zeros_like(fx)
             v_K = torch.stack([fx, zero, cx, zero, fy, cy, zero, zero, zero]).reshape(3, 3)
-        return v_means, v_quats, v_scales, v_opacities, v_t_means, v_t_scales, v_viewmat, v_K, None, None
+        return v_means, v_quats, v_scales, v_opacities, v_t_means, v_t_scales, v_viewmat, v_K, None, None, None
 
 
-def _bin(means2d, conics, opacities_t, radii, depths, ends, frame: _Frame, total: int):
-    """Stage 2: (ranges [tiles, 2] int32 [start, end) into the sorted list, ids [total] int32 Gaussian per
-    intersection, keys [total] int64 `tile << 32 | depth bits`, sorted).
+def _bin(wrapped: dict, n: int, ends: torch.Tensor, ranges: torch.Tensor, frame: _Frame, total: int):
+    """Stage 2: (ids [>= total] int32 Gaussian per intersection, keys [>= total] int64 `tile << 32 | depth
+    bits`, sorted; the first `total` entries are the list) and `ranges` [tiles, 2] int32 (zeroed by the
+    caller) filled with each tile's [start, end) into them.
 
-    `ends` [N] int64 is the inclusive scan of tiles touched (binning.tiles_of, which projection counts):
+    `wrapped`: descriptors of projection's means2d, conics, opacities_t, radii, depths [N]. `ends` [N]
+    int64 is the inclusive scan of tiles touched (binning.tiles_of, which projection counts):
     Gaussian i writes keys [ends[i-1], ends[i]), the tiles of its box that its ellipse reaches.
     """
     if total > MAX_INTERSECTIONS:
         raise RenderError(
             f"this frame needs {total:,} Gaussian-tile intersections, more than the {MAX_INTERSECTIONS:,} the "
             f"rasterizer can sort; render at a lower resolution or with fewer or smaller Gaussians")
-    device = means2d.device
-    ranges = torch.zeros(frame.num_tiles, 2, device=device, dtype=torch.int32)
+    device = ends.device
     if total == 0:
-        return ranges, torch.empty(0, device=device, dtype=torch.int32), torch.empty(0, device=device,
-                                                                                      dtype=torch.int64)
+        return torch.empty(0, device=device, dtype=torch.int32), torch.empty(0, device=device, dtype=torch.int64)
     keys = torch.empty(2 * total, device=device, dtype=torch.int64)  # the radix sort uses the upper half
     ids = torch.empty(2 * total, device=device, dtype=torch.int32)
     tile_bits = max(1, (frame.num_tiles - 1).bit_length())
-    with scope(device) as wp_device:
-        keys_wp = wp.from_torch(keys, requires_grad=False)  # the sort wants full arrays
-        ids_wp = wp.from_torch(ids, requires_grad=False)
-        launch(binning.write_tile_keys, means2d.shape[0], device=wp_device, args=[
-            wrap(means2d, wp.vec2), wrap(conics, wp.vec3), wrap(opacities_t), wrap(radii, wp.vec2i), wrap(depths),
-            wrap(ends), frame.tiles_x, frame.tiles_y, wrap(keys), wrap(ids),
-        ])
-        wp.utils.radix_sort_pairs(keys_wp, ids_wp, total, 0, 32 + tile_bits)
-        launch(binning.tile_ranges, total, device=wp_device, args=[wrap(keys), total, wrap(ranges)])
-    return ranges, ids[:total], keys[:total]
+    keys_d = wrap(keys)
+    launch(binning.write_tile_keys, n, device=frame.device, args=[
+        wrapped["means2d"], wrapped["conics"], wrapped["opacities_t"], wrapped["radii"], wrapped["depths"],
+        wrap(ends), frame.tiles_x, frame.tiles_y, keys_d, wrap(ids),
+    ])
+    # the sort wants full Warp arrays
+    wp.utils.radix_sort_pairs(wp.from_torch(keys, requires_grad=False), wp.from_torch(ids, requires_grad=False),
+                              total, 0, 32 + tile_bits)
+    launch(binning.tile_ranges, total, device=frame.device, args=[keys_d, total, wrap(ranges)])
+    return ids, keys
+
+
+class _Image:
+    """The raster stage's per-pixel outputs, allocated before the frame's host sync (they need no
+    intersection count): color [H,W,3], trans [H,W,1] (transmittance), end [H,W] int32 (one past each
+    pixel's last composited list entry), with their descriptors."""
+
+    def __init__(self, frame: _Frame, device: torch.device):
+        self.color = torch.empty(frame.height, frame.width, 3, device=device, dtype=torch.float32)
+        self.trans = torch.empty(frame.height, frame.width, 1, device=device, dtype=torch.float32)
+        self.end = torch.empty(frame.height, frame.width, device=device, dtype=torch.int32)
+        self.color_d, self.state = wrap(self.color, wp.vec3), [wrap(self.trans, ndim=2), wrap(self.end)]
 
 
 class _Rasterize(torch.autograd.Function):
@@ -212,24 +239,21 @@ class _Rasterize(torch.autograd.Function):
         return raster_batched.raster_forward_batched, raster_batched.raster_backward_batched, block
 
     @staticmethod
-    def forward(ctx, means2d, conics, opacities_t, colors, ranges, ids, frame: _Frame):
-        device = means2d.device
-        color = torch.empty(frame.height, frame.width, 3, device=device, dtype=torch.float32)
-        trans = torch.empty(frame.height, frame.width, 1, device=device, dtype=torch.float32)
-        end = torch.empty(frame.height, frame.width, device=device, dtype=torch.int32)
+    def forward(ctx, means2d, conics, opacities_t, colors, ranges, ids, frame: _Frame, wrapped: dict, image: _Image):
+        """(color [H,W,3], trans [H,W,1]) of `image`, composited; `wrapped` holds the descriptors of
+        means2d, conics and opacities_t (projection's)."""
         # the list, the per-Gaussian inputs and the per-pixel state, shared with the backward
-        shared = [wrap(ranges), wrap(ids), wrap(means2d, wp.vec2), wrap(conics, wp.vec3), wrap(opacities_t),
+        shared = [wrap(ranges), wrap(ids), wrapped["means2d"], wrapped["conics"], wrapped["opacities_t"],
                   wrap(colors, wp.vec3), frame.width, frame.height, frame.tiles_x]
-        state = [wrap(trans[..., 0]), wrap(end)]
-        kernels = _Rasterize._kernels(device)
-        with scope(device) as wp_device:
-            launch(kernels[0], frame.num_tiles * TILE_SIZE * TILE_SIZE, device=wp_device, block_dim=kernels[2],
-                   args=[*shared, wrap(color, wp.vec3), *state])
+        kernels = _Rasterize._kernels(means2d.device)
+        launch(kernels[0], frame.num_tiles * TILE_SIZE * TILE_SIZE, device=frame.device, block_dim=kernels[2],
+               args=[*shared, image.color_d, *image.state])
         ctx.frame = frame
-        ctx.descriptors = (shared, state)
+        ctx.descriptors = (shared, image.state)
         ctx.kernels = kernels  # the backward of the pair that ran
-        ctx.save_for_backward(means2d, conics, opacities_t, colors, ranges, ids, trans, end)
-        return color, trans
+        ctx.save_for_backward(means2d, conics, opacities_t, colors, ranges, ids, image.trans, image.end)
+        ctx.set_materialize_grads(False)  # an unused image or alpha passes None, not a zero-filled tensor
+        return image.color, image.trans
 
     @staticmethod
     def backward(ctx, v_color, v_trans):
@@ -237,41 +261,51 @@ class _Rasterize(torch.autograd.Function):
         frame = ctx.frame
         shared, state = ctx.descriptors
         _, backward_kernel, block = ctx.kernels
-        grads = torch.zeros(means2d.shape[0], 9, device=means2d.device, dtype=torch.float32)  # one fill, four views
-        v_means2d, v_conics, v_opacities_t, v_colors = grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 6:9]
-        v_color = indexable(v_color, trans.expand(-1, -1, 3))  # named: alive until the launch is queued
+        n = means2d.shape[0]
+        # accumulated by atomics, so zeroed: the projection's three in one fill (read by its backward
+        # only), the colours' alone, so that a leaf's .grad takes it without a copy
+        v_means2d, v_conics, v_opacities_t = means2d.new_zeros(n, 6).split((2, 3, 1), 1)
+        v_opacities_t = v_opacities_t.squeeze(1)
+        v_colors = colors.new_zeros(n, 3)
+        # named: alive until the launch is queued
+        v_color = indexable(v_color, trans, frame.height, frame.width, 3)
         v_trans = indexable(v_trans, trans)
         with scope(means2d.device) as wp_device:
             launch(backward_kernel, frame.num_tiles * TILE_SIZE * TILE_SIZE, device=wp_device, block_dim=block,
-                   args=[*shared, *state, wrap(v_color, wp.vec3), wrap(v_trans[..., 0]),
+                   args=[*shared, *state, wrap(v_color, wp.vec3), wrap(v_trans, ndim=2),
                          wrap(v_means2d, wp.vec2), wrap(v_conics, wp.vec3), wrap(v_opacities_t),
                          wrap(v_colors, wp.vec3)])
-        return v_means2d, v_conics, v_opacities_t, v_colors, None, None, None
+        return v_means2d, v_conics, v_opacities_t, v_colors, None, None, None, None, None
 
 
-def _project_frame(p: RasterInputs, frame: _Frame):
-    """Stage 1 and the frame's one host sync: ((means2d, conics, depths, radii, opacities_t, tiles_touched),
-    ends [N] int64 the inclusive scan of tiles touched, the intersection count); RenderError on input
-    outside the contract."""
+def _project_frame(p: RasterInputs, frame: _Frame, wrapped: dict):
+    """Stage 1, launched, and the buffers the frame's one host sync reads: ((means2d, conics, depths, radii,
+    opacities_t, tiles_touched), ends [N] int64 the inclusive scan of tiles touched, flags
+    [project.NUM_FLAGS] int64 for `_read_flags`). Fills `wrapped` with projection's descriptors."""
     viewmat, K = p.viewmat.contiguous(), p.K.contiguous()
-    # contract flags and the intersection count, written on the device and read back together below
+    # contract flags, counts and the intersection count, written on the device, read back together
     flags = torch.zeros(project.NUM_FLAGS, device=p.means.device, dtype=torch.int64)
     outputs = _Project.apply(p.means.contiguous(), p.quats.contiguous(), p.scales.contiguous(),
                              p.opacities.contiguous(), p.t_means.contiguous(), p.t_scales.contiguous(), viewmat, K,
-                             flags, frame)
+                             flags, frame, wrapped)
+    n = p.means.shape[0]
     ends = torch.cumsum(outputs[-1], 0, dtype=torch.int64)  # [N] inclusive scan of tiles touched
-    bg = p.background if p.background is not None else viewmat.reshape(-1)[:3]  # unread stand-in
-    with scope(p.means.device) as device:
-        launch(project.check_frame, 1, device=device, args=[
-            wrap(ends), ends.shape[0], wrap(viewmat.reshape(1, 4, 4), wp.mat44), wrap(K.reshape(1, 3, 3), wp.mat33),
-            wrap(bg.reshape(1, 3), wp.vec3), int(p.background is not None), wrap(flags)])
+    has_bg = p.background is not None
+    threads = max(1, -(-n // 256)) * 256  # whole blocks: frame_stats sums per block
+    launch(project.frame_stats, threads, device=frame.device, args=[
+        wrapped["tiles_touched"], wrapped["opacities_t"], wrap(ends), n, wrapped["viewmat"], wrapped["K"],
+        wrap(p.background, wp.vec3) if has_bg else NO_ARRAY, int(has_bg), wrap(flags)])
+    return outputs, ends, flags
 
-    # the one host sync per frame: the intersection count sizes the sort buffers; the contract
-    # flags travel with it, so checking the inputs costs no extra wait
+
+def _read_flags(flags: torch.Tensor, p: RasterInputs) -> list[int]:
+    """The one host sync per frame: the intersection count sizes the sort buffers; the contract flags
+    and the visible and alive counts travel with it, so they cost no extra wait. RenderError on
+    input outside the contract."""
     stats = flags.tolist()
-    if any(stats[1:]):
+    if any(stats[k] for k in project.CONTRACT_FLAGS):
         raise _contract_error(stats, p)
-    return outputs, ends, stats[project.FLAG_TOTAL]
+    return stats
 
 
 def rasterize(
@@ -298,7 +332,7 @@ def rasterize(
     at t is culled in projection and costs no tile work. Differentiable in every tensor input; runs on
     the device of the inputs (CPU or CUDA) in float32. `meta` holds per-Gaussian `radii` [N,2],
     `means2d` [N,2] (call `.retain_grad()` on it for screen-space gradients), `depths`, `conics`,
-    `opacities_t`, and counts `n_visible`, `n_alive` (alive at t), `n_intersections`. N = 0 is fine.
+    `opacities_t`, and counts (ints) `n_visible`, `n_alive` (alive at t), `n_intersections`. N = 0 is fine.
 
     A Gaussian with a non-finite mean, scale, quaternion or temporal window is culled (zero
     gradient). Anything else outside the contract above (an opacity outside [0, 1], a negative
@@ -309,16 +343,25 @@ def rasterize(
     t_hi, t_lo = _check_scalars(width, height, t, near, far)
     p = prepare_inputs(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width, height, t,
                           background, near, far, torch.float32, fused_sh=True)
-    frame = _Frame(p.width, p.height, t_hi, t_lo, p.near, p.far)
-    if frame.num_tiles * TILE_SIZE * TILE_SIZE > MAX_THREADS:
-        raise RenderError(f"a {frame.width}x{frame.height} image is too large to render in one piece: keep "
+    tiles = -(-p.width // TILE_SIZE) * -(-p.height // TILE_SIZE)
+    if tiles * TILE_SIZE * TILE_SIZE > MAX_THREADS:
+        raise RenderError(f"a {p.width}x{p.height} image is too large to render in one piece: keep "
                           f"width x height below {MAX_THREADS:,} pixels")
-    (means2d, conics, depths, radii, opacities_t, tiles_touched), ends, total = _project_frame(p, frame)
-    ranges, ids, _ = _bin(means2d, conics, opacities_t, radii, depths, ends, frame, total)
-    color, trans = _Rasterize.apply(means2d, conics, opacities_t, p.colors.contiguous(), ranges, ids, frame)
+    wrapped = {}  # Warp descriptors of projection's buffers, by name, for the stages that follow
+    with scope(p.means.device) as wp_device:
+        frame = _Frame(p.width, p.height, t_hi, t_lo, p.near, p.far, wp_device)
+        (means2d, conics, depths, radii, opacities_t, _), ends, flags = _project_frame(p, frame, wrapped)
+        # before the sync, what needs no intersection count: the GPU projects meanwhile
+        ranges = torch.zeros(frame.num_tiles, 2, device=p.means.device, dtype=torch.int32)
+        pixels = _Image(frame, p.means.device)
+        colors = p.colors.contiguous()
+        stats = _read_flags(flags, p)
+        total = stats[project.FLAG_TOTAL]
+        ids, _ = _bin(wrapped, means2d.shape[0], ends, ranges, frame, total)
+        color, trans = _Rasterize.apply(means2d, conics, opacities_t, colors, ranges, ids, frame, wrapped, pixels)
     image = color if p.background is None else color + trans * p.background
     meta = dict(radii=radii, means2d=means2d, depths=depths, conics=conics, opacities_t=opacities_t,
-                n_visible=torch.count_nonzero(tiles_touched), n_alive=torch.count_nonzero(opacities_t >= ALPHA_MIN),
+                n_visible=stats[project.FLAG_VISIBLE], n_alive=stats[project.FLAG_ALIVE],
                 n_intersections=total, tile_size=TILE_SIZE,
                 width=frame.width, height=frame.height)
     return image, 1.0 - trans, meta
@@ -349,8 +392,10 @@ def project_stage(
     zeros = torch.zeros_like(means) if isinstance(means, torch.Tensor) else means  # projection reads no colour
     p = prepare_inputs(means, quats, scales, opacities, zeros, t_means, t_scales, viewmat, K, width, height, t,
                        None, near, far, torch.float32)
-    frame = _Frame(p.width, p.height, t_hi, t_lo, p.near, p.far)
-    outputs, _, _ = _project_frame(p, frame)
+    with scope(p.means.device) as wp_device:
+        frame = _Frame(p.width, p.height, t_hi, t_lo, p.near, p.far, wp_device)
+        outputs, _, flags = _project_frame(p, frame, {})
+        _read_flags(flags, p)
     return dict(zip(("means2d", "conics", "depths", "radii", "opacities_t", "tiles_touched"), outputs))
 
 
@@ -368,11 +413,18 @@ def bin_stage(
     depth bits` sorted, `ids` [M] int32 the Gaussian of each, `ranges` [tiles, 2] int32 each tile's
     [start, end) in them ((0, 0) for an empty tile). See tomgs.reference.bin_reference."""
     _check_scalars(width, height, 0.0, 0.01, 1e10)
-    frame = _Frame(int(width), int(height), 0.0, 0.0, 0.01, 1e10)
     ends = torch.cumsum(tiles_touched, 0, dtype=torch.int64)
     total = int(ends[-1]) if ends.numel() else 0
-    ranges, ids, keys = _bin(means2d.contiguous(), conics.contiguous(), opacities_t.contiguous(), radii.contiguous(),
-                             depths.contiguous(), ends, frame, total)
+    # named: a descriptor does not keep a contiguous copy alive
+    means2d, conics, opacities_t, radii, depths = (x.contiguous() for x in (means2d, conics, opacities_t, radii,
+                                                                             depths))
+    wrapped = dict(means2d=wrap(means2d, wp.vec2), conics=wrap(conics, wp.vec3), opacities_t=wrap(opacities_t),
+                   radii=wrap(radii, wp.vec2i), depths=wrap(depths))
+    with scope(means2d.device) as wp_device:
+        frame = _Frame(int(width), int(height), 0.0, 0.0, 0.01, 1e10, wp_device)
+        ranges = torch.zeros(frame.num_tiles, 2, device=means2d.device, dtype=torch.int32)
+        ids, keys = _bin(wrapped, means2d.shape[0], ends, ranges, frame, total)
+    ids, keys = ids[:total], keys[:total]
     return dict(keys=keys, ids=ids, ranges=ranges)
 
 

@@ -4,9 +4,11 @@
     warp_device(device) -> str       the Warp name of a torch device ("cpu", "cuda:N")
     scope(device)                    context: Warp launches on `device`, on torch's current stream;
                                      yields the Warp device name; RenderError for other device types
-    wrap(tensor, dtype=None)         zero-copy Warp array descriptor of a torch tensor
+    wrap(tensor, dtype=None, ndim=None)
+                                     zero-copy Warp array descriptor of a torch tensor
     wrap_rows(tensor)                the same of a contiguous [N, ...] tensor seen as [N, D]
-    indexable(grad, like)            an incoming gradient as a kernel can index it (zeros for None)
+    NO_ARRAY                         a descriptor of an empty array, for outputs a launch will not write
+    indexable(grad, like, *size)     an incoming gradient as a kernel can index it (zeros for None)
     launch(kernel, dim, args, device, block_dim=256)
                                      a recorded launch per (kernel, device, block size), re-armed
 
@@ -35,7 +37,8 @@ import warp as wp
 
 from tomgs.errors import RenderError
 
-__all__ = ["init_warp", "warp_device", "scope", "wrap", "wrap_rows", "indexable", "launch", "Launches", "ArrayDescriptor"]
+__all__ = ["init_warp", "warp_device", "scope", "wrap", "wrap_rows", "NO_ARRAY", "indexable", "launch", "Launches",
+           "ArrayDescriptor"]
 
 _warp_ready = False
 
@@ -108,9 +111,12 @@ def _inner_axes(dtype) -> int:
     return axes
 
 
-def wrap(tensor: torch.Tensor, dtype=None):
+def wrap(tensor: torch.Tensor, dtype=None, ndim: int | None = None):
     """Zero-copy Warp array descriptor of `tensor` [..., *dtype's shape]; a vector or matrix dtype folds
-    the trailing axes, which must be contiguous; None (or a scalar dtype) keeps every axis.
+    the trailing axes, which must be contiguous; None (or a scalar dtype) keeps every axis. `ndim`
+    keeps only the leading axes (what follows must be of size 1 or folded by dtype): an [H, W, 1]
+    tensor as a 2D array, without a torch view call (each costs host time on a GPU machine).
+    A tensor that is one element of `dtype` (a [4, 4] viewmat as wp.mat44) becomes a [1] array.
 
     What `wp.from_torch(tensor, dtype, requires_grad=False, return_ctype=True)` builds, at a few
     microseconds against ~20 for a full `wp.array`, which matters at ~60 arguments per frame. It
@@ -119,18 +125,21 @@ def wrap(tensor: torch.Tensor, dtype=None):
     inner = 0 if dtype is None else _INNER_AXES.get(dtype)
     if inner is None:
         inner = _inner_axes(dtype)
-    keep = tensor.dim() - inner
+    keep = tensor.dim() - inner if ndim is None else ndim
     item = tensor.element_size()
-    shape = tuple(tensor.shape[:keep]) or (1,)
-    strides = tuple(s * item for s in tensor.stride()[:keep]) or (item,)
+    if keep == 0:  # the whole tensor is one element
+        return ArrayDescriptor(tensor.data_ptr(), 0, 1, (1,), (tensor.numel() * item,))
+    shape = tuple(tensor.shape[:keep])
+    strides = tuple(s * item for s in tensor.stride()[:keep])
     return ArrayDescriptor(tensor.data_ptr(), 0, len(shape), shape, strides)
 
 
-def indexable(grad: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor:
-    """An incoming gradient Warp can index: zeros like `like` for None; rows may be strided, the last
-    axis must not be (nor any broadcast axis). Keep the result named until the launch is queued."""
+def indexable(grad: torch.Tensor | None, like: torch.Tensor, *size: int) -> torch.Tensor:
+    """An incoming gradient Warp can index: for None, zeros of `like`'s dtype and device and of `size`
+    (default: like's shape); rows may be strided, the last axis must not be (nor any broadcast axis).
+    Keep the result named until the launch is queued."""
     if grad is None:
-        return torch.zeros_like(like)
+        return like.new_zeros(size) if size else torch.zeros_like(like)
     if grad.dim() > 1 and grad.stride(-1) != 1 or 0 in grad.stride():
         return grad.contiguous()
     return grad
@@ -147,6 +156,10 @@ def wrap_rows(tensor: torch.Tensor):
     return ArrayDescriptor(tensor.data_ptr(), 0, 2, (rows, cols), (cols * item, item))
 
 
+# an empty array: what a kernel receives for an output it is told not to write (no allocation)
+NO_ARRAY = ArrayDescriptor(0, 0, 1, (0,), (4,))
+
+
 def _check_descriptor() -> None:
     """Our descriptors must equal, byte for byte, what `wp.from_torch` (the public build) makes."""
     base = torch.arange(60, dtype=torch.float32).reshape(4, 5, 3)
@@ -154,6 +167,9 @@ def _check_descriptor() -> None:
     for ours, tensor, dtype in ((wrap(base[:, ::2], wp.vec3), base[:, ::2], wp.vec3),
                                 (wrap(base[:3, :3], wp.mat33), base[:3, :3], wp.mat33),
                                 (wrap(base[1:, :, 0]), base[1:, :, 0], None),
+                                (wrap(base[1:, :, :1], ndim=2), base[1:, :, 0], None),
+                                (wrap(base[0, :3]), base[0, :3], None),
+                                (wrap(base[0, :3], wp.mat33), base[0, :3].reshape(1, 3, 3), wp.mat33),
                                 (wrap_rows(base), rows, None)):
         theirs = wp.from_torch(tensor, dtype, requires_grad=False, return_ctype=True)
         if bytes(ours) != bytes(theirs):

@@ -34,7 +34,10 @@ FLAG_T_SCALES = wp.constant(3)  # a negative temporal scale
 FLAG_K = wp.constant(4)  # K not finite, or fx <= 0 or fy <= 0
 FLAG_VIEWMAT = wp.constant(5)  # viewmat not finite
 FLAG_BACKGROUND = wp.constant(6)  # background not finite
-NUM_FLAGS = 7
+FLAG_VISIBLE = wp.constant(7)  # count: Gaussians holding tiles (tiles_touched != 0)
+FLAG_ALIVE = wp.constant(8)  # count: Gaussians with o_i(t) >= 1/255
+NUM_FLAGS = 9
+CONTRACT_FLAGS = range(1, 7)  # the slots that refuse the frame
 
 
 @wp.func
@@ -393,19 +396,14 @@ def project_backward(
         v_K_parts[i] = wp.vec4(v_fx, v_fy, vm2[0], vm2[1])
 
 
-@wp.kernel
-def check_frame(
-    ends: wp.array(dtype=wp.int64),  # [N] inclusive scan of tiles touched
-    n: int,
+@wp.func
+def check_camera(
     viewmats: wp.array(dtype=wp.mat44),  # [1]
     Ks: wp.array(dtype=wp.mat33),  # [1]
     background: wp.array(dtype=wp.vec3),  # [1], read when has_background
     has_background: int,
-    flags: wp.array(dtype=wp.int64),  # [NUM_FLAGS]: FLAG_TOTAL and the camera's flags written here
+    flags: wp.array(dtype=wp.int64),  # [NUM_FLAGS]: the camera's and background's flags written here
 ):
-    # one thread: gathers what the host reads back in one transfer, the intersection count and flags
-    if n > 0:
-        flags[FLAG_TOTAL] = ends[n - 1]
     V = viewmats[0]
     for r in range(4):
         for c in range(4):
@@ -420,3 +418,39 @@ def check_frame(
         flags[FLAG_K] = wp.int64(1)
     if has_background != 0 and not wp.isfinite(background[0]):
         flags[FLAG_BACKGROUND] = wp.int64(1)
+
+
+@wp.kernel
+def frame_stats(
+    tiles_touched: wp.array(dtype=wp.int32),  # [N]
+    opacities_t: wp.array(dtype=float),  # [N]
+    ends: wp.array(dtype=wp.int64),  # [N] inclusive scan of tiles touched
+    n: int,
+    viewmats: wp.array(dtype=wp.mat44),  # [1]
+    Ks: wp.array(dtype=wp.mat33),  # [1]
+    background: wp.array(dtype=wp.vec3),  # [1], read when has_background
+    has_background: int,
+    flags: wp.array(dtype=wp.int64),  # [NUM_FLAGS] zeroed before projection; counts added, the rest set here
+):
+    # gathers what the host reads back in one transfer: the intersection count, the camera's flags
+    # and the visible and alive counts. Launched over N rounded up to whole blocks (at least one
+    # thread): every thread reaches the block sums, one per block adds them (no return before).
+    i = wp.tid()
+    visible = int(0)
+    alive = int(0)
+    if i < n:
+        if tiles_touched[i] != 0:
+            visible = 1
+        if opacities_t[i] >= ALPHA_MIN:
+            alive = 1
+    block_visible = wp.tile_extract(wp.tile_sum(wp.tile(visible)), 0)
+    block_alive = wp.tile_extract(wp.tile_sum(wp.tile(alive)), 0)
+    if i % wp.block_dim() == 0:
+        if block_visible != 0:
+            wp.atomic_add(flags, FLAG_VISIBLE, wp.int64(block_visible))
+        if block_alive != 0:
+            wp.atomic_add(flags, FLAG_ALIVE, wp.int64(block_alive))
+    if i == 0:
+        if n > 0:
+            flags[FLAG_TOTAL] = ends[n - 1]
+        check_camera(viewmats, Ks, background, has_background, flags)
