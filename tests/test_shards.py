@@ -538,8 +538,10 @@ def test_a_budgeted_run_ends_at_its_budget_and_says_where_the_time_went(clip, tm
     began = time.perf_counter()
     result = fit(frames, out, small_config(100_000, max_seconds=budget), gpus=2, device="cpu", poses=str(cams))
     wall = time.perf_counter() - began
-    assert wall <= budget + 1.0 and result.wall_seconds <= budget + 1.0, (wall, result.timeline)
-    assert result.wall_seconds >= budget - 4.0, (result.wall_seconds, result.timeline)
+    # the budget is a promise: not past it beyond a loaded CI machine's jitter, and spent (the
+    # modelled reserve used to leave 8 s of 120 unused)
+    assert wall <= budget + 2.0 and result.wall_seconds <= budget + 2.0, (wall, result.timeline)
+    assert result.wall_seconds >= budget - 6.0, (result.wall_seconds, result.timeline)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.csv", "scene.ply", "scene.psnr.png",
                                                           "scene.rank0.csv", "scene.rank1.csv"]
     timeline = result.timeline
