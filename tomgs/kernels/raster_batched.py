@@ -32,6 +32,19 @@ def block_width() -> int:
     ...
 
 
+@wp.func
+def list_record(gaussian_ids: wp.array(dtype=wp.int32), means2d: wp.array(dtype=wp.vec2),
+                conics: wp.array(dtype=wp.vec3), opacities_t: wp.array(dtype=float), colors: wp.array(dtype=wp.vec3),
+                k: int, has: bool):
+    """What a thread stages for list entry k: (Gaussian id, (mean x, mean y, opacity), conic, colour);
+    zeros when it has no entry to stage (`has` false: k is past the list)."""
+    if has:
+        g = gaussian_ids[k]
+        center = means2d[g]
+        return g, wp.vec3(center[0], center[1], opacities_t[g]), conics[g], colors[g]
+    return int(0), wp.vec3(0.0), wp.vec3(0.0), wp.vec3(0.0)
+
+
 @wp.kernel
 def raster_forward_batched(
     ranges: wp.array2d(dtype=wp.int32),  # [tiles, 2]
@@ -73,15 +86,7 @@ def raster_forward_batched(
         count = wp.min(TILE_PIXELS, end - batch)
         for slot in range(rank, TILE_PIXELS, block_width()):  # one pass on CUDA, 256 on a 1-wide block
             has = slot < count
-            record = wp.vec3(0.0)
-            conic = wp.vec3(0.0)
-            c = wp.vec3(0.0)
-            if has:
-                g = gaussian_ids[batch + slot]
-                center = means2d[g]
-                record = wp.vec3(center[0], center[1], opacities_t[g])
-                conic = conics[g]
-                c = colors[g]
+            _, record, conic, c = list_record(gaussian_ids, means2d, conics, opacities_t, colors, batch + slot, has)
             wp.tile_scatter_masked(xy_opacity, slot, record, has)
             wp.tile_scatter_masked(conic_batch, slot, conic, has)
             wp.tile_scatter_masked(color_batch, slot, c, has)
@@ -154,16 +159,8 @@ def raster_backward_batched(
         # slot s holds list entry batch_end - 1 - s: the batch is stored back to front
         for slot in range(rank, TILE_PIXELS, block_width()):
             has = slot < count
-            g = int(0)
-            record = wp.vec3(0.0)
-            conic = wp.vec3(0.0)
-            c = wp.vec3(0.0)
-            if has:
-                g = gaussian_ids[batch_end - 1 - slot]
-                center = means2d[g]
-                record = wp.vec3(center[0], center[1], opacities_t[g])
-                conic = conics[g]
-                c = colors[g]
+            g, record, conic, c = list_record(gaussian_ids, means2d, conics, opacities_t, colors, batch_end - 1 - slot,
+                                              has)
             wp.tile_scatter_masked(id_batch, half, slot, g, has)
             wp.tile_scatter_masked(xy_opacity, half, slot, record, has)
             wp.tile_scatter_masked(conic_batch, half, slot, conic, has)
