@@ -665,7 +665,9 @@ def run_rank(job: Job, rank: int, local_rank: int, report, entered: float | None
 
     timeline = Timeline(job.start_time)
     entered = time.time() if entered is None else entered
-    timeline.add("start-up", min(process_start_epoch(), entered), entered)
+    # /proc's process start has a clock tick's resolution (10 ms): a rank spawned just after the command
+    # started can read as started before it, which no phase of the command can
+    timeline.add("start-up", max(job.start_time, min(process_start_epoch(), entered)), entered)
     device = torch.device(f"cuda:{local_rank}") if job.device_type == "cuda" else torch.device("cpu")
     if device.type == "cpu":
         local_world = torchrun_env()[3] if torchrun_env() else job.world
