@@ -128,13 +128,17 @@ def _frames_spec(spec: dict, args) -> str | None:
 
 def run_case(spec_path: Path) -> None:
     """One case, in this process: the fit (its own budget), then every frame of its scene measured."""
+    spec = json.loads(spec_path.read_text())
+    if spec["gpus"]:  # as `tomgs fit --gpus N` does: the ranks import while this process does
+        from tomgs import rank_pool
+
+        rank_pool.start(spec["gpus"])
     import numpy as np
     import torch
 
     from tomgs.train import fit, preset
     from tomgs.train.fit import process_started
 
-    spec = json.loads(spec_path.read_text())
     started = process_started()
     folder = Path(spec["folder"])
     overrides = dict(max_seconds=spec["budget"])

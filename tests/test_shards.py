@@ -556,3 +556,30 @@ def test_a_budgeted_run_ends_at_its_budget_and_says_where_the_time_went(clip, tm
         assert all(0.0 <= e["start"] <= e["end"] <= wall + 1.0 for e in events), events
     reserve = result.shards["per_rank"][0]["reserve"]
     assert reserve is not None and reserve["refine_end"] < budget
+
+
+@pytest.mark.slow  # two processes, each importing torch and Warp
+def test_ranks_started_before_the_imports_run_the_fit_and_a_pool_not_taken_leaves(clip, tmp_path):
+    """`tomgs fit --gpus N` starts its ranks first thing (tomgs.rank_pool), so that their imports run
+    beside the parent's: the fit hands them its job instead of spawning; a pool nobody takes, or one
+    of another size, is sent away and its processes end."""
+    from tomgs import rank_pool
+
+    frames, cams, _ = clip
+    out = tmp_path / "scene.ply"
+    rank_pool.start(2)
+    waiting = list(rank_pool._pool.procs)
+    result = fit(frames, out, small_config(40), gpus=2, device="cpu", poses=str(cams))
+    assert out.is_file() and rank_pool._pool is None
+    assert all(p.exitcode == 0 for p in waiting)  # the ranks that ran were these
+    phases = {name: [e["phase"] for e in events] for name, events in result.timeline.items()}
+    assert phases["parent"] == ["start-up", "plan", "hand the job to the ranks", "ranks", "read back"]
+    for rank in ("rank0", "rank1"):
+        assert phases[rank][:3] == ["start-up", "wait for the job", "join group"], phases[rank]
+    assert all(0.0 <= e["start"] <= e["end"] for events in result.timeline.values() for e in events)
+
+    for leave in (lambda: rank_pool.take(3), rank_pool.dismiss):  # another count; nobody takes it
+        rank_pool.start(2)
+        waiting = list(rank_pool._pool.procs)
+        assert leave() is None and rank_pool._pool is None
+        assert [p.exitcode for p in waiting] == [0, 0]

@@ -110,6 +110,10 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
       tomgs fit long.mp4 -o scene.ply --gpus 2          # two GPUs, one stretch of the clip each
       torchrun --nproc_per_node 8 -m tomgs.cli fit long.mp4 -o scene.ply
     """
+    from tomgs import rank_pool
+
+    if gpus is not None:  # the ranks import while this process does (tomgs.rank_pool)
+        rank_pool.start(gpus)
     from tomgs.train import FitInterrupted, output_paths
     from tomgs.train import fit as fit_scene
     from tomgs.train import preset as make_config
@@ -154,6 +158,8 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
     except ShardFailed as e:
         click.echo(f"\n{e}", err=True)
         raise SystemExit(1) from None
+    finally:
+        rank_pool.dismiss()  # ranks the fit did not take (it refused its inputs first)
     if not is_leader():  # a torchrun rank other than 0: rank 0 reports the run
         return
     paths = output_paths(output)

@@ -2,7 +2,8 @@
 
 Start: `fit(..., gpus=N)` (the CLI's --gpus N) checks the inputs and every output, hands the plan to
 `on_plan`, and spawns N processes on this host (spawn, not fork: CUDA and Warp start clean in each),
-one per GPU (cuda:0 .. cuda:N-1; NCCL between them) or, with device cpu, N CPU processes (gloo).
+one per GPU (cuda:0 .. cuda:N-1; NCCL between them) or, with device cpu, N CPU processes (gloo). The
+CLI starts them before its own imports (tomgs.rank_pool) and the fit hands them their job instead.
 Under torchrun (RANK, WORLD_SIZE and LOCAL_RANK in the environment, WORLD_SIZE > 1) every process
 torchrun started is one rank and `fit` runs that rank: `torchrun --nnodes 2 --nproc_per_node 8 ...
 -m tomgs.cli fit ...` fits on two hosts (each host's ranks write their checkpoints and CSVs on that
@@ -51,6 +52,7 @@ import numpy as np
 import torch
 
 from tomgs.errors import InputError
+from tomgs import rank_pool
 from tomgs.train.checkpoint import START_OVER, FitInterrupted, StopSignals, read_checkpoint
 from tomgs.train.shards import REFINE_FRACTION, default_overlap, plan_stretches, rank_paths
 
@@ -399,11 +401,16 @@ def _spawn_and_watch(job: Job, paths: dict, progress, phases, pose_progress, tim
     import multiprocessing as mp
     from multiprocessing.connection import wait
 
-    ctx = mp.get_context("spawn")
-    pipes = [ctx.Pipe(duplex=False) for _ in range(job.world)]
-    procs = [ctx.Process(target=_spawned, args=(rank, job, pipes[rank][1]), name=f"tomgs-rank{rank}", daemon=False)
-             for rank in range(job.world)]
-    readers = {pipes[r][0]: r for r in range(job.world)}
+    pool = rank_pool.take(job.world)  # ranks the caller started before its imports (tomgs.rank_pool)
+    if pool is None:
+        ctx = mp.get_context("spawn")
+        pipes = [ctx.Pipe(duplex=False) for _ in range(job.world)]
+        procs = [ctx.Process(target=spawned, args=(rank, job, pipes[rank][1]), name=f"tomgs-rank{rank}", daemon=False)
+                 for rank in range(job.world)]
+        report_pipes = [reader for reader, _ in pipes]
+    else:
+        procs, report_pipes = pool.procs, pool.reports
+    readers = {report_pipes[r]: r for r in range(job.world)}
     outcome: dict[int, tuple[str, dict]] = {}  # rank -> (done | interrupted | failed, payload)
     died: dict[int, int] = {}  # rank -> exit code, for a rank that ended without a report
     first_fault: list[int] = []  # ranks in the order their fault was seen
@@ -432,12 +439,17 @@ def _spawn_and_watch(job: Job, paths: dict, progress, phases, pose_progress, tim
     ended: dict[int, float] = {}  # rank -> when its process was seen gone
     try:
         spawning = time.time()
-        for p in procs:
-            p.start()
-        for _, writer in pipes:
-            writer.close()  # the parent's copy: a rank's end of file is its own pipe closing
+        if pool is None:
+            for p in procs:
+                p.start()
+            for _, writer in pipes:
+                writer.close()  # the parent's copy: a rank's end of file is its own pipe closing
+        else:  # started and imported already: each is told its rank and the job
+            for rank, conn in enumerate(pool.jobs):
+                conn.send((rank, job))
+                conn.close()
         if timeline is not None:
-            timeline.add("spawn", spawning)
+            timeline.add("spawn" if pool is None else "hand the job to the ranks", spawning)
         running = time.time()
         while any(p.is_alive() for p in procs) or readers:
             ready = wait(list(readers) + [p.sentinel for p in procs if p.is_alive()], timeout=0.5)
@@ -466,7 +478,7 @@ def _spawn_and_watch(job: Job, paths: dict, progress, phases, pose_progress, tim
                 if rank not in ended and not p.is_alive():
                     ended[rank] = time.time()
                 if not p.is_alive() and p.exitcode is not None and rank not in outcome and rank not in died \
-                        and not _pending(pipes[rank][0], readers):
+                        and not _pending(report_pipes[rank], readers):
                     died[rank] = p.exitcode
                     first_fault.append(rank)
             if first_fault and not stopping.get("faulted"):
@@ -551,10 +563,14 @@ def _verdict(job: Job, paths: dict, procs, outcome, died, first_fault, signals) 
     raise ShardFailed(message, rank, error, kept)
 
 
-def _spawned(rank: int, job: Job, conn) -> None:
-    """A spawned rank: run it, and report how it ended to the parent (`conn`)."""
-    entered = time.time()  # the rank's first line of Python (its start-up: the interpreter, torch's import)
-    _leave_terminal()
+def spawned(rank: int, job: Job, conn, imported: float | None = None) -> None:
+    """A spawned rank: run it, and report how it ended to the parent (`conn`). A rank of a
+    tomgs.rank_pool passes `imported`: time.time() when its imports were done and it began waiting
+    for the job."""
+    received = time.time()
+    if imported is None:  # spawned with its job: this is its first line, after its imports
+        imported = received
+        rank_pool.leave_terminal()
     last = {"phase": 0.0}
 
     def report(kind, payload):
@@ -567,7 +583,8 @@ def _spawned(rank: int, job: Job, conn) -> None:
         conn.send((kind, payload))
 
     try:
-        summary = run_rank(job, rank, rank, report, entered=entered)
+        summary = run_rank(job, rank, rank, report, entered=imported,
+                           waited=(imported, received) if received > imported else None)
         conn.send(("done", summary))
         conn.close()
         # the run's outputs are written and closed, the group left: skip Python's finalisation, which
@@ -584,24 +601,6 @@ def _spawned(rank: int, job: Job, conn) -> None:
         conn.send(("failed", dict(kind=type(e).__name__, message=str(e) or repr(e), traceback=traceback.format_exc())))
     finally:
         conn.close()
-
-
-def _leave_terminal() -> None:
-    """A spawned rank: out of the terminal's process group (the parent passes Ctrl-C on, once), and
-    SIGTERM when the parent dies (Linux), so that no rank outlives its run."""
-    try:
-        os.setpgrp()
-    except OSError:
-        pass
-    if sys.platform.startswith("linux"):
-        try:
-            import ctypes
-
-            ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, int(signal.SIGTERM))  # PR_SET_PDEATHSIG
-            if os.getppid() == 1:  # the parent died before prctl
-                os.kill(os.getpid(), signal.SIGTERM)
-        except OSError:
-            pass
 
 
 def _local_report(rank: int, progress, phases, pose_progress):
@@ -656,18 +655,23 @@ def _init_group(job: Job, rank: int, device: torch.device):
     return dist.new_group(backend="gloo", timeout=GROUP_TIMEOUT) if backend != "gloo" else None
 
 
-def run_rank(job: Job, rank: int, local_rank: int, report, entered: float | None = None) -> dict:
+def run_rank(job: Job, rank: int, local_rank: int, report, entered: float | None = None,
+             waited: tuple[float, float] | None = None) -> dict:
     """What rank `rank` of `job` does (this module's docstring). `report(kind, payload)` hears
     ('started', {...}), ('phase', (name, done, total, text)), ('poses', (done, total)) and ('row', row)
-    as they happen. `entered`: time.time() at the process's first line of Python (its start-up ends
-    there). Returns its summary (rank 0's describes the run); "own_timeline" is its phases (Timeline)."""
+    as they happen. `entered`: time.time() when the process's imports were done (its start-up ends
+    there); `waited`: (from, to), a rank of a tomgs.rank_pool's wait for its job. Returns its summary (rank 0's describes the run); "own_timeline" is its phases (Timeline)."""
     import torch.distributed as dist
 
     timeline = Timeline(job.start_time)
     entered = time.time() if entered is None else entered
     # /proc's process start has a clock tick's resolution (10 ms): a rank spawned just after the command
     # started can read as started before it, which no phase of the command can
+    # a pool's rank (tomgs.rank_pool) may have started before a fit() call's clock: its phases begin at it
+    entered = max(entered, job.start_time)
     timeline.add("start-up", max(job.start_time, min(process_start_epoch(), entered)), entered)
+    if waited is not None:
+        timeline.add("wait for the job", max(waited[0], job.start_time), waited[1])
     device = torch.device(f"cuda:{local_rank}") if job.device_type == "cuda" else torch.device("cpu")
     if device.type == "cpu":
         local_world = torchrun_env()[3] if torchrun_env() else job.world
