@@ -182,3 +182,89 @@ def test_no_tile_with_a_drawn_pixel_is_dropped(seed, size, device):
             box = {ty * tiles_x + tx for ty in range(y0, y1) for tx in range(x0, x1)}
             assert tiles & box <= listed[i], (i, sorted(tiles & box - listed[i]))
         assert sum(len(d) for d in drawn) > 0
+
+
+# ---- keys written before the frame's host sync: the capacity guard, and the sort on tensors --------
+
+def write_keys(inputs, touched: torch.Tensor, width: int, height: int, capacity: int, size: int,
+               ends: torch.Tensor | None = None, sentinel: int = -7):
+    """binning.write_tile_keys launched as rasterize launches it, with `capacity`, into keys and ids of
+    `size` slots filled with `sentinel`: (keys, ids)."""
+    from tomgs.kernels import binning
+    from tomgs.render import _Frame
+    from tomgs.runtime import launch, scope, wrap
+    import warp as wp
+
+    means2d, conics, opacities, radii, depths = (x.contiguous() for x in inputs)
+    ends = torch.cumsum(touched, 0, dtype=torch.int64) if ends is None else ends
+    keys = torch.full((size,), sentinel, dtype=torch.int64, device=means2d.device)
+    ids = torch.full((size,), sentinel, dtype=torch.int32, device=means2d.device)
+    frame = _Frame(width, height, 0.0, 0.0, 0.01, 1e10, "cpu")
+    with scope(means2d.device) as device:
+        launch(binning.write_tile_keys, len(means2d), device=device, args=[
+            wrap(means2d, wp.vec2), wrap(conics, wp.vec3), wrap(opacities), wrap(radii, wp.vec2i), wrap(depths),
+            wrap(ends), frame.tiles_x, frame.tiles_y, capacity, wrap(keys), wrap(ids)])
+    return keys.cpu(), ids.cpu()
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("share", [0.0, 0.37, 0.999, 1.0])
+def test_keys_stop_at_the_capacity(share, device):
+    """Launched before the intersection count is known, write_tile_keys writes only the slots below its
+    capacity: those exactly as with room for all, and nothing past them (the sentinel after stays)."""
+    width, height = 200, 96
+    inputs = [x.to(device) for x in awkward_ellipses(11, 200, width, height)]
+    touched = tiles_touched_reference(*[x.cpu() for x in inputs[:4]], width, height).int().to(device)
+    total = int(touched.sum())
+    full_keys, full_ids = write_keys(inputs, touched, width, height, total, total)
+    assert (full_keys != -7).all() and total > 100
+    capacity = int(share * total)
+    keys, ids = write_keys(inputs, touched, width, height, capacity, total + 64)
+    assert torch.equal(keys[:capacity], full_keys[:capacity]) and torch.equal(ids[:capacity], full_ids[:capacity])
+    assert (keys[capacity:] == -7).all() and (ids[capacity:] == -7).all()
+
+
+def test_keys_stop_at_the_capacity_when_the_count_passes_int32():
+    """A frame counted past int32 (refused after the sync, but its keys are written before it): the
+    int64 slot offsets are clipped to the capacity before any narrowing, so nothing lands outside."""
+    width, height = 200, 96
+    inputs = awkward_ellipses(12, 100, width, height)
+    touched = tiles_touched_reference(*inputs[:4], width, height).int()
+    ends = torch.cumsum(touched, 0, dtype=torch.int64)
+    jump = int(torch.nonzero(touched > 1)[20, 0])  # a Gaussian of several tiles, made to span 2^32 slots
+    capacity = int(ends[jump - 1]) + 1  # room for its first key, as without the jump
+    ends[jump:] += 2**32 - ends[jump]  # from 2^32 on: narrowed to int32 first, they would wrap to slot 0
+    keys, ids = write_keys(inputs, touched, width, height, capacity, capacity + 64, ends=ends)
+    full_keys, full_ids = write_keys(inputs, touched, width, height, capacity, capacity)
+    assert torch.equal(keys[:capacity], full_keys) and torch.equal(ids[:capacity], full_ids)
+    assert (keys[capacity:] == -7).all() and (ids[capacity:] == -7).all()
+
+
+@pytest.mark.parametrize("count", [0, 1, 7, 5000])
+def test_sort_pairs_sorts_stably_on_tensors(count):
+    """tomgs.runtime.sort_pairs (Warp's native radix sort, called without building wp.arrays) on the
+    CPU: keys[:count] ascending in bits [0, end_bit), ties in their first order, values carried along;
+    storage past 2 * count untouched."""
+    from tomgs.runtime import scope, sort_pairs
+
+    g = torch.Generator().manual_seed(SEED_BASE * 1000 + 731 + count)
+    tiles = torch.randint(0, 300, (count,), generator=g)
+    depths = torch.randint(0, 40, (count,), generator=g)  # few depths: many equal keys
+    keys = torch.full((2 * count + 5,), -3, dtype=torch.int64)
+    values = torch.full((2 * count + 5,), -3, dtype=torch.int32)
+    keys[:count] = tiles << 32 | depths
+    values[:count] = torch.arange(count, dtype=torch.int32)
+    expected_keys, order = torch.sort(keys[:count], stable=True)
+    with scope(keys.device):
+        sort_pairs(keys, values, count, 32 + 9)
+    assert torch.equal(keys[:count], expected_keys) and torch.equal(values[:count], order.int())
+    assert (keys[2 * count:] == -3).all() and (values[2 * count:] == -3).all()
+
+
+def test_sort_pairs_refuses_too_little_storage():
+    from tomgs.runtime import sort_pairs
+
+    with pytest.raises(ValueError, match="scratch"):
+        sort_pairs(torch.zeros(9, dtype=torch.int64), torch.zeros(10, dtype=torch.int32), 5, 40)
+    with pytest.raises(ValueError, match="int64 keys"):
+        sort_pairs(torch.zeros(10, dtype=torch.int32), torch.zeros(10, dtype=torch.int32), 5, 40)

@@ -460,3 +460,77 @@ def test_frame_counts_come_with_the_sync(cooperative, monkeypatch):
     assert meta["n_visible"] == int((meta["radii"] > 0).any(-1).sum()) > 256
     assert meta["n_alive"] == int((meta["opacities_t"] >= ALPHA_MIN).sum())
     assert 0 < meta["n_visible"] < meta["n_alive"] < 700
+
+
+# ---- tile keys written before the host sync, into buffers of a bound kept between frames ----------
+
+@pytest.fixture
+def write_capacities(monkeypatch):
+    """Fresh bounds (tomgs.render._bounds) for the test, and the list of the capacities that
+    rasterize's calls of render._write_keys ask for, in order."""
+    from tomgs import render
+
+    monkeypatch.setattr(render, "_bounds", render._Bounds())
+    asked = []
+    write = render._write_keys
+
+    def spy(wrapped, n, ends, frame, capacity):
+        asked.append(capacity)
+        return write(wrapped, n, ends, frame, capacity)
+
+    monkeypatch.setattr(render, "_write_keys", spy)
+    return asked
+
+
+def weighted_loss(image: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+    g = torch.Generator().manual_seed(11)
+    w_image = torch.rand(image.shape, generator=g, dtype=torch.float64) - 0.3
+    w_alpha = torch.rand(alpha.shape, generator=g, dtype=torch.float64) - 0.3
+    return (image * w_image.to(image)).sum() + (alpha * w_alpha.to(alpha)).sum()
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_frames_past_the_kept_bound_write_their_keys_again(write_capacities, device):
+    """Each frame of a growing sequence needs more intersections than the bound kept from the frames
+    before it (none for the first): its keys, written before the sync up to the bound, are written
+    again at the right size after it. The image matches the reference, and equals bit for bit the
+    same frame rendered again within the bound (keys written once, before the sync)."""
+    width, height = 96, 80
+    for n in (40, 250, 1500):
+        scene = random_scene(90 + n, n=n, width=width, height=height)
+        write_capacities.clear()
+        (image, alpha, meta), (ref_image, ref_alpha, _), ours_in, _ = render_both(scene, device)
+        total = meta["n_intersections"]
+        assert len(write_capacities) == 2 and write_capacities[0] < write_capacities[1] == total
+        assert (image.detach().double().cpu() - ref_image).abs().max() <= IMAGE_TOL
+        assert (alpha.detach().double().cpu() - ref_alpha).abs().max() <= IMAGE_TOL
+
+        write_capacities.clear()
+        named = dict(zip(INPUT_NAMES, ours_in))
+        again, again_alpha, _ = tomgs.rasterize(**named, width=width, height=height,
+                                                t=float(torch.tensor(scene["t"], dtype=torch.float32)))
+        assert len(write_capacities) == 1 and write_capacities[0] >= total
+        assert torch.equal(again, image) and torch.equal(again_alpha, alpha)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_two_frames_forward_before_either_backward(write_capacities, device):
+    """Two views per training step: both forwards run before either backward, each with its keys
+    written before the sync. Each frame's list (its ids, which its backward reads) is its own: the
+    gradients match the reference and, on the CPU, equal bit for bit those of each frame run alone."""
+    scenes = [random_scene(140 + k, n=300, width=64, height=48) for k in range(2)]
+    alone = []
+    for scene in scenes:  # each alone, which also leaves a bound that holds both frames
+        (image, alpha, _), _, ours_in, _ = render_both(scene, device)
+        alone.append(torch.autograd.grad(weighted_loss(image, alpha), ours_in))
+    write_capacities.clear()
+    frames = [render_both(scene, device) for scene in scenes]
+    assert len(write_capacities) == 2 and write_capacities[0] == write_capacities[1] > 0  # before the sync only
+    assert frames[0][0][2]["n_intersections"] != frames[1][0][2]["n_intersections"]
+    for k in (1, 0):  # the backwards, the later frame's first
+        (image, alpha, _), (ref_image, ref_alpha, _), ours_in, ref_in = frames[k]
+        grads = torch.autograd.grad(weighted_loss(image, alpha), ours_in)
+        ref_grads = torch.autograd.grad(weighted_loss(ref_image, ref_alpha), ref_in)
+        for name, grad, ref_grad, grad_alone in zip(INPUT_NAMES, grads, ref_grads, alone[k]):
+            assert rel_l2(grad, ref_grad) <= GRAD_TOL, (k, name, rel_l2(grad, ref_grad))
+            assert device != "cpu" or torch.equal(grad, grad_alone), (k, name)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import struct
+from collections import deque
 from dataclasses import dataclass
 
 import torch
@@ -19,7 +20,7 @@ from tomgs import alive
 from tomgs.constants import TILE_SIZE
 from tomgs.inputs import RasterInputs, RenderError, prepare_inputs
 from tomgs.kernels import binning, project, raster, raster_batched
-from tomgs.runtime import NO_ARRAY, indexable, launch, scope, wrap
+from tomgs.runtime import NO_ARRAY, indexable, launch, scope, sort_pairs, wrap
 
 # The radix sort needs 2 x count slots and counts in int32: 2^30 keeps both inside int32.
 MAX_INTERSECTIONS = 2**30
@@ -107,7 +108,8 @@ class _Frame:
 # Host time per frame (a GPU machine's CPU spends 10-60 us per torch op or launch, and a 1M-Gaussian
 # temporal frame is host bound): stages pass Warp descriptors along instead of re-wrapping tensors,
 # gradients nobody asked for are not materialised, and what needs no intersection count is
-# allocated before the frame's one host sync. benchmarks/host_ops.py counts ops and launches.
+# allocated before the frame's one host sync, the tile keys included (into a buffer of a bound kept
+# between frames). benchmarks/host_ops.py counts ops and launches, and those after the sync.
 
 
 class _Project(torch.autograd.Function):
@@ -177,34 +179,69 @@ class _Project(torch.autograd.Function):
         return v_means, v_quats, v_scales, v_opacities, v_t_means, v_t_scales, v_viewmat, v_K, None, None, None
 
 
-def _bin(wrapped: dict, n: int, ends: torch.Tensor, ranges: torch.Tensor, frame: _Frame, total: int):
-    """Stage 2: (ids [>= total] int32 Gaussian per intersection, keys [>= total] int64 `tile << 32 | depth
-    bits`, sorted; the first `total` entries are the list) and `ranges` [tiles, 2] int32 (zeroed by the
-    caller) filled with each tile's [start, end) into them.
+class _Bounds:
+    """Upper bounds on a frame's intersection count, kept between frames per (Warp device, width,
+    height), so that a frame's keys are written before its host sync (`_write_keys`): the largest
+    total of the last FRAMES frames of that size plus an eighth (and 256), at most MAX_INTERSECTIONS;
+    0 (keys written after the sync) until a frame of that size has been counted."""
 
-    `wrapped`: descriptors of projection's means2d, conics, opacities_t, radii, depths [N]. `ends` [N]
-    int64 is the inclusive scan of tiles touched (binning.tiles_of, which projection counts):
-    Gaussian i writes keys [ends[i-1], ends[i]), the tiles of its box that its ellipse reaches.
+    FRAMES = 16
+
+    def __init__(self):
+        self._recent: dict[tuple, deque] = {}
+        self._capacity: dict[tuple, int] = {}
+
+    def capacity(self, frame: _Frame) -> int:
+        return self._capacity.get((frame.device, frame.width, frame.height), 0)
+
+    def remember(self, frame: _Frame, total: int) -> None:
+        key = (frame.device, frame.width, frame.height)
+        recent = self._recent.setdefault(key, deque(maxlen=self.FRAMES))
+        recent.append(total)
+        top = max(recent)
+        self._capacity[key] = min(MAX_INTERSECTIONS, top + top // 8 + 256)
+
+
+# the process's bounds (not thread-safe, like tomgs.runtime.launch)
+_bounds = _Bounds()
+
+
+def _write_keys(wrapped: dict, n: int, ends: torch.Tensor, frame: _Frame, capacity: int):
+    """Stage 2's list, unsorted, in buffers of `capacity` pairs plus the sort's scratch: (keys [2 capacity]
+    int64 `tile << 32 | depth bits`, ids [2 capacity] int32 the Gaussian of each), Gaussian i in slots
+    [ends[i-1], ends[i]) (`ends` [N] int64 the inclusive scan of tiles touched, binning.tiles_of),
+    those below `capacity` only. Needs no intersection count, so it runs before the host sync.
+
+    `wrapped`: descriptors of projection's means2d, conics, opacities_t, radii, depths [N].
+    """
+    keys = torch.empty(2 * capacity, device=ends.device, dtype=torch.int64)  # the sort uses the upper half
+    ids = torch.empty(2 * capacity, device=ends.device, dtype=torch.int32)
+    if capacity:
+        launch(binning.write_tile_keys, n, device=frame.device, args=[
+            wrapped["means2d"], wrapped["conics"], wrapped["opacities_t"], wrapped["radii"], wrapped["depths"],
+            wrap(ends), frame.tiles_x, frame.tiles_y, capacity, wrap(keys), wrap(ids),
+        ])
+    return keys, ids
+
+
+def _bin(wrapped: dict, n: int, ends: torch.Tensor, ranges: torch.Tensor, frame: _Frame, total: int,
+         written: tuple[torch.Tensor, torch.Tensor] | None = None):
+    """Stage 2 after the host sync: (ids [>= total] int32 Gaussian per intersection, keys [>= total] int64
+    `tile << 32 | depth bits`, sorted; the first `total` entries are the list) and `ranges` [tiles, 2]
+    int32 (zeroed by the caller) filled with each tile's [start, end) into them.
+
+    `written`: (keys, ids) from `_write_keys` before the sync; written again here, at the right size,
+    when `total` exceeds their capacity (or for None). `wrapped` and `ends` as for `_write_keys`.
     """
     if total > MAX_INTERSECTIONS:
         raise RenderError(
             f"this frame needs {total:,} Gaussian-tile intersections, more than the {MAX_INTERSECTIONS:,} the "
             f"rasterizer can sort; render at a lower resolution or with fewer or smaller Gaussians")
-    device = ends.device
-    if total == 0:
-        return torch.empty(0, device=device, dtype=torch.int32), torch.empty(0, device=device, dtype=torch.int64)
-    keys = torch.empty(2 * total, device=device, dtype=torch.int64)  # the radix sort uses the upper half
-    ids = torch.empty(2 * total, device=device, dtype=torch.int32)
-    tile_bits = max(1, (frame.num_tiles - 1).bit_length())
-    keys_d = wrap(keys)
-    launch(binning.write_tile_keys, n, device=frame.device, args=[
-        wrapped["means2d"], wrapped["conics"], wrapped["opacities_t"], wrapped["radii"], wrapped["depths"],
-        wrap(ends), frame.tiles_x, frame.tiles_y, keys_d, wrap(ids),
-    ])
-    # the sort wants full Warp arrays
-    wp.utils.radix_sort_pairs(wp.from_torch(keys, requires_grad=False), wp.from_torch(ids, requires_grad=False),
-                              total, 0, 32 + tile_bits)
-    launch(binning.tile_ranges, total, device=frame.device, args=[keys_d, total, wrap(ranges)])
+    if written is None or written[0].shape[0] < 2 * total:  # past the bound: correct, just slower
+        written = _write_keys(wrapped, n, ends, frame, total)
+    keys, ids = written
+    sort_pairs(keys, ids, total, 32 + max(1, (frame.num_tiles - 1).bit_length()))
+    launch(binning.tile_ranges, total, device=frame.device, args=[wrap(keys), total, wrap(ranges)])
     return ids, keys
 
 
@@ -351,14 +388,20 @@ def rasterize(
     with scope(p.means.device) as wp_device:
         frame = _Frame(p.width, p.height, t_hi, t_lo, p.near, p.far, wp_device)
         (means2d, conics, depths, radii, opacities_t, _), ends, flags = _project_frame(p, frame, wrapped)
-        # before the sync, what needs no intersection count: the GPU projects meanwhile
+        # before the sync, what needs no intersection count (the GPU projects meanwhile): the keys,
+        # up to the bound of recent frames of this size, and the buffers of the sort and the raster.
+        # Fresh buffers every frame: the backward reads ids, and two frames' backwards may be pending.
+        n = means2d.shape[0]
+        written = _write_keys(wrapped, n, ends, frame, _bounds.capacity(frame))
         ranges = torch.zeros(frame.num_tiles, 2, device=p.means.device, dtype=torch.int32)
         pixels = _Image(frame, p.means.device)
         colors = p.colors.contiguous()
         stats = _read_flags(flags, p)
+        # after it, on a GPU's critical path (idle until issued): the sort, the ranges, the raster
         total = stats[project.FLAG_TOTAL]
-        ids, _ = _bin(wrapped, means2d.shape[0], ends, ranges, frame, total)
+        ids, _ = _bin(wrapped, n, ends, ranges, frame, total, written)
         color, trans = _Rasterize.apply(means2d, conics, opacities_t, colors, ranges, ids, frame, wrapped, pixels)
+        _bounds.remember(frame, total)
     image = color if p.background is None else color + trans * p.background
     meta = dict(radii=radii, means2d=means2d, depths=depths, conics=conics, opacities_t=opacities_t,
                 n_visible=stats[project.FLAG_VISIBLE], n_alive=stats[project.FLAG_ALIVE],

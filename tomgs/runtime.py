@@ -11,6 +11,8 @@
     indexable(grad, like, *size)     an incoming gradient as a kernel can index it (zeros for None)
     launch(kernel, dim, args, device, block_dim=256)
                                      a recorded launch per (kernel, device, block size), re-armed
+    sort_pairs(keys, values, count, end_bit)
+                                     Warp's radix sort of int64 keys and int32 values, on tensors
 
 Used by tomgs.render (the rasterizer), tomgs.metrics (SSIM), tomgs.train.optim (SeenAdam) and
 tomgs.edit.physics (XPBD). Every buffer is a torch tensor handed to Warp without a copy, so torch's
@@ -34,11 +36,12 @@ import sys
 
 import torch
 import warp as wp
+import warp._src.context as _warp_context  # private: only for sort_pairs (see there)
 
 from tomgs.errors import RenderError
 
 __all__ = ["init_warp", "warp_device", "scope", "wrap", "wrap_rows", "NO_ARRAY", "indexable", "launch", "Launches",
-           "ArrayDescriptor"]
+           "ArrayDescriptor", "sort_pairs"]
 
 _warp_ready = False
 
@@ -212,3 +215,28 @@ class Launches:
 
 # the process's one cache of recorded launches
 launch = Launches()
+
+
+def sort_pairs(keys: torch.Tensor, values: torch.Tensor, count: int, end_bit: int) -> None:
+    """Sort keys[:count] (int64) by their bits [0, end_bit), stably, and values[:count] (int32) with
+    them, in place, on the keys' device (a GPU: Warp's current stream there; call inside `scope`).
+    Both are contiguous and hold at least 2 * count elements: [count, 2 * count) is the sort's scratch.
+
+    Warp's public `wp.utils.radix_sort_pairs` takes full `wp.array`s only: ~20 us each to build from
+    a tensor on a GPU machine's CPU, twice a frame, after the frame's host sync, where the GPU waits
+    for them. It reads their pointers and, for these dtypes, calls the native entry points below with
+    the same arguments; they are Warp's private API (checked on 1.19.0), so a release that renames
+    them fails here with an AttributeError, and tests/test_binning.py runs this on the CPU.
+    """
+    if (keys.dtype != torch.int64 or values.dtype != torch.int32 or not keys.is_contiguous()
+            or not values.is_contiguous() or keys.device != values.device):
+        raise ValueError(f"sort_pairs needs contiguous int64 keys and int32 values on one device, got "
+                         f"{keys.dtype} on {keys.device} and {values.dtype} on {values.device}")
+    if keys.numel() < 2 * count or values.numel() < 2 * count:
+        raise ValueError(f"sort_pairs of {count} pairs needs {2 * count} elements of storage (the upper half is "
+                         f"scratch), got {keys.numel()} keys and {values.numel()} values")
+    if count == 0:
+        return
+    core = _warp_context.runtime.core
+    sort = core.wp_radix_sort_pairs_int64_host if keys.device.type == "cpu" else core.wp_radix_sort_pairs_int64_device
+    sort(keys.data_ptr(), values.data_ptr(), count, 0, end_bit, values.element_size())

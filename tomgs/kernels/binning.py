@@ -127,12 +127,19 @@ def write_tile_keys(
     ends: wp.array(dtype=wp.int64),  # [N] inclusive scan of tiles touched (`tiles_of`)
     tiles_x: int,
     tiles_y: int,
-    keys: wp.array(dtype=wp.int64),  # out [>= total] tile << 32 | depth bits
-    gaussian_ids: wp.array(dtype=wp.int32),  # out [>= total]
+    capacity: int,  # slots of keys and ids that may be written: [0, capacity); total may exceed it
+    keys: wp.array(dtype=wp.int64),  # out [>= capacity] tile << 32 | depth bits
+    gaussian_ids: wp.array(dtype=wp.int32),  # out [>= capacity]
 ):
     i = wp.tid()
     r = radii[i]
-    if r[0] == 0 and r[1] == 0:
+    # this Gaussian's slots, clipped to the capacity in int64 (launched before the total is known,
+    # when ends may exceed int32): a frame past the capacity writes a prefix and nothing beyond
+    k = int(0)
+    if i > 0:
+        k = int(wp.min(ends[i - 1], wp.int64(capacity)))
+    end = int(wp.min(ends[i], wp.int64(capacity)))
+    if k >= end or (r[0] == 0 and r[1] == 0):
         return
     center = means2d[i]
     conic = conics[i]
@@ -140,10 +147,7 @@ def write_tile_keys(
     level = ellipse_level(conic, r, opacities_t[i])
     # a positive float's bit pattern orders like its value
     depth_bits = wp.int64(wp.cast(depths[i], wp.int32))
-    k = int(0)
-    if i > 0:
-        k = int(ends[i - 1])
-    end = int(ends[i])  # writes stay in this Gaussian's slots even where the counts came from elsewhere
+    # writes stay in this Gaussian's slots even where the counts came from elsewhere
     for ty in range(rect[1], rect[3]):
         span = row_tiles(center, conic, level, rect, ty)
         for tx in range(span[0], wp.min(span[1], span[0] + end - k)):
