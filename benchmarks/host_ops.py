@@ -45,9 +45,9 @@ from tomgs import render, runtime  # noqa: E402
 # the functions whose cumulative Python time makes a stage (file suffix, function name)
 STAGES = [
     ("render.py", "rasterize"), ("render.py", "_check_scalars"), ("inputs.py", "prepare_inputs"),
-    ("render.py", "_project_frame"), ("render.py", "forward"), ("render.py", "_bin"),
+    ("render.py", "_project_frame"), ("render.py", "forward"), ("render.py", "_write_keys"), ("render.py", "_bin"),
     ("render.py", "backward"), ("runtime.py", "__call__"), ("runtime.py", "wrap"), ("runtime.py", "indexable"),
-    ("runtime.py", "scope"), ("render.py", "_kernels"),
+    ("runtime.py", "scope"), ("runtime.py", "sort_pairs"), ("render.py", "_kernels"),
 ]
 
 
@@ -58,7 +58,7 @@ PHASES = ("before the sync", "after the sync", "backward")
 
 class Phases:
     """Counts Warp launches per phase of a frame (PHASES) by patching tomgs.runtime.Launches, wp.launch,
-    the radix sort and wp.from_torch, and marks the forward's host sync by patching
+    the radix sort (tomgs.render.sort_pairs) and wp.from_torch, and marks the forward's host sync by patching
     tomgs.render._read_flags: from its return to `forward_done` the phase is "after the sync", and
     with `ranges` set that stretch is a profiler range (AFTER_SYNC) that `top_level_ops` splits on."""
 
@@ -69,7 +69,7 @@ class Phases:
         self.ranges = False
         self.synced_at = None  # perf_counter when the last forward's sync returned
         self._range = None
-        recorded, direct, sort = runtime.Launches.__call__, wp.launch, wp.utils.radix_sort_pairs
+        recorded, direct, sort = runtime.Launches.__call__, wp.launch, render.sort_pairs
         from_torch, read_flags = wp.from_torch, render._read_flags
 
         def counted(name, fn):
@@ -92,7 +92,7 @@ class Phases:
 
         runtime.Launches.__call__ = counted("recorded launch", recorded)
         wp.launch = counted("wp.launch", direct)
-        wp.utils.radix_sort_pairs = counted("radix sort", sort)
+        render.sort_pairs = counted("radix sort", sort)
         wp.from_torch = counted("wp.from_torch", from_torch)
         render._read_flags = synced
 
@@ -236,7 +236,8 @@ def main(argv=None) -> dict:
     result = dict(
         device=str(dev), size=args.size, n=n, variant=args.variant, iters=args.iters,
         fwd_us=statistics.median(fwd_us), bwd_us=statistics.median(bwd_us), after_sync_us=statistics.median(after_us),
-        fwd_ops=sum(fwd_ops.values()), after_sync_ops=sum(ops[PHASES[1]].values()), bwd_ops=sum(ops[PHASES[2]].values()),
+        fwd_ops=sum(fwd_ops.values()), after_sync_ops=sum(ops[PHASES[1]].values()),
+        bwd_ops=sum(ops[PHASES[2]].values()),
         launches=launches, launch_us=phases.seconds / args.iters * 1e6, stages_us=stages,
         op_names={phase: dict(counts.most_common()) for phase, counts in ops.items()},
     )
