@@ -212,14 +212,16 @@ def _write_keys(wrapped: dict, n: int, ends: torch.Tensor, frame: _Frame, capaci
     [ends[i-1], ends[i]) (`ends` [N] int64 the inclusive scan of tiles touched, binning.tiles_of),
     those below `capacity` only. Needs no intersection count, so it runs before the host sync.
 
-    `wrapped`: descriptors of projection's means2d, conics, opacities_t, radii, depths [N].
+    `wrapped`: descriptors of projection's means2d, conics, opacities_t, radii, depths [N]; those of
+    keys and ids go into it (for the stages after the sync, replacing any before).
     """
     keys = torch.empty(2 * capacity, device=ends.device, dtype=torch.int64)  # the sort uses the upper half
     ids = torch.empty(2 * capacity, device=ends.device, dtype=torch.int32)
+    wrapped.update(keys=wrap(keys), ids=wrap(ids))
     if capacity:
         launch(binning.write_tile_keys, n, device=frame.device, args=[
             wrapped["means2d"], wrapped["conics"], wrapped["opacities_t"], wrapped["radii"], wrapped["depths"],
-            wrap(ends), frame.tiles_x, frame.tiles_y, capacity, wrap(keys), wrap(ids),
+            wrap(ends), frame.tiles_x, frame.tiles_y, capacity, wrapped["keys"], wrapped["ids"],
         ])
     return keys, ids
 
@@ -231,7 +233,8 @@ def _bin(wrapped: dict, n: int, ends: torch.Tensor, ranges: torch.Tensor, frame:
     int32 (zeroed by the caller) filled with each tile's [start, end) into them.
 
     `written`: (keys, ids) from `_write_keys` before the sync; written again here, at the right size,
-    when `total` exceeds their capacity (or for None). `wrapped` and `ends` as for `_write_keys`.
+    when `total` exceeds their capacity (or for None). `wrapped` and `ends` as for `_write_keys`;
+    `wrapped` holds the descriptor of `ranges` too.
     """
     if total > MAX_INTERSECTIONS:
         raise RenderError(
@@ -241,7 +244,7 @@ def _bin(wrapped: dict, n: int, ends: torch.Tensor, ranges: torch.Tensor, frame:
         written = _write_keys(wrapped, n, ends, frame, total)
     keys, ids = written
     sort_pairs(keys, ids, total, 32 + max(1, (frame.num_tiles - 1).bit_length()))
-    launch(binning.tile_ranges, total, device=frame.device, args=[wrap(keys), total, wrap(ranges)])
+    launch(binning.tile_ranges, total, device=frame.device, args=[wrapped["keys"], total, wrapped["ranges"]])
     return ids, keys
 
 
@@ -278,10 +281,10 @@ class _Rasterize(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, opacities_t, colors, ranges, ids, frame: _Frame, wrapped: dict, image: _Image):
         """(color [H,W,3], trans [H,W,1]) of `image`, composited; `wrapped` holds the descriptors of
-        means2d, conics and opacities_t (projection's)."""
+        means2d, conics, opacities_t, colors, ranges and ids (built before the frame's host sync)."""
         # the list, the per-Gaussian inputs and the per-pixel state, shared with the backward
-        shared = [wrap(ranges), wrap(ids), wrapped["means2d"], wrapped["conics"], wrapped["opacities_t"],
-                  wrap(colors, wp.vec3), frame.width, frame.height, frame.tiles_x]
+        shared = [wrapped["ranges"], wrapped["ids"], wrapped["means2d"], wrapped["conics"], wrapped["opacities_t"],
+                  wrapped["colors"], frame.width, frame.height, frame.tiles_x]
         kernels = _Rasterize._kernels(means2d.device)
         launch(kernels[0], frame.num_tiles * TILE_SIZE * TILE_SIZE, device=frame.device, block_dim=kernels[2],
                args=[*shared, image.color_d, *image.state])
@@ -384,7 +387,7 @@ def rasterize(
     if tiles * TILE_SIZE * TILE_SIZE > MAX_THREADS:
         raise RenderError(f"a {p.width}x{p.height} image is too large to render in one piece: keep "
                           f"width x height below {MAX_THREADS:,} pixels")
-    wrapped = {}  # Warp descriptors of projection's buffers, by name, for the stages that follow
+    wrapped = {}  # Warp descriptors of the frame's buffers, by name, built once for the stages that follow
     with scope(p.means.device) as wp_device:
         frame = _Frame(p.width, p.height, t_hi, t_lo, p.near, p.far, wp_device)
         (means2d, conics, depths, radii, opacities_t, _), ends, flags = _project_frame(p, frame, wrapped)
@@ -396,6 +399,7 @@ def rasterize(
         ranges = torch.zeros(frame.num_tiles, 2, device=p.means.device, dtype=torch.int32)
         pixels = _Image(frame, p.means.device)
         colors = p.colors.contiguous()
+        wrapped.update(ranges=wrap(ranges), colors=wrap(colors, wp.vec3))
         stats = _read_flags(flags, p)
         # after it, on a GPU's critical path (idle until issued): the sort, the ranges, the raster
         total = stats[project.FLAG_TOTAL]
@@ -466,6 +470,7 @@ def bin_stage(
     with scope(means2d.device) as wp_device:
         frame = _Frame(int(width), int(height), 0.0, 0.0, 0.01, 1e10, wp_device)
         ranges = torch.zeros(frame.num_tiles, 2, device=means2d.device, dtype=torch.int32)
+        wrapped["ranges"] = wrap(ranges)
         ids, keys = _bin(wrapped, means2d.shape[0], ends, ranges, frame, total)
     ids, keys = ids[:total], keys[:total]
     return dict(keys=keys, ids=ids, ranges=ranges)
