@@ -26,6 +26,9 @@ re-arms it. So the descriptor class is taken from what `wp.from_torch(..., retur
 returns (no import of Warp's private modules) and filled directly; `_check_descriptor` compares the
 result with `wp.from_torch`'s own on import, so a Warp release that changes the structure fails
 here, loudly, and not as wrong pixels. Checked on Warp 1.19.0.
+
+The one use of Warp's private modules is `sort_pairs`: its radix sort's native entry point, called
+on tensors (the public function wants full Warp arrays; see there).
 """
 
 from __future__ import annotations
