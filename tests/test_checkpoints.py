@@ -556,3 +556,24 @@ def test_the_sampler_takes_perfect_and_undefined_psnrs():
     assert torch.isfinite(p).all() and float(p.sum()) == pytest.approx(1.0) and (p > 0).all()
     assert p[1] >= p[2] >= p[0]  # unmeasured (nan) counts as the worst, a perfect frame as the best
     assert 0 <= sampler.sample() < 4
+
+
+def test_a_warm_up_beside_the_poses_changes_no_result(tmp_path, monkeypatch, capsys):
+    """On a GPU a fit pays its first steps' one-off costs in a thread while the CPU reads the clip and
+    estimates its cameras (tomgs.train.warm). Forced on here on the CPU: the thread runs a throwaway
+    Trainer, and the fitted scene is bit-identical to the fit without it."""
+    from tomgs.io.scene import load_scene
+    from tomgs.train import warm
+
+    assert warm.pays_on(torch.device("cuda")) and not warm.pays_on(CPU)
+    video = write_frames(tmp_path / "frames")
+    fit_clip(video, tmp_path / "plain.ply", iterations=30)
+    warmed = []
+    real_warm_up = warm.warm_up
+    monkeypatch.setattr(warm, "pays_on", lambda device: True)
+    monkeypatch.setattr(warm, "warm_up", lambda config, device: warmed.append(real_warm_up(config, device)))
+    fit_clip(video, tmp_path / "warmed.ply", iterations=30)
+    assert warmed == [None] and "warm-up skipped" not in capsys.readouterr().err
+    plain, warmed_scene = load_scene(tmp_path / "plain.ply").model, load_scene(tmp_path / "warmed.ply").model
+    for name, value in plain.parameters_by_name().items():
+        assert torch.equal(value, warmed_scene.parameters_by_name()[name]), name

@@ -172,6 +172,7 @@ def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses
     from tomgs.io import Video, read_video
     from tomgs.io.scene import save_scene
     from tomgs.poses import estimate_cameras
+    from tomgs.train.warm import WarmUp, pays_on
 
     plan, config = _plan(video, config, device, saved, frames=frames, max_side=max_side, poses=poses, layer=layer,
                          auto_budget=auto_budget)
@@ -187,6 +188,8 @@ def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses
         peaks[name] = peak_memory(device)[0]  # monotone: where it rises is where the memory went
         mark = now
 
+    # one-off costs of the first steps, paid while the CPU reads the clip and estimates its cameras
+    warming = WarmUp(config, device) if pays_on(device) else None
     phases("read", 0, 1, None)
     clip = video if isinstance(video, Video) else read_video(
         video, frames=frames, max_side=max_side, masks=masks,
@@ -216,8 +219,10 @@ def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses
         pose_seconds = float(saved["clip"].get("pose_seconds", pose_seconds))
 
     phases("poses", 1, 1, None)
-    torch.manual_seed(config.seed)
     phases("init", 0, 1, None)
+    if warming is not None:
+        warming.join()  # before the seed: the warm-up forked the RNG, and its steps queue on the device
+    torch.manual_seed(config.seed)
     trainer = Trainer(inputs.frames, views, points, colors, config, device, point_frames=point_frames,
                       init_progress=lambda done, total: phases("init", done, total, None), **inputs.hooks)
     trainer.notes[:0] = [*pose_notes, *inputs.notes]

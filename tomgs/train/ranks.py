@@ -11,7 +11,7 @@ host, rank 0 the scene).
 
 Each rank, in order: joins the process group; rank 0 reads the clip and estimates the cameras (or
 takes them from a checkpoint) and broadcasts them, the others meanwhile read their stretch and warm
-up (`_warm_up`, in a thread); every rank
+up (tomgs.train.warm, in a thread); every rank
 checks its checkpoint on resume, and all refuse together when one refuses (before anything is
 written); phase 1 (its Trainer); the merge, the joint refinement and the measurement of its frames
 (tomgs.train.shards), the refinement ending by what follows it as measured (Rank.merge); rank 0
@@ -54,6 +54,7 @@ import torch
 from tomgs.errors import InputError
 from tomgs import rank_pool
 from tomgs.train.checkpoint import START_OVER, FitInterrupted, StopSignals, read_checkpoint
+from tomgs.train.warm import WarmUp
 from tomgs.train.shards import REFINE_FRACTION, default_overlap, plan_stretches, rank_paths
 
 GROUP_TIMEOUT = timedelta(hours=1)  # a collective waits this long (rank 0's poses on a long clip come first)
@@ -753,7 +754,7 @@ class Rank:
             except InputError as e:
                 errors.append(str(e))
         # while rank 0 estimates the cameras, the others read their frames and pay their first steps'
-        # one-off costs (tomgs.train.ranks._warm_up); nothing of it changes a result
+        # one-off costs (tomgs.train.warm); nothing of it changes a result
         early = None
         payload, clip, failure = None, None, None
         if rank == 0:
@@ -773,8 +774,7 @@ class Rank:
                 with self.timeline.span("thumbnails"):  # what a checkpoint identifies them by
                     self.early_identity = _identity_of(early)
             # beside the wait, joined before phase 1's Trainer: no other rank waits for it
-            self.warming = threading.Thread(target=self._warm_up, name="tomgs-warm-up", daemon=True)
-            self.warming.start()
+            self.warming = WarmUp(self.job.config, self.device)
         waiting = time.time()
         box = [payload]
         dist.broadcast_object_list(box, src=0, group=self.control)
@@ -816,12 +816,6 @@ class Rank:
             self.seconds["poses"] = float(payload["pose_seconds_run"])
             self.seconds["read"] -= self.seconds["poses"]
 
-    def _warm_up(self) -> None:
-        """A rank other than 0, while rank 0 estimates the cameras (a thread): `_warm_up`."""
-        began = time.time()
-        _warm_up(self.job.config, self.device)
-        self.timeline.add("warm up", began)
-
     def _own_frames(self, clip, early):
         """(uint8 [F,H,W,3] of the stretch, what identifies them for a checkpoint)."""
         from tomgs.train.fit import _clip_identity
@@ -848,10 +842,10 @@ class Rank:
         job, stretch, payload, frames = self.job, self.stretch, self.payload, self.frames
         if getattr(self, "warming", None) is not None:
             waiting = time.time()
-            self.warming.join()
-            self.warming = None
-            if time.time() - waiting > 0.005:
+            if self.warming.join() > 0.005:
                 self.timeline.add("wait for the warm-up", waiting)
+            self.timeline.add("warm up", self.warming.began, self.warming.ended)
+            self.warming = None
         self.phase("init", 0, 1)
         initialising = time.time()
         height, width = frames.shape[1:3]
@@ -1120,44 +1114,6 @@ def _identity_of(video) -> dict:
     from tomgs.train.fit import _clip_identity
 
     return _clip_identity(SimpleNamespace(indices=video.indices, frames=video.frames, masks=None))
-
-
-WARM_FRAMES, WARM_SIZE, WARM_STEPS = 4, (32, 24), 3
-
-
-def _warm_up(config, device: torch.device) -> None:
-    """A throwaway Trainer on a tiny made-up clip on `device`: a few steps, a measurement and a
-    frame_psnr, so that what a rank's first steps pay once (the imports torch.optim makes on first
-    use, Warp's start, its kernels loaded on the device, the allocator's first blocks) is paid while
-    rank 0 estimates the cameras, not in the rank's own time. Changes no result: it draws only from
-    its own generators, and phase 1 seeds torch again before its Trainer. A failure here is left to
-    the real steps to show."""
-    from tomgs.cameras import Cameras
-    from tomgs.train.shards import frame_psnr
-    from tomgs.train.trainer import Trainer
-
-    try:
-        if device.type == "cuda":
-            torch.cuda.set_device(device)  # a thread's own: no context on another GPU
-        width, height = WARM_SIZE
-        c2w = np.tile(np.eye(4), (WARM_FRAMES, 1, 1))
-        c2w[:, 0, 3] = np.linspace(-0.1, 0.1, WARM_FRAMES)
-        K = np.array([[40.0, 0, width / 2], [0, 40.0, height / 2], [0, 0, 1]])
-        cameras = Cameras(c2w, K, width, height, np.linspace(0, 1, WARM_FRAMES), np.arange(WARM_FRAMES))
-        g = np.random.default_rng(0)
-        frames = g.integers(0, 256, (WARM_FRAMES, height, width, 3), dtype=np.uint8)
-        points = g.normal(0, 0.5, (64, 3)) + np.array([0.0, 0.0, 3.0])
-        colors = g.random((64, 3)).astype(np.float32)
-        with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
-            trainer = Trainer(frames, cameras, points, colors, config.replace(iterations=WARM_STEPS), device)
-            for _ in range(WARM_STEPS):
-                trainer.step()
-            trainer.clip_psnr()
-            frame_psnr(trainer.model, trainer.frames, cameras, device)
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-    except Exception as e:  # noqa: BLE001 - a warm-up, not the fit
-        sys.stderr.write(f"warm-up skipped: {type(e).__name__}: {e}\n")
 
 
 def _shared_setup(job: Job, device, saved, phase, report, timeline: Timeline | None = None):
