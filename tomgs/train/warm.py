@@ -37,7 +37,7 @@ def warm_up(config, device: torch.device) -> None:
     from tomgs.train.trainer import Trainer
 
     try:
-        if device.type == "cuda":
+        if device.type == "cuda" and device.index is not None:
             torch.cuda.set_device(device)  # a thread's own: no context on another GPU
         width, height = SIZE
         c2w = np.tile(np.eye(4), (FRAMES, 1, 1))
