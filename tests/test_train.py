@@ -93,11 +93,12 @@ def test_seen_adam_is_adam_on_the_rows_in_view():
 
 def test_initial_points_per_frame_respect_device_frame_size_and_cap():
     config = preset("default")
-    assert config.points_per_frame(854 * 480, 90, "cuda") == 8000
+    assert config.points_per_frame(854 * 480, 90, "cuda") == 16000
     assert config.points_per_frame(854 * 480, 90, "cpu") == 2000  # serial kernels: fewer, more steps
     assert config.points_per_frame(128 * 72, 32, "cuda") == 128 * 72 // 5  # small frames: one per 5 pixels
     assert config.replace(max_gaussians=10_000_000).points_per_frame(854 * 480, 2000, "cuda") == 2500  # half the cap
-    assert config.points_per_frame(854 * 480, 2000, "cuda") == 8000  # the automatic cap grows with the clip
+    # the automatic cap grows with the clip (47M for 2000 frames of 480p), the start stays under half of it
+    assert config.points_per_frame(854 * 480, 2000, "cuda") == config.cap(2000, 854 * 480, "cuda") // 4000
     assert config.replace(init_points_per_frame=300).points_per_frame(100, 5) == 300  # asked for: as given
     assert config.replace(max_gaussians=10).points_per_frame(100, 90) == 1
 
@@ -118,6 +119,16 @@ def test_unseen_frames_count_as_the_worst():
     sampler.update(0, 30.0)
     p = sampler.probabilities()
     assert p[1] == p[2] and p[1] >= p[0]
+
+
+def test_densification_threshold_by_device_unless_given():
+    """A GPU fit grows its cloud within the first minute (1e-4), a CPU fit keeps 3DGS's 2e-4; a given
+    threshold, and the paper preset's, hold on every device."""
+    assert Densifier(preset("default"), 1.0, 1, "cpu").threshold == 2e-4
+    assert Densifier(preset("default"), 1.0, 1, CPU).threshold == 2e-4
+    assert preset("default").threshold("cuda") == 1e-4
+    assert preset("default", grad_threshold=3e-4).threshold("cuda") == 3e-4
+    assert preset("paper").threshold("cuda") == preset("paper").threshold("cpu") == 2e-4
 
 
 @pytest.mark.parametrize("cap", [60, 100, 1000])

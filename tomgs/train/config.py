@@ -8,9 +8,16 @@ from dataclasses import dataclass
 
 # Initial points per frame by device. On a GPU a step costs little more for more Gaussians and a
 # denser start shortens the growth phase (camel, 7 min, H200: 8000 per frame 34.50 dB against 34.02
-# with 2000); on a CPU the serial kernels' cost grows with every Gaussian, and a short fit gets
+# with 2000; 5-minute schedule, H100, at ~57 s of training: 16000 32.73 dB against 32.18 with 8000,
+# both at the 1e-4 threshold below); on a CPU the serial kernels' cost grows with every Gaussian, and a short fit gets
 # fewer steps (DAVIS camel's background layer at 240x135, 3 minutes: 51 steps with 6480 per frame).
-AUTO_POINTS_PER_FRAME = {"cuda": 8000, "cpu": 2000}
+AUTO_POINTS_PER_FRAME = {"cuda": 16000, "cpu": 2000}
+# The densification threshold by device. A GPU fit under a budget of minutes is limited by how soon
+# its cloud has grown (the PSNR climbs fastest once growth stops): at 1e-4 with 16,000 points a frame
+# DAVIS camel reaches the 5M cap at ~37 s of training instead of ~80 s, and the first minute gains
+# 1.7 dB (H100, benchmarks/first_minute.py, RESULTS.md). A CPU fit runs hundreds of steps, where
+# every added Gaussian slows each one: 3DGS's 2e-4.
+AUTO_GRAD_THRESHOLD = {"cuda": 1e-4, "cpu": 2e-4}
 
 
 @dataclass
@@ -22,7 +29,8 @@ class TrainConfig:
     densify_start_fraction: float = 0.04  # 3DGS: from iteration 500 of 12k
     densify_stop_fraction: float = 0.5  # refinement after the last split is worth more than more splits
     densify_interval: int = 100
-    grad_threshold: float = 2e-4  # view-space positional gradient, NDC units as in 3DGS
+    # view-space positional gradient, NDC units as in 3DGS; None: by device (AUTO_GRAD_THRESHOLD)
+    grad_threshold: float | None = None
     percent_dense: float = 0.01  # clone below this fraction of the scene extent, split above
     max_gaussians: int | None = None  # None: by the clip and device (tomgs.train.plan.auto_cap)
     prune_opacity: float = 0.005
@@ -84,6 +92,12 @@ class TrainConfig:
             wanted = int(self.init_points_per_frame)
         return max(min(wanted, self.cap(frames, pixels, device_type) // (2 * max(frames, 1))), 1)
 
+    def threshold(self, device_type: str = "cpu") -> float:
+        """`grad_threshold`, or when it is None AUTO_GRAD_THRESHOLD's for a `device_type` device."""
+        if self.grad_threshold is not None:
+            return float(self.grad_threshold)
+        return AUTO_GRAD_THRESHOLD.get(device_type, AUTO_GRAD_THRESHOLD["cpu"])
+
     def cap(self, frames: int, pixels: int, device_type: str = "cpu") -> int:
         """`max_gaussians`, or when it is None the cap tomgs.train.plan.auto_cap picks for the clip."""
         if self.max_gaussians is not None:
@@ -101,7 +115,7 @@ PRESETS = {
     "default": TrainConfig(),
     # the paper's schedule: 80k iterations, densification until 60k, cap 10M
     "paper": TrainConfig(iterations=80_000, densify_start_fraction=500 / 80_000, densify_stop_fraction=0.75,
-                         max_gaussians=10_000_000),
+                         max_gaussians=10_000_000, grad_threshold=2e-4),
     # a few hundred iterations: smoke tests and CPU demos
     "quick": TrainConfig(iterations=600, densify_start_fraction=1 / 6, densify_stop_fraction=0.75, densify_interval=50,
                          init_points_per_frame=400, eval_interval_s=5.0),

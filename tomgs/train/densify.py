@@ -17,6 +17,7 @@ class Densifier:
     def __init__(self, config, extent: float, num_gaussians: int, device, seed: int = 0):
         self.config = config
         self.extent = extent
+        self.threshold = config.threshold(torch.device(device).type)
         self.generator = torch.Generator(device=device).manual_seed(seed + 1)
         self.reset_stats(num_gaussians, device)
         self.capped = False
@@ -94,7 +95,7 @@ class Densifier:
         c = self.config
         n = len(model)
         grads = self.grad_sum / self.seen.clamp_min(1.0)
-        hot = grads >= c.grad_threshold
+        hot = grads >= self.threshold
         scales = model.scales.detach()
         max_scale = scales.amax(-1)
         room = max(c.max_gaussians - n, 0)
