@@ -482,6 +482,30 @@ def write_capacities(monkeypatch):
     return asked
 
 
+def test_the_kept_bound_follows_how_much_the_totals_move():
+    """Frames that repeat keep almost no headroom (memory: 24 bytes a slot); frames whose totals
+    move keep twice their spread, at most an eighth; the bound holds the last 16 frames' largest."""
+    from tomgs.render import MAX_INTERSECTIONS, _Bounds, _Frame
+
+    frame = _Frame(64, 48, 0.0, 0.0, 0.01, 1e10, "cpu")
+    other = _Frame(48, 64, 0.0, 0.0, 0.01, 1e10, "cpu")
+    bounds = _Bounds()
+    assert bounds.capacity(frame) == 0  # a size not seen yet: keys after the sync
+    for _ in range(3):
+        bounds.remember(frame, 1_000_000)
+    assert bounds.capacity(frame) == 1_000_000 + 1_000_000 // 256 + 256
+    bounds.remember(frame, 990_000)  # spread 10,000: twice it
+    assert bounds.capacity(frame) == 1_000_000 + 20_000 + 1_000_000 // 256 + 256
+    bounds.remember(frame, 500_000)  # spread 500,000: an eighth at most
+    assert bounds.capacity(frame) == 1_000_000 + 125_000 + 1_000_000 // 256 + 256
+    assert bounds.capacity(other) == 0  # per frame size
+    for _ in range(_Bounds.FRAMES):
+        bounds.remember(frame, 2_000)  # the large totals leave the window
+    assert bounds.capacity(frame) == 2_000 + 2_000 // 256 + 256
+    bounds.remember(frame, MAX_INTERSECTIONS)
+    assert bounds.capacity(frame) == MAX_INTERSECTIONS
+
+
 def weighted_loss(image: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
     g = torch.Generator().manual_seed(11)
     w_image = torch.rand(image.shape, generator=g, dtype=torch.float64) - 0.3
