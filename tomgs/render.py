@@ -388,13 +388,12 @@ def rasterize(
     t_hi, t_lo = _check_scalars(width, height, t, near, far)
     p = prepare_inputs(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width, height, t,
                           background, near, far, torch.float32, fused_sh=True)
-    tiles = -(-p.width // TILE_SIZE) * -(-p.height // TILE_SIZE)
-    if tiles * TILE_SIZE * TILE_SIZE > MAX_THREADS:
-        raise RenderError(f"a {p.width}x{p.height} image is too large to render in one piece: keep "
-                          f"width x height below {MAX_THREADS:,} pixels")
     wrapped = {}  # Warp descriptors of the frame's buffers, by name, built once for the stages that follow
     with scope(p.means.device) as wp_device:
         frame = _Frame(p.width, p.height, t_hi, t_lo, p.near, p.far, wp_device)
+        if frame.num_tiles * TILE_SIZE * TILE_SIZE > MAX_THREADS:
+            raise RenderError(f"a {frame.width}x{frame.height} image is too large to render in one piece: keep "
+                              f"width x height below {MAX_THREADS:,} pixels")
         (means2d, conics, depths, radii, opacities_t, _), ends, flags = _project_frame(p, frame, wrapped)
         # before the sync, what needs no intersection count (the GPU projects meanwhile): the keys,
         # up to the bound of recent frames of this size, and the buffers of the sort and the raster.
