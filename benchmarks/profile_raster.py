@@ -34,6 +34,46 @@ def kernel_times(step, iters: int) -> dict[str, float]:
     return dict(per_kernel)
 
 
+def idle_gaps(phases, iters: int, top: int = 12) -> None:
+    """Print where the GPU idles inside each phase: `phases` are callables run in turn, each between
+    device syncs (as bench_raster times them); for every phase, the idle time before its first
+    kernel, between its kernels (named by the kernel that waited) and the kernel time, per call."""
+    acts = [torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
+    spans = []  # (phase, host start us, host end us)
+    with torch.profiler.profile(activities=acts) as prof:
+        for _ in range(iters):
+            for name, phase in phases:
+                torch.cuda.synchronize()
+                with torch.profiler.record_function(f"phase:{name}"):
+                    phase()
+                    torch.cuda.synchronize()
+    events = prof.events()
+    kernels = sorted(((e.time_range.start, e.time_range.end, e.name) for e in events
+                      if e.device_type == torch.autograd.DeviceType.CUDA and e.time_range.end > e.time_range.start),
+                     key=lambda k: k[0])
+    spans = [(e.name[6:], e.time_range.start, e.time_range.end) for e in events if e.name.startswith("phase:")
+             and e.device_type == torch.autograd.DeviceType.CPU]
+    for name in dict.fromkeys(n for n, _, _ in spans):
+        lead = busy = 0.0
+        waits = defaultdict(float)
+        for _, start, end in (s for s in spans if s[0] == name):
+            inside = [k for k in kernels if start <= k[0] < end]
+            if not inside:
+                continue
+            lead += inside[0][0] - start
+            busy += sum(k[1] - k[0] for k in inside)
+            done = inside[0][1]  # the latest kernel end so far
+            for k_start, k_end, k_name in inside[1:]:
+                if k_start > done:
+                    waits[k_name[:60]] += k_start - done
+                done = max(done, k_end)
+        total_wait = sum(waits.values())
+        print(f"\nphase {name}: per call, host start -> first kernel {lead / iters / 1e3:.3f} ms, kernels "
+              f"{busy / iters / 1e3:.3f} ms, idle between kernels {total_wait / iters / 1e3:.3f} ms; idle before:")
+        for kernel, us in sorted(waits.items(), key=lambda kv: -kv[1])[:top]:
+            print(f"  {us / iters / 1e3:8.3f} ms  {kernel}")
+
+
 def host_profile(step, iters: int, top: int = 25) -> None:
     """Print the Python functions that cost host time over `iters` calls of `step` (cProfile; a wait
     for the device shows up as the time of the call that waited, e.g. `tolist`)."""
@@ -56,6 +96,8 @@ def main() -> None:
     ap.add_argument("--variant", default="static", choices=["static", "temporal"])
     ap.add_argument("--iters", type=int, default=20)
     ap.add_argument("--host", action="store_true", help="also print the Python functions that cost host time")
+    ap.add_argument("--gaps", action="store_true", help="also print where the GPU idles in the forward and the "
+                    "backward, each between syncs as bench_raster times them")
     args = ap.parse_args()
     width, height = parse_size(args.size)
     n = parse_count(args.n)
@@ -88,6 +130,15 @@ def main() -> None:
           f"(gap {wall - gpu:.3f} ms = host overhead and syncs)")
     for name, ms in sorted(per_kernel.items(), key=lambda kv: -kv[1])[:18]:
         print(f"  {ms:8.3f} ms  {name}")
+    if args.gaps:
+        held = {}
+
+        def forward():
+            img, alpha, _ = tomgs.rasterize(P["means"], P["quats"], P["scales"], P["opacities"], P["colors"],
+                                            P["t_means"], P["t_scales"], viewmat, K, width, height, 0.5)
+            held["loss"] = (img * w).sum() + alpha.sum()
+
+        idle_gaps([("forward", forward), ("backward", lambda: held.pop("loss").backward())], args.iters)
     if args.host:
         print(f"\nhost time per fwd+bwd, top functions (cumulative over {args.iters} iterations):")
         host_profile(step, args.iters)
