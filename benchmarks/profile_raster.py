@@ -48,8 +48,9 @@ def idle_gaps(phases, iters: int, top: int = 12) -> None:
                     phase()
                     torch.cuda.synchronize()
     events = prof.events()
-    kernels = sorted(((e.time_range.start, e.time_range.end, e.name) for e in events
-                      if e.device_type == torch.autograd.DeviceType.CUDA and e.time_range.end > e.time_range.start),
+    # a kernel is listed once per CPU op above it too: one entry per (start, end, name)
+    kernels = sorted({(e.time_range.start, e.time_range.end, e.name) for e in events
+                      if e.device_type == torch.autograd.DeviceType.CUDA and e.time_range.end > e.time_range.start},
                      key=lambda k: k[0])
     spans = [(e.name[6:], e.time_range.start, e.time_range.end) for e in events if e.name.startswith("phase:")
              and e.device_type == torch.autograd.DeviceType.CPU]

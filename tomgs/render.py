@@ -104,6 +104,17 @@ class _Frame:
     def num_tiles(self) -> int:
         return self.tiles_x * self.tiles_y
 
+    @property
+    def key_bits(self) -> int:
+        """The bits of a tile key the sort reads: 32 of depth, and the tile's, wide enough that a
+        padding key (`padding_key`) is past every tile."""
+        return 32 + self.num_tiles.bit_length()
+
+    @property
+    def padding_key(self) -> int:
+        """A key in `key_bits` that sorts after every key of this frame (a tile >= num_tiles)."""
+        return (1 << self.key_bits) - 1
+
 
 # Host time per frame (a GPU machine's CPU spends 10-60 us per torch op or launch, and a 1M-Gaussian
 # temporal frame is host bound): stages pass Warp descriptors along instead of re-wrapping tensors,
@@ -247,9 +258,27 @@ def _bin(wrapped: dict, n: int, ends: torch.Tensor, ranges: torch.Tensor, frame:
             f"rasterizer can sort; render at a lower resolution or with fewer or smaller Gaussians")
     if written is None or written[0].shape[0] < 2 * total:  # past the bound: correct, just slower
         written = _write_keys(wrapped, n, ends, frame, total)
+    return _sort_and_range(wrapped, written, total, frame)
+
+
+def _bin_padded(wrapped: dict, n: int, ends: torch.Tensor, frame: _Frame, written: tuple[torch.Tensor, torch.Tensor]):
+    """Stage 2 without the intersection count (a frame that does not wait for it): the keys written
+    before the sync (`_write_keys`, its capacity > 0) are padded from the total to their capacity and
+    sorted whole, so the list comes first and `tile_ranges` skips the padding. A total past the
+    capacity leaves the list without its last Gaussians' entries: `FrameCounts.overflowed` says so.
+    Returns (ids, keys) as `_bin`; `wrapped` holds the descriptor of `ranges`."""
+    capacity = written[0].shape[0] // 2
+    launch(binning.pad_tile_keys, capacity, device=frame.device,
+           args=[wrap(ends), n, frame.padding_key, wrapped["keys"]])
+    return _sort_and_range(wrapped, written, capacity, frame)
+
+
+def _sort_and_range(wrapped: dict, written: tuple[torch.Tensor, torch.Tensor], count: int, frame: _Frame):
+    """Sort the first `count` pairs of `written` (keys, ids) and fill `wrapped`'s ranges from them."""
     keys, ids = written
-    sort_pairs(keys, ids, total, 32 + max(1, (frame.num_tiles - 1).bit_length()))
-    launch(binning.tile_ranges, total, device=frame.device, args=[wrapped["keys"], total, wrapped["ranges"]])
+    sort_pairs(keys, ids, count, frame.key_bits)
+    launch(binning.tile_ranges, count, device=frame.device,
+           args=[wrapped["keys"], count, frame.num_tiles, wrapped["ranges"]])
     return ids, keys
 
 
@@ -353,6 +382,44 @@ def _read_flags(flags: torch.Tensor, p: RasterInputs) -> list[int]:
     return stats
 
 
+def _counts(stats: list[int]) -> dict:
+    return dict(n_visible=stats[project.FLAG_VISIBLE], n_alive=stats[project.FLAG_ALIVE],
+                n_intersections=stats[project.FLAG_TOTAL])
+
+
+class FrameCounts:
+    """The counts of a frame rendered without waiting for them (`_render(defer=True)`): its flags
+    are copied to the host as soon as projection has written them, and `read()` waits for that copy
+    only, not for the rest of the frame, so the host can issue the next frame meanwhile. Read them
+    before using the image: RenderError for inputs outside the contract, and `overflowed` when the
+    frame needed more intersections than its keys held (its image then lacks some; render it again
+    waiting for its counts: the bound has grown)."""
+
+    def __init__(self, flags: torch.Tensor, p: RasterInputs, frame: _Frame, capacity: int):
+        self._event = None
+        if flags.is_cuda:
+            flags = flags.to("cpu", non_blocking=True)  # pinned: the copy is queued, nothing waits
+            self._event = torch.cuda.Event()
+            self._event.record()
+        self._flags, self._inputs, self._frame, self.capacity = flags, p, frame, capacity
+        self._counts: dict | None = None
+
+    def read(self) -> dict:
+        """n_visible, n_alive, n_intersections (ints) of the frame, as `rasterize`'s meta has them."""
+        if self._counts is None:
+            if self._event is not None:
+                self._event.synchronize()
+            stats = _read_flags(self._flags, self._inputs)
+            self._inputs = None  # only its error messages needed them
+            _bounds.remember(self._frame, stats[project.FLAG_TOTAL])
+            self._counts = _counts(stats)
+        return self._counts
+
+    @property
+    def overflowed(self) -> bool:
+        return self.read()["n_intersections"] > self.capacity
+
+
 def rasterize(
     means: torch.Tensor,  # [N,3] world
     quats: torch.Tensor,  # [N,4] w x y z, any finite norm (zero = identity)
@@ -385,10 +452,21 @@ def rasterize(
     RenderError naming the input; the per-Gaussian checks run inside the projection kernel and come
     back with the intersection count, in the one host sync a frame has anyway.
     """
+    image, alpha, meta, _ = _render(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width,
+                                    height, t, background=background, near=near, far=far)
+    return image, alpha, meta
+
+
+def _render(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width, height, t, *,
+            background=None, near=0.01, far=1e10, defer: bool = False):
+    """`rasterize`, plus its FrameCounts when `defer`: then, once frames of this size have been
+    counted, the frame does not wait for its counts (meta lacks them: `FrameCounts.read`); else
+    None, and meta has them."""
     t_hi, t_lo = _check_scalars(width, height, t, near, far)
     p = prepare_inputs(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width, height, t,
-                          background, near, far, torch.float32, fused_sh=True)
+                       background, near, far, torch.float32, fused_sh=True)
     wrapped = {}  # Warp descriptors of the frame's buffers, by name, built once for the stages that follow
+    counts = None
     with scope(p.means.device) as wp_device:
         frame = _Frame(p.width, p.height, t_hi, t_lo, p.near, p.far, wp_device)
         if frame.num_tiles * TILE_SIZE * TILE_SIZE > MAX_THREADS:
@@ -399,23 +477,29 @@ def rasterize(
         # up to the bound of recent frames of this size, and the buffers of the sort and the raster.
         # Fresh buffers every frame: the backward reads ids, and two frames' backwards may be pending.
         n = means2d.shape[0]
-        written = _write_keys(wrapped, n, ends, frame, _bounds.capacity(frame))
+        capacity = _bounds.capacity(frame)
+        written = _write_keys(wrapped, n, ends, frame, capacity)
         ranges = torch.zeros(frame.num_tiles, 2, device=p.means.device, dtype=torch.int32)
         pixels = _Image(frame, p.means.device)
         colors = p.colors.contiguous()
         wrapped.update(ranges=wrap(ranges), colors=wrap(colors, wp.vec3))
-        stats = _read_flags(flags, p)
-        # after it, on a GPU's critical path (idle until issued): the sort, the ranges, the raster
-        total = stats[project.FLAG_TOTAL]
-        ids, _ = _bin(wrapped, n, ends, ranges, frame, total, written)
+        if defer and capacity:
+            counts = FrameCounts(flags, p, frame, capacity)
+            ids, _ = _bin_padded(wrapped, n, ends, frame, written)
+        else:
+            stats = _read_flags(flags, p)
+            # after it, on a GPU's critical path (idle until issued): the sort, the ranges, the raster
+            total = stats[project.FLAG_TOTAL]
+            ids, _ = _bin(wrapped, n, ends, ranges, frame, total, written)
         color, trans = _Rasterize.apply(means2d, conics, opacities_t, colors, ranges, ids, frame, wrapped, pixels)
-        _bounds.remember(frame, total)
+        if counts is None:
+            _bounds.remember(frame, total)
     image = color if p.background is None else color + trans * p.background
     meta = dict(radii=radii, means2d=means2d, depths=depths, conics=conics, opacities_t=opacities_t,
-                n_visible=stats[project.FLAG_VISIBLE], n_alive=stats[project.FLAG_ALIVE],
-                n_intersections=total, tile_size=TILE_SIZE,
-                width=frame.width, height=frame.height)
-    return image, 1.0 - trans, meta
+                tile_size=TILE_SIZE, width=frame.width, height=frame.height)
+    if counts is None:
+        meta.update(_counts(stats))
+    return image, 1.0 - trans, meta, counts
 
 
 def project_stage(
@@ -497,16 +581,23 @@ def resolve_device(name: str | None = "auto") -> torch.device:
     return device
 
 
-def render_sequence(gaussians, cameras, indices=None, *, background=None, device=None, to_cpu: bool = True):
+def render_sequence(gaussians, cameras, indices=None, *, background=None, device=None, to_cpu: bool = True,
+                    pipelined: bool | None = None, alive_index: bool | None = None):
     """Yield (frame k, image [H,W,3] float32 in [0,1], meta) for frames `indices` of `cameras`.
 
     `gaussians`: mapping with means, quats, scales, opacities, colors (RGB or SH), t_means,
     t_scales; or a callable k -> such a mapping, a per-frame cloud (an edit over time, a simulated
     shot). `cameras`: a `tomgs.Cameras`; frame k renders at t = cameras.times[k]. No gradients.
-    Where it pays (tomgs.alive.pays_on: a CPU) only the Gaussians that may be alive at a frame's time
-    are gathered and rendered (tomgs.alive: an index over the frames, one gather per bucket of frames
-    in time), so a long clip pays per frame for what lives in it; on a GPU projection culls the dead; `meta` describes that subset, meta['rows'] names it (int [M] Gaussian
-    indices; None: all). Images come back on the CPU unless `to_cpu` is False.
+    With `alive_index` (None: where it pays, tomgs.alive.pays_on) only the Gaussians that may be
+    alive at a frame's time are gathered and rendered (tomgs.alive: an index over the frames, one
+    gather per bucket of frames in time), so a long clip pays per frame for what lives in it; without
+    it projection culls the dead. `meta` describes what was rendered, meta['rows'] names it (int [M]
+    Gaussian indices; None: all). Images come back on the CPU unless `to_cpu` is False.
+
+    `pipelined` (None: on a GPU): a frame does not wait for its counts (`_render(defer=True)`); they
+    are read after the next frame has been issued, so the device renders while the host prepares
+    (a callable `gaussians` is then called for frame k+1 before frame k is yielded). A frame that
+    needed more intersections than recent ones is rendered again, waiting, before it is yielded.
     """
     names = ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales")
     order = list(range(len(cameras)) if indices is None else indices)
@@ -515,7 +606,8 @@ def render_sequence(gaussians, cameras, indices=None, *, background=None, device
         """(inputs on the device, their alive index over `times`, the device)."""
         dev = torch.device(device) if device is not None else g["means"].device
         g = {name: g[name].detach().to(dev) for name in names}
-        index = alive.index_of(g["opacities"], g["t_means"], g["t_scales"], times) if alive.pays_on(dev) else None
+        use = alive.pays_on(dev) if alive_index is None else alive_index
+        index = alive.index_of(g["opacities"], g["t_means"], g["t_scales"], times) if use else None
         return g, index, dev
 
     static = None if callable(gaussians) or not order else prepared(gaussians, [cameras.times[k] for k in order])
@@ -529,7 +621,9 @@ def render_sequence(gaussians, cameras, indices=None, *, background=None, device
         return per_device[dev]
 
     @torch.no_grad()  # inside a helper: a no_grad block around `yield` would leak into the caller
-    def render_frame(position: int, k: int):
+    def issue(position: int, k: int, wait: bool = False) -> tuple:
+        """Frame k queued: (k, image, meta, its FrameCounts or None when they are in meta, an event
+        after the image's copy to the host or None, position)."""
         t = float(cameras.times[k])
         g, index, dev = static or prepared(gaussians(k), [t])
         at = position if static else 0
@@ -539,11 +633,39 @@ def render_sequence(gaussians, cameras, indices=None, *, background=None, device
             inputs = g if rows is None else {name: value.index_select(0, rows) for name, value in g.items()}
             last.update(bucket=bucket, inputs=inputs, rows=rows)
         viewmats, Ks, bg = frame_inputs(dev)
-        image, _, meta = rasterize(**last["inputs"], viewmat=viewmats[k], K=Ks[k], width=cameras.width,
-                                   height=cameras.height, t=t, background=bg)
+        defer = not wait and (dev.type == "cuda" if pipelined is None else pipelined)
+        image, _, meta, counts = _render(**last["inputs"], viewmat=viewmats[k], K=Ks[k], width=cameras.width,
+                                         height=cameras.height, t=t, background=bg, defer=defer)
         meta["rows"] = last["rows"]
         image = image.clamp(0.0, 1.0)
-        return k, image.cpu() if to_cpu else image, meta
+        copied = None
+        if to_cpu and image.is_cuda and counts is not None:  # queued behind the frame; waited for in `finish`
+            image = image.to("cpu", non_blocking=True)
+            copied = torch.cuda.Event()
+            copied.record()
+        elif to_cpu:
+            image = image.cpu()
+        return k, image, meta, counts, copied, position
 
+    def finish(issued: tuple) -> tuple:
+        k, image, meta, counts, copied, position = issued
+        if counts is not None:
+            if counts.overflowed:
+                return finish(issue(position, k, wait=True))
+            meta.update(counts.read())
+        if copied is not None:
+            copied.synchronize()
+        return k, image, meta
+
+    pending = None  # a frame issued but not read: yielded once the next one is issued
     for position, k in enumerate(order):
-        yield render_frame(position, k)
+        issued = issue(position, k)
+        if pending is not None:
+            yield finish(pending)
+            pending = None
+        if issued[3] is None:
+            yield finish(issued)
+        else:
+            pending = issued
+    if pending is not None:
+        yield finish(pending)

@@ -160,19 +160,39 @@ def write_tile_keys(
 
 
 @wp.kernel
+def pad_tile_keys(
+    ends: wp.array(dtype=wp.int64),  # [N] inclusive scan of tiles touched; ends[N-1] is the total
+    n: int,  # N
+    padding: wp.int64,  # a key past every tile of the frame, sorted last
+    keys: wp.array(dtype=wp.int64),  # in/out [>= capacity]: slots from the total on get `padding`
+):
+    """Launched over a buffer's capacity when the total is not known on the host (a frame that does
+    not wait for its counts): the slots `write_tile_keys` leaves unwritten become padding, so that
+    sorting the whole capacity puts the list first and `tile_ranges` skips the rest."""
+    k = wp.tid()
+    total = wp.int64(0)
+    if n > 0:
+        total = ends[n - 1]
+    if wp.int64(k) >= total:
+        keys[k] = padding
+
+
+@wp.kernel
 def tile_ranges(
-    sorted_keys: wp.array(dtype=wp.int64),  # [M] sorted
+    sorted_keys: wp.array(dtype=wp.int64),  # [M] sorted; entries of tile >= num_tiles are padding, last
     count: int,  # M
+    num_tiles: int,
     ranges: wp.array2d(dtype=wp.int32),  # out [tiles, 2] [start, end) into the sorted list; zeroed by the caller
 ):
     k = wp.tid()
     tile = int(sorted_keys[k] >> wp.int64(32))
-    if k == 0:
-        ranges[tile, 0] = 0
-    else:
+    prev = int(-1)
+    if k > 0:
         prev = int(sorted_keys[k - 1] >> wp.int64(32))
-        if prev != tile:
+    if prev != tile:
+        if prev >= 0 and prev < num_tiles:
             ranges[prev, 1] = k
+        if tile < num_tiles:
             ranges[tile, 0] = k
-    if k == count - 1:
+    if k == count - 1 and tile < num_tiles:
         ranges[tile, 1] = count

@@ -1,0 +1,75 @@
+"""How fast a fitted scene renders its clip, by way of rendering: `tomgs.rasterize` frame by frame
+(each frame waits for its counts) against `render_sequence` pipelined or not (frames that do not
+wait for their counts), with the alive index or without (issue 15: render FPS of fitted scenes).
+
+    python benchmarks/render_speed.py scene.ply --repeats 3 --json speed.json
+
+Images stay on the device; the modes take turns and each mode's quickest turn counts.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from pathlib import Path
+
+import torch
+
+import tomgs
+from tomgs.render import rasterize, render_sequence
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("scene", type=Path)
+    ap.add_argument("--device", default="cuda")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args()
+    device = torch.device(args.device)
+    scene = tomgs.load_scene(args.scene, device=device)
+    inputs = {k: v.detach() for k, v in scene.model.render_inputs().items()}
+    cams = scene.cameras
+    frames = list(range(len(cams)))
+    viewmats, Ks = cams.viewmats(device), cams.Ks(device)
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+
+    def each_frame():
+        for k in frames:
+            rasterize(**inputs, viewmat=viewmats[k], K=Ks[k], width=cams.width, height=cams.height,
+                      t=float(cams.times[k]))
+
+    def sequence(pipelined: bool, index: bool):
+        def run():
+            for _ in render_sequence(inputs, cams, frames, device=device, to_cpu=False, pipelined=pipelined,
+                                     alive_index=index):
+                pass
+        return run
+
+    modes = {"rasterize": each_frame}
+    for pipelined in (False, True):
+        for index in (False, True):
+            modes[f"sequence{' pipelined' if pipelined else ''}{' index' if index else ''}"] = sequence(pipelined, index)
+    best = {mode: math.inf for mode in modes}
+    alive = [int(scene.model.alive_at(t).sum()) for t in cams.times]
+    with torch.no_grad():
+        for turn in range(args.repeats + 1):  # the first turn loads kernels and sets the bounds
+            for mode, run in modes.items():
+                sync()
+                start = time.perf_counter()
+                run()
+                sync()
+                if turn:
+                    best[mode] = min(best[mode], time.perf_counter() - start)
+    out = dict(scene=str(args.scene), gaussians=len(scene.model), frames=len(frames), size=[cams.width, cams.height],
+               alive_share=round(sum(alive) / len(alive) / max(len(scene.model), 1), 4),
+               fps={mode: round(len(frames) / best[mode], 1) for mode in modes})
+    print(json.dumps(out, indent=1))
+    if args.json:
+        args.json.write_text(json.dumps(out, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
