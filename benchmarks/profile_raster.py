@@ -69,6 +69,10 @@ def idle_gaps(phases, iters: int, top: int = 12) -> None:
                     waits[k_name[:60]] += k_start - done
                 done = max(done, k_end)
         total_wait = sum(waits.values())
+        first = next(s for s in spans if s[0] == name)
+        listing = [f"{(k[0] - first[1]) / 1e3:.3f}+{(k[1] - k[0]) / 1e3:.3f} {k[2][:40]}" for k in kernels
+                   if first[1] <= k[0] < first[2]]
+        print(f"\nphase {name}, first call: kernel start+duration ms after the host start: " + "; ".join(listing))
         print(f"\nphase {name}: per call, host start -> first kernel {lead / iters / 1e3:.3f} ms, kernels "
               f"{busy / iters / 1e3:.3f} ms, idle between kernels {total_wait / iters / 1e3:.3f} ms; idle before:")
         for kernel, us in sorted(waits.items(), key=lambda kv: -kv[1])[:top]:

@@ -12,13 +12,16 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 import time
 from pathlib import Path
 
 import torch
 
-import tomgs
-from tomgs.render import rasterize, render_sequence
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import tomgs  # noqa: E402
+from tomgs.render import rasterize, render_sequence  # noqa: E402
 
 
 def main() -> None:
@@ -27,6 +30,8 @@ def main() -> None:
     ap.add_argument("--device", default="cuda")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--profile", action="store_true", help="also the GPU time per frame by kernel (torch profiler), "
+                    "of the default render_sequence")
     args = ap.parse_args()
     device = torch.device(args.device)
     scene = tomgs.load_scene(args.scene, device=device)
@@ -66,6 +71,14 @@ def main() -> None:
     out = dict(scene=str(args.scene), gaussians=len(scene.model), frames=len(frames), size=[cams.width, cams.height],
                alive_share=round(sum(alive) / len(alive) / max(len(scene.model), 1), 4),
                fps={mode: round(len(frames) / best[mode], 1) for mode in modes})
+    if args.profile:
+        from profile_raster import kernel_times
+
+        with torch.no_grad():
+            per_kernel = kernel_times(sequence(None, None), 1)
+        out["gpu_ms_per_frame"] = {name: round(ms / len(frames), 4)
+                                   for name, ms in sorted(per_kernel.items(), key=lambda kv: -kv[1])[:14]}
+        out["gpu_ms_per_frame_total"] = round(sum(per_kernel.values()) / len(frames), 4)
     print(json.dumps(out, indent=1))
     if args.json:
         args.json.write_text(json.dumps(out, indent=1) + "\n")
