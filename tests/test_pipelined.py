@@ -1,4 +1,4 @@
-"""Frames that do not wait for their counts (tomgs.render._render(defer=True), what render_sequence
+"""Frames that do not wait for their counts (tomgs.render.render_frame(defer=True), what render_sequence
 pipelines on a GPU): the keys are padded to the bound and sorted whole, the counts are read later.
 They must render exactly what a frame that waits renders, say when their keys overflowed, and raise
 the same errors when their counts are read."""
@@ -40,7 +40,7 @@ def test_a_frame_that_does_not_wait_renders_what_one_that_waits_does(device, fre
     _, gaussians, camera = scene_on(device)
     for t in (0.2, 0.5):
         want, want_alpha, want_meta = tomgs.rasterize(**gaussians, **camera, t=t)
-        image, alpha, meta, counts = render._render(**gaussians, **camera, t=t, defer=True)
+        image, alpha, meta, counts = render.render_frame(**gaussians, **camera, t=t, defer=True)
         assert counts is not None and "n_intersections" not in meta  # counted, so it did not wait
         assert torch.equal(image, want) and torch.equal(alpha, want_alpha)
         assert not counts.overflowed
@@ -51,7 +51,7 @@ def test_a_frame_that_does_not_wait_renders_what_one_that_waits_does(device, fre
 @pytest.mark.parametrize("device", DEVICES)
 def test_a_frame_of_a_size_not_counted_yet_waits(device, fresh_bounds):
     _, gaussians, camera = scene_on(device)
-    image, _, meta, counts = render._render(**gaussians, **camera, t=0.5, defer=True)
+    image, _, meta, counts = render.render_frame(**gaussians, **camera, t=0.5, defer=True)
     assert counts is None and meta["n_intersections"] > 0
     assert fresh_bounds.capacity(render._Frame(45, 37, 0, 0, 0.01, 1e10, "cpu" if device == "cpu" else
                                                f"cuda:{torch.device(device).index or 0}")) > 0
@@ -64,7 +64,7 @@ def test_a_frame_past_its_bound_says_so(device, fresh_bounds):
     key = next(iter(fresh_bounds._capacity))
     total = want_meta["n_intersections"]
     fresh_bounds._capacity[key] = total // 3  # as if recent frames had needed a third of it
-    image, _, _, counts = render._render(**gaussians, **camera, t=0.5, defer=True)
+    image, _, _, counts = render.render_frame(**gaussians, **camera, t=0.5, defer=True)
     assert counts.overflowed and counts.read()["n_intersections"] == total
     assert not torch.equal(image, want)  # the last Gaussians' entries were not written
     assert fresh_bounds.capacity(render._Frame(45, 37, 0, 0, 0.01, 1e10, key[0])) > total  # and the bound grew
@@ -76,7 +76,7 @@ def test_inputs_outside_the_contract_raise_when_the_counts_are_read(device, fres
     tomgs.rasterize(**gaussians, **camera, t=0.5)
     bad = dict(gaussians, opacities=gaussians["opacities"].clone())
     bad["opacities"][7] = 1.5
-    _, _, _, counts = render._render(**bad, **camera, t=0.5, defer=True)
+    _, _, _, counts = render.render_frame(**bad, **camera, t=0.5, defer=True)
     with pytest.raises(RenderError, match="opacities must lie in"):
         counts.read()
 
@@ -137,3 +137,35 @@ def test_a_pipelined_sequence_raises_before_yielding_a_bad_frame(device, fresh_b
     assert next(frames)[0] == 0 and next(frames)[0] == 0
     with pytest.raises(RenderError, match="scales must be >= 0"):
         next(frames)
+
+
+@pytest.mark.parametrize("sparse_adam", [False, True])
+def test_training_steps_that_do_not_wait_train_what_waiting_ones_do(sparse_adam, fresh_bounds):
+    """A Trainer whose frames do not wait for their counts (a GPU's default) trains bit for bit what
+    one that waits trains, densification included; steps whose keys overflow the bound render
+    again, and their first gradients are dropped."""
+    from test_train import CPU, small_config, synthetic_clip
+    from tomgs.train import Trainer
+
+    images, cams, points, colors = synthetic_clip(3, 32, 18)
+    models = {}
+    for mode in ("wait", "defer", "overflow"):
+        torch.manual_seed(0)
+        trainer = Trainer(images, cams, points, colors, small_config(120, sparse_adam=sparse_adam), CPU)
+        trainer.defer_counts = mode != "wait"
+        renders = []
+        render_once = trainer.render
+        trainer.render = lambda *a, **kw: renders.append(kw.get("defer")) or render_once(*a, **kw)
+        for step in range(120):
+            if mode == "overflow" and step % 10 == 5:  # as if recent frames had been far smaller
+                for key in fresh_bounds._capacity:
+                    fresh_bounds._capacity[key] = 50
+                    fresh_bounds._recent[key].clear()
+            trainer.step()
+        again = len(renders) - 120  # steps rendered twice: deferred, overflowed, then waiting
+        assert again == (12 if mode == "overflow" else 0), mode
+        assert renders.count(False) == (120 if mode == "wait" else again)  # the waiting mode counted the size
+        models[mode] = {name: p.detach().clone() for name, p in trainer.model.parameters_by_name().items()}
+    for mode in ("defer", "overflow"):
+        for name, value in models["wait"].items():
+            assert torch.equal(models[mode][name], value), (mode, name)

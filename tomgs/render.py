@@ -388,7 +388,7 @@ def _counts(stats: list[int]) -> dict:
 
 
 class FrameCounts:
-    """The counts of a frame rendered without waiting for them (`_render(defer=True)`): its flags
+    """The counts of a frame rendered without waiting for them (`render_frame(defer=True)`): its flags
     are copied to the host as soon as projection has written them, and `read()` waits for that copy
     only, not for the rest of the frame, so the host can issue the next frame meanwhile. Read them
     before using the image: RenderError for inputs outside the contract, and `overflowed` when the
@@ -452,16 +452,18 @@ def rasterize(
     RenderError naming the input; the per-Gaussian checks run inside the projection kernel and come
     back with the intersection count, in the one host sync a frame has anyway.
     """
-    image, alpha, meta, _ = _render(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width,
+    image, alpha, meta, _ = render_frame(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width,
                                     height, t, background=background, near=near, far=far)
     return image, alpha, meta
 
 
-def _render(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width, height, t, *,
-            background=None, near=0.01, far=1e10, defer: bool = False):
-    """`rasterize`, plus its FrameCounts when `defer`: then, once frames of this size have been
-    counted, the frame does not wait for its counts (meta lacks them: `FrameCounts.read`); else
-    None, and meta has them."""
+def render_frame(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width, height, t, *,
+                 background=None, near=0.01, far=1e10, defer: bool = False):
+    """`rasterize` (same arguments) -> (image, alpha, meta, counts). With `defer`, once frames of this
+    size have been counted, the frame does not wait for its counts: the host returns while the
+    device still projects, meta lacks the counts and `counts` (FrameCounts) reads them, raising
+    RenderError for inputs outside the contract; read them before trusting the image or its
+    gradients (`counts.overflowed`: render again). Else counts is None and meta has them."""
     t_hi, t_lo = _check_scalars(width, height, t, near, far)
     p = prepare_inputs(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width, height, t,
                        background, near, far, torch.float32, fused_sh=True)
@@ -594,7 +596,7 @@ def render_sequence(gaussians, cameras, indices=None, *, background=None, device
     it projection culls the dead. `meta` describes what was rendered, meta['rows'] names it (int [M]
     Gaussian indices; None: all). Images come back on the CPU unless `to_cpu` is False.
 
-    `pipelined` (None: on a GPU): a frame does not wait for its counts (`_render(defer=True)`); they
+    `pipelined` (None: on a GPU): a frame does not wait for its counts (`render_frame(defer=True)`); they
     are read after the next frame has been issued, so the device renders while the host prepares
     (a callable `gaussians` is then called for frame k+1 before frame k is yielded). A frame that
     needed more intersections than recent ones is rendered again, waiting, before it is yielded.
@@ -634,7 +636,7 @@ def render_sequence(gaussians, cameras, indices=None, *, background=None, device
             last.update(bucket=bucket, inputs=inputs, rows=rows)
         viewmats, Ks, bg = frame_inputs(dev)
         defer = not wait and (dev.type == "cuda" if pipelined is None else pipelined)
-        image, _, meta, counts = _render(**last["inputs"], viewmat=viewmats[k], K=Ks[k], width=cameras.width,
+        image, _, meta, counts = render_frame(**last["inputs"], viewmat=viewmats[k], K=Ks[k], width=cameras.width,
                                          height=cameras.height, t=t, background=bg, defer=defer)
         meta["rows"] = last["rows"]
         image = image.clamp(0.0, 1.0)

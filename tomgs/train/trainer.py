@@ -37,7 +37,7 @@ from tomgs.alive import TrainingIndex, pays_on
 from tomgs.cameras import Cameras
 from tomgs.metrics import psnr, ssim, ssim_map
 from tomgs.model import GaussianModel, nearest_neighbour_distance
-from tomgs.render import rasterize
+from tomgs.render import render_frame
 from tomgs.temporal import frames_to_clip_time
 from tomgs.errors import InputError
 from tomgs.outputs import write_text
@@ -143,6 +143,9 @@ class Trainer:
         use_index = pays_on(device) if config.alive_index is None else bool(config.alive_index)
         self.alive = TrainingIndex(self.times, dense=not self.sparse_adam, lookahead=device.type == "cuda") \
             if use_index else None
+        # a step's frame does not wait for its counts on a GPU (tomgs.render.render_frame(defer=True)):
+        # the host issues the loss, the backward and the next steps while the device renders
+        self.defer_counts = device.type == "cuda"
         self.iteration = 0
         self.progress = 0.0  # fraction of the run done: iterations or wall-clock budget, whichever is further
         self.elapsed = 0.0  # wall seconds of earlier sessions of a resumed run
@@ -303,23 +306,33 @@ class Trainer:
         mse = (image - target).square().sum() / (3 * self._weight(k).sum().clamp_min(1e-12))
         return -10.0 * torch.log10(mse)
 
-    def render(self, k: int, **kw):
+    def render(self, k: int, defer: bool = False, **kw):
         """Frame k at its time: (image, alpha, meta) as `rasterize` gives them for the Gaussians that
-        may be alive then (tomgs.alive), meta['rows'] naming them (int [M]; None: all N)."""
+        may be alive then (tomgs.alive), meta['rows'] naming them (int [M]; None: all N). With
+        `defer`, meta['counts'] is the frame's FrameCounts when it did not wait for them (else None)."""
         rows = None if self.alive is None else self.alive.rows(k, self.model, self.optimizer, self.iteration)
-        image, alpha, meta = rasterize(**self.model.render_inputs(rows), viewmat=self.viewmats[k], K=self.K,
-                                       width=self.width, height=self.height, t=self.times[k], **kw)
-        meta["rows"] = rows
+        image, alpha, meta, counts = render_frame(**self.model.render_inputs(rows), viewmat=self.viewmats[k],
+                                                  K=self.K, width=self.width, height=self.height, t=self.times[k],
+                                                  defer=defer, **kw)
+        meta["rows"], meta["counts"] = rows, counts
         return image, alpha, meta
 
     def step(self) -> None:
         k = self.sampler.sample()
-        image, alpha, meta = self.render(k)
-        if self.alive is not None:
-            self.alive.settle()  # the last step's check: the render's host sync is past it
-        self.densifier.step_pre_backward(meta, self.progress)
-        target = self.target(k, image)  # once per step: the loss and the sampler's PSNR share it
-        self.loss(k, image, alpha, target).backward()
+        defer = self.defer_counts
+        while True:
+            image, alpha, meta = self.render(k, defer=defer)
+            if self.alive is not None:
+                self.alive.settle()  # the last step's check: past the render's host sync, or waited for
+            self.densifier.step_pre_backward(meta, self.progress)
+            target = self.target(k, image)  # once per step: the loss and the sampler's PSNR share it
+            self.loss(k, image, alpha, target).backward()
+            # read once the backward is queued, so the device is busy meanwhile; a frame whose keys
+            # overflowed their bound lacks entries: its gradients go, and it renders again, waiting
+            if meta["counts"] is None or not meta["counts"].overflowed:
+                break
+            self.optimizer.zero_grad(set_to_none=True)
+            defer = False
         self._measured.append((k, self._psnr(k, image, target)))
         if len(self._measured) >= SAMPLER_LAG:
             self.flush_measurements()
