@@ -28,8 +28,13 @@ def kernel_times(step, iters: int) -> dict[str, float]:
             step()
         torch.cuda.synchronize()
     per_kernel = defaultdict(float)
-    for evt in prof.key_averages():
-        if evt.device_type == torch.autograd.DeviceType.CUDA and evt.device_time_total > 0:
+    events = prof.key_averages()
+    # a record_function range (Optimizer.step#SeenAdam.step, phase:...) also shows as a GPU range
+    # spanning its kernels: counted once, by its kernels
+    host_ranges = {evt.key for evt in events if evt.device_type == torch.autograd.DeviceType.CPU}
+    for evt in events:
+        if evt.device_type == torch.autograd.DeviceType.CUDA and evt.device_time_total > 0 \
+                and evt.key not in host_ranges:
             per_kernel[evt.key[:80]] += evt.device_time_total / iters / 1e3
     return dict(per_kernel)
 
@@ -50,8 +55,8 @@ def idle_gaps(phases, iters: int, top: int = 12) -> None:
     events = prof.events()
     # a kernel is listed once per CPU op above it too: one entry per (start, end, name)
     kernels = sorted({(e.time_range.start, e.time_range.end, e.name) for e in events
-                      if e.device_type == torch.autograd.DeviceType.CUDA and e.time_range.end > e.time_range.start},
-                     key=lambda k: k[0])
+                      if e.device_type == torch.autograd.DeviceType.CUDA and e.time_range.end > e.time_range.start
+                      and not e.name.startswith("phase:")}, key=lambda k: k[0])
     spans = [(e.name[6:], e.time_range.start, e.time_range.end) for e in events if e.name.startswith("phase:")
              and e.device_type == torch.autograd.DeviceType.CPU]
     for name in dict.fromkeys(n for n, _, _ in spans):

@@ -22,6 +22,7 @@ class Densifier:
         self.reset_stats(num_gaussians, device)
         self.capped = False
         self.changed_at = 0  # the iteration of the last densification, prune or opacity reset
+        self._ndc_scales: dict[tuple, torch.Tensor] = {}  # (width, height, device) -> `_ndc_scale`
 
     def reset_stats(self, n: int, device) -> None:
         self.grad_sum = torch.zeros(n, device=device)
@@ -34,8 +35,7 @@ class Densifier:
         grad = meta["means2d"].grad
         if grad is None:
             return
-        # pixels -> NDC units, the scale the 3DGS threshold is defined in
-        scale = torch.tensor([meta["width"] / 2.0, meta["height"] / 2.0], device=grad.device)
+        scale = self._ndc_scale(meta["width"], meta["height"], grad.device)
         rows = meta.get("rows")
         if rows is None:
             self.grad_sum += torch.where(visible, (grad * scale).norm(dim=-1), torch.zeros_like(self.grad_sum))
@@ -45,6 +45,14 @@ class Densifier:
         norms = (grad * scale).norm(dim=-1)
         self.grad_sum.index_add_(0, rows, torch.where(visible, norms, torch.zeros_like(norms)))
         self.seen.index_add_(0, rows, visible.float())
+
+    def _ndc_scale(self, width: int, height: int, device: torch.device) -> torch.Tensor:
+        """[2]: pixels -> NDC units, the scale the 3DGS threshold is defined in. Kept per size: building
+        it on a GPU copies from pageable memory, which waits for the device (a host sync every step)."""
+        key = (width, height, device)
+        if key not in self._ndc_scales:
+            self._ndc_scales[key] = torch.tensor([width / 2.0, height / 2.0], device=device)
+        return self._ndc_scales[key]
 
     # -- the schedule (gsplat's strategy shape: the trainer calls these two around backward) -------
 
