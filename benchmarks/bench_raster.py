@@ -208,12 +208,16 @@ def deferred(fn):
     return run
 
 
+class Overflowed(Exception):
+    """A deferred tomgs frame's keys overflowed their bound: its image lacked entries (the bound has
+    grown since), so its timing is void; the training loop renders such a frame again."""
+
+
 def read_counts(meta) -> None:
-    """Read a deferred tomgs frame's counts, as the training loop does after the backward; a frame
-    whose keys overflowed rendered a wrong image, so its timing would be void."""
+    """Read a deferred tomgs frame's counts, as the training loop does after the backward."""
     counts = meta.get("counts") if isinstance(meta, dict) else None
     if counts is not None and counts.overflowed:
-        raise RuntimeError("a deferred tomgs frame overflowed its keys' bound: its timing is of a wrong image")
+        raise Overflowed()
 
 
 def load_gsplat(device: torch.device):
@@ -355,7 +359,16 @@ def _drop_grads(params):
 
 def iteration(run: Runner, P, params, t, Wimg, Walpha, clock: Clock, synced: bool) -> dict:
     """One fwd + loss + bwd. synced: device syncs between phases (clean fwd / bwd split, wall times);
-    not synced: events around the whole step only (pipelined, as in a training loop)."""
+    not synced: events around the whole step only (pipelined, as in a training loop). A deferred
+    frame that overflowed its keys' bound is timed again (the bound grew: once per new total)."""
+    try:
+        return _iteration(run, P, params, t, Wimg, Walpha, clock, synced)
+    except Overflowed:
+        log(f"  {run.name}: t={t} overflowed its keys' bound, timed again")
+        return _iteration(run, P, params, t, Wimg, Walpha, clock, synced)
+
+
+def _iteration(run: Runner, P, params, t, Wimg, Walpha, clock: Clock, synced: bool) -> dict:
     _drop_grads(P.values())
     clock.sync()
     w0 = time.perf_counter()

@@ -32,33 +32,6 @@ from tomgs.render import _Rasterize
 from tomgs.train import Trainer, preset
 
 
-def count_syncs(step, iters: int) -> dict[str, float]:
-    """Host syncs per call of `step` by the innermost tomgs line that made them (torch's sync debug
-    mode warns on every implicit sync; an explicit Event.synchronize is not one)."""
-    import traceback
-    import warnings
-    from collections import Counter
-
-    where = Counter()
-
-    def record(message, category, filename, lineno, file=None, line=None):
-        ours = [f for f in traceback.extract_stack()[:-1] if "/tomgs/" in f.filename]
-        at = ours[-1] if ours else None
-        where[f"{at.filename.split('/tomgs/')[-1]}:{at.lineno} {at.name}" if at else f"{filename}:{lineno}"] += 1
-
-    torch.cuda.synchronize()
-    with warnings.catch_warnings():
-        warnings.simplefilter("always")
-        warnings.showwarning = record
-        torch.cuda.set_sync_debug_mode("warn")
-        try:
-            for _ in range(iters):
-                step()
-        finally:
-            torch.cuda.set_sync_debug_mode(0)
-    return {k: v / iters for k, v in where.most_common()}
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("clip", type=Path, help="a DAVIS clip folder (images/) or a video")
@@ -69,8 +42,6 @@ def main() -> None:
     ap.add_argument("--host", action="store_true", help="also print the Python functions that cost host time")
     ap.add_argument("--raster", choices=["auto", "batched", "per-pixel"], default="auto",
                     help="the compositing kernel pair (auto: batched on CUDA); for A/B timings in one command")
-    ap.add_argument("--syncs", action="store_true", help="also count the host syncs a step makes, by where in tomgs "
-                    "(torch's sync debug mode: .item(), .tolist(), copies to pageable memory, nonzero...)")
     ap.add_argument("--fps", action="store_true", help="with --scene: also time render_sequence over every frame (3 passes)")
     args = ap.parse_args()
     _Rasterize.batched = {"auto": None, "batched": True, "per-pixel": False}[args.raster]
@@ -116,10 +87,6 @@ def main() -> None:
     print(f"wall {wall:.2f} ms per iteration, GPU kernels {gpu:.2f} ms (gap {wall - gpu:.2f} ms)")
     for name, ms in sorted(per_kernel.items(), key=lambda kv: -kv[1])[:25]:
         print(f"  {ms:8.3f} ms  {name}")
-    if args.syncs:
-        print("\nhost syncs per iteration, by where:")
-        for at, count in count_syncs(trainer.step, args.iters).items():
-            print(f"  {count:6.2f}  {at}")
     if args.host:
         print(f"\nhost time per iteration, top functions (cumulative over {args.iters} iterations):")
         host_profile(trainer.step, args.iters)
