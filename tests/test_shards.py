@@ -260,7 +260,7 @@ def _refine_rank(rank: int, store: str, folder: str) -> None:
     phase1 = {name: (e[0][mask], e[1][mask], e[2]) for name, e in adam_estimates(optimizer1).items()}
     out = refine(model, part, torch.as_tensor(images[s.own_lo:s.own_hi]), cams[s.own_lo:s.own_hi],
                  small_config(20), gathered.rates, torch.device("cpu"), moments=moments, adam_steps=gathered.steps,
-                 steps=20)
+                 steps=20, defer=True)  # frames that do not wait for their counts, as on a GPU
     after = union.clone()
     after[part.rows] = pack(model.parameters_by_name())
     final = assemble(model, part)

@@ -439,7 +439,7 @@ def refine_optimizer(model: GaussianModel, rates: dict[str, float], config, devi
 def refine(model: GaussianModel, part: Halo, frames: torch.Tensor, cameras, config, rates: dict[str, float],
            device: torch.device, *, moments: torch.Tensor | None = None, adam_steps: dict | None = None,
            steps: int = 0, until: float | None = None, start_wall: float = 0.0, start_iteration: int = 0,
-           log_rows=None, tick=None) -> Refined:
+           log_rows=None, tick=None, defer: bool | None = None) -> Refined:
     """Train `model` (rank part.rank's Halo of the union: its Gaussians in `part.rows` order) jointly
     with the other ranks': it renders its own frames (`frames` uint8 [F,H,W,3] on any device,
     `cameras` theirs in clip time), and the gradients and 'in view' flags of the shared Gaussians are
@@ -449,11 +449,12 @@ def refine(model: GaussianModel, part: Halo, frames: torch.Tensor, cameras, conf
     after `steps` steps, or before the wall-clock time `until` (time.time()) that any rank reaches
     first (when a step as long as its latest would end past it), or at SIGINT / SIGTERM on any rank (Refined.stopped_by). Needs an initialised
     default process group. `log_rows(row)` hears a CSV row every config.log_interval steps (wall_s
-    from `start_wall`, iteration from `start_iteration`; train_psnr the ranks' mean)."""
+    from `start_wall`, iteration from `start_iteration`; train_psnr the ranks' mean). `defer` (None: on
+    a GPU): a step's frame does not wait for its counts, as in Trainer.step."""
     import torch.distributed as dist
 
     from tomgs.metrics import psnr, ssim
-    from tomgs.render import rasterize
+    from tomgs.render import render_frame
     from tomgs.train.checkpoint import StopSignals
     from tomgs.train.optim import uses_seen_adam
     from tomgs.train.sampler import MAX_PSNR, FrameSampler
@@ -477,11 +478,19 @@ def refine(model: GaussianModel, part: Halo, frames: torch.Tensor, cameras, conf
     with StopSignals() as stop:
         while True:
             k = sampler.sample()
-            image, _, meta = rasterize(**model.render_inputs(), viewmat=viewmats[k], K=K, width=cameras.width,
-                                       height=cameras.height, t=float(cameras.times[k]))
             target = frames[k].to(device, non_blocking=True).float() / 255.0
-            loss = (1 - c.ssim_weight) * (image - target).abs().mean() + c.ssim_weight * (1 - ssim(image, target))
-            loss.backward()
+            wait = not (device.type == "cuda" if defer is None else defer)
+            while True:  # a frame whose keys overflowed their bound drops its gradients, renders again, waiting
+                image, _, meta, counts = render_frame(**model.render_inputs(), viewmat=viewmats[k], K=K,
+                                                      width=cameras.width, height=cameras.height,
+                                                      t=float(cameras.times[k]), defer=not wait)
+                loss = (1 - c.ssim_weight) * (image - target).abs().mean() + c.ssim_weight * (1 - ssim(image, target))
+                loss.backward()
+                if counts is None or not counts.overflowed:
+                    break
+                for p in params.values():
+                    p.grad = None
+                wait = True
             seen = (meta["radii"] > 0).any(-1)  # bool [M]
             grads = [p.grad if p.grad is not None else torch.zeros_like(p) for p in params.values()]
             out.steps += 1
@@ -493,7 +502,9 @@ def refine(model: GaussianModel, part: Halo, frames: torch.Tensor, cameras, conf
             buffer = torch.zeros(part.total, sum(widths) + 1, device=device)
             buffer[slots] = torch.cat([g.index_select(0, shared).reshape(len(shared), -1) for g in grads]
                                       + [seen.index_select(0, shared).float()[:, None]], dim=1)
-            flags = torch.tensor([float(stop.signum or 0), float(done or late)], device=device)
+            # built on the host and sent without waiting (a copy from pageable memory that is not
+            # non_blocking waits for the device)
+            flags = torch.tensor([float(stop.signum or 0), float(done or late)]).to(device, non_blocking=True)
             buffer = torch.cat([buffer.reshape(-1), value, flags])
             dist.all_reduce(buffer)
             summed = buffer[:-3].view(part.total, -1).index_select(0, slots)
