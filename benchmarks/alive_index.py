@@ -17,15 +17,19 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
 
-from tomgs.cameras import Cameras, intrinsics
-from tomgs.model import GaussianModel
-from tomgs.render import rasterize, render_sequence
-from tomgs.train import Trainer, preset
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from render_speed import fastest_turns, render_modes  # noqa: E402
+
+from tomgs.cameras import Cameras, intrinsics  # noqa: E402
+from tomgs.model import GaussianModel  # noqa: E402
+from tomgs.train import Trainer, preset  # noqa: E402
 
 
 def cloud(n: int, share: float, frames: int, device: torch.device, seed: int = 0) -> GaussianModel:
@@ -98,33 +102,8 @@ def main() -> None:
     # rendering, all frames: rasterize over every Gaussian, each frame waiting for its counts, against
     # render_sequence with and without the index, pipelined (frames do not wait) or not
     inputs = {k: v.detach() for k, v in cloud(args.gaussians, args.alive, T, device).render_inputs().items()}
-    viewmats, K = cams.viewmats(device), torch.as_tensor(cams.K, dtype=torch.float32, device=device)
-
-    def render_all():
-        for k in range(T):
-            rasterize(**inputs, viewmat=viewmats[k], K=K, width=width, height=height, t=float(cams.times[k]))
-
-    def sequence(pipelined: bool, index: bool):
-        def run():
-            for _ in render_sequence(inputs, cams, device=device, to_cpu=False, pipelined=pipelined,
-                                     alive_index=index):
-                pass
-        return run
-
-    modes = {"rasterize": render_all}
-    for pipelined in (False, True):
-        for index in (False, True):
-            modes[f"sequence{' pipelined' if pipelined else ''}{' index' if index else ''}"] = sequence(pipelined, index)
-    best = {mode: math.inf for mode in modes}
-    with torch.no_grad():
-        for _ in range(args.repeats + 1):  # the first turn loads kernels
-            for mode, run in modes.items():
-                sync()
-                start = time.perf_counter()
-                run()
-                sync()
-                best[mode] = min(best[mode], time.perf_counter() - start)
-    out["render_fps"] = {mode: round(T / best[mode], 1) for mode in best}
+    best = fastest_turns(render_modes(inputs, cams, device), args.repeats, device)
+    out["render_fps"] = {mode: round(T / seconds, 1) for mode, seconds in best.items()}
     print(json.dumps(out, indent=1))
 
 

@@ -24,29 +24,19 @@ import tomgs  # noqa: E402
 from tomgs.render import rasterize, render_sequence  # noqa: E402
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("scene", type=Path)
-    ap.add_argument("--device", default="cuda")
-    ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--json", type=Path)
-    ap.add_argument("--profile", action="store_true", help="also the GPU time per frame by kernel (torch profiler), "
-                    "of the default render_sequence")
-    args = ap.parse_args()
-    device = torch.device(args.device)
-    scene = tomgs.load_scene(args.scene, device=device)
-    inputs = {k: v.detach() for k, v in scene.model.render_inputs().items()}
-    cams = scene.cameras
+def render_modes(inputs: dict, cams, device: torch.device) -> dict:
+    """Name -> a callable rendering every frame of `cams` from `inputs` (rasterize's keyword
+    arguments of one cloud, on `device`), images left there: rasterize frame by frame, and
+    render_sequence waiting or pipelined, with the alive index or without."""
     frames = list(range(len(cams)))
     viewmats, Ks = cams.viewmats(device), cams.Ks(device)
-    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
 
     def each_frame():
         for k in frames:
             rasterize(**inputs, viewmat=viewmats[k], K=Ks[k], width=cams.width, height=cams.height,
                       t=float(cams.times[k]))
 
-    def sequence(pipelined: bool, index: bool):
+    def sequence(pipelined: bool | None, index: bool | None):
         def run():
             for _ in render_sequence(inputs, cams, frames, device=device, to_cpu=False, pipelined=pipelined,
                                      alive_index=index):
@@ -57,28 +47,56 @@ def main() -> None:
     for pipelined in (False, True):
         for index in (False, True):
             modes[f"sequence{' pipelined' if pipelined else ''}{' index' if index else ''}"] = sequence(pipelined, index)
-    best = {mode: math.inf for mode in modes}
-    alive = [int(scene.model.alive_at(t).sum()) for t in cams.times]
+    modes["default"] = sequence(None, None)  # render_sequence as `tomgs render` calls it (not timed)
+    return modes
+
+
+def fastest_turns(modes: dict, repeats: int, device: torch.device) -> dict[str, float]:
+    """Seconds of each mode's quickest turn over `repeats` turns, the modes taking turns (a shared
+    machine's load hits all alike), after one untimed turn (kernels loaded, the keys' bounds set)."""
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    best = {mode: math.inf for mode in modes if mode != "default"}
     with torch.no_grad():
-        for turn in range(args.repeats + 1):  # the first turn loads kernels and sets the bounds
-            for mode, run in modes.items():
+        for turn in range(repeats + 1):
+            for mode in best:
                 sync()
                 start = time.perf_counter()
-                run()
+                modes[mode]()
                 sync()
                 if turn:
                     best[mode] = min(best[mode], time.perf_counter() - start)
-    out = dict(scene=str(args.scene), gaussians=len(scene.model), frames=len(frames), size=[cams.width, cams.height],
+    return best
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("scene", type=Path)
+    ap.add_argument("--device", default="cuda")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--json", type=Path)
+    ap.add_argument("--profile", action="store_true", help="also the GPU time per frame by kernel (torch profiler), "
+                    "of the default render_sequence")
+    args = ap.parse_args()
+    device = torch.device(args.device)
+    if args.profile and device.type != "cuda":
+        ap.error("--profile times kernels on a CUDA device")
+    scene = tomgs.load_scene(args.scene, device=device)
+    inputs = {k: v.detach() for k, v in scene.model.render_inputs().items()}
+    cams = scene.cameras
+    modes = render_modes(inputs, cams, device)
+    best = fastest_turns(modes, args.repeats, device)
+    alive = [int(scene.model.alive_at(t).sum()) for t in cams.times]
+    out = dict(scene=str(args.scene), gaussians=len(scene.model), frames=len(cams), size=[cams.width, cams.height],
                alive_share=round(sum(alive) / len(alive) / max(len(scene.model), 1), 4),
-               fps={mode: round(len(frames) / best[mode], 1) for mode in modes})
+               fps={mode: round(len(cams) / seconds, 1) for mode, seconds in best.items()})
     if args.profile:
         from profile_raster import kernel_times
 
         with torch.no_grad():
-            per_kernel = kernel_times(sequence(None, None), 1)
-        out["gpu_ms_per_frame"] = {name: round(ms / len(frames), 4)
+            per_kernel = kernel_times(modes["default"], 1)
+        out["gpu_ms_per_frame"] = {name: round(ms / len(cams), 4)
                                    for name, ms in sorted(per_kernel.items(), key=lambda kv: -kv[1])[:14]}
-        out["gpu_ms_per_frame_total"] = round(sum(per_kernel.values()) / len(frames), 4)
+        out["gpu_ms_per_frame_total"] = round(sum(per_kernel.values()) / len(cams), 4)
     print(json.dumps(out, indent=1))
     if args.json:
         args.json.write_text(json.dumps(out, indent=1) + "\n")

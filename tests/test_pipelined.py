@@ -141,9 +141,10 @@ def test_a_pipelined_sequence_raises_before_yielding_a_bad_frame(device, fresh_b
 
 @pytest.mark.parametrize("sparse_adam", [False, True])
 def test_training_steps_that_do_not_wait_train_what_waiting_ones_do(sparse_adam, fresh_bounds):
-    """A Trainer whose frames do not wait for their counts (a GPU's default) trains bit for bit what
-    one that waits trains, densification included; steps whose keys overflow the bound render
-    again, and their first gradients are dropped."""
+    """A pipelined Trainer (a GPU's default: frames that do not wait for their counts) trains bit for
+    bit what one that waits trains, densification included; steps whose keys overflow the bound
+    render again, and their first gradients are dropped. (Frames drawn uniformly: a pipelined
+    sampler hears its PSNRs a flush later, which would pick other frames.)"""
     from test_train import CPU, small_config, synthetic_clip
     from tomgs.train import Trainer
 
@@ -151,8 +152,9 @@ def test_training_steps_that_do_not_wait_train_what_waiting_ones_do(sparse_adam,
     models = {}
     for mode in ("wait", "defer", "overflow"):
         torch.manual_seed(0)
-        trainer = Trainer(images, cams, points, colors, small_config(120, sparse_adam=sparse_adam), CPU)
-        trainer.defer_counts = mode != "wait"
+        trainer = Trainer(images, cams, points, colors, small_config(120, sparse_adam=sparse_adam,
+                                                                      sampling="uniform"), CPU)
+        trainer.pipelined = mode != "wait"
         renders = []
         render_once = trainer.render
         trainer.render = lambda *a, **kw: renders.append(kw.get("defer")) or render_once(*a, **kw)
@@ -169,3 +171,31 @@ def test_training_steps_that_do_not_wait_train_what_waiting_ones_do(sparse_adam,
     for mode in ("defer", "overflow"):
         for name, value in models["wait"].items():
             assert torch.equal(models[mode][name], value), (mode, name)
+
+
+def test_a_pipelined_trainer_hands_its_psnrs_to_the_sampler_a_flush_late():
+    """Every SAMPLER_LAG steps the PSNRs go to the host without waiting; the sampler hears them at the
+    next flush, and everything (a CSV row, a checkpoint) before it reads the sampler."""
+    from test_train import CPU, small_config, synthetic_clip
+    from tomgs.train import Trainer
+    from tomgs.train.trainer import SAMPLER_LAG
+
+    images, cams, points, colors = synthetic_clip(3, 32, 18)
+    heard = {}
+    for pipelined in (False, True):
+        torch.manual_seed(0)
+        trainer = Trainer(images, cams, points, colors, small_config(100, sampling="uniform"), CPU)
+        trainer.pipelined = pipelined
+        measured = []
+        updates = []
+        update = trainer.sampler.update
+        trainer.sampler.update = lambda k, value: updates.append((k, value)) or update(k, value)
+        for step in range(2 * SAMPLER_LAG + 3):
+            trainer.step()
+            measured.append(len(updates))
+        assert measured[SAMPLER_LAG - 1] == (SAMPLER_LAG if not pipelined else 0)
+        assert measured[2 * SAMPLER_LAG - 1] == (2 * SAMPLER_LAG if not pipelined else SAMPLER_LAG)
+        trainer.state_dict()  # a checkpoint hears every step so far
+        assert len(updates) == 2 * SAMPLER_LAG + 3
+        heard[pipelined] = updates
+    assert heard[True] == heard[False]  # the same PSNRs, in the same order

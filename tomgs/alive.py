@@ -277,9 +277,9 @@ class TrainingIndex:
     frame, projection culls them), so under dense Adam they coast and under SeenAdam they stay.
     After each optimiser step, `check` bounds for the rows the step gave a gradient (rendered and
     in view), the windows they can reach before the index next looks (`adam_reach`: by
-    coasting on a CPU, where the check is read at once; on a GPU it is read in the next frame's
-    render (`settle`, after that render's one host sync, from a copy made without waiting), so the
-    bound allows one more step with any gradient, `lookahead`), and finds those that reach a frame
+    coasting on a CPU, where the check is read at once; on a GPU it is read once the next frame's
+    render is issued (`settle`, waiting only for a copy queued a step before), so the bound allows
+    one more step with any gradient, `lookahead`), and finds those that reach a frame
     outside their buckets. The rows it does not look at stay inside by the bound's consistency.
     Those it finds become movers, rendered at every frame until the next rebuild (a few rows each,
     where rebuilding costs O(N)). A rebuild lists each Gaussian over the windows the check would

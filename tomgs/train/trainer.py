@@ -143,15 +143,16 @@ class Trainer:
         use_index = pays_on(device) if config.alive_index is None else bool(config.alive_index)
         self.alive = TrainingIndex(self.times, dense=not self.sparse_adam, lookahead=device.type == "cuda") \
             if use_index else None
-        # a step's frame does not wait for its counts on a GPU (tomgs.render.render_frame(defer=True)):
-        # the host issues the loss, the backward and the next steps while the device renders
-        self.defer_counts = device.type == "cuda"
+        # on a GPU a step does not wait for the device: its frame's counts are read once the backward is
+        # queued (tomgs.render.render_frame(defer=True)), the sampler's PSNRs a flush late
+        self.pipelined = device.type == "cuda"
         self.iteration = 0
         self.progress = 0.0  # fraction of the run done: iterations or wall-clock budget, whichever is further
         self.elapsed = 0.0  # wall seconds of earlier sessions of a resumed run
         self.history: list[dict] = []
         self.clip: dict = {}  # what identifies the clip, saved with checkpoints (tomgs.train.fit fills it)
         self._measured: list[tuple[int, torch.Tensor]] = []  # (frame, PSNR) not yet given to the sampler
+        self._in_flight = None  # (frames, PSNRs on their way to the host, the event after their copy)
         self.eval_frame_seconds = 0.0  # seconds a frame of the last clip PSNR took
 
     # -- set-up --------------------------------------------------------------------------------
@@ -319,11 +320,11 @@ class Trainer:
 
     def step(self) -> None:
         k = self.sampler.sample()
-        defer = self.defer_counts
+        defer = self.pipelined
         while True:
             image, alpha, meta = self.render(k, defer=defer)
             if self.alive is not None:
-                self.alive.settle()  # the last step's check: past the render's host sync, or waited for
+                self.alive.settle()  # the last step's check, from a copy queued a step ago
             self.densifier.step_pre_backward(meta, self.progress)
             target = self.target(k, image)  # once per step: the loss and the sampler's PSNR share it
             self.loss(k, image, alpha, target).backward()
@@ -335,7 +336,7 @@ class Trainer:
             defer = False
         self._measured.append((k, self._psnr(k, image, target)))
         if len(self._measured) >= SAMPLER_LAG:
-            self.flush_measurements()
+            self.flush_measurements(wait=not self.pipelined)
         seen = in_view = (meta["radii"] > 0).any(-1)  # bool [M]: the rendered rows this step's gradient reaches
         if meta["rows"] is not None:  # -> bool [N]
             in_view = torch.zeros(len(self.model), dtype=torch.bool, device=self.device).index_put_(
@@ -353,13 +354,32 @@ class Trainer:
         self.iteration += 1
         self.densifier.step_post_backward(self.model, self.optimizer, meta, in_view, self.iteration, self.progress)
 
-    def flush_measurements(self) -> None:
-        """Hand the PSNRs measured since the last flush to the sampler, in order (one device read)."""
-        if self._measured:
-            values = torch.stack([v for _, v in self._measured]).tolist()
-            for (k, _), value in zip(self._measured, values):
+    def flush_measurements(self, wait: bool = True) -> None:
+        """Hand the PSNRs measured so far to the sampler, in order. Without `wait` (a pipelined step's
+        flush) they are copied to the host without waiting and handed over at the next flush: the
+        sampler hears them SAMPLER_LAG to 2 x SAMPLER_LAG steps late, and the host never stalls for them."""
+        if self._in_flight is not None:
+            frames, values, copied = self._in_flight
+            self._in_flight = None
+            if copied is not None:
+                copied.synchronize()  # long done: queued a flush ago
+            for k, value in zip(frames, values.tolist()):
                 self.sampler.update(k, value)
-            self._measured.clear()
+        if not self._measured:
+            return
+        frames = [k for k, _ in self._measured]
+        values = torch.stack([v for _, v in self._measured])
+        self._measured.clear()
+        if wait:
+            for k, value in zip(frames, values.tolist()):
+                self.sampler.update(k, value)
+            return
+        copied = None
+        if values.is_cuda:
+            values = values.to("cpu", non_blocking=True)
+            copied = torch.cuda.Event()
+            copied.record()
+        self._in_flight = (frames, values, copied)
 
     @torch.no_grad()
     def clip_psnr(self, tick=None, frames=None) -> list[float]:
