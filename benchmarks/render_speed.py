@@ -46,7 +46,8 @@ def render_modes(inputs: dict, cams, device: torch.device) -> dict:
     modes = {"rasterize": each_frame}
     for pipelined in (False, True):
         for index in (False, True):
-            modes[f"sequence{' pipelined' if pipelined else ''}{' index' if index else ''}"] = sequence(pipelined, index)
+            name = f"sequence{' pipelined' if pipelined else ''}{' index' if index else ''}"
+            modes[name] = sequence(pipelined, index)
     modes["default"] = sequence(None, None)  # render_sequence as `tomgs render` calls it (not timed)
     return modes
 

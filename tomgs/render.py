@@ -242,11 +242,11 @@ def _write_keys(wrapped: dict, n: int, ends: torch.Tensor, frame: _Frame, capaci
     return keys, ids
 
 
-def _bin(wrapped: dict, n: int, ends: torch.Tensor, ranges: torch.Tensor, frame: _Frame, total: int,
+def _bin(wrapped: dict, n: int, ends: torch.Tensor, frame: _Frame, total: int,
          written: tuple[torch.Tensor, torch.Tensor] | None = None):
     """Stage 2 after the host sync: (ids [>= total] int32 Gaussian per intersection, keys [>= total] int64
-    `tile << 32 | depth bits`, sorted; the first `total` entries are the list) and `ranges` [tiles, 2]
-    int32 (zeroed by the caller) filled with each tile's [start, end) into them.
+    `tile << 32 | depth bits`, sorted; the first `total` entries are the list), and the ranges [tiles, 2]
+    int32 of `wrapped` (zeroed by the caller) filled with each tile's [start, end) into them.
 
     `written`: (keys, ids) from `_write_keys` before the sync; written again here, at the right size,
     when `total` exceeds their capacity (or for None). `wrapped` and `ends` as for `_write_keys`;
@@ -452,8 +452,8 @@ def rasterize(
     RenderError naming the input; the per-Gaussian checks run inside the projection kernel and come
     back with the intersection count, in the one host sync a frame has anyway.
     """
-    image, alpha, meta, _ = render_frame(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width,
-                                    height, t, background=background, near=near, far=far)
+    image, alpha, meta, _ = render_frame(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K,
+                                         width, height, t, background=background, near=near, far=far)
     return image, alpha, meta
 
 
@@ -492,7 +492,7 @@ def render_frame(means, quats, scales, opacities, colors, t_means, t_scales, vie
             stats = _read_flags(flags, p)
             # after it, on a GPU's critical path (idle until issued): the sort, the ranges, the raster
             total = stats[project.FLAG_TOTAL]
-            ids, _ = _bin(wrapped, n, ends, ranges, frame, total, written)
+            ids, _ = _bin(wrapped, n, ends, frame, total, written)
         color, trans = _Rasterize.apply(means2d, conics, opacities_t, colors, ranges, ids, frame, wrapped, pixels)
         if counts is None:
             _bounds.remember(frame, total)
@@ -561,7 +561,7 @@ def bin_stage(
         frame = _Frame(int(width), int(height), 0.0, 0.0, 0.01, 1e10, wp_device)
         ranges = torch.zeros(frame.num_tiles, 2, device=means2d.device, dtype=torch.int32)
         wrapped["ranges"] = wrap(ranges)
-        ids, keys = _bin(wrapped, means2d.shape[0], ends, ranges, frame, total)
+        ids, keys = _bin(wrapped, means2d.shape[0], ends, frame, total)
     ids, keys = ids[:total], keys[:total]
     return dict(keys=keys, ids=ids, ranges=ranges)
 
@@ -637,7 +637,7 @@ def render_sequence(gaussians, cameras, indices=None, *, background=None, device
         viewmats, Ks, bg = frame_inputs(dev)
         defer = not wait and (dev.type == "cuda" if pipelined is None else pipelined)
         image, _, meta, counts = render_frame(**last["inputs"], viewmat=viewmats[k], K=Ks[k], width=cameras.width,
-                                         height=cameras.height, t=t, background=bg, defer=defer)
+                                              height=cameras.height, t=t, background=bg, defer=defer)
         meta["rows"] = last["rows"]
         image = image.clamp(0.0, 1.0)
         copied = None

@@ -447,10 +447,11 @@ def refine(model: GaussianModel, part: Halo, frames: torch.Tensor, cameras, conf
     (`refine_optimizer`) runs at `rates` (Union.rates: where phase 1's schedule ended), from phase 1's
     state of each row when `moments` (its rows of Union.moments) and `adam_steps` are given. Stops
     after `steps` steps, or before the wall-clock time `until` (time.time()) that any rank reaches
-    first (when a step as long as its latest would end past it), or at SIGINT / SIGTERM on any rank (Refined.stopped_by). Needs an initialised
-    default process group. `log_rows(row)` hears a CSV row every config.log_interval steps (wall_s
-    from `start_wall`, iteration from `start_iteration`; train_psnr the ranks' mean). `defer` (None: on
-    a GPU): a step's frame does not wait for its counts, as in Trainer.step."""
+    first (when a step as long as its latest would end past it), or at SIGINT / SIGTERM on any rank
+    (Refined.stopped_by). Needs an initialised default process group. `log_rows(row)` hears a CSV
+    row every config.log_interval steps (wall_s from `start_wall`, iteration from `start_iteration`;
+    train_psnr the ranks' mean). `defer` (None: on a GPU): a step's frame does not wait for its
+    counts, as in Trainer.step."""
     import torch.distributed as dist
 
     from tomgs.metrics import psnr, ssim

@@ -290,7 +290,8 @@ class Trainer:
             similarity = (ssim_map(image[None], target[None])[0] * w.permute(2, 0, 1)).sum() / total
         loss = (1 - c.ssim_weight) * l1 + c.ssim_weight * (1 - similarity)
         if self.alpha_targets is not None:
-            loss = loss + (alpha[..., 0] - self.alpha_targets[k].to(self.device, non_blocking=True).float() / 255.0).abs().mean()
+            alpha_target = self.alpha_targets[k].to(self.device, non_blocking=True).float() / 255.0
+            loss = loss + (alpha[..., 0] - alpha_target).abs().mean()
         return loss
 
     def measure(self, k: int, image: torch.Tensor, target: torch.Tensor | None = None) -> float:
