@@ -121,6 +121,22 @@ def test_unseen_frames_count_as_the_worst():
     assert p[1] == p[2] and p[1] >= p[0]
 
 
+def test_the_sampler_keeps_its_distribution_until_a_psnr_changes():
+    """probabilities() is kept between draws and rebuilt when a PSNR is heard or a state loaded."""
+    sampler = FrameSampler(5, seed=1)
+    first = sampler.probabilities()
+    assert sampler.probabilities() is first and torch.allclose(first, torch.full((5,), 0.2, dtype=torch.float64))
+    sampler.update(2, 10.0)
+    sampler.update(0, 40.0)
+    second = sampler.probabilities()
+    assert second is not first and second[0] < second[2]  # frame 0 is rendered better
+    state = sampler.state_dict()
+    sampler.update(0, 5.0)
+    assert sampler.probabilities()[0] > second[0]
+    sampler.load_state_dict(state)
+    assert torch.equal(sampler.probabilities(), second)
+
+
 def test_densification_threshold_by_device_unless_given():
     """A GPU fit grows its cloud within the first minute (1e-4), a CPU fit keeps 3DGS's 2e-4; a given
     threshold, and the paper preset's, hold on every device."""

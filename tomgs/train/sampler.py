@@ -25,9 +25,17 @@ class FrameSampler:
         self.momentum = momentum
         self.psnr = torch.zeros(num_frames, dtype=torch.float64)  # 0 = not measured yet
         self.generator = torch.Generator().manual_seed(seed)
+        # the distribution, kept until a PSNR changes: a GPU fit hears PSNRs every 8 steps, and each of
+        # the ~12 small ops that rebuild it costs host time in a host-bound step
+        self._probabilities: torch.Tensor | None = None
 
     def probabilities(self) -> torch.Tensor:
         """[T] float64 summing to 1."""
+        if self._probabilities is None:
+            self._probabilities = self._distribution()
+        return self._probabilities
+
+    def _distribution(self) -> torch.Tensor:
         n = self.psnr.shape[0]
         if self.mode == "uniform":
             return torch.full((n,), 1.0 / n, dtype=torch.float64)
@@ -49,6 +57,7 @@ class FrameSampler:
         psnr = min(psnr, MAX_PSNR)
         old = float(self.psnr[frame])
         self.psnr[frame] = psnr if old == 0 else self.momentum * old + (1 - self.momentum) * psnr
+        self._probabilities = None
 
     def state_dict(self) -> dict:
         return dict(psnr=self.psnr.clone(), generator=self.generator.get_state())
@@ -56,3 +65,4 @@ class FrameSampler:
     def load_state_dict(self, state: dict) -> None:
         self.psnr = state["psnr"].clone()
         self.generator.set_state(state["generator"])
+        self._probabilities = None
