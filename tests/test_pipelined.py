@@ -199,3 +199,13 @@ def test_a_pipelined_trainer_hands_its_psnrs_to_the_sampler_a_flush_late():
         assert len(updates) == 2 * SAMPLER_LAG + 3
         heard[pipelined] = updates
     assert heard[True] == heard[False]  # the same PSNRs, in the same order
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_a_frame_without_gaussians_does_not_wait_either(device, fresh_bounds):
+    _, gaussians, camera = scene_on(device)
+    tomgs.rasterize(**gaussians, **camera, t=0.5)  # the size is counted
+    empty = {name: value[:0] for name, value in gaussians.items()}
+    image, alpha, _, counts = render.render_frame(**empty, **camera, t=0.5, defer=True)
+    assert counts is not None and counts.read() == dict(n_visible=0, n_alive=0, n_intersections=0)
+    assert not counts.overflowed and not image.any() and not alpha.any()
