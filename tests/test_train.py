@@ -55,7 +55,8 @@ def test_adam_is_sparse_on_a_gpu_and_dense_on_a_cpu_unless_asked():
 def test_seen_adam_is_adam_on_the_rows_in_view():
     """SeenAdam against torch's Adam in float64 on fresh random gradients: seen rows take Adam's
     step, unseen rows keep their values and moments; parameters of 1-3 axes and an empty one, and
-    more parameters than one launch takes (kernels/adam.py SLOTS)."""
+    more parameters than one launch takes (kernels/adam.py SLOTS); moments replaced by other tensors
+    (a checkpoint loaded) and a parameter replaced (densification) between steps."""
     g = torch.Generator().manual_seed(7)
     n = 40
     params = [torch.randn(n, 3, generator=g), torch.randn(n, generator=g), torch.randn(n, 1, 3, generator=g),
@@ -65,6 +66,16 @@ def test_seen_adam_is_adam_on_the_rows_in_view():
     opt = SeenAdam([dict(params=[p], lr=0.01 * (i + 1)) for i, p in enumerate(ours)], eps=1e-15)
     adam = torch.optim.Adam([dict(params=[p], lr=0.01 * (i + 1)) for i, p in enumerate(ref)], eps=1e-15)
     for step in range(6):
+        if step == 2:  # other tensors for the moments: the kept descriptors must not write the old ones
+            for p in ours:
+                state = opt.state[p]
+                if state:
+                    state["exp_avg"], state["exp_avg_sq"] = state["exp_avg"].clone(), state["exp_avg_sq"].clone()
+        if step == 4:  # another parameter tensor, its state moved over, as densification does
+            new = ours[0].detach().clone().requires_grad_(True)
+            opt.param_groups[0]["params"][0] = new
+            opt.state[new] = opt.state.pop(ours[0])
+            ours[0] = new
         seen = torch.ones(n, dtype=torch.bool) if step == 0 else torch.rand(n, generator=g) < 0.4
         scale = 1e4 if step == 3 else 1.0  # a spike: Adam's normalisation must hold it
         for p, q in zip(ours, ref):
