@@ -78,7 +78,7 @@ class AliveIndex:
 
     def rows(self, position: int) -> torch.Tensor | None:
         """The Gaussians that may be alive at frame `position` (int [M], a view of `ids`), or None
-        when its bucket lists all of them (render the cloud as it is, no gather)."""
+        when its bucket lists all of them (render the cloud as it is, no rows)."""
         b = int(self.bucket_of[position])
         start, end = self.offsets[b], self.offsets[b + 1]
         return None if end - start == self.n else self.ids[start:end]
@@ -354,9 +354,9 @@ class TrainingIndex:
         return same and not self.stale and iteration - self.built_at < self.rebuild_every
 
     def rows(self, k: int, model, optimizer, iteration: int) -> torch.Tensor | None:
-        """The Gaussians of `model` that may be alive at frame k (int64 [M] ascending: the gathers'
-        backward adds with them, ~9x slower with int32 on a CPU; None: all), rebuilding the index
-        first when it is due."""
+        """The Gaussians of `model` that may be alive at frame k (int64 [M] ascending: the densifier
+        adds its statistics with them, ~9x slower with int32 on a CPU; None: all), rebuilding the
+        index first when it is due."""
         if self.index is None or not self._current(model, optimizer, iteration):
             self.rebuild(model, optimizer, iteration)
         rows = self.index.rows(k)
@@ -438,9 +438,10 @@ class TrainingIndex:
 
 
 def pays_on(device) -> bool:
-    """Whether rendering a frame's indexed rows beats rendering every Gaussian on `device` (where
-    projection culls the dead ones). On the H100 (benchmarks/alive_index.py, 4M Gaussians, 15% alive
-    at 854x480) it does not: a training step took 5.69 ms with the index against 4.91 without, and a
-    frame rendered at 666 against 964 fps; the gathers cost the host more than the culled projection
-    costs the GPU. On a CPU, whose kernels pay for every Gaussian, steps ran 7-10% faster with it."""
+    """Whether rendering a frame's indexed rows (`rasterize(rows=)`) beats rendering every Gaussian
+    on `device` (where projection culls the dead ones). On a CPU, whose kernels pay for every
+    Gaussian, it does: benchmarks/alive_index.py, 100k Gaussians 15% alive at 160x90, a step 56.5 ms
+    against 63.4 without (torch gathers of the rows, before the kernels read them in place: 59.0).
+    On the H100 (4M Gaussians, 15% alive, 854x480) the gathers made it lose (6.38 ms a step against
+    5.84, 578 against 868 fps, session 15); the kernels' own rows there are not measured yet."""
     return torch.device(device).type != "cuda"

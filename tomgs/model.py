@@ -151,28 +151,19 @@ class GaussianModel(torch.nn.Module):
         """[N]: the largest o_i(t) for t in [t0, t1]."""
         return temporal.peak_opacity(self.opacities, self.t_means, self.t_scales, t0, t1)
 
-    def sh(self, degree: int | None = None, rows: torch.Tensor | None = None) -> torch.Tensor:
-        """SH coefficients [N,(d+1)^2,3] of the active degree (or `degree`); of Gaussians `rows`
-        only (int [M]) when given, gathered before the degree's coefficients are joined."""
+    def sh(self, degree: int | None = None) -> torch.Tensor:
+        """SH coefficients [N,(d+1)^2,3] of the active degree (or `degree`)."""
         degree = self.sh_degree if degree is None else degree
-        dc = self.sh_dc if rows is None else self.sh_dc.index_select(0, rows)
         if degree == 0:
-            return dc  # no copy: most video scenes never leave degree 0
-        rest = self.sh_rest[:, : (degree + 1) ** 2 - 1]
-        return torch.cat([dc, rest if rows is None else rest.index_select(0, rows)], dim=1)
+            return self.sh_dc  # no copy: most video scenes never leave degree 0
+        return torch.cat([self.sh_dc, self.sh_rest[:, : (degree + 1) ** 2 - 1]], dim=1)
 
-    def render_inputs(self, rows: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-        """Keyword arguments of `tomgs.rasterize` for these Gaussians (camera and time excluded), or
-        for Gaussians `rows` only (int [M], tomgs.alive): their stored rows are gathered before the
-        activations and SH, so the work follows M, and autograd scatters gradients back to them."""
-        if rows is None:
-            return dict(means=self.means, quats=self.quats, scales=self.scales, opacities=self.opacities,
-                        colors=self.sh(), t_means=self.t_means, t_scales=self.t_scales)  # RENDER_INPUTS
-        p = {name: getattr(self, name).index_select(0, rows)
-             for name in ("means", "quats", "log_scales", "opacity_logits", "t_means", "log_t_scales")}
-        return dict(means=p["means"], quats=p["quats"], scales=activated_scales(p["log_scales"]),
-                    opacities=activated_opacities(p["opacity_logits"]), colors=self.sh(rows=rows),
-                    t_means=p["t_means"], t_scales=activated_t_scales(p["log_t_scales"]))
+    def render_inputs(self) -> dict[str, torch.Tensor]:
+        """Keyword arguments of `tomgs.rasterize` for these Gaussians (camera and time excluded); a
+        frame of some of them passes their indices as `rows` (tomgs.alive), which the kernels read
+        in place, so nothing is gathered and autograd needs no scatter."""
+        return dict(means=self.means, quats=self.quats, scales=self.scales, opacities=self.opacities,
+                    colors=self.sh(), t_means=self.t_means, t_scales=self.t_scales)  # RENDER_INPUTS
 
     def parameters_by_name(self) -> dict[str, torch.nn.Parameter]:
         return {name: getattr(self, name) for name in PARAM_NAMES}
@@ -226,13 +217,9 @@ class PlanarGaussianModel(GaussianModel):
     def scales(self) -> torch.Tensor:
         return activated_scales(on_plane(self.means, self.quats, self.log_scales)[2])
 
-    def render_inputs(self, rows: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-        if rows is None:
-            means, quats, _ = on_plane(self.means, self.quats, self.log_scales)
-            return dict(super().render_inputs(), means=means, quats=quats)
-        means, quats, log_scales = on_plane(*(getattr(self, name).index_select(0, rows)
-                                              for name in ("means", "quats", "log_scales")))
-        return dict(super().render_inputs(rows), means=means, quats=quats, scales=activated_scales(log_scales))
+    def render_inputs(self) -> dict[str, torch.Tensor]:
+        means, quats, _ = on_plane(self.means, self.quats, self.log_scales)
+        return dict(super().render_inputs(), means=means, quats=quats)
 
     def replace(self, tensors: dict[str, torch.Tensor]) -> None:
         means, quats, log_scales = on_plane(tensors["means"], tensors["quats"], tensors["log_scales"])

@@ -79,6 +79,10 @@ def _contract_error(stats: list[int], p) -> RenderError:
         problems.append(f"viewmat must be finite, got {p.viewmat.tolist()}")
     if stats[project.FLAG_BACKGROUND]:
         problems.append(f"background must be finite, got {p.background.tolist()}")
+    if stats[project.FLAG_ROWS]:
+        n = p.means.shape[0]
+        problems.append(_first_bad("rows", f"must index the {n} Gaussians (0 .. N-1)",
+                                   (p.rows < 0) | (p.rows >= n), p.rows))
     return RenderError("; ".join(problems))
 
 
@@ -126,10 +130,11 @@ class _Frame:
 class _Project(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, t_means, t_scales, viewmat, K, flags, frame: _Frame,
-                wrapped: dict):
-        """Outputs (means2d [N,2], conics [N,3], depths [N], radii [N,2] int32, opacities_t [N],
-        tiles_touched [N] int32); their descriptors, and the camera's, go into `wrapped` by name."""
-        n = means.shape[0]
+                wrapped: dict, rows: torch.Tensor | None):
+        """Outputs (means2d [M,2], conics [M,3], depths [M], radii [M,2] int32, opacities_t [M],
+        tiles_touched [M] int32) of Gaussians `rows` (int32 [M], distinct; None: all, M = N); their
+        descriptors, and the camera's, go into `wrapped` by name."""
+        n = means.shape[0] if rows is None else rows.shape[0]
         f32 = dict(device=means.device, dtype=torch.float32)
         means2d = torch.empty(n, 2, **f32)
         conics = torch.empty(n, 3, **f32)
@@ -143,13 +148,16 @@ class _Project(torch.autograd.Function):
         wrapped.update(means2d=wrap(means2d, wp.vec2), conics=wrap(conics, wp.vec3), depths=wrap(depths),
                        radii=wrap(radii, wp.vec2i), opacities_t=wrap(opacities_t),
                        tiles_touched=wrap(tiles_touched), viewmat=inputs[6], K=inputs[7])
+        rows_d = NO_ARRAY if rows is None else wrap(rows)
         launch(project.project_forward, n, device=frame.device, args=[
             *inputs, frame.width, frame.height, frame.t_hi, frame.t_lo, frame.near, frame.far, frame.tiles_x,
             frame.tiles_y, wrapped["means2d"], wrapped["conics"], wrapped["depths"], wrapped["radii"],
-            wrapped["opacities_t"], wrapped["tiles_touched"], wrap(flags),
+            wrapped["opacities_t"], wrapped["tiles_touched"], wrap(flags), rows_d, int(rows is not None),
+            means.shape[0],
         ])
         ctx.frame = frame
-        ctx.descriptors = (inputs, wrapped["radii"], wrapped["conics"])
+        ctx.rows = rows
+        ctx.descriptors = (inputs, wrapped["radii"], wrapped["conics"], rows_d)
         ctx.save_for_backward(means, quats, scales, opacities, t_means, t_scales, viewmat, K, radii, conics)
         ctx.mark_non_differentiable(depths, radii, tiles_touched)
         ctx.set_materialize_grads(False)  # no zero-filled gradients for depths, radii, tiles (never read)
@@ -158,16 +166,17 @@ class _Project(torch.autograd.Function):
     @staticmethod
     def backward(ctx, v_means2d, v_conics, _v_depths, _v_radii, v_opacities_t, _v_tiles):
         means, quats, scales, opacities, t_means, t_scales, viewmat, K, radii, conics = ctx.saved_tensors
-        frame = ctx.frame
-        n = means.shape[0]
+        frame, rows = ctx.frame, ctx.rows
+        n = radii.shape[0]  # M: the Gaussians projected
         camera_grads = ctx.needs_input_grad[6] or ctx.needs_input_grad[7]
-        v_means, v_quats, v_scales = torch.empty_like(means), torch.empty_like(quats), torch.empty_like(scales)
-        v_opacities, v_t_means, v_t_scales = (torch.empty_like(opacities), torch.empty_like(t_means),
-                                              torch.empty_like(t_scales))
-        inputs, radii_d, conics_d = ctx.descriptors
+        # every row written, or with rows only theirs: the rest stays zero
+        fresh = torch.empty_like if rows is None else torch.zeros_like
+        v_means, v_quats, v_scales = fresh(means), fresh(quats), fresh(scales)
+        v_opacities, v_t_means, v_t_scales = fresh(opacities), fresh(t_means), fresh(t_scales)
+        inputs, radii_d, conics_d, rows_d = ctx.descriptors
         # named, so that a dense copy lives until the launch is queued (a descriptor does not own it)
         v_means2d, v_conics = indexable(v_means2d, conics, n, 2), indexable(v_conics, conics)
-        v_opacities_t = indexable(v_opacities_t, opacities)
+        v_opacities_t = indexable(v_opacities_t, conics, n)
         if camera_grads:  # per-Gaussian camera partials only when someone asked
             v_viewmat_parts = torch.empty(n, 4, 4, device=means.device, dtype=torch.float32)
             v_K_parts = torch.empty(n, 4, device=means.device, dtype=torch.float32)
@@ -179,7 +188,7 @@ class _Project(torch.autograd.Function):
                 *inputs, frame.width, frame.height, frame.t_hi, frame.t_lo, radii_d, conics_d,
                 wrap(v_means2d, wp.vec2), wrap(v_conics, wp.vec3), wrap(v_opacities_t), int(camera_grads),
                 wrap(v_means, wp.vec3), wrap(v_quats, wp.vec4), wrap(v_scales, wp.vec3), wrap(v_opacities),
-                wrap(v_t_means), wrap(v_t_scales), *parts,
+                wrap(v_t_means), wrap(v_t_scales), *parts, rows_d, int(rows is not None),
             ])
         v_viewmat = v_K = None
         if camera_grads:
@@ -187,7 +196,7 @@ class _Project(torch.autograd.Function):
             fx, fy, cx, cy = v_K_parts.sum(0).unbind()
             zero = torch.zeros_like(fx)
             v_K = torch.stack([fx, zero, cx, zero, fy, cy, zero, zero, zero]).reshape(3, 3)
-        return v_means, v_quats, v_scales, v_opacities, v_t_means, v_t_scales, v_viewmat, v_K, None, None, None
+        return v_means, v_quats, v_scales, v_opacities, v_t_means, v_t_scales, v_viewmat, v_K, None, None, None, None
 
 
 class _Bounds:
@@ -361,8 +370,8 @@ def _project_frame(p: RasterInputs, frame: _Frame, wrapped: dict):
     flags = torch.zeros(project.NUM_FLAGS, device=p.means.device, dtype=torch.int64)
     outputs = _Project.apply(p.means.contiguous(), p.quats.contiguous(), p.scales.contiguous(),
                              p.opacities.contiguous(), p.t_means.contiguous(), p.t_scales.contiguous(), viewmat, K,
-                             flags, frame, wrapped)
-    n = p.means.shape[0]
+                             flags, frame, wrapped, p.rows)
+    n = outputs[0].shape[0]  # M: the Gaussians projected
     ends = torch.cumsum(outputs[-1], 0, dtype=torch.int64)  # [N] inclusive scan of tiles touched
     has_bg = p.background is not None
     threads = max(1, -(-n // 256)) * 256  # whole blocks: frame_stats sums per block
@@ -437,6 +446,7 @@ def rasterize(
     background: torch.Tensor | None = None,  # [3]
     near: float = 0.01,
     far: float = 1e10,
+    rows: torch.Tensor | None = None,  # int [M], distinct: render these Gaussians only (tomgs.alive)
 ):
     """Render the Gaussians at time t: (image [H,W,3], alpha [H,W,1], meta).
 
@@ -446,6 +456,11 @@ def rasterize(
     `means2d` [N,2] (call `.retain_grad()` on it for screen-space gradients), `depths`, `conics`,
     `opacities_t`, and counts (ints) `n_visible`, `n_alive` (alive at t), `n_intersections`. N = 0 is fine.
 
+    With `rows` only those Gaussians are rendered, as if the inputs held them alone (ascending rows
+    composite ties in the full cloud's order): per-Gaussian work and meta's per-Gaussian outputs
+    are [M], and gradients reach the full [N] inputs at those rows (zero elsewhere), without a
+    gather of the inputs. A row outside [0, N) raises RenderError; repeated rows are not allowed.
+
     A Gaussian with a non-finite mean, scale, quaternion or temporal window is culled (zero
     gradient). Anything else outside the contract above (an opacity outside [0, 1], a negative
     scale, a non-finite camera or background, fx <= 0, a non-integer size, a non-finite t) raises
@@ -453,12 +468,12 @@ def rasterize(
     back with the intersection count, in the one host sync a frame has anyway.
     """
     image, alpha, meta, _ = render_frame(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K,
-                                         width, height, t, background=background, near=near, far=far)
+                                         width, height, t, background=background, near=near, far=far, rows=rows)
     return image, alpha, meta
 
 
 def render_frame(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width, height, t, *,
-                 background=None, near=0.01, far=1e10, defer: bool = False):
+                 background=None, near=0.01, far=1e10, rows=None, defer: bool = False):
     """`rasterize` (same arguments) -> (image, alpha, meta, counts). With `defer`, once frames of this
     size have been counted, the frame does not wait for its counts: the host returns while the
     device still projects, meta lacks the counts and `counts` (FrameCounts) reads them, raising
@@ -466,7 +481,7 @@ def render_frame(means, quats, scales, opacities, colors, t_means, t_scales, vie
     gradients (`counts.overflowed`: render again). Else counts is None and meta has them."""
     t_hi, t_lo = _check_scalars(width, height, t, near, far)
     p = prepare_inputs(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width, height, t,
-                       background, near, far, torch.float32, fused_sh=True)
+                       background, near, far, torch.float32, fused_sh=True, rows=rows)
     wrapped = {}  # Warp descriptors of the frame's buffers, by name, built once for the stages that follow
     counts = None
     with scope(p.means.device) as wp_device:
@@ -591,10 +606,10 @@ def render_sequence(gaussians, cameras, indices=None, *, background=None, device
     t_scales; or a callable k -> such a mapping, a per-frame cloud (an edit over time, a simulated
     shot). `cameras`: a `tomgs.Cameras`; frame k renders at t = cameras.times[k]. No gradients.
     With `alive_index` (None: where it pays, tomgs.alive.pays_on) only the Gaussians that may be
-    alive at a frame's time are gathered and rendered (tomgs.alive: an index over the frames, one
-    gather per bucket of frames in time), so a long clip pays per frame for what lives in it; without
-    it projection culls the dead. `meta` describes what was rendered, meta['rows'] names it (int [M]
-    Gaussian indices; None: all). Images come back on the CPU unless `to_cpu` is False.
+    alive at a frame's time are rendered (tomgs.alive: an index over the frames; `rasterize(rows=)`
+    reads them in place), so a long clip pays per frame for what lives in it; without it projection
+    culls the dead. `meta` describes what was rendered, meta['rows'] names it (int [M] Gaussian
+    indices; None: all). Images come back on the CPU unless `to_cpu` is False.
 
     `pipelined` (None: on a GPU): a frame does not wait for its counts (`render_frame(defer=True)`); they
     are read after the next frame has been issued, so the device renders while the host prepares
@@ -614,7 +629,6 @@ def render_sequence(gaussians, cameras, indices=None, *, background=None, device
 
     static = None if callable(gaussians) or not order else prepared(gaussians, [cameras.times[k] for k in order])
     per_device = {}  # cameras and background on each device a frame lands on (one, in practice)
-    last = {}  # the last gather of a static cloud: (bucket, inputs, rows)
 
     def frame_inputs(dev):
         if dev not in per_device:
@@ -628,17 +642,12 @@ def render_sequence(gaussians, cameras, indices=None, *, background=None, device
         after the image's copy to the host or None, position)."""
         t = float(cameras.times[k])
         g, index, dev = static or prepared(gaussians(k), [t])
-        at = position if static else 0
-        bucket = 0 if index is None else int(index.bucket_of[at])
-        if not static or last.get("bucket") != bucket:  # frames of one bucket share one gather
-            rows = None if index is None else index.rows(at)
-            inputs = g if rows is None else {name: value.index_select(0, rows) for name, value in g.items()}
-            last.update(bucket=bucket, inputs=inputs, rows=rows)
+        rows = None if index is None else index.rows(position if static else 0)
         viewmats, Ks, bg = frame_inputs(dev)
         defer = not wait and (dev.type == "cuda" if pipelined is None else pipelined)
-        image, _, meta, counts = render_frame(**last["inputs"], viewmat=viewmats[k], K=Ks[k], width=cameras.width,
-                                              height=cameras.height, t=t, background=bg, defer=defer)
-        meta["rows"] = last["rows"]
+        image, _, meta, counts = render_frame(**g, viewmat=viewmats[k], K=Ks[k], width=cameras.width,
+                                              height=cameras.height, t=t, background=bg, rows=rows, defer=defer)
+        meta["rows"] = rows
         image = image.clamp(0.0, 1.0)
         copied = None
         if to_cpu and image.is_cuda and counts is not None:  # queued behind the frame; waited for in `finish`

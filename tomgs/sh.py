@@ -89,32 +89,37 @@ def sh_to_colors(sh: torch.Tensor, means: torch.Tensor, viewmat: torch.Tensor) -
     return torch.clamp_min(eval_sh(sh, dirs) + 0.5, 0.0)
 
 
-def fused_sh_to_colors(sh: torch.Tensor, means: torch.Tensor, viewmat: torch.Tensor) -> torch.Tensor:
+def fused_sh_to_colors(sh: torch.Tensor, means: torch.Tensor, viewmat: torch.Tensor,
+                       rows: torch.Tensor | None = None) -> torch.Tensor:
     """`sh_to_colors` in float32 by the Warp kernels of tomgs.kernels.sh, on the inputs' device (CPU
-    or CUDA): RGB [N,3] float32 for SH `sh` [N,K,3], `means` [N,3], `viewmat` [4,4] of any float dtype.
-    Differentiable in all three; the viewmat's gradient is formed only when it is asked for."""
+    or CUDA): RGB [N,3] float32 for SH `sh` [N,K,3], `means` [N,3], `viewmat` [4,4] of any float dtype;
+    with `rows` (int32 [M], distinct, on that device) RGB [M,3] of those Gaussians only (a row
+    outside [0, N) gets black; the renderer refuses it). Differentiable in sh, means and viewmat (the
+    viewmat's gradient is formed only when it is asked for)."""
     if sh.dim() != 3 or sh.shape[2] != 3 or means.shape != (sh.shape[0], 3) or viewmat.shape != (4, 4):
         raise ValueError(f"need sh [N,K,3], means [N,3], viewmat [4,4]; got {tuple(sh.shape)}, "
                          f"{tuple(means.shape)}, {tuple(viewmat.shape)}")
     sh_degree_of(sh.shape[1])
-    return _FusedColors.apply(*(x.to(torch.float32).contiguous() for x in (sh, means, viewmat)))
+    return _FusedColors.apply(*(x.to(torch.float32).contiguous() for x in (sh, means, viewmat)), rows)
 
 
 class _FusedColors(torch.autograd.Function):
-    # sh [N,K,3], means [N,3], viewmat [4,4]: float32, contiguous
+    # sh [N,K,3], means [N,3], viewmat [4,4]: float32, contiguous; rows None or int32 [M] contiguous
     @staticmethod
-    def forward(ctx, sh, means, viewmat):
+    def forward(ctx, sh, means, viewmat, rows):
         import warp as wp  # here, not at the top: importing tomgs.sh loads no Warp
 
         from tomgs.kernels import sh as kernels
-        from tomgs.runtime import launch, scope, wrap
+        from tomgs.runtime import NO_ARRAY, launch, scope, wrap
 
-        n, degree = sh.shape[0], sh_degree_of(sh.shape[1])
-        colors = torch.empty(n, 3, device=sh.device, dtype=torch.float32)
+        degree = sh_degree_of(sh.shape[1])
+        m = sh.shape[0] if rows is None else rows.shape[0]
+        colors = torch.empty(m, 3, device=sh.device, dtype=torch.float32)
         with scope(sh.device) as device:
-            launch(kernels.sh_colors_forward, n, device=device, args=[
+            launch(kernels.sh_colors_forward, m, device=device, args=[
                 wrap(sh, wp.vec3), wrap(means, wp.vec3), wrap(viewmat.reshape(1, 4, 4), wp.mat44), degree,
-                wrap(colors, wp.vec3)])
+                wrap(colors, wp.vec3), NO_ARRAY if rows is None else wrap(rows), int(rows is not None)])
+        ctx.rows = rows
         ctx.save_for_backward(sh, means, viewmat)
         return colors
 
@@ -123,21 +128,26 @@ class _FusedColors(torch.autograd.Function):
         import warp as wp
 
         from tomgs.kernels import sh as kernels
-        from tomgs.runtime import indexable, launch, scope, wrap
+        from tomgs.runtime import NO_ARRAY, indexable, launch, scope, wrap
 
         sh, means, viewmat = ctx.saved_tensors
-        n, degree = sh.shape[0], sh_degree_of(sh.shape[1])
+        rows = ctx.rows
+        degree = sh_degree_of(sh.shape[1])
+        m = sh.shape[0] if rows is None else rows.shape[0]
         camera_grads = degree > 0 and ctx.needs_input_grad[2]
-        v_sh = torch.empty_like(sh)
-        v_means = torch.empty_like(means) if degree > 0 else None
-        v_offsets = torch.empty_like(means) if camera_grads else None
-        v_colors = indexable(v_colors, sh[:, 0])  # named: a descriptor does not keep its tensor alive
+        # with rows only theirs are written: the rest stays zero
+        fresh = torch.empty_like if rows is None else torch.zeros_like
+        v_sh = fresh(sh)
+        v_means = fresh(means) if degree > 0 else None
+        v_offsets = means.new_empty(m, 3) if camera_grads else None
+        v_colors = indexable(v_colors, sh[:, 0], m, 3)  # named: a descriptor does not keep its tensor alive
         with scope(sh.device) as device:
-            launch(kernels.sh_colors_backward, n, device=device, args=[
+            launch(kernels.sh_colors_backward, m, device=device, args=[
                 wrap(sh, wp.vec3), wrap(means, wp.vec3), wrap(viewmat.reshape(1, 4, 4), wp.mat44), degree,
                 wrap(v_colors, wp.vec3), int(camera_grads), wrap(v_sh, wp.vec3),
                 wrap(means if v_means is None else v_means, wp.vec3),  # unwritten stand-ins
-                wrap(means if v_offsets is None else v_offsets, wp.vec3)])
+                wrap(means if v_offsets is None else v_offsets, wp.vec3),
+                NO_ARRAY if rows is None else wrap(rows), int(rows is not None)])
         v_viewmat = None
         if camera_grads:
             # centre c = -R^T t and every offset is mean - c: with s = sum of dL/d(offset) [3],
@@ -146,4 +156,4 @@ class _FusedColors(torch.autograd.Function):
             v_viewmat = torch.zeros_like(viewmat)
             v_viewmat[:3, :3] = torch.outer(viewmat[:3, 3], s)
             v_viewmat[:3, 3] = viewmat[:3, :3] @ s
-        return v_sh, v_means, v_viewmat
+        return v_sh, v_means, v_viewmat, None

@@ -36,8 +36,9 @@ FLAG_VIEWMAT = wp.constant(5)  # viewmat not finite
 FLAG_BACKGROUND = wp.constant(6)  # background not finite
 FLAG_VISIBLE = wp.constant(7)  # count: Gaussians holding tiles (tiles_touched != 0)
 FLAG_ALIVE = wp.constant(8)  # count: Gaussians with o_i(t) >= 1/255
-NUM_FLAGS = 9
-CONTRACT_FLAGS = range(1, 7)  # the slots that refuse the frame
+FLAG_ROWS = wp.constant(9)  # a row outside [0, N) in the rows rendered
+NUM_FLAGS = 10
+CONTRACT_FLAGS = (1, 2, 3, 4, 5, 6, 9)  # the slots that refuse the frame
 
 
 @wp.func
@@ -184,8 +185,24 @@ def project_forward(
     opacities_t: wp.array(dtype=float),  # out [N] o_i(t)
     tiles_touched: wp.array(dtype=wp.int32),  # out [N]
     flags: wp.array(dtype=wp.int64),  # [NUM_FLAGS] zeroed by the caller; set to 1 on a contract violation
+    rows: wp.array(dtype=wp.int32),  # [M] with has_rows: the Gaussians projected (the outputs are [M])
+    has_rows: int,
+    n: int,  # N, the Gaussians the inputs hold
 ):
-    i = wp.tid()
+    # output j is Gaussian i: j itself, or rows[j]
+    j = wp.tid()
+    i = j
+    radii[j] = wp.vec2i(0, 0)
+    tiles_touched[j] = 0
+    means2d[j] = wp.vec2(0.0, 0.0)
+    conics[j] = wp.vec3(0.0, 0.0, 0.0)
+    if has_rows != 0:
+        i = rows[j]
+        if i < 0 or i >= n:
+            flags[FLAG_ROWS] = wp.int64(1)
+            opacities_t[j] = 0.0
+            depths[j] = 0.0
+            return
     base = opacities[i]
     s = scales[i]
     if not (base >= 0.0 and base <= 1.0):
@@ -194,18 +211,14 @@ def project_forward(
         flags[FLAG_SCALES] = wp.int64(1)
     if t_scales[i] < 0.0:
         flags[FLAG_T_SCALES] = wp.int64(1)
-    radii[i] = wp.vec2i(0, 0)
-    tiles_touched[i] = 0
-    means2d[i] = wp.vec2(0.0, 0.0)
-    conics[i] = wp.vec3(0.0, 0.0, 0.0)
 
     # temporal cull first: a Gaussian dead at t costs one exp and no more
     z = temporal_z(t_hi, t_lo, t_means[i], t_scales[i])
     opac = base * wp.exp(-0.5 * z * z)
-    opacities_t[i] = opac
+    opacities_t[j] = opac
     viewmat = viewmats[0]
     p = world_to_camera(viewmat, means[i])
-    depths[i] = p[2]
+    depths[j] = p[2]
     if not (opac >= ALPHA_MIN and opac <= 1.0e30):  # also rejects NaN
         return
     if not (p[2] > near and p[2] < far):
@@ -230,10 +243,10 @@ def project_forward(
         return
 
     radius = wp.vec2i(int(rx), int(ry))
-    means2d[i] = center
-    conics[i] = conic
-    radii[i] = radius
-    tiles_touched[i] = tiles_of(center, conic, radius, opac, tiles_x, tiles_y)
+    means2d[j] = center
+    conics[j] = conic
+    radii[j] = radius
+    tiles_touched[j] = tiles_of(center, conic, radius, opac, tiles_x, tiles_y)
 
 
 @wp.func
@@ -281,26 +294,33 @@ def project_backward(
     v_t_scales: wp.array(dtype=float),  # out [N]
     v_viewmat_parts: wp.array(dtype=wp.mat44),  # out [N] when camera_grads, summed by the caller
     v_K_parts: wp.array(dtype=wp.vec4),  # out [N] (fx, fy, cx, cy) when camera_grads
+    rows: wp.array(dtype=wp.int32),  # [M] with has_rows: the Gaussians the forward projected, distinct
+    has_rows: int,  # then the forward's outputs, their gradients and the camera partials are [M]; the
+    #                 inputs' gradients [N], zeroed by the caller, are written at rows only
 ):
-    i = wp.tid()
-    r = radii[i]
-    if r[0] == 0 and r[1] == 0:
-        v_means[i] = wp.vec3(0.0)
-        v_quats[i] = wp.vec4(0.0)
-        v_scales[i] = wp.vec3(0.0)
-        v_opacities[i] = 0.0
-        v_t_means[i] = 0.0
-        v_t_scales[i] = 0.0
+    j = wp.tid()
+    i = j
+    if has_rows != 0:
+        i = rows[j]
+    r = radii[j]
+    if r[0] == 0 and r[1] == 0:  # culled (a bad row too): no gradient
+        if has_rows == 0:
+            v_means[i] = wp.vec3(0.0)
+            v_quats[i] = wp.vec4(0.0)
+            v_scales[i] = wp.vec3(0.0)
+            v_opacities[i] = 0.0
+            v_t_means[i] = 0.0
+            v_t_scales[i] = 0.0
         if camera_grads != 0:
-            v_viewmat_parts[i] = wp.mat44(0.0)
-            v_K_parts[i] = wp.vec4(0.0)
+            v_viewmat_parts[j] = wp.mat44(0.0)
+            v_K_parts[j] = wp.vec4(0.0)
         return
 
     # temporal window: o = a g, g = exp(-z^2 / 2), z = (t - m) / sigma
     sigma = t_scales[i]
     z = temporal_z(t_hi, t_lo, t_means[i], sigma)
     g = wp.exp(-0.5 * z * z)
-    v_o = v_opacities_t[i]
+    v_o = v_opacities_t[j]
     o = opacities[i] * g
     v_opacities[i] = v_o * g
     v_t_means[i] = v_o * o * z / sigma
@@ -329,7 +349,7 @@ def project_backward(
 
     # differentiate the forward's own formulas (conic_of), never dL/dSigma2d = -Q V Q: for a needle
     # that matrix needs an absolute accuracy far below float32's on its entries (error ~ eps cond)
-    v_A = conic_vjp(A, v_conics[i])
+    v_A = conic_vjp(A, v_conics[j])
     v_J = v_A * wp.transpose(B)
     v_B = wp.transpose(J) * v_A
     v_M = wp.transpose(W) * v_B
@@ -377,7 +397,7 @@ def project_backward(
         v_fy -= v_v * v / fy
 
     # pixel centre (fx x/z + cx, fy y/z + cy)
-    vm2 = v_means2d[i]
+    vm2 = v_means2d[j]
     v_p[0] += fx * vm2[0] / pz
     v_p[1] += fy * vm2[1] / pz
     v_p[2] -= (fx * px * vm2[0] + fy * py * vm2[1]) / (pz * pz)
@@ -387,13 +407,13 @@ def project_backward(
     v_means[i] = wp.transpose(W) * v_p
     if camera_grads != 0:
         v_W += wp.outer(v_p, mu)
-        v_viewmat_parts[i] = wp.mat44(
+        v_viewmat_parts[j] = wp.mat44(
             v_W[0, 0], v_W[0, 1], v_W[0, 2], v_p[0],
             v_W[1, 0], v_W[1, 1], v_W[1, 2], v_p[1],
             v_W[2, 0], v_W[2, 1], v_W[2, 2], v_p[2],
             0.0, 0.0, 0.0, 0.0,
         )
-        v_K_parts[i] = wp.vec4(v_fx, v_fy, vm2[0], vm2[1])
+        v_K_parts[j] = wp.vec4(v_fx, v_fy, vm2[0], vm2[1])
 
 
 @wp.func

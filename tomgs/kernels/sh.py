@@ -94,18 +94,26 @@ def sh_colors_forward(
     means: wp.array(dtype=wp.vec3),  # [N] world; read when degree > 0
     viewmats: wp.array(dtype=wp.mat44),  # [1] world -> camera
     degree: int,  # 0..3
-    colors: wp.array(dtype=wp.vec3),  # out [N]
+    colors: wp.array(dtype=wp.vec3),  # out [N], or [M] with rows
+    rows: wp.array(dtype=wp.int32),  # [M] with has_rows: the Gaussians evaluated (a row outside [0, N)
+    has_rows: int,  #                  gets black; projection flags it)
 ):
-    i = wp.tid()
+    j = wp.tid()
+    i = j
+    if has_rows != 0:
+        i = rows[j]
+        if i < 0 or i >= sh.shape[0]:
+            colors[j] = wp.vec3(0.0)
+            return
     d = wp.vec3(0.0)
     if degree > 0:
         d = camera_offset(finite_or_zero(means[i]), viewmats[0])
         d = d / wp.max(norm_of(d), DIR_EPS)
     c = sh_raw(sh, i, degree, d) + wp.vec3(0.5)
-    for j in range(3):
-        if c[j] < 0.0:  # not wp.max: NaN stays NaN, as in torch
-            c[j] = 0.0
-    colors[i] = c
+    for k in range(3):
+        if c[k] < 0.0:  # not wp.max: NaN stays NaN, as in torch
+            c[k] = 0.0
+    colors[j] = c
 
 
 @wp.kernel
@@ -119,8 +127,17 @@ def sh_colors_backward(
     v_sh: wp.array2d(dtype=wp.vec3),  # out [N, K]
     v_means: wp.array(dtype=wp.vec3),  # out [N] when degree > 0
     v_offsets: wp.array(dtype=wp.vec3),  # out [N] when camera_grads: dL/d(mean - centre), summed by the caller
+    rows: wp.array(dtype=wp.int32),  # [M] with has_rows, distinct: v_colors and v_offsets are [M], and
+    has_rows: int,  #                  v_sh and v_means [N], zeroed by the caller, are written at rows
 ):
-    i = wp.tid()
+    j = wp.tid()
+    i = j
+    if has_rows != 0:
+        i = rows[j]
+        if i < 0 or i >= sh.shape[0]:
+            if camera_grads != 0:
+                v_offsets[j] = wp.vec3(0.0)
+            return
     d = wp.vec3(0.0)
     n = 0.0
     mean = wp.vec3(0.0)
@@ -131,10 +148,10 @@ def sh_colors_backward(
         d = d / wp.max(n, DIR_EPS)
     # the clamp's mask from the forward's own value (recomputed: cheaper than storing it)
     c = sh_raw(sh, i, degree, d) + wp.vec3(0.5)
-    g = v_colors[i]
-    for j in range(3):
-        if not (c[j] >= 0.0):
-            g[j] = 0.0
+    g = v_colors[j]
+    for k in range(3):
+        if not (c[k] >= 0.0):
+            g[k] = 0.0
 
     v_sh[i, 0] = C0 * g
     if degree == 0:
@@ -193,9 +210,9 @@ def sh_colors_backward(
     else:
         v_d = v_d / DIR_EPS
     v_m = v_d
-    for j in range(3):
-        if not wp.isfinite(mean[j]):
-            v_m[j] = 0.0
+    for k in range(3):
+        if not wp.isfinite(mean[k]):
+            v_m[k] = 0.0
     v_means[i] = v_m
     if camera_grads != 0:
-        v_offsets[i] = v_d
+        v_offsets[j] = v_d

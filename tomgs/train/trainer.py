@@ -313,9 +313,9 @@ class Trainer:
         may be alive then (tomgs.alive), meta['rows'] naming them (int [M]; None: all N). With
         `defer`, meta['counts'] is the frame's FrameCounts when it did not wait for them (else None)."""
         rows = None if self.alive is None else self.alive.rows(k, self.model, self.optimizer, self.iteration)
-        image, alpha, meta, counts = render_frame(**self.model.render_inputs(rows), viewmat=self.viewmats[k],
+        image, alpha, meta, counts = render_frame(**self.model.render_inputs(), viewmat=self.viewmats[k],
                                                   K=self.K, width=self.width, height=self.height, t=self.times[k],
-                                                  defer=defer, **kw)
+                                                  rows=rows, defer=defer, **kw)
         meta["rows"], meta["counts"] = rows, counts
         return image, alpha, meta
 
