@@ -24,10 +24,15 @@ def leaves(scene: dict, device: str) -> dict:
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("sh_degree", [None, 0, 2])
 @pytest.mark.parametrize("camera_grads", [False, True])
-def test_rows_render_what_their_gathered_inputs_render(device, sh_degree, camera_grads):
+@pytest.mark.parametrize("repeated", [False, True])
+def test_rows_render_what_their_gathered_inputs_render(device, sh_degree, camera_grads, repeated):
+    """A subset, ascending; or with rows listed twice (rendered twice, gradients summed)."""
     scene = random_scene(21, n=300, sh_degree=sh_degree)
     g = torch.Generator().manual_seed(5)
-    rows = torch.sort(torch.randperm(300, generator=g)[:170]).values.to(device)
+    rows = torch.sort(torch.randperm(300, generator=g)[:170]).values
+    if repeated:
+        rows = torch.sort(torch.cat([rows, rows[::7]])).values
+    rows = rows.to(device)
     weights = torch.rand(37, 45, 3, generator=g).to(device)
     results = []
     for gathered in (False, True):
@@ -50,7 +55,9 @@ def test_rows_render_what_their_gathered_inputs_render(device, sh_degree, camera
     unrendered = torch.ones(300, dtype=torch.bool)
     unrendered[rows.cpu()] = False
     for name, grad in grads.items():
-        assert torch.allclose(grad, want_grads[name], rtol=1e-6, atol=1e-9), name
+        # float32 sums of the same terms (a repeated row's by atomics, in another order): to an ulp
+        scale = float(want_grads[name].abs().max())
+        assert torch.allclose(grad, want_grads[name], rtol=1e-6, atol=1e-6 * scale), name
         if name in NAMES:
             assert not grad[unrendered.to(device)].any(), name  # the rest keep exactly zero
 

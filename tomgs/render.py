@@ -132,7 +132,7 @@ class _Project(torch.autograd.Function):
     def forward(ctx, means, quats, scales, opacities, t_means, t_scales, viewmat, K, flags, frame: _Frame,
                 wrapped: dict, rows: torch.Tensor | None):
         """Outputs (means2d [M,2], conics [M,3], depths [M], radii [M,2] int32, opacities_t [M],
-        tiles_touched [M] int32) of Gaussians `rows` (int32 [M], distinct; None: all, M = N); their
+        tiles_touched [M] int32) of Gaussians `rows` (int32 [M]; None: all, M = N); their
         descriptors, and the camera's, go into `wrapped` by name."""
         n = means.shape[0] if rows is None else rows.shape[0]
         f32 = dict(device=means.device, dtype=torch.float32)
@@ -446,7 +446,7 @@ def rasterize(
     background: torch.Tensor | None = None,  # [3]
     near: float = 0.01,
     far: float = 1e10,
-    rows: torch.Tensor | None = None,  # int [M], distinct: render these Gaussians only (tomgs.alive)
+    rows: torch.Tensor | None = None,  # int [M]: render these Gaussians only (tomgs.alive)
 ):
     """Render the Gaussians at time t: (image [H,W,3], alpha [H,W,1], meta).
 
@@ -459,7 +459,8 @@ def rasterize(
     With `rows` only those Gaussians are rendered, as if the inputs held them alone (ascending rows
     composite ties in the full cloud's order): per-Gaussian work and meta's per-Gaussian outputs
     are [M], and gradients reach the full [N] inputs at those rows (zero elsewhere), without a
-    gather of the inputs. A row outside [0, N) raises RenderError; repeated rows are not allowed.
+    gather of the inputs. A row outside [0, N) raises RenderError; a repeated row renders that
+    Gaussian twice, as gathered inputs would (its gradients summed).
 
     A Gaussian with a non-finite mean, scale, quaternion or temporal window is culled (zero
     gradient). Anything else outside the contract above (an opacity outside [0, 1], a negative

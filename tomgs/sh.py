@@ -93,7 +93,7 @@ def fused_sh_to_colors(sh: torch.Tensor, means: torch.Tensor, viewmat: torch.Ten
                        rows: torch.Tensor | None = None) -> torch.Tensor:
     """`sh_to_colors` in float32 by the Warp kernels of tomgs.kernels.sh, on the inputs' device (CPU
     or CUDA): RGB [N,3] float32 for SH `sh` [N,K,3], `means` [N,3], `viewmat` [4,4] of any float dtype;
-    with `rows` (int32 [M], distinct, on that device) RGB [M,3] of those Gaussians only (a row
+    with `rows` (int32 [M] on that device) RGB [M,3] of those Gaussians only (a row
     outside [0, N) gets black; the renderer refuses it). Differentiable in sh, means and viewmat (the
     viewmat's gradient is formed only when it is asked for)."""
     if sh.dim() != 3 or sh.shape[2] != 3 or means.shape != (sh.shape[0], 3) or viewmat.shape != (4, 4):

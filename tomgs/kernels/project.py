@@ -15,6 +15,7 @@ import warp as wp
 
 from tomgs import constants
 from tomgs.kernels.binning import opacity_extent, tiles_of
+from tomgs.kernels.rows import put
 
 wp.set_module_options({"enable_backward": False})
 
@@ -294,9 +295,9 @@ def project_backward(
     v_t_scales: wp.array(dtype=float),  # out [N]
     v_viewmat_parts: wp.array(dtype=wp.mat44),  # out [N] when camera_grads, summed by the caller
     v_K_parts: wp.array(dtype=wp.vec4),  # out [N] (fx, fy, cx, cy) when camera_grads
-    rows: wp.array(dtype=wp.int32),  # [M] with has_rows: the Gaussians the forward projected, distinct
+    rows: wp.array(dtype=wp.int32),  # [M] with has_rows: the Gaussians the forward projected
     has_rows: int,  # then the forward's outputs, their gradients and the camera partials are [M]; the
-    #                 inputs' gradients [N], zeroed by the caller, are written at rows only
+    #                 inputs' gradients [N], zeroed by the caller, are added at rows (kernels/rows.py)
 ):
     j = wp.tid()
     i = j
@@ -322,9 +323,9 @@ def project_backward(
     g = wp.exp(-0.5 * z * z)
     v_o = v_opacities_t[j]
     o = opacities[i] * g
-    v_opacities[i] = v_o * g
-    v_t_means[i] = v_o * o * z / sigma
-    v_t_scales[i] = v_o * o * z * z / sigma
+    put(v_opacities, i, v_o * g, has_rows)
+    put(v_t_means, i, v_o * o * z / sigma, has_rows)
+    put(v_t_scales, i, v_o * o * z * z / sigma, has_rows)
 
     viewmat = viewmats[0]
     W = view_rotation(viewmat)
@@ -360,18 +361,18 @@ def project_backward(
         v_M[1, 0] * s[0], v_M[1, 1] * s[1], v_M[1, 2] * s[2],
         v_M[2, 0] * s[0], v_M[2, 1] * s[1], v_M[2, 2] * s[2],
     )
-    v_scales[i] = wp.vec3(
+    put(v_scales, i, wp.vec3(
         v_M[0, 0] * R[0, 0] + v_M[1, 0] * R[1, 0] + v_M[2, 0] * R[2, 0],
         v_M[0, 1] * R[0, 1] + v_M[1, 1] * R[1, 1] + v_M[2, 1] * R[2, 1],
         v_M[0, 2] * R[0, 2] + v_M[1, 2] * R[1, 2] + v_M[2, 2] * R[2, 2],
-    )
+    ), has_rows)
     v_qn = rotation_vjp(qn, v_R)
     q_max = quat_max_abs(q)
     q_len = wp.length(q / q_max)  # |q| = q_max q_len, never formed: it may overflow
     if q_max > 0.0 and q_max * q_len >= QUAT_EPS:
-        v_quats[i] = (v_qn - qn * wp.dot(qn, v_qn)) / q_len / q_max
+        put(v_quats, i, (v_qn - qn * wp.dot(qn, v_qn)) / q_len / q_max, has_rows)
     else:
-        v_quats[i] = v_qn / QUAT_EPS
+        put(v_quats, i, v_qn / QUAT_EPS, has_rows)
 
     # Jacobian entries J00 = fx/z, J02 = -fx u/z, J11 = fy/z, J12 = -fy v/z with u, v clamped
     px = p[0]
@@ -404,7 +405,7 @@ def project_backward(
     v_fx += vm2[0] * px / pz
     v_fy += vm2[1] * py / pz
 
-    v_means[i] = wp.transpose(W) * v_p
+    put(v_means, i, wp.transpose(W) * v_p, has_rows)
     if camera_grads != 0:
         v_W += wp.outer(v_p, mu)
         v_viewmat_parts[j] = wp.mat44(

@@ -14,6 +14,7 @@ gradient where value + 0.5 >= 0 and keeps NaN, as torch.clamp_min. float32; degr
 import warp as wp
 
 from tomgs import sh as basis
+from tomgs.kernels.rows import put
 
 wp.set_module_options({"enable_backward": False})
 
@@ -127,8 +128,8 @@ def sh_colors_backward(
     v_sh: wp.array2d(dtype=wp.vec3),  # out [N, K]
     v_means: wp.array(dtype=wp.vec3),  # out [N] when degree > 0
     v_offsets: wp.array(dtype=wp.vec3),  # out [N] when camera_grads: dL/d(mean - centre), summed by the caller
-    rows: wp.array(dtype=wp.int32),  # [M] with has_rows, distinct: v_colors and v_offsets are [M], and
-    has_rows: int,  #                  v_sh and v_means [N], zeroed by the caller, are written at rows
+    rows: wp.array(dtype=wp.int32),  # [M] with has_rows: v_colors and v_offsets are [M], and
+    has_rows: int,  #                  v_sh and v_means [N], zeroed by the caller, are added at rows
 ):
     j = wp.tid()
     i = j
@@ -153,26 +154,26 @@ def sh_colors_backward(
         if not (c[k] >= 0.0):
             g[k] = 0.0
 
-    v_sh[i, 0] = C0 * g
+    put(v_sh, i, 0, C0 * g, has_rows)
     if degree == 0:
         return
     x = d[0]
     y = d[1]
     z = d[2]
     # v_sh[k] = Y_k g; the direction's gradient is sum_k (sh[k] . g) grad Y_k
-    v_sh[i, 1] = (-C1 * y) * g
-    v_sh[i, 2] = (C1 * z) * g
-    v_sh[i, 3] = (-C1 * x) * g
+    put(v_sh, i, 1, (-C1 * y) * g, has_rows)
+    put(v_sh, i, 2, (C1 * z) * g, has_rows)
+    put(v_sh, i, 3, (-C1 * x) * g, has_rows)
     v_d = wp.vec3(-C1 * wp.dot(sh[i, 3], g), -C1 * wp.dot(sh[i, 1], g), C1 * wp.dot(sh[i, 2], g))
     if degree > 1:
         xx = x * x
         yy = y * y
         zz = z * z
-        v_sh[i, 4] = (C2_0 * x * y) * g
-        v_sh[i, 5] = (C2_1 * y * z) * g
-        v_sh[i, 6] = (C2_2 * (2.0 * zz - xx - yy)) * g
-        v_sh[i, 7] = (C2_3 * x * z) * g
-        v_sh[i, 8] = (C2_4 * (xx - yy)) * g
+        put(v_sh, i, 4, (C2_0 * x * y) * g, has_rows)
+        put(v_sh, i, 5, (C2_1 * y * z) * g, has_rows)
+        put(v_sh, i, 6, (C2_2 * (2.0 * zz - xx - yy)) * g, has_rows)
+        put(v_sh, i, 7, (C2_3 * x * z) * g, has_rows)
+        put(v_sh, i, 8, (C2_4 * (xx - yy)) * g, has_rows)
         g4 = C2_0 * wp.dot(sh[i, 4], g)
         g5 = C2_1 * wp.dot(sh[i, 5], g)
         g6 = C2_2 * wp.dot(sh[i, 6], g)
@@ -182,13 +183,13 @@ def sh_colors_backward(
                        g4 * x + g5 * z - 2.0 * g6 * y - 2.0 * g8 * y,
                        g5 * y + 4.0 * g6 * z + g7 * x)
         if degree > 2:
-            v_sh[i, 9] = (C3_0 * y * (3.0 * xx - yy)) * g
-            v_sh[i, 10] = (C3_1 * x * y * z) * g
-            v_sh[i, 11] = (C3_2 * y * (4.0 * zz - xx - yy)) * g
-            v_sh[i, 12] = (C3_3 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy)) * g
-            v_sh[i, 13] = (C3_4 * x * (4.0 * zz - xx - yy)) * g
-            v_sh[i, 14] = (C3_5 * z * (xx - yy)) * g
-            v_sh[i, 15] = (C3_6 * x * (xx - 3.0 * yy)) * g
+            put(v_sh, i, 9, (C3_0 * y * (3.0 * xx - yy)) * g, has_rows)
+            put(v_sh, i, 10, (C3_1 * x * y * z) * g, has_rows)
+            put(v_sh, i, 11, (C3_2 * y * (4.0 * zz - xx - yy)) * g, has_rows)
+            put(v_sh, i, 12, (C3_3 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy)) * g, has_rows)
+            put(v_sh, i, 13, (C3_4 * x * (4.0 * zz - xx - yy)) * g, has_rows)
+            put(v_sh, i, 14, (C3_5 * z * (xx - yy)) * g, has_rows)
+            put(v_sh, i, 15, (C3_6 * x * (xx - 3.0 * yy)) * g, has_rows)
             g9 = C3_0 * wp.dot(sh[i, 9], g)
             g10 = C3_1 * wp.dot(sh[i, 10], g)
             g11 = C3_2 * wp.dot(sh[i, 11], g)
@@ -213,6 +214,6 @@ def sh_colors_backward(
     for k in range(3):
         if not wp.isfinite(mean[k]):
             v_m[k] = 0.0
-    v_means[i] = v_m
+    put(v_means, i, v_m, has_rows)
     if camera_grads != 0:
         v_offsets[j] = v_d
