@@ -609,7 +609,6 @@ def run_case(args, fns, width, height, n, variant, device, clock, pool, deadline
     case["ratios"] = ratios
 
     _drop_grads(P.values())
-    del P, params, runners, Wimg, Walpha
     return case
 
 
