@@ -55,9 +55,13 @@ def test_rows_render_what_their_gathered_inputs_render(device, sh_degree, camera
     unrendered = torch.ones(300, dtype=torch.bool)
     unrendered[rows.cpu()] = False
     for name, grad in grads.items():
-        # float32 sums of the same terms (a repeated row's by atomics, in another order): to an ulp
+        # float32 sums of the same terms in another order: a repeated row's by atomics; on a GPU every
+        # Gaussian's by atomics across tiles, in an order that changes from run to run (H100: the same
+        # gathered inputs rendered twice differ by up to 1.2e-6 of the largest means gradient, and by
+        # 1.4e-5 of the viewmat's, a sum over every Gaussian whose terms cancel far below their size)
+        tolerance = (1e-6 if device == "cpu" else 1e-5) * (1 if name in NAMES else 10)
         scale = float(want_grads[name].abs().max())
-        assert torch.allclose(grad, want_grads[name], rtol=1e-6, atol=1e-6 * scale), name
+        assert torch.allclose(grad, want_grads[name], rtol=tolerance, atol=tolerance * scale), name
         if name in NAMES:
             assert not grad[unrendered.to(device)].any(), name  # the rest keep exactly zero
 

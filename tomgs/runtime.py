@@ -2,8 +2,9 @@
 
     init_warp()                      initialise Warp once, quietly (deferred: importing tomgs stays cheap)
     warp_device(device) -> str       the Warp name of a torch device ("cpu", "cuda:N")
-    scope(device)                    context: Warp launches on `device`, on torch's current stream;
-                                     yields the Warp device name; RenderError for other device types
+    scope(device)                    context that yields the Warp device name of `device` (launches go
+                                     to torch's current stream there); RenderError for other types
+    torch_stream(device)             Warp's handle of torch's current stream on a CUDA device
     wrap(tensor, dtype=None, ndim=None)
                                      zero-copy Warp array descriptor of a torch tensor
     wrap_rows(tensor)                the same of a contiguous [N, ...] tensor seen as [N, D]
@@ -19,8 +20,8 @@ tomgs.edit.physics (XPBD). Every buffer is a torch tensor handed to Warp without
 allocator and memory statistics see all of it.
 
 Warp has no public name for its array descriptor (the ctypes structure that kernels receive);
-`wp.from_torch(tensor, return_ctype=True)` is the public way to build one. It costs ~20% more per
-call than building the structure directly, and it pins the tensor (the descriptor keeps a
+`wp.from_torch(tensor, return_ctype=True)` is the public way to build one. It costs ~3x more per
+call than packing the structure's bytes directly (`wrap`), and it pins the tensor (the descriptor keeps a
 reference), so a recorded launch would keep the previous frame's buffers alive until the next frame
 re-arms it. So the descriptor class is taken from what `wp.from_torch(..., return_ctype=True)`
 returns (no import of Warp's private modules) and filled directly; `_check_descriptor` compares the
@@ -35,6 +36,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import struct
 import sys
 
 import torch
@@ -43,7 +45,7 @@ import warp._src.context as _warp_context  # private: only for sort_pairs (see t
 
 from tomgs.errors import RenderError
 
-__all__ = ["init_warp", "warp_device", "scope", "wrap", "wrap_rows", "NO_ARRAY", "indexable", "launch", "Launches",
+__all__ = ["init_warp", "warp_device", "scope", "torch_stream", "wrap", "wrap_rows", "NO_ARRAY", "indexable", "launch", "Launches",
            "ArrayDescriptor", "sort_pairs"]
 
 _warp_ready = False
@@ -84,24 +86,65 @@ def warp_device(device: torch.device) -> str:
     return f"cuda:{device.index if device.index is not None else torch.cuda.current_device()}"
 
 
+# Warp's handle of each torch CUDA stream (external streams), by raw handle: wrapping one costs tens
+# of microseconds, so once per stream
 _streams: dict[int, wp.Stream] = {}
 
 
-@contextlib.contextmanager
-def scope(device: torch.device):
-    """Run Warp launches on `device`, on torch's current stream when it is a GPU; yields Warp's device name."""
+def _public_raw_stream(index: int) -> int:
+    return torch.cuda.current_stream(index).cuda_stream
+
+
+# torch's current stream as a raw handle without building a torch.cuda.Stream object (~1 us against
+# several on a GPU machine's CPU, once per launch); private to torch, so the public call stands in
+# where a build lacks it
+_raw_stream = getattr(torch._C, "_cuda_getCurrentRawStream", None) or _public_raw_stream
+
+
+def torch_stream(device: str) -> wp.Stream:
+    """Warp's handle of torch's current stream on the CUDA device `device` ("cuda:N")."""
+    index = int(device[5:])
+    raw = _raw_stream(index)
+    stream = _streams.get(raw)
+    if stream is None:
+        stream = _streams[raw] = wp.stream_from_torch(torch.cuda.current_stream(index))
+    return stream
+
+
+class _Scope:
+    """What `scope` returns: a context that yields the Warp device name and changes nothing. Launches
+    take torch's current stream themselves (`torch_stream`), so Warp's own current stream is never
+    switched: entering and leaving a wp.ScopedStream (a device switch and two native calls each
+    way) cost ~20 us of a GPU machine's CPU, up to 16 times a training step."""
+
+    __slots__ = ("name",)
+
+    def __init__(self, name: str):
+        self.name = name
+
+    def __enter__(self) -> str:
+        return self.name
+
+    def __exit__(self, *exc) -> None:
+        return None
+
+
+_scopes: dict[torch.device, _Scope] = {}
+
+
+def scope(device: torch.device) -> _Scope:
+    """Run Warp launches on `device` (on torch's current stream when it is a GPU): a context that yields
+    Warp's device name; RenderError for other device types."""
     init_warp()  # deferred to the first launch so that importing tomgs stays cheap
-    if device.type == "cuda":
-        torch_stream = torch.cuda.current_stream(device)
-        stream = _streams.get(torch_stream.cuda_stream)
-        if stream is None:  # wrapping a stream costs tens of microseconds: once per stream
-            stream = _streams[torch_stream.cuda_stream] = wp.stream_from_torch(torch_stream)
-        with wp.ScopedStream(stream, sync_enter=False):  # same stream as torch: already ordered
-            yield warp_device(device)
-    elif device.type == "cpu":
-        yield "cpu"
-    else:
+    found = _scopes.get(device)
+    if found is not None:
+        return found
+    if device.type not in ("cpu", "cuda"):
         raise RenderError(f"tensors on {device} are not supported: use a CPU or CUDA device")
+    found = _Scope(warp_device(device))
+    if device.type == "cpu" or device.index is not None:  # "cuda" alone follows torch's current device
+        _scopes[device] = found
+    return found
 
 
 # The class of the descriptors `wp.from_torch(..., return_ctype=True)` returns (see the module docstring).
@@ -117,6 +160,13 @@ def _inner_axes(dtype) -> int:
     return axes
 
 
+# A descriptor's bytes (see _check_descriptor): data, grad, shape[4], strides[4], ndim, flags, padding.
+# Packing them and copying the bytes in is ~2x quicker than the structure's own __init__ (a Python
+# loop over the axes), and a frame builds ~40 descriptors.
+_DESCRIPTOR_BYTES = struct.Struct("=QQ4i4iHH4x")
+_NO_AXES = (0, 0, 0, 0)
+
+
 def wrap(tensor: torch.Tensor, dtype=None, ndim: int | None = None):
     """Zero-copy Warp array descriptor of `tensor` [..., *dtype's shape]; a vector or matrix dtype folds
     the trailing axes, which must be contiguous; None (or a scalar dtype) keeps every axis. `ndim`
@@ -124,9 +174,9 @@ def wrap(tensor: torch.Tensor, dtype=None, ndim: int | None = None):
     tensor as a 2D array, without a torch view call (each costs host time on a GPU machine).
     A tensor that is one element of `dtype` (a [4, 4] viewmat as wp.mat44) becomes a [1] array.
 
-    What `wp.from_torch(tensor, dtype, requires_grad=False, return_ctype=True)` builds, at a few
-    microseconds against ~20 for a full `wp.array`, which matters at ~60 arguments per frame. It
-    does not own the tensor: the caller keeps `tensor` alive until the launch is queued.
+    What `wp.from_torch(tensor, dtype, requires_grad=False, return_ctype=True)` builds, at a fraction
+    of its cost, which matters at ~60 arguments per frame. It does not own the tensor: the caller
+    keeps `tensor` alive until the launch is queued.
     """
     inner = 0 if dtype is None else _INNER_AXES.get(dtype)
     if inner is None:
@@ -134,10 +184,15 @@ def wrap(tensor: torch.Tensor, dtype=None, ndim: int | None = None):
     keep = tensor.dim() - inner if ndim is None else ndim
     item = tensor.element_size()
     if keep == 0:  # the whole tensor is one element
-        return ArrayDescriptor(tensor.data_ptr(), 0, 1, (1,), (tensor.numel() * item,))
-    shape = tuple(tensor.shape[:keep])
-    strides = tuple(s * item for s in tensor.stride()[:keep])
-    return ArrayDescriptor(tensor.data_ptr(), 0, len(shape), shape, strides)
+        return ArrayDescriptor.from_buffer_copy(_DESCRIPTOR_BYTES.pack(
+            tensor.data_ptr(), 0, 1, 0, 0, 0, tensor.numel() * item, 0, 0, 0, 1, 0))
+    size, step = tensor.shape, tensor.stride()
+    if keep == 1:  # most arguments: spelled out, a generator costs as much as the rest together
+        return ArrayDescriptor.from_buffer_copy(_DESCRIPTOR_BYTES.pack(
+            tensor.data_ptr(), 0, size[0], 0, 0, 0, step[0] * item, 0, 0, 0, 1, 0))
+    shape = tuple(size[:keep]) + _NO_AXES[keep:]
+    strides = tuple(s * item for s in step[:keep]) + _NO_AXES[keep:]
+    return ArrayDescriptor.from_buffer_copy(_DESCRIPTOR_BYTES.pack(tensor.data_ptr(), 0, *shape, *strides, keep, 0))
 
 
 def indexable(grad: torch.Tensor | None, like: torch.Tensor, *size: int) -> torch.Tensor:
@@ -159,7 +214,8 @@ def wrap_rows(tensor: torch.Tensor):
     rows = tensor.shape[0]
     cols = tensor.numel() // rows if rows else 0
     item = tensor.element_size()
-    return ArrayDescriptor(tensor.data_ptr(), 0, 2, (rows, cols), (cols * item, item))
+    return ArrayDescriptor.from_buffer_copy(_DESCRIPTOR_BYTES.pack(
+        tensor.data_ptr(), 0, rows, cols, 0, 0, cols * item, item, 0, 0, 2, 0))
 
 
 # an empty array: what a kernel receives for an output it is told not to write (no allocation)
@@ -172,7 +228,7 @@ def _check_descriptor() -> None:
     rows = base.reshape(4, 15)
     for ours, tensor, dtype in ((wrap(base[:, ::2], wp.vec3), base[:, ::2], wp.vec3),
                                 (wrap(base[:3, :3], wp.mat33), base[:3, :3], wp.mat33),
-                                (wrap(base[1:, :, 0]), base[1:, :, 0], None),
+                                (wrap(base[1:, :, 0]), base[1:, :, 0], None), (wrap(base), base, None),
                                 (wrap(base[1:, :, :1], ndim=2), base[1:, :, 0], None),
                                 (wrap(base[0, :3]), base[0, :3], None),
                                 (wrap(base[0, :3], wp.mat33), base[0, :3].reshape(1, 3, 3), wp.mat33),
@@ -196,24 +252,29 @@ class Launches:
     """
 
     def __init__(self):
-        self._recorded: dict[tuple, tuple[wp.Launch, object]] = {}
+        # (kernel key, device, block size) -> [command, its dim, the arguments it holds]
+        self._recorded: dict[tuple, list] = {}
 
     def __call__(self, kernel, dim: int, args: list, device: str, block_dim: int = 256) -> None:
-        key = (kernel.key, device, block_dim)
-        entry = self._recorded.get(key)
         if dim == 0:
             return  # nothing to run, and Warp records no command for an empty launch
+        key = (kernel.key, device, block_dim)
+        entry = self._recorded.get(key)
         if entry is None:
             cmd = wp.launch(kernel, dim=dim, inputs=args, device=device, block_dim=block_dim, record_cmd=True)
-            self._recorded[key] = entry = (cmd, dim)
+            self._recorded[key] = [cmd, dim, list(args)]
         else:
-            cmd, last_dim = entry
+            cmd, last_dim, held = entry
             if dim != last_dim:
                 cmd.set_dim(dim)
-                self._recorded[key] = (cmd, dim)
+                entry[1] = dim
             for i, arg in enumerate(args):
-                cmd.set_param_at_index_from_ctype(i, arg)
-        cmd.launch(wp.get_stream(device) if device != "cpu" else None)
+                # an int the command already holds (sizes, flags: most scalars, frame after frame) is
+                # not set again; anything else is (a descriptor is a new object every frame)
+                if type(arg) is not int or type(held[i]) is not int or arg != held[i]:
+                    cmd.set_param_at_index_from_ctype(i, arg)
+                    held[i] = arg
+        cmd.launch(None if device == "cpu" else torch_stream(device))
 
 
 # the process's one cache of recorded launches
@@ -222,7 +283,7 @@ launch = Launches()
 
 def sort_pairs(keys: torch.Tensor, values: torch.Tensor, count: int, end_bit: int) -> None:
     """Sort keys[:count] (int64) by their bits [0, end_bit), stably, and values[:count] (int32) with
-    them, in place, on the keys' device (a GPU: Warp's current stream there; call inside `scope`).
+    them, in place, on the keys' device (a GPU: torch's current stream there).
     Both are contiguous and hold at least 2 * count elements: [count, 2 * count) is the sort's scratch.
 
     Warp's public `wp.utils.radix_sort_pairs` takes full `wp.array`s only: ~20 us each to build from
@@ -241,5 +302,10 @@ def sort_pairs(keys: torch.Tensor, values: torch.Tensor, count: int, end_bit: in
     if count == 0:
         return
     core = _warp_context.runtime.core
-    sort = core.wp_radix_sort_pairs_int64_host if keys.device.type == "cpu" else core.wp_radix_sort_pairs_int64_device
-    sort(keys.data_ptr(), values.data_ptr(), count, 0, end_bit, values.element_size())
+    args = (keys.data_ptr(), values.data_ptr(), count, 0, end_bit, values.element_size())
+    if keys.device.type == "cpu":
+        core.wp_radix_sort_pairs_int64_host(*args)
+        return
+    # the native sort runs on Warp's current stream of the current device: torch's, for this call only
+    with wp.ScopedStream(torch_stream(warp_device(keys.device)), sync_enter=False):
+        core.wp_radix_sort_pairs_int64_device(*args)

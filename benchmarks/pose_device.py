@@ -1,0 +1,49 @@
+"""Where the tracker's algebra should run for a short clip: `estimate_cameras` on DAVIS clips with its
+bundle adjustment and registration on the CPU and on CUDA, in turns (issue 15: the poses are 6-8 s of
+a fit's first minute on the H100).
+
+    python benchmarks/pose_device.py ../shared/data/davis --clips camel,cows --turns 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import torch
+
+from tomgs.io import read_video
+from tomgs.poses import estimate_cameras
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("root", type=Path, help="a folder of DAVIS clips (<clip>/images, <clip>/masks)")
+    ap.add_argument("--clips", default="camel,cows,kite-surf")
+    ap.add_argument("--devices", default="cpu,cuda")
+    ap.add_argument("--turns", type=int, default=2)
+    args = ap.parse_args()
+    rows = []
+    for clip in args.clips.split(","):
+        video = read_video(args.root / clip / "images", masks=args.root / clip / "masks")
+        for turn in range(args.turns):
+            for device in args.devices.split(","):
+                if device == "cuda":
+                    torch.cuda.synchronize()
+                began = time.perf_counter()
+                _, points, _, report = estimate_cameras(video, method="auto", device=device)
+                seconds = time.perf_counter() - began
+                rows.append(dict(clip=clip, turn=turn, device=device, seconds=round(seconds, 3),
+                                 points=len(points), summary=report.summary()))
+                print(json.dumps(rows[-1]), flush=True)
+    print(f"torch threads {torch.get_num_threads()}")
+    for clip in args.clips.split(","):
+        best = {d: min(r["seconds"] for r in rows if r["clip"] == clip and r["device"] == d)
+                for d in args.devices.split(",")}
+        print(clip, "fastest turn, s:", best)
+
+
+if __name__ == "__main__":
+    main()
