@@ -442,6 +442,7 @@ def pays_on(device) -> bool:
     on `device` (where projection culls the dead ones). On a CPU, whose kernels pay for every
     Gaussian, it does: benchmarks/alive_index.py, 100k Gaussians 15% alive at 160x90, a step 56.5 ms
     against 63.4 without (torch gathers of the rows, before the kernels read them in place: 59.0).
-    On the H100 (4M Gaussians, 15% alive, 854x480) the gathers made it lose (6.38 ms a step against
-    5.84, 578 against 868 fps, session 15); the kernels' own rows there are not measured yet."""
+    On the H100 (4M Gaussians, 15% alive, 854x480) it loses even with the kernels reading the rows in
+    place: a step 8.93 ms against 7.32, frames 587 against 653 fps, rendering 18.3% of the rows for
+    13.2% alive (`alive_index.py --device cuda`, session 16; where its time goes is not profiled yet)."""
     return torch.device(device).type != "cuda"

@@ -17,7 +17,7 @@ Launch 1D over num_tiles * 256 threads with block_dim 256 (or 1), so block b is 
 
 import warp as wp
 
-from tomgs.kernels.lanes import lane_index, lanes_any, lanes_sum, lanes_sum_vec2, lanes_sum_vec3
+from tomgs.kernels.lanes import lane_index, lanes_any, lanes_max, lanes_sum, lanes_sum_vec2, lanes_sum_vec3
 from tomgs.kernels.raster import (ALPHA_MAX, ALPHA_MIN, T_MIN, TILE_PIXELS, gaussian_power, pixel_backward_state,
                                   pixel_of, unblend)
 
@@ -153,6 +153,7 @@ def raster_backward_batched(
     trans = final_trans
     behind = wp.vec3(0.0)  # colour composited behind the current Gaussian, already weighted
     lead = lane_index() == 0
+    warp_end = lanes_max(end)  # no pixel of this warp composited an entry at or past it
     half = int(0)
     for batch_end in range(block_end, start, -TILE_PIXELS):
         count = wp.min(TILE_PIXELS, batch_end - start)
@@ -165,7 +166,8 @@ def raster_backward_batched(
             wp.tile_scatter_masked(xy_opacity, half, slot, record, has)
             wp.tile_scatter_masked(conic_batch, half, slot, conic, has)
             wp.tile_scatter_masked(color_batch, half, slot, c, has)
-        for j in range(count):
+        # entries past the warp's pixels are skipped by all its 32 lanes alike (converged for the shuffles)
+        for j in range(wp.max(0, batch_end - warp_end), count):
             k = batch_end - 1 - j
             record = wp.tile_extract(xy_opacity, half, j)
             center = wp.vec2(record[0], record[1])
