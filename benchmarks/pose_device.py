@@ -3,6 +3,11 @@ bundle adjustment and registration on the CPU and on CUDA, in turns (issue 15: t
 a fit's first minute on the H100).
 
     python benchmarks/pose_device.py ../shared/data/davis --clips camel,cows --turns 2
+    python benchmarks/pose_device.py ../shared/data/davis --clips dog --devices cuda --warm-up
+
+Each row is one call; the process's first call pays its start-up (CUDA context, handles, modules).
+`--warm-up` runs `tomgs fit`'s start-up thread (tomgs.train.warm.WarmUp) beside the first call, as a
+fit does, and reports the seconds the join then waits.
 """
 
 from __future__ import annotations
@@ -24,7 +29,14 @@ def main() -> None:
     ap.add_argument("--clips", default="camel,cows,kite-surf")
     ap.add_argument("--devices", default="cpu,cuda")
     ap.add_argument("--turns", type=int, default=2)
+    ap.add_argument("--warm-up", action="store_true", help="run a fit's warm-up thread beside the first call")
     args = ap.parse_args()
+    warming = None
+    if args.warm_up:
+        from tomgs.train import preset
+        from tomgs.train.warm import WarmUp
+
+        warming = WarmUp(preset("default"), torch.device("cuda"))
     rows = []
     for clip in args.clips.split(","):
         video = read_video(args.root / clip / "images", masks=args.root / clip / "masks")
@@ -38,6 +50,9 @@ def main() -> None:
                 rows.append(dict(clip=clip, turn=turn, device=device, seconds=round(seconds, 3),
                                  points=len(points), summary=report.summary()))
                 print(json.dumps(rows[-1]), flush=True)
+                if warming is not None:
+                    print(f"warm-up joined after the first call: waited {warming.join():.2f} s", flush=True)
+                    warming = None
     print(f"torch threads {torch.get_num_threads()}")
     for clip in args.clips.split(","):
         best = {d: min(r["seconds"] for r in rows if r["clip"] == clip and r["device"] == d)

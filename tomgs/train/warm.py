@@ -4,9 +4,14 @@ The first training steps of a process pay once for what has nothing to do with t
 imports torch.optim makes on first use, Warp's start, its kernels loaded onto the device (compiled,
 on the first run of a machine), cuBLAS and cuDNN handles, the caching allocator's first blocks. On
 a GPU that is seconds (the H100: a DAVIS fit's first 50 steps took 8.6 s against 0.35 s for the
-next 50), spent while the GPU idles through the poses, which run on the CPU. `WarmUp` runs a
-throwaway Trainer on a tiny made-up clip in a thread meanwhile; the fit joins it before its own
-Trainer. Used by `tomgs.train.fit` (one GPU) and by every rank of `tomgs.train.ranks`.
+next 50). `WarmUp` runs a throwaway Trainer on a tiny made-up clip in a thread meanwhile; the fit
+joins it before its own Trainer. Used by `tomgs.train.fit` (one GPU) and by every rank of
+`tomgs.train.ranks`.
+
+It was made for poses on the CPU, when the GPU idled through them. The tracker now runs on the GPU
+too, and beside it the warm-up costs a process's first camera estimate ~5 s (H100, dog: 10.5 s
+against 5.1, `benchmarks/pose_device.py --warm-up`); what it still saves of the first steps is not
+re-measured (benchmarks/RESULTS.md, sessions 16-17).
 """
 
 from __future__ import annotations
