@@ -136,6 +136,28 @@ def test_warp_ssim_matches_the_float64_reference():
             assert (x.grad.double() - ref64.grad).abs().max() <= grad_tol, a.shape
 
 
+def test_one_image_takes_the_training_path_with_the_batchs_values_and_gradients():
+    """A training step's SSIM and PSNR of one float32 [H,W,3] image (no batch axis, no permuted copy,
+    one op for the mean square) against the same image as a batch of one and the float64 reference."""
+    g = torch.Generator().manual_seed(8)
+    a = torch.rand(21, 17, 3, generator=g)
+    b = (a + 0.1 * torch.randn(21, 17, 3, generator=g)).clamp(0, 1)
+    one = a.clone().requires_grad_(True)
+    (0.7 * ssim(one, b)).backward()
+    batch = a[None].clone().requires_grad_(True)
+    (0.7 * ssim(batch, b[None])).sum().backward()
+    ref64 = a.double().requires_grad_(True)
+    want = ssim(ref64, b.double())
+    (0.7 * want).backward()
+    assert ssim(one, b).shape == () and float(ssim(one, b)) == pytest.approx(float(ssim(batch, b[None])[0]), abs=1e-7)
+    assert float(ssim(one, b)) == pytest.approx(float(want), abs=2e-6)
+    assert torch.allclose(one.grad, batch.grad[0], rtol=1e-6, atol=1e-9)
+    assert (one.grad.double() - ref64.grad).abs().max() <= 1e-5 * float(ref64.grad.abs().max())
+    single, batched = psnr(a, b), psnr(a[None], b[None])
+    assert single.shape == () and float(single) == pytest.approx(float(batched[0]), abs=1e-4)
+    assert float(single) == pytest.approx(float(-10 * torch.log10((a.double() - b.double()).square().mean())), abs=1e-4)
+
+
 def test_metrics_reject_bad_shapes():
     with pytest.raises(ValueError, match="differ in shape"):
         ssim(torch.zeros(8, 8, 3), torch.zeros(8, 9, 3))

@@ -33,24 +33,28 @@ SSIM_C2 = 0.03 ** 2
 LPIPS_ENV = "TOMGS_LPIPS_WEIGHTS"
 
 
-def _as_batch(img: torch.Tensor, ref: torch.Tensor, what: str) -> tuple[torch.Tensor, torch.Tensor, bool]:
-    """([B,H,W,3], [B,H,W,3], was_batched) after checking shapes."""
+def _check_pair(img: torch.Tensor, ref: torch.Tensor, what: str) -> bool:
+    """Whether the images are a batch [B,H,W,3] (else one [H,W,3]), after checking their shapes."""
     if img.shape != ref.shape:
         raise ValueError(f"{what}: image and reference differ in shape: {tuple(img.shape)} vs {tuple(ref.shape)}")
     if img.dim() not in (3, 4) or img.shape[-1] != 3:
         raise ValueError(f"{what}: expected images [H,W,3] or [B,H,W,3], got {tuple(img.shape)}")
     if not img.is_floating_point() or not ref.is_floating_point():
         raise ValueError(f"{what}: expected float images in [0,1], got {img.dtype} and {ref.dtype}")
-    batched = img.dim() == 4
+    return img.dim() == 4
+
+
+def _as_batch(img: torch.Tensor, ref: torch.Tensor, what: str) -> tuple[torch.Tensor, torch.Tensor, bool]:
+    """([B,H,W,3], [B,H,W,3], was_batched) after checking shapes."""
+    batched = _check_pair(img, ref, what)
     return (img, ref, True) if batched else (img[None], ref[None], False)
 
 
 def psnr(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
     """PSNR in dB of float images in [0,1] ([H,W,3] -> 0-d, [B,H,W,3] -> [B]); identical images give inf."""
-    x, y, batched = _as_batch(img, ref, "psnr")
-    mse = (x - y).square().flatten(1).mean(1)
-    out = -10.0 * torch.log10(mse)
-    return out if batched else out[0]
+    # one image (a training step's, every step): one op for the mean square, no batch axis added
+    mse = (img - ref).square().flatten(1).mean(1) if _check_pair(img, ref, "psnr") else F.mse_loss(img, ref)
+    return -10.0 * torch.log10(mse)
 
 
 _WINDOWS: dict[tuple, torch.Tensor] = {}
@@ -70,9 +74,14 @@ def _gaussian_1d(device, dtype) -> torch.Tensor:
 
 def ssim_map(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
     """Per-pixel SSIM [B,3,H,W] of [B,H,W,3] images (zero padding, 3DGS formula)."""
-    if img.dtype == torch.float32 and ref.dtype == torch.float32 and not ref.requires_grad:
+    if _warp_ssim_takes(img, ref):
         return _WarpSSIM.apply(img, ref).permute(0, 3, 1, 2)
     return ssim_map_conv(img, ref)
+
+
+def _warp_ssim_takes(img: torch.Tensor, ref: torch.Tensor) -> bool:
+    """Whether the Warp passes compute SSIM of these images (float32, a constant reference)."""
+    return img.dtype == torch.float32 and ref.dtype == torch.float32 and not ref.requires_grad
 
 
 def ssim_map_conv(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
@@ -95,7 +104,8 @@ def ssim_map_conv(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
 
 
 class _WarpSSIM(torch.autograd.Function):
-    """Per-pixel SSIM [B,H,W,3] of float32 [B,H,W,3] images; gradient to the first only."""
+    """Per-pixel SSIM [B,H,W,3] of float32 [B,H,W,3] images (or [H,W,3] of [H,W,3]); gradient to the
+    first only."""
 
     @staticmethod
     def forward(ctx, img, ref):
@@ -103,7 +113,7 @@ class _WarpSSIM(torch.autograd.Function):
         from tomgs.runtime import launch, scope, wrap
 
         x, y = img.contiguous(), ref.contiguous()
-        n, (_, height, width, _) = x.numel(), x.shape
+        n, (height, width) = x.numel(), x.shape[-3:-1]
         window = _gaussian_1d(x.device, torch.float32)
         moments = torch.empty(5, n, device=x.device, dtype=torch.float32)
         partials = torch.empty(3, n, device=x.device, dtype=torch.float32)
@@ -122,7 +132,7 @@ class _WarpSSIM(torch.autograd.Function):
         from tomgs.runtime import launch, scope, wrap
 
         x, y, partials = ctx.saved_tensors
-        n, (_, height, width, _) = x.numel(), x.shape
+        n, (height, width) = x.numel(), x.shape[-3:-1]
         window = _gaussian_1d(x.device, torch.float32)
         v_out = v_out.contiguous()
         blurred = torch.empty_like(partials)
@@ -139,8 +149,13 @@ def ssim(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
     """SSIM of float images in [0,1] ([H,W,3] -> 0-d, [B,H,W,3] -> [B]), mean over pixels and channels.
 
     Differentiable in both arguments; the D-SSIM loss is 1 - ssim(render, target)."""
-    x, y, batched = _as_batch(img, ref, "ssim")
-    out = ssim_map(x, y).flatten(1).mean(1)
+    batched = _check_pair(img, ref, "ssim")
+    if _warp_ssim_takes(img, ref):
+        # the Warp map as it comes, channels last, of one image or a batch: no permuted copy to average
+        out = _WarpSSIM.apply(img, ref)
+        return out.flatten(1).mean(1) if batched else out.mean()
+    x, y, _ = _as_batch(img, ref, "ssim")
+    out = ssim_map_conv(x, y).flatten(1).mean(1)
     return out if batched else out[0]
 
 
