@@ -158,6 +158,33 @@ def test_densification_threshold_by_device_unless_given():
     assert preset("paper").threshold("cuda") == preset("paper").threshold("cpu") == 2e-4
 
 
+@pytest.mark.parametrize("with_rows", [False, True])
+def test_the_densifiers_statistics_add_each_visible_gaussians_ndc_gradient_norm(with_rows):
+    """observe (one Warp launch) against the float64 formula: per visible Gaussian, |dL/dmean2d| in NDC
+    units added to its sum and one view to its count, over two frames; with rows (the alive index's
+    frames), a rendered row's statistics reach its Gaussian, a row listed twice adds both."""
+    n, g = 30, torch.Generator().manual_seed(3)
+    densifier = Densifier(preset("quick"), extent=1.0, num_gaussians=n, device=CPU)
+    want_sum, want_seen = torch.zeros(n, dtype=torch.float64), torch.zeros(n, dtype=torch.float64)
+    for width, height in ((64, 40), (33, 17)):
+        rows = torch.tensor([0, 2, 3, 3, 7, 11, 12, 20, 29]) if with_rows else None
+        m = n if rows is None else len(rows)
+        means2d = torch.zeros(m, 2, requires_grad=True)
+        (means2d * torch.randn(m, 2, generator=g) * 10.0 ** torch.randint(-6, 2, (m, 1), generator=g)).sum().backward()
+        visible = torch.rand(n, generator=g) < 0.7
+        visible[3] = True  # listed twice with rows
+        densifier.observe(dict(means2d=means2d, width=width, height=height, rows=rows), visible)
+        scaled = means2d.grad.double() * torch.tensor([width / 2.0, height / 2.0], dtype=torch.float64)
+        where = torch.arange(n) if rows is None else rows
+        hit = visible[where]
+        want_sum.index_add_(0, where[hit], scaled.norm(dim=-1)[hit])
+        want_seen.index_add_(0, where[hit], torch.ones(int(hit.sum()), dtype=torch.float64))
+    assert torch.allclose(densifier.grad_sum.double(), want_sum, rtol=1e-6, atol=0.0)
+    assert torch.equal(densifier.seen.double(), want_seen) and want_seen[3] == (4 if with_rows else 2)
+    densifier.observe(dict(means2d=torch.zeros(n, 2, requires_grad=True), width=8, height=8), visible)  # no grad
+    assert torch.allclose(densifier.grad_sum.double(), want_sum, rtol=1e-6, atol=0.0)
+
+
 @pytest.mark.parametrize("cap", [60, 100, 1000])
 def test_densification_never_exceeds_the_cap(cap):
     g = torch.Generator().manual_seed(0)

@@ -354,9 +354,8 @@ class TrainingIndex:
         return same and not self.stale and iteration - self.built_at < self.rebuild_every
 
     def rows(self, k: int, model, optimizer, iteration: int) -> torch.Tensor | None:
-        """The Gaussians of `model` that may be alive at frame k (int64 [M] ascending: the densifier
-        adds its statistics with them, ~9x slower with int32 on a CPU; None: all), rebuilding the
-        index first when it is due."""
+        """The Gaussians of `model` that may be alive at frame k (int64 [M] ascending, as the
+        densifier's statistics take them; None: all), rebuilding the index first when it is due."""
         if self.index is None or not self._current(model, optimizer, iteration):
             self.rebuild(model, optimizer, iteration)
         rows = self.index.rows(k)

@@ -7,6 +7,7 @@ moments aligned with the rows it keeps, copies and adds (new rows start with zer
 from __future__ import annotations
 
 import torch
+import warp as wp
 
 from tomgs.constants import ALPHA_MIN
 from tomgs.geometry import quat_to_rotmat
@@ -22,7 +23,6 @@ class Densifier:
         self.reset_stats(num_gaussians, device)
         self.capped = False
         self.changed_at = 0  # the iteration of the last densification, prune or opacity reset
-        self._ndc_scales: dict[tuple, torch.Tensor] = {}  # (width, height, device) -> `_ndc_scale`
 
     def reset_stats(self, n: int, device) -> None:
         self.grad_sum = torch.zeros(n, device=device)
@@ -30,29 +30,22 @@ class Densifier:
 
     def observe(self, meta: dict, visible: torch.Tensor) -> None:
         """Accumulate the view-space positional gradient of the Gaussians visible in this frame
-        (`visible`: bool [N], the rasterizer's radii > 0). A render of some Gaussians only names
-        them in meta['rows'] (int [M]; its means2d are [M,2]): their rows take its statistics."""
+        (`visible`: bool [N], the rasterizer's radii > 0), in NDC units, and count the view. A render
+        of some Gaussians only names them in meta['rows'] (int [M]; its means2d are [M,2]): their rows
+        take its statistics. One launch (tomgs/kernels/densify.py)."""
+        from tomgs.kernels.densify import observe_view_gradients
+        from tomgs.runtime import NO_ARRAY, launch, scope, wrap
+
         grad = meta["means2d"].grad
         if grad is None:
             return
-        scale = self._ndc_scale(meta["width"], meta["height"], grad.device)
         rows = meta.get("rows")
-        if rows is None:
-            self.grad_sum += torch.where(visible, (grad * scale).norm(dim=-1), torch.zeros_like(self.grad_sum))
-            self.seen += visible.float()
-            return
-        visible = visible.index_select(0, rows)
-        norms = (grad * scale).norm(dim=-1)
-        self.grad_sum.index_add_(0, rows, torch.where(visible, norms, torch.zeros_like(norms)))
-        self.seen.index_add_(0, rows, visible.float())
-
-    def _ndc_scale(self, width: int, height: int, device: torch.device) -> torch.Tensor:
-        """[2]: pixels -> NDC units, the scale the 3DGS threshold is defined in. Kept per size: building
-        it on a GPU copies from pageable memory, which waits for the device (a host sync every step)."""
-        key = (width, height, device)
-        if key not in self._ndc_scales:
-            self._ndc_scales[key] = torch.tensor([width / 2.0, height / 2.0], device=device)
-        return self._ndc_scales[key]
+        rows = None if rows is None else rows.long().contiguous()
+        grad, visible = grad.contiguous(), visible.contiguous()  # held until the launch is queued
+        with scope(grad.device) as device:
+            launch(observe_view_gradients, grad.shape[0], device=device, args=[
+                wrap(grad, wp.vec2), NO_ARRAY if rows is None else wrap(rows), wrap(visible),
+                wp.vec2(meta["width"] / 2.0, meta["height"] / 2.0), wrap(self.grad_sum), wrap(self.seen)])
 
     # -- the schedule (gsplat's strategy shape: the trainer calls these two around backward) -------
 
