@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from tomgs.metrics import LPIPS, evaluate, psnr, ssim, ssim_map, ssim_map_conv
+from tomgs.metrics import LPIPS, evaluate, l1_dssim, psnr, ssim, ssim_map, ssim_map_conv
 
 LPIPS_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "lpips"
 
@@ -156,6 +156,62 @@ def test_one_image_takes_the_training_path_with_the_batchs_values_and_gradients(
     single, batched = psnr(a, b), psnr(a[None], b[None])
     assert single.shape == () and float(single) == pytest.approx(float(batched[0]), abs=1e-4)
     assert float(single) == pytest.approx(float(-10 * torch.log10((a.double() - b.double()).square().mean())), abs=1e-4)
+
+
+@pytest.mark.parametrize("weight", [0.2, 0.0, 1.0])
+def test_the_training_loss_in_the_ssim_passes_matches_the_float64_formula(weight):
+    """l1_dssim's Warp path (float32, the L1 term's gradient inside the SSIM backward, the loss's
+    upstream never read on the host) against (1 - w) L1 + w (1 - SSIM) in float64, values and
+    gradients, on fresh random images and the extremes (smaller than the window, one pixel, equal
+    images: |d|' = 0 as torch takes it, constant and saturated ones), single and batched."""
+    for seed in (9, 10):
+        cases = [(a[0], b[0]) for a, b in _ssim_cases(seed)] + [(a, b) for a, b in _ssim_cases(seed + 100)][:2]
+        equal = torch.rand(9, 11, 3, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+        cases.append((equal, equal.clone()))
+        for a, b in cases:
+            x = a.float().requires_grad_(True)
+            got = l1_dssim(x, b.float(), weight)
+            (3.0 * got).backward()  # an upstream other than 1
+            ref64 = a.clone().requires_grad_(True)
+            similarity = ssim(ref64, b).mean()
+            want = (1 - weight) * (ref64 - b).abs().mean() + weight * (1 - similarity)
+            (3.0 * want).backward()
+            # float32 bound as for ssim_map: the torch formula in float32 (conv cancellation on bright
+            # flat patches), or 2e-5 where it does better
+            x32 = a.float().requires_grad_(True)
+            batch = (-1, *a.shape[-3:])
+            torch32 = (1 - weight) * (x32 - b.float()).abs().mean() + weight * (1 - ssim_map_conv(
+                x32.reshape(batch), b.float().reshape(batch)).mean())
+            (3.0 * torch32).backward()
+            value_tol = max(2e-6, 2 * abs(float(torch32) - float(want)))
+            grad_tol = max(2e-5 * float(ref64.grad.abs().max().clamp_min(1.0)),
+                           2 * float((x32.grad.double() - ref64.grad).abs().max()))
+            assert got.shape == () and got.dtype == torch.float32
+            assert abs(float(got) - float(want)) <= value_tol, a.shape
+            assert (x.grad.double() - ref64.grad).abs().max() <= grad_tol, a.shape
+    # anything but float32 with a constant reference: the torch formula, gradients to both
+    a64 = torch.rand(6, 7, 3, dtype=torch.float64, requires_grad=True)
+    b64 = torch.rand(6, 7, 3, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda p, q: l1_dssim(p, q, 0.2), (a64, b64), eps=1e-6, atol=1e-6, fast_mode=True)
+
+
+def test_the_training_losss_block_sums_hold_in_cooperative_blocks(monkeypatch):
+    """The loss's sums run per block of 256 threads on a GPU (a block sum, one atomic per block, the
+    last block partly past the image): the same on the CPU in 256 cooperative fibers as one thread a
+    block, for an image whose values do not fill whole blocks."""
+    import warp as wp
+
+    from tomgs import runtime
+
+    g = torch.Generator().manual_seed(12)
+    a, b = torch.rand(13, 11, 3, generator=g), torch.rand(13, 11, 3, generator=g)  # 429 values
+    alone = l1_dssim(a, b, 0.2)
+    monkeypatch.setattr(runtime, "launch", runtime.Launches())  # launches recorded afresh, as fibers
+    monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
+    together = l1_dssim(a, b, 0.2)
+    assert float(together) == pytest.approx(float(alone), rel=1e-6)
+    want = 0.8 * (a.double() - b.double()).abs().mean() + 0.2 * (1 - ssim(a.double(), b.double()))
+    assert float(together) == pytest.approx(float(want), abs=1e-5)
 
 
 def test_metrics_reject_bad_shapes():

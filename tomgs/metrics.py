@@ -4,6 +4,9 @@ Images are float tensors in [0, 1], shape [H,W,3] or batched [B,H,W,3], on any d
 returns one value per image (a 0-d tensor for [H,W,3], [B] for a batch). Protocol (the papers'
 evaluation, as their numbers were made): float renders, no 8-bit rounding; PSNR per frame, averaged over frames.
 
+`l1_dssim` is the training loss, (1 - w) L1 + w (1 - SSIM), in the SSIM passes (no torch operation
+over the image, forward or backward).
+
 SSIM follows the 3DGS implementation exactly: 11x11 Gaussian window (sigma 1.5), C1 = 0.01^2,
 C2 = 0.03^2, per channel, zero "same" padding (conv2d padding=5), mean over all pixels and
 channels. It is differentiable (the trainer's loss uses 1 - ssim). Two implementations of one
@@ -103,46 +106,105 @@ def ssim_map_conv(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
         ((mu1_sq + mu2_sq + SSIM_C1) * (sigma1_sq + sigma2_sq + SSIM_C2))
 
 
+def _ssim_passes(x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(SSIM per value, like x; its partials [3, n]) of contiguous float32 images [..., H, W, 3]
+    through the Warp passes."""
+    from tomgs.kernels import ssim as kernels
+    from tomgs.runtime import launch, scope, wrap, wrap_flat
+
+    n, (height, width) = x.numel(), x.shape[-3:-1]
+    window = _gaussian_1d(x.device, torch.float32)
+    moments = torch.empty(5, n, device=x.device, dtype=torch.float32)
+    partials = torch.empty(3, n, device=x.device, dtype=torch.float32)
+    out = torch.empty_like(x)
+    flat = (wrap_flat(x), wrap_flat(y), wrap(window))
+    with scope(x.device) as device:
+        launch(kernels.moments_rows, n, device=device, args=[*flat, width, wrap(moments)])
+        launch(kernels.ssim_cols, n, device=device, args=[
+            wrap(moments), flat[2], width, height, SSIM_C1, SSIM_C2, wrap_flat(out), wrap(partials)])
+    return out, partials
+
+
+def _ssim_gradient(x: torch.Tensor, y: torch.Tensor, partials: torch.Tensor, v_ssim: torch.Tensor,
+                   v_l1: torch.Tensor | None = None) -> torch.Tensor:
+    """dL/dx, like x, from dL/dS per value (`v_ssim` [n], or one value seen through a zero stride)
+    and, for a training loss, dL/d|x - y| (`v_l1`, the same way)."""
+    from tomgs.kernels import ssim as kernels
+    from tomgs.runtime import NO_ARRAY, launch, scope, wrap, wrap_flat
+
+    n, (height, width) = x.numel(), x.shape[-3:-1]
+    window = _gaussian_1d(x.device, torch.float32)
+    blurred = torch.empty_like(partials)
+    v_x = torch.empty_like(x)
+    with scope(x.device) as device:
+        launch(kernels.grad_rows, n, device=device, args=[
+            # an expanded value is 1D with a zero stride; a map is contiguous, any shape
+            wrap(v_ssim) if v_ssim.dim() == 1 else wrap_flat(v_ssim), wrap(partials), wrap(window), width,
+            wrap(blurred)])
+        launch(kernels.grad_cols, n, device=device, args=[
+            wrap(blurred), wrap_flat(x), wrap_flat(y), wrap(window), width, height,
+            NO_ARRAY if v_l1 is None else wrap(v_l1), wrap_flat(v_x)])
+    return v_x
+
+
 class _WarpSSIM(torch.autograd.Function):
     """Per-pixel SSIM [B,H,W,3] of float32 [B,H,W,3] images (or [H,W,3] of [H,W,3]); gradient to the
     first only."""
 
     @staticmethod
     def forward(ctx, img, ref):
-        from tomgs.kernels import ssim as kernels
-        from tomgs.runtime import launch, scope, wrap
-
         x, y = img.contiguous(), ref.contiguous()
-        n, (height, width) = x.numel(), x.shape[-3:-1]
-        window = _gaussian_1d(x.device, torch.float32)
-        moments = torch.empty(5, n, device=x.device, dtype=torch.float32)
-        partials = torch.empty(3, n, device=x.device, dtype=torch.float32)
-        out = torch.empty_like(x)
-        flat = (wrap(x.view(-1)), wrap(y.view(-1)), wrap(window))
-        with scope(x.device) as device:
-            launch(kernels.moments_rows, n, device=device, args=[*flat, width, wrap(moments)])
-            launch(kernels.ssim_cols, n, device=device, args=[
-                wrap(moments), flat[2], width, height, SSIM_C1, SSIM_C2, wrap(out.view(-1)), wrap(partials)])
+        out, partials = _ssim_passes(x, y)
         ctx.save_for_backward(x, y, partials)
         return out
 
     @staticmethod
     def backward(ctx, v_out):
-        from tomgs.kernels import ssim as kernels
-        from tomgs.runtime import launch, scope, wrap
-
         x, y, partials = ctx.saved_tensors
-        n, (height, width) = x.numel(), x.shape[-3:-1]
-        window = _gaussian_1d(x.device, torch.float32)
-        v_out = v_out.contiguous()
-        blurred = torch.empty_like(partials)
-        v_x = torch.empty_like(x)
+        return _ssim_gradient(x, y, partials, v_out.contiguous()), None
+
+
+class _WarpLoss(torch.autograd.Function):
+    """`l1_dssim` of float32 images and a constant reference: 0-d, gradient to the image only."""
+
+    @staticmethod
+    def forward(ctx, img, ref, ssim_weight: float):
+        from tomgs.kernels import ssim as kernels
+        from tomgs.runtime import launch, scope, wrap, wrap_flat
+
+        x, y = img.contiguous(), ref.contiguous()
+        n = x.numel()
+        out, partials = _ssim_passes(x, y)
+        sums = torch.zeros(2, device=x.device, dtype=torch.float32)
+        loss = torch.empty((), device=x.device, dtype=torch.float32)
         with scope(x.device) as device:
-            launch(kernels.grad_rows, n, device=device, args=[
-                wrap(v_out.view(-1)), wrap(partials), wrap(window), width, wrap(blurred)])
-            launch(kernels.grad_cols, n, device=device, args=[
-                wrap(blurred), wrap(x.view(-1)), wrap(y.view(-1)), wrap(window), width, height, wrap(v_x.view(-1))])
-        return v_x, None
+            launch(kernels.loss_sums, -(-n // 256) * 256, device=device, args=[  # whole blocks: sums per block
+                wrap_flat(x), wrap_flat(y), wrap_flat(out), n, wrap(sums)])
+            launch(kernels.combine_loss, 1, device=device, args=[wrap(sums), n, float(ssim_weight), wrap(loss)])
+        ctx.save_for_backward(x, y, partials)
+        ctx.ssim_weight = float(ssim_weight)
+        return loss
+
+    @staticmethod
+    def backward(ctx, v_loss):
+        x, y, partials = ctx.saved_tensors
+        n, weight = x.numel(), ctx.ssim_weight
+        # uniform upstreams, left on the device: one value each, seen [n] through a zero stride
+        v_ssim = (v_loss * (-weight / n)).expand(n)
+        v_l1 = (v_loss * ((1.0 - weight) / n)).expand(n)
+        return _ssim_gradient(x, y, partials, v_ssim, v_l1), None, None
+
+
+def l1_dssim(img: torch.Tensor, ref: torch.Tensor, ssim_weight: float) -> torch.Tensor:
+    """The 3DGS training loss (1 - w) mean|img - ref| + w (1 - SSIM(img, ref)) of float images in
+    [0,1] ([H,W,3] or [B,H,W,3], the means over every value): 0-d. Float32 images with a constant
+    reference take the Warp passes, which give the L1 term's gradient with the SSIM's (no torch
+    operation over the image); anything else the torch formulas."""
+    batched = _check_pair(img, ref, "l1_dssim")
+    if _warp_ssim_takes(img, ref):
+        return _WarpLoss.apply(img, ref, ssim_weight)
+    similarity = ssim(img, ref).mean() if batched else ssim(img, ref)
+    return (1 - ssim_weight) * (img - ref).abs().mean() + ssim_weight * (1 - similarity)
 
 
 def ssim(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:

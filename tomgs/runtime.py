@@ -8,6 +8,7 @@
     wrap(tensor, dtype=None, ndim=None)
                                      zero-copy Warp array descriptor of a torch tensor
     wrap_rows(tensor)                the same of a contiguous [N, ...] tensor seen as [N, D]
+    wrap_flat(tensor)                the same of a contiguous tensor seen as [numel]
     NO_ARRAY                         a descriptor of an empty array, for outputs a launch will not write
     indexable(grad, like, *size)     an incoming gradient as a kernel can index it (zeros for None)
     launch(kernel, dim, args, device, block_dim=256)
@@ -45,7 +46,7 @@ import warp._src.context as _warp_context  # private: only for sort_pairs (see t
 
 from tomgs.errors import RenderError
 
-__all__ = ["init_warp", "warp_device", "scope", "torch_stream", "wrap", "wrap_rows", "NO_ARRAY", "indexable", "launch", "Launches",
+__all__ = ["init_warp", "warp_device", "scope", "torch_stream", "wrap", "wrap_rows", "wrap_flat", "NO_ARRAY", "indexable", "launch", "Launches",
            "ArrayDescriptor", "sort_pairs"]
 
 _warp_ready = False
@@ -218,6 +219,15 @@ def wrap_rows(tensor: torch.Tensor):
         tensor.data_ptr(), 0, rows, cols, 0, 0, cols * item, item, 0, 0, 2, 0))
 
 
+def wrap_flat(tensor: torch.Tensor):
+    """The values of a contiguous tensor as a 1D float-element array [numel] (no torch view call)."""
+    if not tensor.is_contiguous():
+        raise ValueError("wrap_flat takes a contiguous tensor")
+    item = tensor.element_size()
+    return ArrayDescriptor.from_buffer_copy(_DESCRIPTOR_BYTES.pack(
+        tensor.data_ptr(), 0, tensor.numel(), 0, 0, 0, item, 0, 0, 0, 1, 0))
+
+
 # an empty array: what a kernel receives for an output it is told not to write (no allocation)
 NO_ARRAY = ArrayDescriptor(0, 0, 1, (0,), (4,))
 
@@ -232,7 +242,8 @@ def _check_descriptor() -> None:
                                 (wrap(base[1:, :, :1], ndim=2), base[1:, :, 0], None),
                                 (wrap(base[0, :3]), base[0, :3], None),
                                 (wrap(base[0, :3], wp.mat33), base[0, :3].reshape(1, 3, 3), wp.mat33),
-                                (wrap_rows(base), rows, None)):
+                                (wrap_rows(base), rows, None), (wrap_flat(base), base.reshape(-1), None),
+                                (wrap(base[0, 0, :1].expand(7)), base[0, 0, :1].expand(7), None)):
         theirs = wp.from_torch(tensor, dtype, requires_grad=False, return_ctype=True)
         if bytes(ours) != bytes(theirs):
             raise RuntimeError(f"tomgs.runtime: Warp {wp.__version__} builds array descriptors differently from "

@@ -18,6 +18,12 @@ pixel p,
 
 (the window is symmetric, so the transposed blur is the blur). Only x gets a gradient: the
 reference is a constant of the training loss. Two 1D passes each way, no atomics.
+
+The training loss L = (1 - w) mean|x - y| + w (1 - mean S) comes from the same passes: `loss_sums`
+adds |x - y| and S over every value (block sums, one atomic per block) and `combine_loss` forms L on
+the device; its gradient is the SSIM backward with a uniform upstream g = -w dL / n, and grad_cols adds
+the L1 term (1 - w) dL / n sign(x - y) as it writes dL/dx. dL (the loss's upstream) stays on the
+device: the uniform arrays are a single value seen through a zero stride.
 """
 
 import warp as wp
@@ -111,6 +117,38 @@ def ssim_cols(
 
 
 @wp.kernel
+def loss_sums(
+    x: wp.array(dtype=float),  # [B*H*W*3]
+    y: wp.array(dtype=float),  # [B*H*W*3]
+    ssim: wp.array(dtype=float),  # [B*H*W*3] from ssim_cols
+    n: int,  # values; launched over n rounded up to whole blocks
+    sums: wp.array(dtype=float),  # [2] zeroed: (sum |x - y|, sum S) added
+):
+    # every thread reaches the block sums (no return before them); one per block adds them
+    i = wp.tid()
+    l1 = float(0.0)
+    s = float(0.0)
+    if i < n:
+        l1 = wp.abs(x[i] - y[i])
+        s = ssim[i]
+    block_l1 = wp.tile_extract(wp.tile_sum(wp.tile(l1)), 0)
+    block_s = wp.tile_extract(wp.tile_sum(wp.tile(s)), 0)
+    if i % wp.block_dim() == 0:
+        wp.atomic_add(sums, 0, block_l1)
+        wp.atomic_add(sums, 1, block_s)
+
+
+@wp.kernel
+def combine_loss(
+    sums: wp.array(dtype=float),  # [2] from loss_sums
+    n: int,
+    ssim_weight: float,
+    loss: wp.array(dtype=float),  # [1] out
+):
+    loss[0] = (1.0 - ssim_weight) * sums[0] / float(n) + ssim_weight * (1.0 - sums[1] / float(n))
+
+
+@wp.kernel
 def grad_rows(
     v_ssim: wp.array(dtype=float),  # [B*H*W*3] dL/dS
     partials: wp.array2d(dtype=float),  # [3, B*H*W*3] from ssim_cols
@@ -144,6 +182,7 @@ def grad_cols(
     window: wp.array(dtype=float),  # [11]
     width: int,
     height: int,
+    v_l1: wp.array(dtype=float),  # [B*H*W*3] dL/d|x - y| (a training loss's), or empty: none
     v_x: wp.array(dtype=float),  # [B*H*W*3] out: dL/dx
 ):
     i = wp.tid()
@@ -160,4 +199,11 @@ def grad_cols(
             s0 += w * blurred[0, j]
             s1 += w * blurred[1, j]
             s2 += w * blurred[2, j]
-    v_x[i] = s0 + 2.0 * x[i] * s1 + y[i] * s2
+    v = s0 + 2.0 * x[i] * s1 + y[i] * s2
+    if v_l1.shape[0] > 0:
+        d = x[i] - y[i]
+        if d > 0.0:  # |d|' as torch takes it: 0 where d = 0
+            v += v_l1[i]
+        elif d < 0.0:
+            v -= v_l1[i]
+    v_x[i] = v

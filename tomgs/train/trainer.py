@@ -35,7 +35,7 @@ import torch
 
 from tomgs.alive import TrainingIndex, pays_on
 from tomgs.cameras import Cameras
-from tomgs.metrics import psnr, ssim, ssim_map
+from tomgs.metrics import l1_dssim, psnr, ssim_map
 from tomgs.model import GaussianModel, nearest_neighbour_distance
 from tomgs.render import render_frame
 from tomgs.temporal import frames_to_clip_time
@@ -282,13 +282,13 @@ class Trainer:
         over frame k's weighted pixels, plus L1 of alpha [H,W,1] against its target when there is one."""
         c = self.config
         if self.weights is None:
-            l1, similarity = (image - target).abs().mean(), ssim(image, target)
+            loss = l1_dssim(image, target, c.ssim_weight)
         else:
             w = self._weight(k)
             total = 3 * w.sum().clamp_min(1e-12)
             l1 = (image - target).abs().sum() / total
             similarity = (ssim_map(image[None], target[None])[0] * w.permute(2, 0, 1)).sum() / total
-        loss = (1 - c.ssim_weight) * l1 + c.ssim_weight * (1 - similarity)
+            loss = (1 - c.ssim_weight) * l1 + c.ssim_weight * (1 - similarity)
         if self.alpha_targets is not None:
             alpha_target = self.alpha_targets[k].to(self.device, non_blocking=True).float() / 255.0
             loss = loss + (alpha[..., 0] - alpha_target).abs().mean()
