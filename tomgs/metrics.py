@@ -9,7 +9,7 @@ over the image, forward or backward).
 
 SSIM follows the 3DGS implementation exactly: 11x11 Gaussian window (sigma 1.5), C1 = 0.01^2,
 C2 = 0.03^2, per channel, zero "same" padding (conv2d padding=5), mean over all pixels and
-channels. It is differentiable (the trainer's loss uses 1 - ssim). Two implementations of one
+channels. It is differentiable (the training loss uses 1 - SSIM). Two implementations of one
 formula: float32 images with a constant reference go through four Warp passes that also give the
 gradient (tomgs/kernels/ssim.py: a training step's SSIM in one pass each way instead of a dozen
 torch ops); anything else (float64, a reference that needs a gradient) through two separable
