@@ -200,11 +200,10 @@ def l1_dssim(img: torch.Tensor, ref: torch.Tensor, ssim_weight: float) -> torch.
     [0,1] ([H,W,3] or [B,H,W,3], the means over every value): 0-d. Float32 images with a constant
     reference take the Warp passes, which give the L1 term's gradient with the SSIM's (no torch
     operation over the image); anything else the torch formulas."""
-    batched = _check_pair(img, ref, "l1_dssim")
+    _check_pair(img, ref, "l1_dssim")
     if _warp_ssim_takes(img, ref):
         return _WarpLoss.apply(img, ref, ssim_weight)
-    similarity = ssim(img, ref).mean() if batched else ssim(img, ref)
-    return (1 - ssim_weight) * (img - ref).abs().mean() + ssim_weight * (1 - similarity)
+    return (1 - ssim_weight) * (img - ref).abs().mean() + ssim_weight * (1 - ssim(img, ref).mean())
 
 
 def ssim(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:

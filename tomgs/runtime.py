@@ -168,6 +168,11 @@ _DESCRIPTOR_BYTES = struct.Struct("=QQ4i4iHH4x")
 _NO_AXES = (0, 0, 0, 0)
 
 
+def _descriptor_1d(pointer: int, length: int, stride: int):
+    """A 1D array descriptor: `length` elements `stride` bytes apart from `pointer`."""
+    return ArrayDescriptor.from_buffer_copy(_DESCRIPTOR_BYTES.pack(pointer, 0, length, 0, 0, 0, stride, 0, 0, 0, 1, 0))
+
+
 def wrap(tensor: torch.Tensor, dtype=None, ndim: int | None = None):
     """Zero-copy Warp array descriptor of `tensor` [..., *dtype's shape]; a vector or matrix dtype folds
     the trailing axes, which must be contiguous; None (or a scalar dtype) keeps every axis. `ndim`
@@ -185,12 +190,10 @@ def wrap(tensor: torch.Tensor, dtype=None, ndim: int | None = None):
     keep = tensor.dim() - inner if ndim is None else ndim
     item = tensor.element_size()
     if keep == 0:  # the whole tensor is one element
-        return ArrayDescriptor.from_buffer_copy(_DESCRIPTOR_BYTES.pack(
-            tensor.data_ptr(), 0, 1, 0, 0, 0, tensor.numel() * item, 0, 0, 0, 1, 0))
+        return _descriptor_1d(tensor.data_ptr(), 1, tensor.numel() * item)
     size, step = tensor.shape, tensor.stride()
     if keep == 1:  # most arguments: spelled out, a generator costs as much as the rest together
-        return ArrayDescriptor.from_buffer_copy(_DESCRIPTOR_BYTES.pack(
-            tensor.data_ptr(), 0, size[0], 0, 0, 0, step[0] * item, 0, 0, 0, 1, 0))
+        return _descriptor_1d(tensor.data_ptr(), size[0], step[0] * item)
     shape = tuple(size[:keep]) + _NO_AXES[keep:]
     strides = tuple(s * item for s in step[:keep]) + _NO_AXES[keep:]
     return ArrayDescriptor.from_buffer_copy(_DESCRIPTOR_BYTES.pack(tensor.data_ptr(), 0, *shape, *strides, keep, 0))
@@ -220,12 +223,10 @@ def wrap_rows(tensor: torch.Tensor):
 
 
 def wrap_flat(tensor: torch.Tensor):
-    """The values of a contiguous tensor as a 1D float-element array [numel] (no torch view call)."""
+    """The values of a contiguous tensor as a 1D array [numel] of its dtype (no torch view call)."""
     if not tensor.is_contiguous():
         raise ValueError("wrap_flat takes a contiguous tensor")
-    item = tensor.element_size()
-    return ArrayDescriptor.from_buffer_copy(_DESCRIPTOR_BYTES.pack(
-        tensor.data_ptr(), 0, tensor.numel(), 0, 0, 0, item, 0, 0, 0, 1, 0))
+    return _descriptor_1d(tensor.data_ptr(), tensor.numel(), tensor.element_size())
 
 
 # an empty array: what a kernel receives for an output it is told not to write (no allocation)
