@@ -462,55 +462,6 @@ def test_frame_counts_come_with_the_sync(cooperative, monkeypatch):
     assert 0 < meta["n_visible"] < meta["n_alive"] < 700
 
 
-def blocks_of_every_liveness(seed: int) -> dict:
-    """700 Gaussians at t = 0.5 in blocks of 256 (a GPU's, and the CPU's cooperative blocks): the first
-    block all alive, the second a tenth, the third (partial, 188) two fifths; the dead far from t."""
-    scene = random_scene(seed, n=700)
-    scene["t"] = 0.5
-    alive = torch.zeros(700, dtype=torch.bool)
-    alive[:256] = True
-    alive[256:512:10] = True
-    alive[512::5] = alive[513::5] = True
-    scene["t_means"] = torch.where(alive, 0.5 + 0.1 * scene["t_means"], 3.0)
-    scene["t_scales"] = torch.where(alive, 1.0, 0.1)
-    return scene
-
-
-@pytest.mark.parametrize("cooperative", [False, True])
-def test_projection_packs_a_block_s_few_live_gaussians(cooperative, monkeypatch):
-    """Where at most half a block is alive, its live Gaussians' long path (footprint forward,
-    gradients backward) runs packed into the block's first lanes (tomgs.kernels.blocks.packed_work).
-    In 256-fiber blocks on the CPU, as on a GPU, blocks alive throughout, a tenth alive and two fifths
-    (partial) project and differentiate as the float64 reference does; with rows (their own outputs,
-    packed by output) as their gathered inputs do."""
-    import warp as wp
-
-    from tomgs import render, runtime
-
-    if cooperative:  # fresh recorded launches, so that every kernel runs in blocks of 256 fibers
-        monkeypatch.setattr(render, "launch", runtime.Launches())
-        monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
-    scene = blocks_of_every_liveness(3)
-    meta = assert_matches_reference(scene, "cpu")
-    assert meta["n_alive"] == 256 + 26 + 76 and meta["n_visible"] > 150
-    assert (meta["radii"][256:512].any(-1).sum()) > 5  # the tenth draws: its packed lanes are checked
-
-    rows = torch.arange(100, 700, 3)  # outputs 52-137 and 138-199 straddle the sparse and dense blocks
-    results = []
-    for gathered in (False, True):
-        p = {name: scene[name].float().requires_grad_(True) for name in INPUT_NAMES[:7]}  # per Gaussian
-        inputs = {name: value.index_select(0, rows) for name, value in p.items()} if gathered else p
-        image, alpha, _ = tomgs.rasterize(**inputs, viewmat=scene["viewmat"].float(), K=scene["K"].float(),
-                                          width=scene["width"], height=scene["height"], t=0.5,
-                                          rows=None if gathered else rows)
-        weighted_loss(image, alpha).backward()
-        results.append((image, [value.grad for value in p.values()]))
-    (image, grads), (want, want_grads) = results
-    assert torch.equal(image, want)
-    for grad, want_grad in zip(grads, want_grads):
-        assert torch.allclose(grad, want_grad, rtol=1e-6, atol=1e-6 * float(want_grad.abs().max()))
-
-
 # ---- tile keys written before the host sync, into buffers of a bound kept between frames ----------
 
 @pytest.fixture

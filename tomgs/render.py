@@ -20,7 +20,7 @@ from tomgs import alive
 from tomgs.constants import TILE_SIZE
 from tomgs.inputs import RasterInputs, RenderError, prepare_inputs
 from tomgs.kernels import binning, project, raster, raster_batched
-from tomgs.runtime import NO_ARRAY, indexable, launch, scope, sort_pairs, whole_blocks, wrap
+from tomgs.runtime import NO_ARRAY, indexable, launch, scope, sort_pairs, wrap
 
 # The radix sort needs 2 x count slots and counts in int32: 2^30 keeps both inside int32.
 MAX_INTERSECTIONS = 2**30
@@ -149,15 +149,15 @@ class _Project(torch.autograd.Function):
                        radii=wrap(radii, wp.vec2i), opacities_t=wrap(opacities_t),
                        tiles_touched=wrap(tiles_touched), viewmat=inputs[6], K=inputs[7])
         rows_d = NO_ARRAY if rows is None else wrap(rows)
-        launch(project.project_forward, whole_blocks(n), device=frame.device, args=[
+        launch(project.project_forward, n, device=frame.device, args=[
             *inputs, frame.width, frame.height, frame.t_hi, frame.t_lo, frame.near, frame.far, frame.tiles_x,
             frame.tiles_y, wrapped["means2d"], wrapped["conics"], wrapped["depths"], wrapped["radii"],
             wrapped["opacities_t"], wrapped["tiles_touched"], wrap(flags), rows_d, int(rows is not None),
-            means.shape[0], n,
+            means.shape[0],
         ])
         ctx.frame = frame
         ctx.rows = rows
-        ctx.descriptors = (inputs, wrapped["radii"], rows_d)
+        ctx.descriptors = (inputs, wrapped["radii"], wrapped["conics"], rows_d)
         ctx.save_for_backward(means, quats, scales, opacities, t_means, t_scales, viewmat, K, radii, conics)
         ctx.mark_non_differentiable(depths, radii, tiles_touched)
         ctx.set_materialize_grads(False)  # no zero-filled gradients for depths, radii, tiles (never read)
@@ -173,7 +173,7 @@ class _Project(torch.autograd.Function):
         fresh = torch.empty_like if rows is None else torch.zeros_like
         v_means, v_quats, v_scales = fresh(means), fresh(quats), fresh(scales)
         v_opacities, v_t_means, v_t_scales = fresh(opacities), fresh(t_means), fresh(t_scales)
-        inputs, radii_d, rows_d = ctx.descriptors
+        inputs, radii_d, conics_d, rows_d = ctx.descriptors
         # named, so that a dense copy lives until the launch is queued (a descriptor does not own it)
         v_means2d, v_conics = indexable(v_means2d, conics, n, 2), indexable(v_conics, conics)
         v_opacities_t = indexable(v_opacities_t, conics, n)
@@ -184,11 +184,11 @@ class _Project(torch.autograd.Function):
         else:
             parts = [NO_ARRAY, NO_ARRAY]
         with scope(means.device) as device:
-            launch(project.project_backward, whole_blocks(n), device=device, args=[
-                *inputs, frame.width, frame.height, frame.t_hi, frame.t_lo, radii_d,
+            launch(project.project_backward, n, device=device, args=[
+                *inputs, frame.width, frame.height, frame.t_hi, frame.t_lo, radii_d, conics_d,
                 wrap(v_means2d, wp.vec2), wrap(v_conics, wp.vec3), wrap(v_opacities_t), int(camera_grads),
                 wrap(v_means, wp.vec3), wrap(v_quats, wp.vec4), wrap(v_scales, wp.vec3), wrap(v_opacities),
-                wrap(v_t_means), wrap(v_t_scales), *parts, rows_d, int(rows is not None), n,
+                wrap(v_t_means), wrap(v_t_scales), *parts, rows_d, int(rows is not None),
             ])
         v_viewmat = v_K = None
         if camera_grads:
@@ -374,7 +374,8 @@ def _project_frame(p: RasterInputs, frame: _Frame, wrapped: dict):
     n = outputs[0].shape[0]  # M: the Gaussians projected
     ends = torch.cumsum(outputs[-1], 0, dtype=torch.int64)  # [N] inclusive scan of tiles touched
     has_bg = p.background is not None
-    launch(project.frame_stats, whole_blocks(n), device=frame.device, args=[
+    threads = max(1, -(-n // 256)) * 256  # whole blocks: frame_stats sums per block
+    launch(project.frame_stats, threads, device=frame.device, args=[
         wrapped["tiles_touched"], wrapped["opacities_t"], wrap(ends), n, wrapped["viewmat"], wrapped["K"],
         wrap(p.background, wp.vec3) if has_bg else NO_ARRAY, int(has_bg), wrap(flags)])
     return outputs, ends, flags

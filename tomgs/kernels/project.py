@@ -15,7 +15,6 @@ import warp as wp
 
 from tomgs import constants
 from tomgs.kernels.binning import opacity_extent, tiles_of
-from tomgs.kernels.blocks import packed_work
 from tomgs.kernels.rows import put
 
 wp.set_module_options({"enable_backward": False})
@@ -162,101 +161,6 @@ def scaled_rotation(q: wp.vec4, s: wp.vec3) -> wp.mat33:
     )
 
 
-@wp.func
-def temporal_opacity(base: float, t_hi: float, t_lo: float, t_mean: float, t_scale: float) -> float:
-    z = temporal_z(t_hi, t_lo, t_mean, t_scale)
-    return base * wp.exp(-0.5 * z * z)
-
-
-@wp.func
-def no_footprint(j: int, means2d: wp.array(dtype=wp.vec2), conics: wp.array(dtype=wp.vec3),
-                 radii: wp.array(dtype=wp.vec2i), tiles_touched: wp.array(dtype=wp.int32)):
-    radii[j] = wp.vec2i(0, 0)
-    tiles_touched[j] = 0
-    means2d[j] = wp.vec2(0.0, 0.0)
-    conics[j] = wp.vec3(0.0, 0.0, 0.0)
-
-
-@wp.func
-def project_time_and_depth(
-    j: int, means: wp.array(dtype=wp.vec3), scales: wp.array(dtype=wp.vec3), opacities: wp.array(dtype=float),
-    t_means: wp.array(dtype=float), t_scales: wp.array(dtype=float), viewmats: wp.array(dtype=wp.mat44),
-    t_hi: float, t_lo: float, near: float, far: float, means2d: wp.array(dtype=wp.vec2),
-    conics: wp.array(dtype=wp.vec3), depths: wp.array(dtype=float), radii: wp.array(dtype=wp.vec2i),
-    opacities_t: wp.array(dtype=float), tiles_touched: wp.array(dtype=wp.int32), flags: wp.array(dtype=wp.int64),
-    rows: wp.array(dtype=wp.int32), has_rows: int, n: int,
-) -> bool:
-    # the short path, every output: the contract's flags, o_i(t) and depth; the footprint zeroed
-    # unless the Gaussian goes on to project_to_image (returns True: alive at t, inside (near, far))
-    i = j
-    if has_rows != 0:
-        i = rows[j]
-        if i < 0 or i >= n:
-            flags[FLAG_ROWS] = wp.int64(1)
-            opacities_t[j] = 0.0
-            depths[j] = 0.0
-            no_footprint(j, means2d, conics, radii, tiles_touched)
-            return False
-    base = opacities[i]
-    s = scales[i]
-    if not (base >= 0.0 and base <= 1.0):
-        flags[FLAG_OPACITIES] = wp.int64(1)
-    if s[0] < 0.0 or s[1] < 0.0 or s[2] < 0.0:
-        flags[FLAG_SCALES] = wp.int64(1)
-    if t_scales[i] < 0.0:
-        flags[FLAG_T_SCALES] = wp.int64(1)
-    opac = temporal_opacity(base, t_hi, t_lo, t_means[i], t_scales[i])
-    opacities_t[j] = opac
-    p = world_to_camera(viewmats[0], means[i])
-    depths[j] = p[2]
-    # also rejects NaN
-    if opac >= ALPHA_MIN and opac <= 1.0e30 and p[2] > near and p[2] < far:
-        return True
-    no_footprint(j, means2d, conics, radii, tiles_touched)
-    return False
-
-
-@wp.func
-def project_to_image(
-    j: int, means: wp.array(dtype=wp.vec3), quats: wp.array(dtype=wp.vec4), scales: wp.array(dtype=wp.vec3),
-    opacities: wp.array(dtype=float), t_means: wp.array(dtype=float), t_scales: wp.array(dtype=float),
-    viewmats: wp.array(dtype=wp.mat44), Ks: wp.array(dtype=wp.mat33), width: int, height: int, t_hi: float,
-    t_lo: float, tiles_x: int, tiles_y: int, means2d: wp.array(dtype=wp.vec2), conics: wp.array(dtype=wp.vec3),
-    radii: wp.array(dtype=wp.vec2i), tiles_touched: wp.array(dtype=wp.int32), rows: wp.array(dtype=wp.int32),
-    has_rows: int,
-):
-    # the long path, for output j that project_time_and_depth kept: its footprint, or zeros (off
-    # screen, not finite); o_i(t) and the camera point recomputed by the same formulas
-    i = j
-    if has_rows != 0:
-        i = rows[j]
-    opac = temporal_opacity(opacities[i], t_hi, t_lo, t_means[i], t_scales[i])
-    viewmat = viewmats[0]
-    p = world_to_camera(viewmat, means[i])
-    K = Ks[0]
-    J = ewa_jacobian(p, K, fov_limits(K, width, height))
-    A = J * view_rotation(viewmat) * scaled_rotation(quats[i], scales[i])
-    conic = conic_of(A)
-    a = A[0, 0] * A[0, 0] + A[0, 1] * A[0, 1] + A[0, 2] * A[0, 2] + EPS2D
-    c = A[1, 0] * A[1, 0] + A[1, 1] * A[1, 1] + A[1, 2] * A[1, 2] + EPS2D
-    center = wp.vec2(K[0, 0] * p[0] / p[2] + K[0, 2], K[1, 1] * p[1] / p[2] + K[1, 2])
-
-    # opacity-aware extent: beyond it the Gaussian's alpha is below 1/255 everywhere
-    extend = opacity_extent(opac)
-    rx = wp.min(wp.ceil(extend * wp.sqrt(a)), MAX_RADIUS)
-    ry = wp.min(wp.ceil(extend * wp.sqrt(c)), MAX_RADIUS)
-    finite = wp.isfinite(center) and wp.isfinite(conic) and wp.isfinite(rx) and wp.isfinite(ry)
-    if (not finite or (rx <= 0.0 and ry <= 0.0) or center[0] + rx <= 0.0 or center[0] - rx >= float(width)
-            or center[1] + ry <= 0.0 or center[1] - ry >= float(height)):
-        no_footprint(j, means2d, conics, radii, tiles_touched)
-        return
-    radius = wp.vec2i(int(rx), int(ry))
-    means2d[j] = center
-    conics[j] = conic
-    radii[j] = radius
-    tiles_touched[j] = tiles_of(center, conic, radius, opac, tiles_x, tiles_y)
-
-
 @wp.kernel
 def project_forward(
     means: wp.array(dtype=wp.vec3),  # [N]
@@ -275,31 +179,75 @@ def project_forward(
     far: float,
     tiles_x: int,
     tiles_y: int,
-    means2d: wp.array(dtype=wp.vec2),  # out [M]
-    conics: wp.array(dtype=wp.vec3),  # out [M]
-    depths: wp.array(dtype=float),  # out [M]
-    radii: wp.array(dtype=wp.vec2i),  # out [M], (0, 0) when culled
-    opacities_t: wp.array(dtype=float),  # out [M] o_i(t)
-    tiles_touched: wp.array(dtype=wp.int32),  # out [M]
+    means2d: wp.array(dtype=wp.vec2),  # out [N]
+    conics: wp.array(dtype=wp.vec3),  # out [N]
+    depths: wp.array(dtype=float),  # out [N]
+    radii: wp.array(dtype=wp.vec2i),  # out [N], (0, 0) when culled
+    opacities_t: wp.array(dtype=float),  # out [N] o_i(t)
+    tiles_touched: wp.array(dtype=wp.int32),  # out [N]
     flags: wp.array(dtype=wp.int64),  # [NUM_FLAGS] zeroed by the caller; set to 1 on a contract violation
-    rows: wp.array(dtype=wp.int32),  # [M] with has_rows: the Gaussians projected
+    rows: wp.array(dtype=wp.int32),  # [M] with has_rows: the Gaussians projected (the outputs are [M])
     has_rows: int,
     n: int,  # N, the Gaussians the inputs hold
-    m: int,  # M, the outputs: N, or the rows' length
 ):
-    # Launched over whole blocks (blocks.packed_work). Output j is Gaussian i: j itself, or rows[j].
-    # Most Gaussians of a temporal scene are dead at t and stop after the short path; the long path
-    # then runs packed into few warps instead of diverging in every warp.
+    # output j is Gaussian i: j itself, or rows[j]
     j = wp.tid()
-    live = False
-    if j < m:
-        live = project_time_and_depth(j, means, scales, opacities, t_means, t_scales, viewmats, t_hi, t_lo, near,
-                                      far, means2d, conics, depths, radii, opacities_t, tiles_touched, flags, rows,
-                                      has_rows, n)
-    k = packed_work(live, j)
-    if k >= 0:
-        project_to_image(k, means, quats, scales, opacities, t_means, t_scales, viewmats, Ks, width, height, t_hi,
-                         t_lo, tiles_x, tiles_y, means2d, conics, radii, tiles_touched, rows, has_rows)
+    i = j
+    radii[j] = wp.vec2i(0, 0)
+    tiles_touched[j] = 0
+    means2d[j] = wp.vec2(0.0, 0.0)
+    conics[j] = wp.vec3(0.0, 0.0, 0.0)
+    if has_rows != 0:
+        i = rows[j]
+        if i < 0 or i >= n:
+            flags[FLAG_ROWS] = wp.int64(1)
+            opacities_t[j] = 0.0
+            depths[j] = 0.0
+            return
+    base = opacities[i]
+    s = scales[i]
+    if not (base >= 0.0 and base <= 1.0):
+        flags[FLAG_OPACITIES] = wp.int64(1)
+    if s[0] < 0.0 or s[1] < 0.0 or s[2] < 0.0:
+        flags[FLAG_SCALES] = wp.int64(1)
+    if t_scales[i] < 0.0:
+        flags[FLAG_T_SCALES] = wp.int64(1)
+
+    # temporal cull first: a Gaussian dead at t costs one exp and no more
+    z = temporal_z(t_hi, t_lo, t_means[i], t_scales[i])
+    opac = base * wp.exp(-0.5 * z * z)
+    opacities_t[j] = opac
+    viewmat = viewmats[0]
+    p = world_to_camera(viewmat, means[i])
+    depths[j] = p[2]
+    if not (opac >= ALPHA_MIN and opac <= 1.0e30):  # also rejects NaN
+        return
+    if not (p[2] > near and p[2] < far):
+        return
+
+    K = Ks[0]
+    J = ewa_jacobian(p, K, fov_limits(K, width, height))
+    A = J * view_rotation(viewmat) * scaled_rotation(quats[i], s)
+    conic = conic_of(A)
+    a = A[0, 0] * A[0, 0] + A[0, 1] * A[0, 1] + A[0, 2] * A[0, 2] + EPS2D
+    c = A[1, 0] * A[1, 0] + A[1, 1] * A[1, 1] + A[1, 2] * A[1, 2] + EPS2D
+    center = wp.vec2(K[0, 0] * p[0] / p[2] + K[0, 2], K[1, 1] * p[1] / p[2] + K[1, 2])
+
+    # opacity-aware extent: beyond it the Gaussian's alpha is below 1/255 everywhere
+    extend = opacity_extent(opac)
+    rx = wp.min(wp.ceil(extend * wp.sqrt(a)), MAX_RADIUS)
+    ry = wp.min(wp.ceil(extend * wp.sqrt(c)), MAX_RADIUS)
+    finite = wp.isfinite(center) and wp.isfinite(conic) and wp.isfinite(rx) and wp.isfinite(ry)
+    if not finite or (rx <= 0.0 and ry <= 0.0):
+        return
+    if center[0] + rx <= 0.0 or center[0] - rx >= float(width) or center[1] + ry <= 0.0 or center[1] - ry >= float(height):
+        return
+
+    radius = wp.vec2i(int(rx), int(ry))
+    means2d[j] = center
+    conics[j] = conic
+    radii[j] = radius
+    tiles_touched[j] = tiles_of(center, conic, radius, opac, tiles_x, tiles_y)
 
 
 @wp.func
@@ -319,21 +267,56 @@ def rotation_vjp(q: wp.vec4, g: wp.mat33) -> wp.vec4:
     return wp.vec4(vw, vx, vy, vz)
 
 
-@wp.func
-def project_backward_one(
-    j: int, means: wp.array(dtype=wp.vec3), quats: wp.array(dtype=wp.vec4), scales: wp.array(dtype=wp.vec3),
-    opacities: wp.array(dtype=float), t_means: wp.array(dtype=float), t_scales: wp.array(dtype=float),
-    viewmats: wp.array(dtype=wp.mat44), Ks: wp.array(dtype=wp.mat33), width: int, height: int, t_hi: float,
-    t_lo: float, v_means2d: wp.array(dtype=wp.vec2), v_conics: wp.array(dtype=wp.vec3),
-    v_opacities_t: wp.array(dtype=float), camera_grads: int, v_means: wp.array(dtype=wp.vec3),
-    v_quats: wp.array(dtype=wp.vec4), v_scales: wp.array(dtype=wp.vec3), v_opacities: wp.array(dtype=float),
-    v_t_means: wp.array(dtype=float), v_t_scales: wp.array(dtype=float), v_viewmat_parts: wp.array(dtype=wp.mat44),
-    v_K_parts: wp.array(dtype=wp.vec4), rows: wp.array(dtype=wp.int32), has_rows: int,
+@wp.kernel
+def project_backward(
+    means: wp.array(dtype=wp.vec3),  # [N] (forward inputs, as above)
+    quats: wp.array(dtype=wp.vec4),
+    scales: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    t_means: wp.array(dtype=float),
+    t_scales: wp.array(dtype=float),
+    viewmats: wp.array(dtype=wp.mat44),
+    Ks: wp.array(dtype=wp.mat33),
+    width: int,
+    height: int,
+    t_hi: float,
+    t_lo: float,
+    radii: wp.array(dtype=wp.vec2i),  # [N] from the forward; (0, 0) = culled, no gradient
+    conics: wp.array(dtype=wp.vec3),  # [N] from the forward
+    v_means2d: wp.array(dtype=wp.vec2),  # [N] incoming gradients
+    v_conics: wp.array(dtype=wp.vec3),
+    v_opacities_t: wp.array(dtype=float),
+    camera_grads: int,  # 1: write per-Gaussian viewmat and K partials below
+    v_means: wp.array(dtype=wp.vec3),  # out [N]
+    v_quats: wp.array(dtype=wp.vec4),  # out [N]
+    v_scales: wp.array(dtype=wp.vec3),  # out [N]
+    v_opacities: wp.array(dtype=float),  # out [N]
+    v_t_means: wp.array(dtype=float),  # out [N]
+    v_t_scales: wp.array(dtype=float),  # out [N]
+    v_viewmat_parts: wp.array(dtype=wp.mat44),  # out [N] when camera_grads, summed by the caller
+    v_K_parts: wp.array(dtype=wp.vec4),  # out [N] (fx, fy, cx, cy) when camera_grads
+    rows: wp.array(dtype=wp.int32),  # [M] with has_rows: the Gaussians the forward projected
+    has_rows: int,  # then the forward's outputs, their gradients and the camera partials are [M]; the
+    #                 inputs' gradients [N], zeroed by the caller, are added at rows (kernels/rows.py)
 ):
-    # the gradients of output j, projected with a footprint (radii not zero)
+    j = wp.tid()
     i = j
     if has_rows != 0:
         i = rows[j]
+    r = radii[j]
+    if r[0] == 0 and r[1] == 0:  # culled (a bad row too): no gradient
+        if has_rows == 0:
+            v_means[i] = wp.vec3(0.0)
+            v_quats[i] = wp.vec4(0.0)
+            v_scales[i] = wp.vec3(0.0)
+            v_opacities[i] = 0.0
+            v_t_means[i] = 0.0
+            v_t_scales[i] = 0.0
+        if camera_grads != 0:
+            v_viewmat_parts[j] = wp.mat44(0.0)
+            v_K_parts[j] = wp.vec4(0.0)
+        return
+
     # temporal window: o = a g, g = exp(-z^2 / 2), z = (t - m) / sigma
     sigma = t_scales[i]
     z = temporal_z(t_hi, t_lo, t_means[i], sigma)
@@ -432,63 +415,6 @@ def project_backward_one(
             0.0, 0.0, 0.0, 0.0,
         )
         v_K_parts[j] = wp.vec4(v_fx, v_fy, vm2[0], vm2[1])
-
-
-@wp.kernel
-def project_backward(
-    means: wp.array(dtype=wp.vec3),  # [N] (forward inputs, as above)
-    quats: wp.array(dtype=wp.vec4),
-    scales: wp.array(dtype=wp.vec3),
-    opacities: wp.array(dtype=float),
-    t_means: wp.array(dtype=float),
-    t_scales: wp.array(dtype=float),
-    viewmats: wp.array(dtype=wp.mat44),
-    Ks: wp.array(dtype=wp.mat33),
-    width: int,
-    height: int,
-    t_hi: float,
-    t_lo: float,
-    radii: wp.array(dtype=wp.vec2i),  # [M] from the forward; (0, 0) = culled, no gradient
-    v_means2d: wp.array(dtype=wp.vec2),  # [M] incoming gradients
-    v_conics: wp.array(dtype=wp.vec3),
-    v_opacities_t: wp.array(dtype=float),
-    camera_grads: int,  # 1: write per-Gaussian viewmat and K partials below
-    v_means: wp.array(dtype=wp.vec3),  # out [N]
-    v_quats: wp.array(dtype=wp.vec4),  # out [N]
-    v_scales: wp.array(dtype=wp.vec3),  # out [N]
-    v_opacities: wp.array(dtype=float),  # out [N]
-    v_t_means: wp.array(dtype=float),  # out [N]
-    v_t_scales: wp.array(dtype=float),  # out [N]
-    v_viewmat_parts: wp.array(dtype=wp.mat44),  # out [M] when camera_grads, summed by the caller
-    v_K_parts: wp.array(dtype=wp.vec4),  # out [M] (fx, fy, cx, cy) when camera_grads
-    rows: wp.array(dtype=wp.int32),  # [M] with has_rows: the Gaussians the forward projected
-    has_rows: int,  # then the inputs' gradients [N], zeroed by the caller, are added at rows (kernels/rows.py)
-    m: int,  # M, the forward's outputs
-):
-    # Launched over whole blocks; the Gaussians with a footprint run packed (blocks.packed_work), as
-    # in the forward: in a temporal scene most have none and only write their zeros.
-    j = wp.tid()
-    live = False
-    if j < m:
-        r = radii[j]
-        if r[0] == 0 and r[1] == 0:  # culled (a bad row too): no gradient
-            if has_rows == 0:
-                v_means[j] = wp.vec3(0.0)
-                v_quats[j] = wp.vec4(0.0)
-                v_scales[j] = wp.vec3(0.0)
-                v_opacities[j] = 0.0
-                v_t_means[j] = 0.0
-                v_t_scales[j] = 0.0
-            if camera_grads != 0:
-                v_viewmat_parts[j] = wp.mat44(0.0)
-                v_K_parts[j] = wp.vec4(0.0)
-        else:
-            live = True
-    k = packed_work(live, j)
-    if k >= 0:
-        project_backward_one(k, means, quats, scales, opacities, t_means, t_scales, viewmats, Ks, width, height, t_hi,
-                             t_lo, v_means2d, v_conics, v_opacities_t, camera_grads, v_means, v_quats, v_scales,
-                             v_opacities, v_t_means, v_t_scales, v_viewmat_parts, v_K_parts, rows, has_rows)
 
 
 @wp.func

@@ -17,13 +17,19 @@ Launch 1D over num_tiles * 256 threads with block_dim 256 (or 1), so block b is 
 
 import warp as wp
 
-from tomgs.kernels.blocks import block_width
 from tomgs.kernels.lanes import lane_index, lanes_any, lanes_max, lanes_sum, lanes_sum_vec2, lanes_sum_vec3
 from tomgs.kernels.raster import (ALPHA_MAX, ALPHA_MIN, T_MIN, TILE_PIXELS, gaussian_power, pixel_backward_state,
                                   pixel_of, unblend)
 
 # fast math as in raster.py (the same per-pixel arithmetic, issue bound on the GPU)
 wp.set_module_options({"enable_backward": False, "fast_math": True})
+
+
+@wp.func_native("return WP_TILE_BLOCK_DIM;")
+def block_width() -> int:
+    """Threads per block, as the module was compiled for it (256 on CUDA; 1, or 256 with
+    wp.config.enable_cpu_blocks, on the CPU): a constant to the compiler, unlike wp.block_dim()."""
+    ...
 
 
 @wp.func
