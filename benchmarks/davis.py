@@ -120,7 +120,13 @@ def main() -> None:
     ap.add_argument("--lpips", type=Path, help="LPIPS weights (alexnet-lpips-v0.1.npz or its folder)")
     ap.add_argument("--profile", action="store_true", help="profile the training step at the end of each fit")
     ap.add_argument("--device", default="cuda", help="cuda; cpu only for a dry run of the script")
+    ap.add_argument("--no-warm-up", action="store_true",
+                    help="no start-up thread beside the poses (tomgs.train.warm): the first steps pay its costs")
     args = ap.parse_args()
+    if args.no_warm_up:
+        import tomgs.train.warm
+
+        tomgs.train.warm.pays_on = lambda device: False  # fit looks it up when it starts
     args.out.mkdir(parents=True, exist_ok=True)
     device = torch.device(args.device)
     overrides = {k: json.loads(v) for k, v in (s.split("=", 1) for s in args.set)}
