@@ -9,9 +9,13 @@ joins it before its own Trainer. Used by `tomgs.train.fit` (one GPU) and by ever
 `tomgs.train.ranks`.
 
 It was made for poses on the CPU, when the GPU idled through them. The tracker now runs on the GPU
-too, and beside it the warm-up costs a process's first camera estimate ~5 s (H100, dog: 10.5 s
-against 5.1, `benchmarks/pose_device.py --warm-up`); what it still saves of the first steps is not
-re-measured (benchmarks/RESULTS.md, sessions 16-17).
+too, and the warm-up's Python holds the interpreter lock against the tracker's (the first optimiser
+imports torch._dynamo, from torch.optim.Optimizer's add_param_group: 5.4 s of a first Trainer's 6.4
+s on a 2-core CPU with the disk cache cold, 1.5 s warm; then Warp's modules load): beside it a camel
+estimate took 6.2-7.8 s against 3.3-4.5 s alone. It still pays: without it the Trainer's
+construction and first steps took 5.2-6.4 s against 0.2 s, so a 1-minute camel fit started training
+8.5-9.9 s in with it and 9.4-12.0 s without, and its PSNR at 60 s was the same within run-to-run
+noise (H100, `benchmarks/davis.py --no-warm-up`; benchmarks/RESULTS.md, session 18).
 """
 
 from __future__ import annotations
