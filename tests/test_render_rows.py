@@ -59,7 +59,7 @@ def test_rows_render_what_their_gathered_inputs_render(device, sh_degree, camera
         # Gaussian's by atomics across tiles, in an order that changes from run to run (H100: the same
         # gathered inputs rendered twice differ by up to 1.2e-6 of the largest means gradient, and by
         # 1.4e-5 of the viewmat's, a sum over every Gaussian whose terms cancel far below their size)
-        tolerance = (1e-6 if device == "cpu" else 1e-5) * (1 if name in NAMES else 10)
+        tolerance = 1e-6 if device == "cpu" else 1e-5 * (1 if name in NAMES else 10)
         scale = float(want_grads[name].abs().max())
         assert torch.allclose(grad, want_grads[name], rtol=tolerance, atol=tolerance * scale), name
         if name in NAMES:

@@ -170,7 +170,7 @@ class _WarpLoss(torch.autograd.Function):
     @staticmethod
     def forward(ctx, img, ref, ssim_weight: float):
         from tomgs.kernels import ssim as kernels
-        from tomgs.runtime import launch, scope, wrap, wrap_flat
+        from tomgs.runtime import launch, scope, whole_blocks, wrap, wrap_flat
 
         x, y = img.contiguous(), ref.contiguous()
         n = x.numel()
@@ -178,7 +178,7 @@ class _WarpLoss(torch.autograd.Function):
         sums = torch.zeros(2, device=x.device, dtype=torch.float32)
         loss = torch.empty((), device=x.device, dtype=torch.float32)
         with scope(x.device) as device:
-            launch(kernels.loss_sums, -(-n // 256) * 256, device=device, args=[  # whole blocks: sums per block
+            launch(kernels.loss_sums, whole_blocks(n), device=device, args=[
                 wrap_flat(x), wrap_flat(y), wrap_flat(out), n, wrap(sums)])
             launch(kernels.combine_loss, 1, device=device, args=[wrap(sums), n, float(ssim_weight), wrap(loss)])
         ctx.save_for_backward(x, y, partials)

@@ -20,7 +20,7 @@ from tomgs import alive
 from tomgs.constants import TILE_SIZE
 from tomgs.inputs import RasterInputs, RenderError, prepare_inputs
 from tomgs.kernels import binning, project, raster, raster_batched
-from tomgs.runtime import NO_ARRAY, indexable, launch, scope, sort_pairs, wrap
+from tomgs.runtime import NO_ARRAY, indexable, launch, scope, sort_pairs, whole_blocks, wrap
 
 # The radix sort needs 2 x count slots and counts in int32: 2^30 keeps both inside int32.
 MAX_INTERSECTIONS = 2**30
@@ -374,8 +374,7 @@ def _project_frame(p: RasterInputs, frame: _Frame, wrapped: dict):
     n = outputs[0].shape[0]  # M: the Gaussians projected
     ends = torch.cumsum(outputs[-1], 0, dtype=torch.int64)  # [N] inclusive scan of tiles touched
     has_bg = p.background is not None
-    threads = max(1, -(-n // 256)) * 256  # whole blocks: frame_stats sums per block
-    launch(project.frame_stats, threads, device=frame.device, args=[
+    launch(project.frame_stats, whole_blocks(n), device=frame.device, args=[
         wrapped["tiles_touched"], wrapped["opacities_t"], wrap(ends), n, wrapped["viewmat"], wrapped["K"],
         wrap(p.background, wp.vec3) if has_bg else NO_ARRAY, int(has_bg), wrap(flags)])
     return outputs, ends, flags

@@ -13,6 +13,7 @@
     indexable(grad, like, *size)     an incoming gradient as a kernel can index it (zeros for None)
     launch(kernel, dim, args, device, block_dim=256)
                                      a recorded launch per (kernel, device, block size), re-armed
+    whole_blocks(n)                  the launch size, in whole blocks of 256, of n threads of work
     sort_pairs(keys, values, count, end_bit)
                                      Warp's radix sort of int64 keys and int32 values, on tensors
 
@@ -46,8 +47,8 @@ import warp._src.context as _warp_context  # private: only for sort_pairs (see t
 
 from tomgs.errors import RenderError
 
-__all__ = ["init_warp", "warp_device", "scope", "torch_stream", "wrap", "wrap_rows", "wrap_flat", "NO_ARRAY", "indexable", "launch", "Launches",
-           "ArrayDescriptor", "sort_pairs"]
+__all__ = ["init_warp", "warp_device", "scope", "torch_stream", "wrap", "wrap_rows", "wrap_flat", "NO_ARRAY",
+           "indexable", "launch", "Launches", "whole_blocks", "ArrayDescriptor", "sort_pairs"]
 
 _warp_ready = False
 
@@ -291,6 +292,13 @@ class Launches:
 
 # the process's one cache of recorded launches
 launch = Launches()
+
+
+def whole_blocks(n: int) -> int:
+    """Threads to launch for n items in a kernel that sums per block (every thread of a block reaches
+    the block's reduction, the last block's spare threads too): n rounded up to whole blocks of 256,
+    at least one block."""
+    return max(1, -(-n // 256)) * 256
 
 
 def sort_pairs(keys: torch.Tensor, values: torch.Tensor, count: int, end_bit: int) -> None:
