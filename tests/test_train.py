@@ -4,6 +4,10 @@ uninterrupted one does."""
 
 from __future__ import annotations
 
+import copy
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 import torch
@@ -100,6 +104,94 @@ def test_seen_adam_is_adam_on_the_rows_in_view():
         opt.step(torch.ones(n + 1, dtype=torch.bool))
     with pytest.raises(ValueError, match="betas and eps"):
         SeenAdam([dict(params=[ours[0]]), dict(params=[ours[1]], betas=(0.5, 0.9))])
+
+
+def test_seen_adam_loads_its_own_state_and_torch_adams():
+    """SeenAdam loads the state_dict of torch's Adam (a CPU fit's checkpoint resumed on a GPU) and
+    its own, and goes on with the same step as the optimiser that saved it; a state of other group
+    sizes or other betas is refused."""
+    g = torch.Generator().manual_seed(11)
+    n = 16
+    start = [torch.randn(n, 3, generator=g), torch.randn(n, generator=g)]
+    grads = [[torch.randn(p.shape, generator=g) for p in start] for _ in range(4)]
+    everything = torch.ones(n, dtype=torch.bool)
+
+    def make(kind):
+        params = [p.clone().requires_grad_(True) for p in start]
+        groups = [dict(params=[p], lr=0.01 * (i + 1), name=f"p{i}") for i, p in enumerate(params)]
+        return params, (SeenAdam(groups, eps=1e-15) if kind == "seen" else torch.optim.Adam(groups, eps=1e-15))
+
+    def take(params, opt, step_grads):
+        for p, grad in zip(params, step_grads):
+            p.grad = grad.clone()
+        opt.step(everything) if isinstance(opt, SeenAdam) else opt.step()
+        opt.zero_grad(set_to_none=True)
+        assert all(p.grad is None for p in params)
+
+    for first, second in (("adam", "seen"), ("seen", "seen")):
+        params, opt = make(first)
+        for step_grads in grads[:3]:
+            take(params, opt, step_grads)
+        saved = copy.deepcopy(opt.state_dict())  # as a file would give it: not the live moments
+        assert [group["name"] for group in saved["param_groups"]] == ["p0", "p1"]
+        assert float(saved["state"][0]["step"]) == 3
+        others, other = make(second)
+        with torch.no_grad():
+            for mine, theirs in zip(others, params):
+                mine.copy_(theirs)
+        other.load_state_dict(saved)
+        take(params, opt, grads[3])
+        take(others, other, grads[3])
+        for mine, theirs in zip(others, params):
+            assert torch.allclose(mine, theirs, rtol=0, atol=1e-6), (first, second)
+        if second == "seen":
+            assert all(other.state[p]["step"].device.type == "cpu" for p in others)
+    _, seen = make("seen")
+    with pytest.raises(ValueError, match="groups of other sizes"):
+        seen.load_state_dict(dict(state={}, param_groups=saved["param_groups"][:1]))
+    wrong = [dict(group, betas=(0.5, 0.9)) for group in saved["param_groups"]]
+    with pytest.raises(ValueError, match="betas"):
+        seen.load_state_dict(dict(state={}, param_groups=wrong))
+
+
+@pytest.mark.parametrize("saving", [True, False])
+def test_a_checkpoint_resumes_with_the_other_adam(saving):
+    """A trainer's checkpoint made with SeenAdam (a GPU's default) resumes with torch's Adam (a CPU's)
+    and the other way round: the moments carry over and the next step runs."""
+    images, cams, points, colors = synthetic_clip(2, 24, 14)
+    saver = Trainer(images, cams, points, colors, small_config(20, sparse_adam=saving), CPU)
+    for _ in range(3):
+        saver.step()
+    state = saver.state_dict()
+    resumed = Trainer(images, cams, points, colors, small_config(20, sparse_adam=not saving), CPU)
+    resumed.load_checkpoint(state)
+    assert type(resumed.optimizer) is (torch.optim.Adam if saving else SeenAdam)
+    for group in resumed.optimizer.param_groups:
+        (p,) = group["params"]
+        saved = saver.optimizer.state[saver.model.parameters_by_name()[group["name"]]]
+        assert saved or not p.numel()  # only an empty parameter (SH rest at degree 0) has no moments
+        if saved:
+            assert torch.equal(resumed.optimizer.state[p]["exp_avg_sq"], saved["exp_avg_sq"])
+    resumed.step()
+    assert resumed.iteration == saver.iteration + 1
+    assert all(torch.isfinite(p).all() for p in resumed.model.parameters_by_name().values())
+
+
+def test_seen_adam_does_not_import_torch_dynamo():
+    """torch.optim.Optimizer's first add_param_group imports torch._dynamo (seconds in a fit's first
+    minute); SeenAdam goes without it: made, stepped, saved and loaded in a fresh interpreter."""
+    code = ("import sys, torch\n"
+            "from tomgs.train.optim import SeenAdam\n"
+            "p = torch.nn.Parameter(torch.zeros(4, 3))\n"
+            "opt = SeenAdam([dict(params=[p], lr=0.1, name='x')])\n"
+            "p.grad = torch.ones(4, 3)\n"
+            "opt.step(torch.ones(4, dtype=torch.bool))\n"
+            "opt.load_state_dict(opt.state_dict())\n"
+            "assert float(p[0, 0]) < 0\n"
+            "print('torch._dynamo' in sys.modules)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "False"
 
 
 def test_initial_points_per_frame_respect_device_frame_size_and_cap():

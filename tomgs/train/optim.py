@@ -8,6 +8,7 @@ parameter), so densification's moment surgery and checkpoints treat both optimis
 
 from __future__ import annotations
 
+import collections
 import math
 
 import torch
@@ -19,7 +20,7 @@ def uses_seen_adam(config, device: torch.device) -> bool:
 
 
 def make_adam(params: dict[str, torch.nn.Parameter], lr: dict[str, float], sparse: bool,
-              device: torch.device) -> torch.optim.Optimizer:
+              device: torch.device) -> torch.optim.Optimizer | SeenAdam:
     """One group per parameter (named, with its learning rate `lr[name]`): SeenAdam when `sparse`,
     else torch's Adam, fused on a GPU (one kernel for all groups; the foreach path took 2 ms at 4.5M
     Gaussians)."""
@@ -29,15 +30,70 @@ def make_adam(params: dict[str, torch.nn.Parameter], lr: dict[str, float], spars
     return torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=device.type == "cuda")
 
 
-class SeenAdam(torch.optim.Optimizer):
-    """Adam on the seen rows. Learning rates may differ by group; betas and eps are the optimiser's."""
+class SeenAdam:
+    """Adam on the seen rows. Learning rates may differ by group; betas and eps are the optimiser's.
+
+    torch.optim.Optimizer's interface as the trainer, densification and checkpoints use it
+    (`param_groups`, `state` keyed by parameter, `zero_grad`, `state_dict` / `load_state_dict` in
+    its layout, so a checkpoint moves between SeenAdam and torch's Adam), without deriving from it:
+    that class's first add_param_group imports torch._dynamo, 1.5-5 s of every fit's first minute
+    (tomgs/train/warm.py)."""
 
     def __init__(self, params, lr: float = 1e-3, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8):
-        super().__init__(params, dict(lr=lr, betas=betas, eps=eps))
-        for group in self.param_groups:
-            if tuple(group["betas"]) != tuple(betas) or group["eps"] != eps:
+        self.defaults = dict(lr=lr, betas=tuple(betas), eps=eps)
+        self.param_groups: list[dict] = []
+        self.state: collections.defaultdict = collections.defaultdict(dict)  # parameter -> its Adam state
+        for group in params:
+            group = {**self.defaults, **group, "params": list(group["params"])}
+            if tuple(group["betas"]) != self.defaults["betas"] or group["eps"] != eps:
                 raise ValueError("SeenAdam takes betas and eps for all groups at once, not per group")
+            self.param_groups.append(group)
         self._empty: dict[torch.device, torch.Tensor] = {}  # the stand-in of an unused slot, per device
+
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        for group in self.param_groups:
+            for p in group["params"]:
+                if set_to_none:
+                    p.grad = None
+                elif p.grad is not None:
+                    p.grad.zero_()
+
+    def state_dict(self) -> dict:
+        """torch.optim.Optimizer.state_dict's layout: parameters numbered in group order."""
+        numbers: dict[int, int] = {}
+        groups = []
+        for group in self.param_groups:
+            for p in group["params"]:
+                numbers.setdefault(id(p), len(numbers))
+            groups.append({**{k: v for k, v in group.items() if k != "params"},
+                           "params": [numbers[id(p)] for p in group["params"]]})
+        state = {numbers[id(p)]: dict(s) for p, s in self.state.items() if id(p) in numbers and s}
+        return dict(state=state, param_groups=groups)
+
+    def load_state_dict(self, saved: dict) -> None:
+        """Groups and moments from `state_dict()` (SeenAdam's or torch's Adam's): each group's
+        settings as saved, moments in their parameter's dtype and device, the step count on the host
+        (where step() reads it without waiting for the device)."""
+        groups = saved["param_groups"]
+        if len(groups) != len(self.param_groups) or any(
+                len(g["params"]) != len(own["params"]) for g, own in zip(groups, self.param_groups)):
+            raise ValueError("the saved optimizer state has groups of other sizes than this optimizer's")
+        for g in groups:
+            if tuple(g.get("betas", self.defaults["betas"])) != self.defaults["betas"] \
+                    or g.get("eps", self.defaults["eps"]) != self.defaults["eps"]:
+                raise ValueError(f"the saved optimizer state has betas {g.get('betas')} and eps {g.get('eps')}; "
+                                 f"this SeenAdam's are {self.defaults['betas']} and {self.defaults['eps']}")
+        params = {}
+        for g, own in zip(groups, self.param_groups):
+            params.update(zip(g["params"], own["params"]))
+        self.state = collections.defaultdict(dict)
+        for number, entry in saved["state"].items():
+            p = params[number]
+            self.state[p] = {key: (torch.tensor(float(value)) if key == "step"
+                                   else value.to(p.device, p.dtype) if torch.is_tensor(value) else value)
+                             for key, value in entry.items()}
+        self.param_groups = [{**{k: v for k, v in g.items() if k != "params"}, "params": own["params"]}
+                             for g, own in zip(groups, self.param_groups)]
 
     @torch.no_grad()
     def step(self, seen: torch.Tensor) -> None:

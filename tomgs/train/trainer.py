@@ -558,11 +558,12 @@ class Trainer:
         self.model.sh_degree = state["sh_degree"]
         self.extent = float(state["extent"])
         self.optimizer = self._optimizer()
-        own = [{k: group[k] for k in ("fused", "foreach", "capturable", "differentiable") if k in group}
-               for group in self.optimizer.param_groups]
+        # every setting but the learning rate is this optimiser's: how this device runs Adam, and the
+        # settings torch's Adam needs that a SeenAdam checkpoint (a GPU's) lacks
+        own = [{k: v for k, v in group.items() if k not in ("params", "lr")} for group in self.optimizer.param_groups]
         self.optimizer.load_state_dict(state["optimizer"])
         for group, settings in zip(self.optimizer.param_groups, own):
-            group.update(settings)  # how this device runs Adam, not how the saving one did
+            group.update(settings)
         self.sampler.load_state_dict(state["sampler"])
         densifier = dict(state["densifier"])
         densifier["grad_sum"] = densifier["grad_sum"].to(self.device)
