@@ -35,7 +35,8 @@ def synthetic_clip(frames: int, width: int, height: int):
 
 def small_config(iterations: int, **kw):
     return preset("quick", iterations=iterations, log_interval=25, eval_interval_s=1e9, init_points_per_frame=300,
-                  max_gaussians=4000, densify_start_fraction=50 / iterations, densify_stop_fraction=0.75, densify_interval=50, **kw)
+                  max_gaussians=4000, densify_start_fraction=50 / iterations, densify_stop_fraction=0.75,
+                  densify_interval=50, **kw)
 
 
 @pytest.mark.parametrize("sparse_adam", [False, True])
@@ -196,7 +197,10 @@ def test_seen_adam_does_not_import_torch_dynamo():
 
 def test_initial_points_per_frame_respect_device_frame_size_and_cap():
     config = preset("default")
-    assert config.points_per_frame(854 * 480, 90, "cuda") == 16000
+    assert config.points_per_frame(854 * 480, 90, "cuda") == 48000
+    # a longer clip starts from 5M Gaussians in all, never from fewer than 16,000 a frame
+    assert config.points_per_frame(854 * 480, 200, "cuda") == 25000
+    assert config.points_per_frame(1920 * 1080, 900, "cuda") == 16000
     assert config.points_per_frame(854 * 480, 90, "cpu") == 2000  # serial kernels: fewer, more steps
     assert config.points_per_frame(128 * 72, 32, "cuda") == 128 * 72 // 5  # small frames: one per 5 pixels
     assert config.replace(max_gaussians=10_000_000).points_per_frame(854 * 480, 2000, "cuda") == 2500  # half the cap

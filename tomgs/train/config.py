@@ -6,15 +6,20 @@ import dataclasses
 from dataclasses import dataclass
 
 
-# Initial points per frame by device. On a GPU a step costs little more for more Gaussians and a
-# denser start shortens the growth phase (camel, 7 min, H200: 8000 per frame 34.50 dB against 34.02
-# with 2000; 5-minute schedule, H100, at ~57 s of training: 16000 32.73 dB against 32.18 with 8000,
-# both at the 1e-4 threshold below); on a CPU the serial kernels' cost grows with every Gaussian, and a short fit gets
-# fewer steps (DAVIS camel's background layer at 240x135, 3 minutes: 51 steps with 6480 per frame).
-AUTO_POINTS_PER_FRAME = {"cuda": 16000, "cpu": 2000}
+# Initial points per frame by device: (fewest, most, the whole start's size between them). On a GPU
+# a step costs little more for more Gaussians and a denser start shortens the growth phase, after
+# which the PSNR climbs fastest: 1-minute fits (H100, benchmarks/first_minute.py, RESULTS.md session
+# 19) reached kite-surf 43.69 / 44.23 / 44.54 dB at 16,000 / 32,000 / 48,000 a frame and camel 34.00 /
+# 34.15 at 16,000 / 32,000, and a 5-minute kite-surf fit ended at 52.00 dB with 48,000 against 49.61
+# with 16,000. Those clips (40-104 frames) start from 2-5M Gaussians; a longer clip gets as many per
+# frame as keep its start at 5M, never fewer than 16,000 (a 900-frame phone video as before, not
+# 35M Gaussians before its first step). On a CPU the serial kernels' cost grows with every Gaussian,
+# and a short fit gets fewer steps (DAVIS camel's background layer at 240x135, 3 minutes: 51 steps
+# with 6480 per frame).
+AUTO_POINTS_PER_FRAME = {"cuda": (16000, 48000, 5_000_000), "cpu": (2000, 2000, 0)}
 # The densification threshold by device. A GPU fit under a budget of minutes is limited by how soon
 # its cloud has grown (the PSNR climbs fastest once growth stops): at 1e-4 with 16,000 points a frame
-# DAVIS camel reaches the 5M cap at ~37 s of training instead of ~80 s, and the first minute gains
+# DAVIS camel reaches the 5M cap at ~37 s of training instead of ~80 s, and the first minute gained
 # 1.7 dB (H100, benchmarks/first_minute.py, RESULTS.md). A CPU fit runs hundreds of steps, where
 # every added Gaussian slows each one: 3DGS's 2e-4.
 AUTO_GRAD_THRESHOLD = {"cuda": 1e-4, "cpu": 2e-4}
@@ -84,10 +89,11 @@ class TrainConfig:
     def points_per_frame(self, pixels: int, frames: int, device_type: str = "cpu") -> int:
         """Initial Gaussians per frame of `pixels` pixels in a clip of `frames` frames, trained on a
         `device_type` device: `init_points_per_frame`, or when it is None AUTO_POINTS_PER_FRAME's
-        count for the device, at most one per 5 pixels; and never more than half of the cap (`cap`)
+        count for the device and clip length, at most one per 5 pixels; and never more than half of the cap (`cap`)
         over the whole clip, so that densification always has room to work."""
         if self.init_points_per_frame is None:
-            wanted = min(AUTO_POINTS_PER_FRAME.get(device_type, AUTO_POINTS_PER_FRAME["cpu"]), pixels // 5)
+            fewest, most, start = AUTO_POINTS_PER_FRAME.get(device_type, AUTO_POINTS_PER_FRAME["cpu"])
+            wanted = min(max(fewest, min(most, start // max(frames, 1))), pixels // 5)
         else:
             wanted = int(self.init_points_per_frame)
         return max(min(wanted, self.cap(frames, pixels, device_type) // (2 * max(frames, 1))), 1)
