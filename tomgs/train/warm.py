@@ -1,21 +1,19 @@
 """A fit's one-off start-up costs, paid in a thread beside the camera estimate.
 
-The first training steps of a process pay once for what has nothing to do with the clip: the
-imports torch.optim makes on first use, Warp's start, its kernels loaded onto the device (compiled,
-on the first run of a machine), cuBLAS and cuDNN handles, the caching allocator's first blocks. On
-a GPU that is seconds (the H100: a DAVIS fit's first 50 steps took 8.6 s against 0.35 s for the
-next 50). `WarmUp` runs a throwaway Trainer on a tiny made-up clip in a thread meanwhile; the fit
-joins it before its own Trainer. Used by `tomgs.train.fit` (one GPU) and by every rank of
-`tomgs.train.ranks`.
+The first training steps of a process pay once for what has nothing to do with the clip: Warp's
+start, its kernels loaded onto the device (compiled, on the first run of a machine), cuBLAS and
+cuDNN handles, the caching allocator's first blocks. On a GPU that is seconds (the H100: a DAVIS
+fit's first 50 steps took 8.6 s against 0.35 s for the next 50). `WarmUp` runs a throwaway Trainer
+on a tiny made-up clip in a thread meanwhile; the fit joins it before its own Trainer. Used by
+`tomgs.train.fit` (one GPU) and by every rank of `tomgs.train.ranks`.
 
-It was made for poses on the CPU, when the GPU idled through them. The tracker now runs on the GPU
-too, and the warm-up's Python holds the interpreter lock against the tracker's (the first optimiser
-imports torch._dynamo, from torch.optim.Optimizer's add_param_group: 5.4 s of a first Trainer's 6.4
-s on a 2-core CPU with the disk cache cold, 1.5 s warm; then Warp's modules load): beside it a camel
-estimate took 6.2-7.8 s against 3.3-4.5 s alone. It still pays: without it the Trainer's
-construction and first steps took 5.2-6.4 s against 0.2 s, so a 1-minute camel fit started training
-8.5-9.9 s in with it and 9.4-12.0 s without, and its PSNR at 60 s was the same within run-to-run
-noise (H100, `benchmarks/davis.py --no-warm-up`; benchmarks/RESULTS.md, session 18).
+It was made for poses on the CPU, when the GPU idled through them; the tracker now runs on the GPU
+too, beside it. What made the two contend was torch.optim.Optimizer's first add_param_group, which
+imports torch._dynamo (1.5-5 s of Python holding the interpreter lock against the tracker's):
+SeenAdam no longer goes through it (tomgs/train/optim.py). With that, kite-surf's poses took 2.8-3.3
+s beside the thread (6.5-7.0 s before) and a 1-minute fit started training 3.5-4.0 s in (7.2-8.2 s
+before; H100, benchmarks/RESULTS.md, session 19). Without the thread a Trainer's construction and
+first steps took 5.2-6.4 s (session 18, then with the import).
 """
 
 from __future__ import annotations
