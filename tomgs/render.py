@@ -157,7 +157,7 @@ class _Project(torch.autograd.Function):
         ])
         ctx.frame = frame
         ctx.rows = rows
-        ctx.descriptors = (inputs, wrapped["radii"], wrapped["conics"], rows_d)
+        ctx.descriptors = (inputs, wrapped["radii"], rows_d)
         ctx.save_for_backward(means, quats, scales, opacities, t_means, t_scales, viewmat, K, radii, conics)
         ctx.mark_non_differentiable(depths, radii, tiles_touched)
         ctx.set_materialize_grads(False)  # no zero-filled gradients for depths, radii, tiles (never read)
@@ -173,7 +173,7 @@ class _Project(torch.autograd.Function):
         fresh = torch.empty_like if rows is None else torch.zeros_like
         v_means, v_quats, v_scales = fresh(means), fresh(quats), fresh(scales)
         v_opacities, v_t_means, v_t_scales = fresh(opacities), fresh(t_means), fresh(t_scales)
-        inputs, radii_d, conics_d, rows_d = ctx.descriptors
+        inputs, radii_d, rows_d = ctx.descriptors
         # named, so that a dense copy lives until the launch is queued (a descriptor does not own it)
         v_means2d, v_conics = indexable(v_means2d, conics, n, 2), indexable(v_conics, conics)
         v_opacities_t = indexable(v_opacities_t, conics, n)
@@ -185,7 +185,7 @@ class _Project(torch.autograd.Function):
             parts = [NO_ARRAY, NO_ARRAY]
         with scope(means.device) as device:
             launch(project.project_backward, n, device=device, args=[
-                *inputs, frame.width, frame.height, frame.t_hi, frame.t_lo, radii_d, conics_d,
+                *inputs, frame.width, frame.height, frame.t_hi, frame.t_lo, radii_d,
                 wrap(v_means2d, wp.vec2), wrap(v_conics, wp.vec3), wrap(v_opacities_t), int(camera_grads),
                 wrap(v_means, wp.vec3), wrap(v_quats, wp.vec4), wrap(v_scales, wp.vec3), wrap(v_opacities),
                 wrap(v_t_means), wrap(v_t_scales), *parts, rows_d, int(rows is not None),

@@ -282,7 +282,6 @@ def project_backward(
     t_hi: float,
     t_lo: float,
     radii: wp.array(dtype=wp.vec2i),  # [N] from the forward; (0, 0) = culled, no gradient
-    conics: wp.array(dtype=wp.vec3),  # [N] from the forward
     v_means2d: wp.array(dtype=wp.vec2),  # [N] incoming gradients
     v_conics: wp.array(dtype=wp.vec3),
     v_opacities_t: wp.array(dtype=float),
