@@ -117,6 +117,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "does not wait for its counts, read after the backward (a frame past its keys' bound fails "
                         "the run)")
     p.add_argument("--no-sanity", action="store_true", help="skip the tomgs vs gsplat image comparison")
+    p.add_argument("--stages", action="store_true",
+                   help="also profile each library's fwd+bwd (torch profiler, CUDA only) and report GPU time by stage "
+                        "beside the time the GPU idles waiting for the host: where a ratio above 0.9 goes")
     p.add_argument("--out", default=os.environ.get("OUT") or "bench_out",
                    help="output folder for JSON + markdown (default $OUT, else bench_out/)")
     a = p.parse_args(argv)
@@ -463,6 +466,48 @@ def med(xs):
     return statistics.median(xs) if xs else None
 
 
+# Stages of a frame, and the kernel-name fragments (lower case) that put a kernel in one: tomgs's Warp
+# kernels and gsplat 1.5.3's CUDA kernels (projection_ewa_3dgs_fused_*, intersect_tile/offset,
+# rasterize_to_pixels_3dgs_*); the first match wins, anything else (fills, the loss, the gradients'
+# accumulation, gsplat's torch-side opacity) is "other".
+STAGES = (
+    ("project fwd", ("project_forward", "projection_ewa_3dgs_fused_fwd", "fused_projection_fwd")),
+    ("project bwd", ("project_backward", "projection_ewa_3dgs_fused_bwd", "fused_projection_bwd")),
+    ("sort", ("radix",)),
+    ("binning", ("write_tile_keys", "pad_tile_keys", "tile_ranges", "frame_stats", "scan", "intersect", "isect")),
+    ("raster fwd", ("raster_forward", "rasterize_to_pixels_3dgs_fwd", "rasterize_to_pixels_fwd")),
+    ("raster bwd", ("raster_backward", "rasterize_to_pixels_3dgs_bwd", "rasterize_to_pixels_bwd")),
+)
+STAGE_NAMES = tuple(name for name, _ in STAGES) + ("other",)
+
+
+def stage_of(kernel: str) -> str:
+    low = kernel.lower()
+    return next((name for name, parts in STAGES if any(p in low for p in parts)), "other")
+
+
+def stage_profile(run: Runner, P, params, ts, Wimg, Walpha, clock: Clock, iters: int = 10) -> dict:
+    """GPU ms per synced fwd+loss+bwd by stage (torch profiler, mean over `ts` and `iters`), the kernels
+    by name, and the events' f+b time in the same calls: f+b minus the kernels is the time the GPU
+    waited for the host."""
+    from profile_raster import kernel_times
+
+    fb = []
+
+    def step():
+        for t in ts:
+            fb.append(iteration(run, P, params, t, Wimg, Walpha, clock, synced=True)["fb"])
+
+    kernels = {k: v / len(ts) for k, v in kernel_times(step, iters).items()}
+    stages = dict.fromkeys(STAGE_NAMES, 0.0)
+    for name, ms in kernels.items():
+        stages[stage_of(name)] += ms
+    events = sum(fb) / len(fb)
+    return dict(stages_ms=stages, kernels_ms=dict(sorted(kernels.items(), key=lambda kv: -kv[1])[:16]),
+                kernels_total_ms=sum(kernels.values()), profiled_fb_ms=events,
+                host_wait_ms=events - sum(kernels.values()))
+
+
 def run_case(args, fns, width, height, n, variant, device, clock, pool, deadline) -> dict:
     case = dict(width=width, height=height, n=n, variant=variant, libs={}, sanity={}, skipped=None)
     gc.collect()
@@ -584,6 +629,17 @@ def run_case(args, fns, width, height, n, variant, device, clock, pool, deadline
             res[f"{k}_ms"] = sum(vals) / len(vals) if vals else None
         res["n_samples_per_t"] = min(len(ss) for ss in per_t.values())
 
+    # --- where the time goes, by stage (after the timed repeats: the profiler slows the host)
+    if args.stages and device.type == "cuda":
+        for name in alive:
+            try:
+                case["libs"][name]["profile"] = stage_profile(runners[name], P, params[name], ts, Wimg, Walpha, clock)
+            except Overflowed:  # the profiled frames' bound grew: once more, as the training loop renders
+                case["libs"][name]["profile"] = stage_profile(runners[name], P, params[name], ts, Wimg, Walpha, clock)
+            except Exception as e:  # noqa: BLE001
+                case["libs"][name]["profile_error"] = f"{type(e).__name__}: {e}"
+                log(f"  {name}: ERROR in the stage profile: {case['libs'][name]['profile_error']}")
+
     # --- peak memory, one fwd+bwd per library, at the middle t
     if device.type == "cuda":
         for name in alive:
@@ -699,6 +755,20 @@ def markdown(results: dict) -> str:
                      f"| {fmt(tm.get('fb_wall_ms'))} | {fmt(tm.get('step_wall_ms'))} | {fmt(gs.get('fwd_wall_ms'))} "
                      f"| {fmt(gs.get('fb_wall_ms'))} | {fmt(gs.get('step_wall_ms'))} | {fmt(ms.get('n_intersections'))} "
                      f"| {fmt(ms.get('n_alive'))} |")
+    profiled = [c for c in results["cases"] if any("profile" in d for d in c.get("libs", {}).values())]
+    if profiled:
+        lines += ["", "Where the time goes (`--stages`): GPU ms per fwd+bwd by stage (torch profiler, mean over t), "
+                      "the events' f+b of the same calls, and the GPU's wait for the host (f+b minus kernels).", "",
+                  "| size | N | variant | library | " + " | ".join(STAGE_NAMES) + " | kernels | f+b | host wait |",
+                  "|---|---|---|---|" + "---|" * (len(STAGE_NAMES) + 3)]
+        for c in profiled:
+            for name, d in c["libs"].items():
+                if "profile" not in d:
+                    continue
+                pr = d["profile"]
+                cells = " | ".join(fmt(pr["stages_ms"][k]) for k in STAGE_NAMES)
+                totals = " | ".join(fmt(pr[k]) for k in ("kernels_total_ms", "profiled_fb_ms", "host_wait_ms"))
+                lines.append(f"| {c['width']}x{c['height']} | {c['n']} | {c['variant']} | {name} | {cells} | {totals} |")
     errs = [(c, name, d["error"]) for c in results["cases"] for name, d in c.get("libs", {}).items() if d.get("error")]
     if errs:
         lines += ["", "Errors:"]
