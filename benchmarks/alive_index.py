@@ -32,8 +32,10 @@ from tomgs.model import GaussianModel  # noqa: E402
 from tomgs.train import Trainer, preset  # noqa: E402
 
 
-def cloud(n: int, share: float, frames: int, device: torch.device, seed: int = 0) -> GaussianModel:
-    """n Gaussians 2-6 units in front of the camera, each alive over `share` of the clip."""
+def cloud(n: int, share: float, frames: int, device: torch.device, seed: int = 0,
+          by_time: bool = False) -> GaussianModel:
+    """n Gaussians 2-6 units in front of the camera, each alive over `share` of the clip; `by_time`:
+    stored in the order of their centres in time (a frame's alive rows then lie close together)."""
     g = torch.Generator().manual_seed(seed)
     depth = 2 + 4 * torch.rand(n, generator=g)
     xy = (torch.rand(n, 2, generator=g) - 0.5) * depth[:, None] * 1.2
@@ -41,7 +43,11 @@ def cloud(n: int, share: float, frames: int, device: torch.device, seed: int = 0
     a = 0.5
     sigma = share / 2 / math.sqrt(2 * math.log(255 * a))  # alive window: share of the clip
     t_means = torch.rand(n, generator=g) * (1 + share) - share / 2
-    model = GaussianModel.from_points(points, torch.rand(n, 3, generator=g), t_means, sigma, max_sh_degree=0,
+    colors = torch.rand(n, 3, generator=g)
+    if by_time:
+        order = t_means.argsort()
+        depth, points, t_means, colors = depth[order], points[order], t_means[order], colors[order]
+    model = GaussianModel.from_points(points, colors, t_means, sigma, max_sh_degree=0,
                                       opacity=a, sizes=depth * 2.0 / math.sqrt(n))
     return model.to(device)
 
@@ -54,6 +60,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--size", default="160x90", help="WxH")
     ap.add_argument("--steps", type=int, default=10, help="steps per timed turn")
+    ap.add_argument("--by-time", action="store_true", help="the cloud stored in the order of its centres in time")
     ap.add_argument("--repeats", type=int, default=3, help="turns per mode (the quickest counts)")
     ap.add_argument("--sparse-adam", choices=("auto", "on", "off"), default="auto")
     ap.add_argument("--threads", type=int, default=1, help="torch's CPU threads (a shared machine: 1, or every "
@@ -69,13 +76,14 @@ def main() -> None:
     cams = Cameras.create(np.repeat(np.eye(4)[None], T, 0), intrinsics(1.2 * max(width, height), width, height),
                           width, height)
     sparse = None if args.sparse_adam == "auto" else args.sparse_adam == "on"
-    out = dict(device=str(device), gaussians=args.gaussians, alive_share=args.alive, frames=T, size=[width, height])
+    out = dict(device=str(device), gaussians=args.gaussians, alive_share=args.alive, frames=T, size=[width, height],
+               by_time=args.by_time)
     trainers = {}
     for use in (False, True):
         config = preset("default", iterations=10**6, densify_start_fraction=2.0, log_interval=10**9,
                         eval_interval_s=1e9, sparse_adam=sparse, alive_index=use)
         trainer = Trainer(frames, cams, np.zeros((0, 3)), np.zeros((0, 3), np.float32), config, device,
-                          initial=(cloud(args.gaussians, args.alive, T, device), 4.0))
+                          initial=(cloud(args.gaussians, args.alive, T, device, by_time=args.by_time), 4.0))
         for _ in range(3):  # kernels loaded, the index built
             trainer.step()
         trainers["index" if use else "all"] = trainer
@@ -101,7 +109,8 @@ def main() -> None:
         out[mode] = row
     # rendering, all frames: rasterize over every Gaussian, each frame waiting for its counts, against
     # render_sequence with and without the index, pipelined (frames do not wait) or not
-    inputs = {k: v.detach() for k, v in cloud(args.gaussians, args.alive, T, device).render_inputs().items()}
+    inputs = {k: v.detach() for k, v in cloud(args.gaussians, args.alive, T, device, by_time=args.by_time)
+              .render_inputs().items()}
     best = fastest_turns(render_modes(inputs, cams, device), args.repeats, device)
     out["render_fps"] = {mode: round(T / seconds, 1) for mode, seconds in best.items()}
     print(json.dumps(out, indent=1))
