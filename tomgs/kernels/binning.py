@@ -133,13 +133,15 @@ def write_tile_keys(
 ):
     i = wp.tid()
     r = radii[i]
+    if r[0] == 0 and r[1] == 0:  # culled (most rows of a frame, the dead): its scan entries are not read
+        return
     # this Gaussian's slots, clipped to the capacity in int64 (launched before the total is known,
     # when ends may exceed int32): a frame past the capacity writes a prefix and nothing beyond
     k = int(0)
     if i > 0:
         k = int(wp.min(ends[i - 1], wp.int64(capacity)))
     end = int(wp.min(ends[i], wp.int64(capacity)))
-    if k >= end or (r[0] == 0 and r[1] == 0):
+    if k >= end:
         return
     center = means2d[i]
     conic = conics[i]
