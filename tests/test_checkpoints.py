@@ -434,10 +434,9 @@ def test_an_interrupt_inside_densification_never_saves_a_torn_state(tmp_path, mo
             fired.append(True)
             os.kill(os.getpid(), signal.SIGINT)
 
-    trainer = trainer_for(200)  # built first: its start may already reorder the cloud (Trainer._store_by_time)
     monkeypatch.setattr(GaussianModel, "replace", replace)
     with pytest.raises(KeyboardInterrupt):
-        trainer.run(checkpoint=checkpoint)  # densifies at 100 and 150
+        trainer_for(200).run(checkpoint=checkpoint)  # densifies at 100 and 150
     monkeypatch.undo()
     assert fired
     state = read_state(checkpoint)

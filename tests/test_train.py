@@ -362,9 +362,7 @@ def test_tracked_points_start_alive_over_the_frames_that_saw_them():
     spans[:, 1] = 8
     spans[0] = (1, 7)
     spans[1] = (2, 2)  # seen in one frame: the narrowest window the per-frame points get too
-    # rows in the order they were built (the alive index would store them in time order)
-    config = small_config(10, alive_index=False)
-    trainer = Trainer(images, cams, points, colors, config, CPU, point_frames=spans)
+    trainer = Trainer(images, cams, points, colors, small_config(10), CPU, point_frames=spans)
     t_means, t_scales = trainer.model.t_means.detach(), trainer.model.t_scales.detach()
     times = cams.times
     assert float(t_means[0]) == pytest.approx((times[1] + times[7]) / 2)
@@ -372,7 +370,7 @@ def test_tracked_points_start_alive_over_the_frames_that_saw_them():
     assert float(t_means[1]) == pytest.approx(times[2])
     assert float(t_scales[1]) == pytest.approx(preset("quick").init_t_scale_frames / 8)
     assert float(t_scales[2]) == pytest.approx(0.5)  # seen throughout: sigma half the clip
-    unknown = Trainer(images, cams, points, colors, config, CPU).model
+    unknown = Trainer(images, cams, points, colors, small_config(10), CPU).model
     assert torch.allclose(unknown.t_means.detach()[:len(points)], torch.tensor(0.5))
     assert torch.allclose(unknown.t_scales.detach()[:len(points)], torch.tensor(1.0))
 

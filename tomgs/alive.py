@@ -174,13 +174,6 @@ def _fill(ids: torch.Tensor, b_first: torch.Tensor, b_last: torch.Tensor, starts
         placed += in_chunk
 
 
-def time_order(t_means: torch.Tensor) -> torch.Tensor:
-    """int64 [N]: the Gaussians in the order of their centres in time (stable). A cloud stored in this
-    order has each frame's rows in runs of neighbours, which a frame reading its rows in place
-    (`rasterize(rows=)`) reads in whole cache lines rather than one scattered row at a time."""
-    return torch.argsort(t_means, stable=True)
-
-
 def index_of(opacities: torch.Tensor, t_means: torch.Tensor, t_scales: torch.Tensor, times,
              budget: float = ENTRIES_PER_GAUSSIAN) -> AliveIndex:
     """The index of a fixed cloud (the renderer's inputs [N]) over frames at `times` [T]."""

@@ -607,10 +607,9 @@ def render_sequence(gaussians, cameras, indices=None, *, background=None, device
     shot). `cameras`: a `tomgs.Cameras`; frame k renders at t = cameras.times[k]. No gradients.
     With `alive_index` (None: where it pays, tomgs.alive.pays_on) only the Gaussians that may be
     alive at a frame's time are rendered (tomgs.alive: an index over the frames; `rasterize(rows=)`
-    reads them in place; a fixed cloud is read in time order, alive.time_order, so that a frame's rows
-    lie in runs), so a long clip pays per frame for what lives in it; without it projection
-    culls the dead. `meta` describes what was rendered, meta['rows'] names it (int [M] indices of the
-    Gaussians as given; None: all, as given). Images come back on the CPU unless `to_cpu` is False.
+    reads them in place), so a long clip pays per frame for what lives in it; without it projection
+    culls the dead. `meta` describes what was rendered, meta['rows'] names it (int [M] Gaussian
+    indices; None: all). Images come back on the CPU unless `to_cpu` is False.
 
     `pipelined` (None: on a GPU): a frame does not wait for its counts (`render_frame(defer=True)`); they
     are read after the next frame has been issued, so the device renders while the host prepares
@@ -620,22 +619,15 @@ def render_sequence(gaussians, cameras, indices=None, *, background=None, device
     names = ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales")
     order = list(range(len(cameras)) if indices is None else indices)
 
-    def prepared(g: dict, times: list, reorder: bool):
-        """(inputs on the device, their alive index over `times`, the device, the order the inputs
-        were put in (int64 [N]: row j holds Gaussian order[j]) or None: as given). With `reorder` an
-        indexed cloud is stored in time order (alive.time_order): a frame's rows then lie in runs."""
+    def prepared(g: dict, times: list):
+        """(inputs on the device, their alive index over `times`, the device)."""
         dev = torch.device(device) if device is not None else g["means"].device
         g = {name: g[name].detach().to(dev) for name in names}
         use = alive.pays_on(dev) if alive_index is None else alive_index
-        stored = alive.time_order(g["t_means"]) if use and reorder else None
-        if stored is not None:
-            g = {name: value.index_select(0, stored) for name, value in g.items()}
         index = alive.index_of(g["opacities"], g["t_means"], g["t_scales"], times) if use else None
-        return g, index, dev, stored
+        return g, index, dev
 
-    # a fixed cloud is indexed (and reordered) once; a per-frame cloud each frame, as it comes
-    static = (None if callable(gaussians) or not order
-              else prepared(gaussians, [cameras.times[k] for k in order], reorder=True))
+    static = None if callable(gaussians) or not order else prepared(gaussians, [cameras.times[k] for k in order])
     per_device = {}  # cameras and background on each device a frame lands on (one, in practice)
 
     def frame_inputs(dev):
@@ -649,14 +641,13 @@ def render_sequence(gaussians, cameras, indices=None, *, background=None, device
         """Frame k queued: (k, image, meta, its FrameCounts or None when they are in meta, an event
         after the image's copy to the host or None, position)."""
         t = float(cameras.times[k])
-        g, index, dev, stored = static or prepared(gaussians(k), [t], reorder=False)
+        g, index, dev = static or prepared(gaussians(k), [t])
         rows = None if index is None else index.rows(position if static else 0)
         viewmats, Ks, bg = frame_inputs(dev)
         defer = not wait and (dev.type == "cuda" if pipelined is None else pipelined)
         image, _, meta, counts = render_frame(**g, viewmat=viewmats[k], K=Ks[k], width=cameras.width,
                                               height=cameras.height, t=t, background=bg, rows=rows, defer=defer)
-        # the caller's Gaussians, whatever order they were rendered in
-        meta["rows"] = rows if stored is None else stored if rows is None else stored.index_select(0, rows.long())
+        meta["rows"] = rows
         image = image.clamp(0.0, 1.0)
         copied = None
         if to_cpu and image.is_cuda and counts is not None:  # queued behind the frame; waited for in `finish`

@@ -180,16 +180,9 @@ def _largest(mask: torch.Tensor, k: int, score: torch.Tensor) -> torch.Tensor:
     return out
 
 
-def reorder(model: GaussianModel, optimizer, order: torch.Tensor) -> None:
-    """Store the Gaussians in `order` (int64 [N], a permutation: row j becomes Gaussian order[j]),
-    every parameter's rows and Adam's moments alike."""
-    _apply(model, optimizer, order, None)
-
-
 def _apply(model: GaussianModel, optimizer, keep: torch.Tensor, added: dict | None, replace: dict | None = None,
            reset_moments: tuple = ()) -> None:
-    """Rows `keep` (bool [N], or int64 indices) of every parameter, then `added` rows; Adam moments
-    follow (zeros for new rows)."""
+    """Rows `keep` of every parameter, then `added` rows; Adam moments follow (zeros for new rows)."""
     old = model.parameters_by_name()
     base = replace if replace is not None else {k: v.detach() for k, v in old.items()}
     new = {k: base[k][keep] if added is None else torch.cat([base[k][keep], added[k]]) for k in PARAM_NAMES}

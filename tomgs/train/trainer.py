@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tomgs.alive import TrainingIndex, pays_on, time_order
+from tomgs.alive import TrainingIndex, pays_on
 from tomgs.cameras import Cameras
 from tomgs.metrics import l1_dssim, psnr, ssim_map
 from tomgs.model import GaussianModel, nearest_neighbour_distance
@@ -45,7 +45,7 @@ from tomgs.train.checkpoint import (FORMAT, LOG_FIELDS, START_OVER, VERSION, Fit
                                     check_same_settings, config_from, config_to_dict, read_checkpoint,
                                     write_checkpoint)
 from tomgs.train.config import TrainConfig
-from tomgs.train.densify import Densifier, reorder
+from tomgs.train.densify import Densifier
 from tomgs.train.optim import make_adam, uses_seen_adam
 from tomgs.train.sampler import FrameSampler
 
@@ -143,7 +143,6 @@ class Trainer:
         use_index = pays_on(device) if config.alive_index is None else bool(config.alive_index)
         self.alive = TrainingIndex(self.times, dense=not self.sparse_adam, lookahead=device.type == "cuda") \
             if use_index else None
-        self._store_by_time()
         # on a GPU a step does not wait for the device: its frame's counts are read once the backward is
         # queued (tomgs.render.render_frame(defer=True)), the sampler's PSNRs a flush late
         self.pipelined = device.type == "cuda"
@@ -355,15 +354,6 @@ class Trainer:
         self.optimizer.zero_grad(set_to_none=True)
         self.iteration += 1
         self.densifier.step_post_backward(self.model, self.optimizer, meta, in_view, self.iteration, self.progress)
-        if self.densifier.changed_at == self.iteration:
-            self._store_by_time()
-
-    def _store_by_time(self) -> None:
-        """With the alive index, keep the cloud stored in time order (tomgs.alive.time_order: a frame's
-        rows then lie in runs, read in whole cache lines), after the start and after each change of
-        the cloud; the index is rebuilt next step (its parameters are new tensors)."""
-        if self.alive is not None:
-            reorder(self.model, self.optimizer, time_order(self.model.t_means.detach()))
 
     def flush_measurements(self, wait: bool = True) -> None:
         """Hand the PSNRs measured so far to the sampler, in order. Without `wait` (a pipelined step's
