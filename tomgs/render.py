@@ -149,37 +149,45 @@ class _Project(torch.autograd.Function):
                        radii=wrap(radii, wp.vec2i), opacities_t=wrap(opacities_t),
                        tiles_touched=wrap(tiles_touched), viewmat=inputs[6], K=inputs[7])
         rows_d = NO_ARRAY if rows is None else wrap(rows)
-        launch(project.project_forward, n, device=frame.device, args=[
-            *inputs, frame.width, frame.height, frame.t_hi, frame.t_lo, frame.near, frame.far, frame.tiles_x,
-            frame.tiles_y, wrapped["means2d"], wrapped["conics"], wrapped["depths"], wrapped["radii"],
-            wrapped["opacities_t"], wrapped["tiles_touched"], wrap(flags), rows_d, int(rows is not None),
-            means.shape[0],
+        # the outputs alive at t and in depth range: the list the long path runs over, forward and backward
+        work = torch.empty(n, device=means.device, dtype=torch.int32)
+        work_count = torch.zeros(1, device=means.device, dtype=torch.int32)
+        work_d = (wrap(work), wrap(work_count))
+        launch(project.project_cull, n, device=frame.device, args=[
+            inputs[0], inputs[2], *inputs[3:7], frame.t_hi, frame.t_lo, frame.near, frame.far, wrapped["means2d"],
+            wrapped["conics"], wrapped["depths"], wrapped["radii"], wrapped["opacities_t"], wrapped["tiles_touched"],
+            wrap(flags), rows_d, int(rows is not None), means.shape[0], *work_d,
+        ])
+        launch(project.project_visible, n, device=frame.device, args=[
+            *inputs[:3], *inputs[6:], frame.width, frame.height, frame.tiles_x, frame.tiles_y, wrapped["opacities_t"],
+            *work_d, rows_d, int(rows is not None), wrapped["means2d"], wrapped["conics"], wrapped["radii"],
+            wrapped["tiles_touched"],
         ])
         ctx.frame = frame
         ctx.rows = rows
-        ctx.descriptors = (inputs, wrapped["radii"], rows_d)
-        ctx.save_for_backward(means, quats, scales, opacities, t_means, t_scales, viewmat, K, radii, conics)
+        ctx.descriptors = (inputs, wrapped["radii"], rows_d, work_d)
+        ctx.save_for_backward(means, quats, scales, opacities, t_means, t_scales, viewmat, K, radii, conics, work,
+                              work_count)
         ctx.mark_non_differentiable(depths, radii, tiles_touched)
         ctx.set_materialize_grads(False)  # no zero-filled gradients for depths, radii, tiles (never read)
         return means2d, conics, depths, radii, opacities_t, tiles_touched
 
     @staticmethod
     def backward(ctx, v_means2d, v_conics, _v_depths, _v_radii, v_opacities_t, _v_tiles):
-        means, quats, scales, opacities, t_means, t_scales, viewmat, K, radii, conics = ctx.saved_tensors
+        means, quats, scales, opacities, t_means, t_scales, viewmat, K, radii, conics, *_ = ctx.saved_tensors
         frame, rows = ctx.frame, ctx.rows
         n = radii.shape[0]  # M: the Gaussians projected
         camera_grads = ctx.needs_input_grad[6] or ctx.needs_input_grad[7]
-        # every row written, or with rows only theirs: the rest stays zero
-        fresh = torch.empty_like if rows is None else torch.zeros_like
-        v_means, v_quats, v_scales = fresh(means), fresh(quats), fresh(scales)
-        v_opacities, v_t_means, v_t_scales = fresh(opacities), fresh(t_means), fresh(t_scales)
-        inputs, radii_d, rows_d = ctx.descriptors
+        # zero filled (at full bandwidth): the kernel writes the visible rows only
+        v_means, v_quats, v_scales = torch.zeros_like(means), torch.zeros_like(quats), torch.zeros_like(scales)
+        v_opacities, v_t_means, v_t_scales = (torch.zeros_like(x) for x in (opacities, t_means, t_scales))
+        inputs, radii_d, rows_d, work_d = ctx.descriptors
         # named, so that a dense copy lives until the launch is queued (a descriptor does not own it)
         v_means2d, v_conics = indexable(v_means2d, conics, n, 2), indexable(v_conics, conics)
         v_opacities_t = indexable(v_opacities_t, conics, n)
         if camera_grads:  # per-Gaussian camera partials only when someone asked
-            v_viewmat_parts = torch.empty(n, 4, 4, device=means.device, dtype=torch.float32)
-            v_K_parts = torch.empty(n, 4, device=means.device, dtype=torch.float32)
+            v_viewmat_parts = torch.zeros(n, 4, 4, device=means.device, dtype=torch.float32)
+            v_K_parts = torch.zeros(n, 4, device=means.device, dtype=torch.float32)
             parts = [wrap(v_viewmat_parts, wp.mat44), wrap(v_K_parts, wp.vec4)]
         else:
             parts = [NO_ARRAY, NO_ARRAY]
@@ -188,7 +196,7 @@ class _Project(torch.autograd.Function):
                 *inputs, frame.width, frame.height, frame.t_hi, frame.t_lo, radii_d,
                 wrap(v_means2d, wp.vec2), wrap(v_conics, wp.vec3), wrap(v_opacities_t), int(camera_grads),
                 wrap(v_means, wp.vec3), wrap(v_quats, wp.vec4), wrap(v_scales, wp.vec3), wrap(v_opacities),
-                wrap(v_t_means), wrap(v_t_scales), *parts, rows_d, int(rows is not None),
+                wrap(v_t_means), wrap(v_t_scales), *parts, rows_d, int(rows is not None), *work_d,
             ])
         v_viewmat = v_K = None
         if camera_grads:

@@ -71,3 +71,31 @@ def lanes_sum_vec2(v: wp.vec2) -> wp.vec2: ...
 
 @wp.func_native(_shuffle_sum([".c[0]", ".c[1]", ".c[2]"]))
 def lanes_sum_vec3(v: wp.vec3) -> wp.vec3: ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    // one atomic per group of lanes: the lanes still running (a launch's last, partial group has
+    // fewer) vote, the lowest voter reserves the group's slots, each keeper takes its rank among them
+    const unsigned int active = __activemask();
+    const unsigned int votes = __ballot_sync(active, keep);
+    if (votes == 0u) return -1;
+    const int lane = static_cast<int>(threadIdx.x & 31u);
+    const int leader = __ffs(votes) - 1;
+    int base = 0;
+    if (lane == leader) base = atomicAdd(counter.data, __popc(votes));
+    base = __shfl_sync(active, base, leader);
+    return keep ? base + __popc(votes & ((1u << lane) - 1u)) : -1;
+#else
+    if (!keep) return -1;
+    const wp::int32 slot = counter.data[0];
+    counter.data[0] = slot + 1;
+    return slot;
+#endif
+""")
+def append_slot(keep: bool, counter: wp.array(dtype=wp.int32)) -> int:
+    """A slot of a list for a thread that `keep`s something (-1 for one that does not): counter[0]
+    slots are taken so far, reserved with one atomic per group of lanes on the GPU, in thread
+    order on the CPU. Slots are unique and dense; on the GPU their order across groups is not
+    fixed. Reached by every running lane of a group (no lane-dependent branch around the call)."""
+    ...

@@ -1,5 +1,11 @@
 """Stage 1: project Gaussians to the image, one thread per Gaussian, and its backward.
 
+In two passes: `project_cull` over every Gaussian settles what a dead one needs (o_i(t), depth,
+zeros, the contract checks) and lists the Gaussians alive at t and in depth range; `project_visible`
+and `project_backward` run the long path over that list only, in full warps. With ~15% of a fitted
+clip alive at a frame, one pass over all of them left nearly every warp holding a live lane and so
+as slow as projecting every Gaussian.
+
 Forward writes, per Gaussian i: means2d (px), conic (inverse 2D covariance, upper triangle),
 depth (camera z), radii (px per axis; 0 = culled), temporal opacity o_i(t), and tiles touched.
 Culled: depth outside (near, far), anything non-finite, o_i(t) < 1/255, or off screen.
@@ -15,6 +21,7 @@ import warp as wp
 
 from tomgs import constants
 from tomgs.kernels.binning import opacity_extent, tiles_of
+from tomgs.kernels.lanes import append_slot
 from tomgs.kernels.rows import put
 
 wp.set_module_options({"enable_backward": False})
@@ -27,7 +34,7 @@ MAX_RADIUS = wp.constant(float(2**30))  # keeps radii inside int32; tiles are cl
 
 mat23 = wp.types.matrix(shape=(2, 3), dtype=wp.float32)
 
-# slots of the int64 `flags` array shared by project_forward and check_frame (tomgs.render reads it)
+# slots of the int64 `flags` array shared by project_cull and frame_stats (tomgs.render reads it)
 FLAG_TOTAL = wp.constant(0)  # the frame's Gaussian-tile intersection count
 FLAG_OPACITIES = wp.constant(1)  # an opacity outside [0, 1] (NaN included)
 FLAG_SCALES = wp.constant(2)  # a negative scale
@@ -162,72 +169,106 @@ def scaled_rotation(q: wp.vec4, s: wp.vec3) -> wp.mat33:
 
 
 @wp.kernel
-def project_forward(
+def project_cull(
     means: wp.array(dtype=wp.vec3),  # [N]
-    quats: wp.array(dtype=wp.vec4),  # [N] w x y z, any norm
     scales: wp.array(dtype=wp.vec3),  # [N]
     opacities: wp.array(dtype=float),  # [N] base opacity
     t_means: wp.array(dtype=float),  # [N]
     t_scales: wp.array(dtype=float),  # [N] sigma
     viewmats: wp.array(dtype=wp.mat44),  # [1] world -> camera
-    Ks: wp.array(dtype=wp.mat33),  # [1]
-    width: int,
-    height: int,
     t_hi: float,  # t = t_hi + t_lo
     t_lo: float,
     near: float,
     far: float,
-    tiles_x: int,
-    tiles_y: int,
-    means2d: wp.array(dtype=wp.vec2),  # out [N]
-    conics: wp.array(dtype=wp.vec3),  # out [N]
+    means2d: wp.array(dtype=wp.vec2),  # out [N]: zero (project_visible fills the visible)
+    conics: wp.array(dtype=wp.vec3),  # out [N]: zero
     depths: wp.array(dtype=float),  # out [N]
-    radii: wp.array(dtype=wp.vec2i),  # out [N], (0, 0) when culled
+    radii: wp.array(dtype=wp.vec2i),  # out [N]: (0, 0)
     opacities_t: wp.array(dtype=float),  # out [N] o_i(t)
-    tiles_touched: wp.array(dtype=wp.int32),  # out [N]
+    tiles_touched: wp.array(dtype=wp.int32),  # out [N]: 0
     flags: wp.array(dtype=wp.int64),  # [NUM_FLAGS] zeroed by the caller; set to 1 on a contract violation
     rows: wp.array(dtype=wp.int32),  # [M] with has_rows: the Gaussians projected (the outputs are [M])
     has_rows: int,
     n: int,  # N, the Gaussians the inputs hold
+    work: wp.array(dtype=wp.int32),  # out [M]: the outputs alive at t and inside (near, far), first work_count
+    work_count: wp.array(dtype=wp.int32),  # [1] zeroed by the caller: how many `work` lists
 ):
-    # output j is Gaussian i: j itself, or rows[j]
+    # Stage 1a, every Gaussian: what a dead one needs (its contract checks, o_i(t), depth, zeros) at a
+    # few loads and stores a thread, so that the long path runs in full warps over the list it makes
+    # (a warp takes as long as its slowest lane: with ~15% alive nearly every warp held one).
     j = wp.tid()
     i = j
     radii[j] = wp.vec2i(0, 0)
     tiles_touched[j] = 0
     means2d[j] = wp.vec2(0.0, 0.0)
     conics[j] = wp.vec3(0.0, 0.0, 0.0)
+    valid = True
     if has_rows != 0:
         i = rows[j]
         if i < 0 or i >= n:
             flags[FLAG_ROWS] = wp.int64(1)
-            opacities_t[j] = 0.0
-            depths[j] = 0.0
-            return
-    base = opacities[i]
-    s = scales[i]
-    if not (base >= 0.0 and base <= 1.0):
-        flags[FLAG_OPACITIES] = wp.int64(1)
-    if s[0] < 0.0 or s[1] < 0.0 or s[2] < 0.0:
-        flags[FLAG_SCALES] = wp.int64(1)
-    if t_scales[i] < 0.0:
-        flags[FLAG_T_SCALES] = wp.int64(1)
+            valid = False
+    keep = False
+    if valid:
+        base = opacities[i]
+        s = scales[i]
+        if not (base >= 0.0 and base <= 1.0):
+            flags[FLAG_OPACITIES] = wp.int64(1)
+        if s[0] < 0.0 or s[1] < 0.0 or s[2] < 0.0:
+            flags[FLAG_SCALES] = wp.int64(1)
+        if t_scales[i] < 0.0:
+            flags[FLAG_T_SCALES] = wp.int64(1)
+        z = temporal_z(t_hi, t_lo, t_means[i], t_scales[i])
+        opac = base * wp.exp(-0.5 * z * z)
+        opacities_t[j] = opac
+        depth = world_to_camera(viewmats[0], means[i])[2]
+        depths[j] = depth
+        # alive (also rejects NaN) and inside the depth range
+        keep = opac >= ALPHA_MIN and opac <= 1.0e30 and depth > near and depth < far
+    else:
+        opacities_t[j] = 0.0
+        depths[j] = 0.0
+    slot = append_slot(keep, work_count)  # every lane reaches it: no return above
+    if slot >= 0:
+        work[slot] = j
 
-    # temporal cull first: a Gaussian dead at t costs one exp and no more
-    z = temporal_z(t_hi, t_lo, t_means[i], t_scales[i])
-    opac = base * wp.exp(-0.5 * z * z)
-    opacities_t[j] = opac
+
+@wp.kernel
+def project_visible(
+    means: wp.array(dtype=wp.vec3),  # [N]
+    quats: wp.array(dtype=wp.vec4),  # [N] w x y z, any norm
+    scales: wp.array(dtype=wp.vec3),  # [N]
+    viewmats: wp.array(dtype=wp.mat44),  # [1] world -> camera
+    Ks: wp.array(dtype=wp.mat33),  # [1]
+    width: int,
+    height: int,
+    tiles_x: int,
+    tiles_y: int,
+    opacities_t: wp.array(dtype=float),  # [M] from project_cull
+    work: wp.array(dtype=wp.int32),  # [M] from project_cull: the outputs to project, the first work_count
+    work_count: wp.array(dtype=wp.int32),  # [1]
+    rows: wp.array(dtype=wp.int32),  # [M] with has_rows: output j is Gaussian rows[j]
+    has_rows: int,
+    means2d: wp.array(dtype=wp.vec2),  # out [M], written where visible
+    conics: wp.array(dtype=wp.vec3),  # out [M]
+    radii: wp.array(dtype=wp.vec2i),  # out [M], left (0, 0) when culled
+    tiles_touched: wp.array(dtype=wp.int32),  # out [M]
+):
+    # Stage 1b, launched over M and run by the first work_count threads: the screen-space footprint
+    # of the Gaussians alive and in depth range; off screen or non-finite ones stay culled
+    w = wp.tid()
+    if w >= work_count[0]:
+        return
+    j = work[w]
+    i = j
+    if has_rows != 0:
+        i = rows[j]
+    opac = opacities_t[j]
     viewmat = viewmats[0]
     p = world_to_camera(viewmat, means[i])
-    depths[j] = p[2]
-    if not (opac >= ALPHA_MIN and opac <= 1.0e30):  # also rejects NaN
-        return
-    if not (p[2] > near and p[2] < far):
-        return
-
     K = Ks[0]
     J = ewa_jacobian(p, K, fov_limits(K, width, height))
-    A = J * view_rotation(viewmat) * scaled_rotation(quats[i], s)
+    A = J * view_rotation(viewmat) * scaled_rotation(quats[i], scales[i])
     conic = conic_of(A)
     a = A[0, 0] * A[0, 0] + A[0, 1] * A[0, 1] + A[0, 2] * A[0, 2] + EPS2D
     c = A[1, 0] * A[1, 0] + A[1, 1] * A[1, 1] + A[1, 2] * A[1, 2] + EPS2D
@@ -296,24 +337,21 @@ def project_backward(
     v_K_parts: wp.array(dtype=wp.vec4),  # out [N] (fx, fy, cx, cy) when camera_grads
     rows: wp.array(dtype=wp.int32),  # [M] with has_rows: the Gaussians the forward projected
     has_rows: int,  # then the forward's outputs, their gradients and the camera partials are [M]; the
-    #                 inputs' gradients [N], zeroed by the caller, are added at rows (kernels/rows.py)
+    #                 inputs' gradients [N] are added at rows (kernels/rows.py)
+    work: wp.array(dtype=wp.int32),  # [M] project_cull's list (the outputs project_visible ran), first work_count
+    work_count: wp.array(dtype=wp.int32),  # [1]
 ):
-    j = wp.tid()
+    # launched over M, run by the first work_count threads: every other row is culled and keeps the
+    # zeros the caller filled every gradient and camera partial with
+    w = wp.tid()
+    if w >= work_count[0]:
+        return
+    j = work[w]
     i = j
     if has_rows != 0:
         i = rows[j]
     r = radii[j]
-    if r[0] == 0 and r[1] == 0:  # culled (a bad row too): no gradient
-        if has_rows == 0:
-            v_means[i] = wp.vec3(0.0)
-            v_quats[i] = wp.vec4(0.0)
-            v_scales[i] = wp.vec3(0.0)
-            v_opacities[i] = 0.0
-            v_t_means[i] = 0.0
-            v_t_scales[i] = 0.0
-        if camera_grads != 0:
-            v_viewmat_parts[j] = wp.mat44(0.0)
-            v_K_parts[j] = wp.vec4(0.0)
+    if r[0] == 0 and r[1] == 0:  # culled off screen or non-finite: no gradient
         return
 
     # temporal window: o = a g, g = exp(-z^2 / 2), z = (t - m) / sigma
