@@ -12,27 +12,34 @@ from tomgs.kernels.lanes import append_slot
 
 
 @wp.kernel
-def _append_kept(keep: wp.array(dtype=wp.int32), counter: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.int32)):
+def _append_kept(keep: wp.array(dtype=wp.int32), lists: int, capacity: int, counters: wp.array(dtype=wp.int32),
+                 out: wp.array(dtype=wp.int32)):
     i = wp.tid()
-    slot = append_slot(keep[i] != 0, counter)
+    which = (i // 32) % lists  # the same for a group of 32 lanes
+    slot = append_slot(keep[i] != 0, counters, which)
     if slot >= 0:
-        out[slot] = i
+        out[which * capacity + slot] = i
 
 
 @pytest.mark.parametrize("device", devices())
 @pytest.mark.parametrize("share", [0.0, 0.1, 0.5, 1.0])
-def test_append_slot_lists_every_kept_thread_once(device, share):
-    """Dense, unique slots for exactly the threads that keep, a launch's last group of lanes partial
-    (1000 threads), none kept and all kept included; in thread order on the CPU."""
+@pytest.mark.parametrize("lists", [1, 3])
+def test_append_slot_lists_every_kept_thread_once(device, share, lists):
+    """Dense, unique slots for exactly the threads that keep, in the list their group names, a
+    launch's last group of lanes partial (1000 threads), none kept and all kept included; in thread
+    order on the CPU."""
     rng = np.random.default_rng(int(share * 10))
     keep = (rng.random(1000) < share).astype(np.int32)
-    counter = wp.zeros(1, dtype=wp.int32, device=device)
-    out = wp.full(1000, -1, dtype=wp.int32, device=device)
-    wp.launch(_append_kept, 1000, inputs=[wp.array(keep, device=device), counter, out], device=device)
-    count, listed = int(counter.numpy()[0]), out.numpy()
-    want = np.flatnonzero(keep)
-    assert count == len(want)
-    assert (listed[count:] == -1).all()
-    assert sorted(listed[:count].tolist()) == want.tolist()
-    if device == "cpu":
-        assert listed[:count].tolist() == want.tolist()
+    capacity = 1000
+    counters = wp.zeros(lists, dtype=wp.int32, device=device)
+    out = wp.full(lists * capacity, -1, dtype=wp.int32, device=device)
+    wp.launch(_append_kept, 1000, inputs=[wp.array(keep, device=device), lists, capacity, counters, out], device=device)
+    counts, listed = counters.numpy(), out.numpy().reshape(lists, capacity)
+    for which in range(lists):
+        want = [i for i in np.flatnonzero(keep) if (i // 32) % lists == which]
+        count = int(counts[which])
+        assert count == len(want)
+        assert (listed[which, count:] == -1).all()
+        assert sorted(listed[which, :count].tolist()) == want
+        if device == "cpu":
+            assert listed[which, :count].tolist() == want

@@ -149,16 +149,17 @@ class _Project(torch.autograd.Function):
                        radii=wrap(radii, wp.vec2i), opacities_t=wrap(opacities_t),
                        tiles_touched=wrap(tiles_touched), viewmat=inputs[6], K=inputs[7])
         rows_d = NO_ARRAY if rows is None else wrap(rows)
-        # the outputs alive at t and in depth range: the list the long path runs over, forward and backward
-        work = torch.empty(n, device=means.device, dtype=torch.int32)
-        work_count = torch.zeros(1, device=means.device, dtype=torch.int32)
-        work_d = (wrap(work), wrap(work_count))
+        # the outputs alive at t and in depth range: the lists the long path runs over, forward and backward
+        capacity = project.work_capacity(n)
+        work = torch.empty(project.WORK_LISTS * capacity, device=means.device, dtype=torch.int32)
+        work_counts = torch.zeros(project.WORK_LISTS, device=means.device, dtype=torch.int32)
+        work_d = (capacity, wrap(work), wrap(work_counts))
         launch(project.project_cull, n, device=frame.device, args=[
             inputs[0], inputs[2], *inputs[3:7], frame.t_hi, frame.t_lo, frame.near, frame.far, wrapped["means2d"],
             wrapped["conics"], wrapped["depths"], wrapped["radii"], wrapped["opacities_t"], wrapped["tiles_touched"],
             wrap(flags), rows_d, int(rows is not None), means.shape[0], *work_d,
         ])
-        launch(project.project_visible, n, device=frame.device, args=[
+        launch(project.project_visible, work.shape[0], device=frame.device, args=[
             *inputs[:3], *inputs[6:], frame.width, frame.height, frame.tiles_x, frame.tiles_y, wrapped["opacities_t"],
             *work_d, rows_d, int(rows is not None), wrapped["means2d"], wrapped["conics"], wrapped["radii"],
             wrapped["tiles_touched"],
@@ -167,14 +168,14 @@ class _Project(torch.autograd.Function):
         ctx.rows = rows
         ctx.descriptors = (inputs, wrapped["radii"], rows_d, work_d)
         ctx.save_for_backward(means, quats, scales, opacities, t_means, t_scales, viewmat, K, radii, conics, work,
-                              work_count)
+                              work_counts)
         ctx.mark_non_differentiable(depths, radii, tiles_touched)
         ctx.set_materialize_grads(False)  # no zero-filled gradients for depths, radii, tiles (never read)
         return means2d, conics, depths, radii, opacities_t, tiles_touched
 
     @staticmethod
     def backward(ctx, v_means2d, v_conics, _v_depths, _v_radii, v_opacities_t, _v_tiles):
-        means, quats, scales, opacities, t_means, t_scales, viewmat, K, radii, conics, *_ = ctx.saved_tensors
+        means, quats, scales, opacities, t_means, t_scales, viewmat, K, radii, conics, work, _ = ctx.saved_tensors
         frame, rows = ctx.frame, ctx.rows
         n = radii.shape[0]  # M: the Gaussians projected
         camera_grads = ctx.needs_input_grad[6] or ctx.needs_input_grad[7]
@@ -192,7 +193,7 @@ class _Project(torch.autograd.Function):
         else:
             parts = [NO_ARRAY, NO_ARRAY]
         with scope(means.device) as device:
-            launch(project.project_backward, n, device=device, args=[
+            launch(project.project_backward, work.shape[0], device=device, args=[
                 *inputs, frame.width, frame.height, frame.t_hi, frame.t_lo, radii_d,
                 wrap(v_means2d, wp.vec2), wrap(v_conics, wp.vec3), wrap(v_opacities_t), int(camera_grads),
                 wrap(v_means, wp.vec3), wrap(v_quats, wp.vec4), wrap(v_scales, wp.vec3), wrap(v_opacities),

@@ -83,19 +83,20 @@ def lanes_sum_vec3(v: wp.vec3) -> wp.vec3: ...
     const int lane = static_cast<int>(threadIdx.x & 31u);
     const int leader = __ffs(votes) - 1;
     int base = 0;
-    if (lane == leader) base = atomicAdd(counter.data, __popc(votes));
+    if (lane == leader) base = atomicAdd(counters.data + which, __popc(votes));
     base = __shfl_sync(active, base, leader);
     return keep ? base + __popc(votes & ((1u << lane) - 1u)) : -1;
 #else
     if (!keep) return -1;
-    const wp::int32 slot = counter.data[0];
-    counter.data[0] = slot + 1;
+    const wp::int32 slot = counters.data[which];
+    counters.data[which] = slot + 1;
     return slot;
 #endif
 """)
-def append_slot(keep: bool, counter: wp.array(dtype=wp.int32)) -> int:
-    """A slot of a list for a thread that `keep`s something (-1 for one that does not): counter[0]
-    slots are taken so far, reserved with one atomic per group of lanes on the GPU, in thread
-    order on the CPU. Slots are unique and dense; on the GPU their order across groups is not
-    fixed. Reached by every running lane of a group (no lane-dependent branch around the call)."""
+def append_slot(keep: bool, counters: wp.array(dtype=wp.int32), which: int) -> int:
+    """A slot of list `which` for a thread that `keep`s something (-1 for one that does not):
+    counters[which] slots of it are taken so far, reserved with one atomic per group of lanes on the
+    GPU, in thread order on the CPU. Slots are unique and dense; on the GPU their order across groups
+    is not fixed. Every lane of a group must name the same list and reach the call (no lane-dependent
+    branch around it)."""
     ...

@@ -34,6 +34,25 @@ MAX_RADIUS = wp.constant(float(2**30))  # keeps radii inside int32; tiles are cl
 
 mat23 = wp.types.matrix(shape=(2, 3), dtype=wp.float32)
 
+# project_cull's work list is WORK_LISTS lists, warp w appending to list w % WORK_LISTS, so that the
+# warps running at once add to different counters (one counter took ~150k contended atomics a frame)
+WORK_LISTS = wp.constant(64)
+
+
+def work_capacity(m: int) -> int:
+    """Slots of each work list for M outputs: the rows of the warps that append to it."""
+    warps = -(-m // 32)
+    return -(-warps // int(WORK_LISTS)) * 32
+
+
+@wp.func
+def work_item(w: int, capacity: int, work: wp.array(dtype=wp.int32), work_counts: wp.array(dtype=wp.int32)) -> int:
+    """The output listed at slot w of the work lists laid end to end (`capacity` slots each), -1 past
+    its list's count."""
+    if w % capacity >= work_counts[w // capacity]:
+        return -1
+    return work[w]
+
 # slots of the int64 `flags` array shared by project_cull and frame_stats (tomgs.render reads it)
 FLAG_TOTAL = wp.constant(0)  # the frame's Gaussian-tile intersection count
 FLAG_OPACITIES = wp.constant(1)  # an opacity outside [0, 1] (NaN included)
@@ -190,8 +209,9 @@ def project_cull(
     rows: wp.array(dtype=wp.int32),  # [M] with has_rows: the Gaussians projected (the outputs are [M])
     has_rows: int,
     n: int,  # N, the Gaussians the inputs hold
-    work: wp.array(dtype=wp.int32),  # out [M]: the outputs alive at t and inside (near, far), first work_count
-    work_count: wp.array(dtype=wp.int32),  # [1] zeroed by the caller: how many `work` lists
+    capacity: int,  # slots of each work list (work_capacity)
+    work: wp.array(dtype=wp.int32),  # out [WORK_LISTS x capacity]: the outputs alive at t and in (near, far)
+    work_counts: wp.array(dtype=wp.int32),  # [WORK_LISTS] zeroed by the caller: how many each list holds
 ):
     # Stage 1a, every Gaussian: what a dead one needs (its contract checks, o_i(t), depth, zeros) at a
     # few loads and stores a thread, so that the long path runs in full warps over the list it makes
@@ -228,9 +248,10 @@ def project_cull(
     else:
         opacities_t[j] = 0.0
         depths[j] = 0.0
-    slot = append_slot(keep, work_count)  # every lane reaches it: no return above
+    which = (j // 32) % WORK_LISTS  # one list for a warp's 32 lanes
+    slot = append_slot(keep, work_counts, which)  # every lane reaches it: no return above
     if slot >= 0:
-        work[slot] = j
+        work[which * capacity + slot] = j
 
 
 @wp.kernel
@@ -245,8 +266,9 @@ def project_visible(
     tiles_x: int,
     tiles_y: int,
     opacities_t: wp.array(dtype=float),  # [M] from project_cull
-    work: wp.array(dtype=wp.int32),  # [M] from project_cull: the outputs to project, the first work_count
-    work_count: wp.array(dtype=wp.int32),  # [1]
+    capacity: int,  # from project_cull: its work lists, the outputs to project
+    work: wp.array(dtype=wp.int32),
+    work_counts: wp.array(dtype=wp.int32),
     rows: wp.array(dtype=wp.int32),  # [M] with has_rows: output j is Gaussian rows[j]
     has_rows: int,
     means2d: wp.array(dtype=wp.vec2),  # out [M], written where visible
@@ -254,12 +276,11 @@ def project_visible(
     radii: wp.array(dtype=wp.vec2i),  # out [M], left (0, 0) when culled
     tiles_touched: wp.array(dtype=wp.int32),  # out [M]
 ):
-    # Stage 1b, launched over M and run by the first work_count threads: the screen-space footprint
-    # of the Gaussians alive and in depth range; off screen or non-finite ones stay culled
-    w = wp.tid()
-    if w >= work_count[0]:
+    # Stage 1b, launched over the work lists' slots, run where one lists an output: the screen-space
+    # footprint of the Gaussians alive and in depth range; off screen or non-finite ones stay culled
+    j = work_item(wp.tid(), capacity, work, work_counts)
+    if j < 0:
         return
-    j = work[w]
     i = j
     if has_rows != 0:
         i = rows[j]
@@ -338,15 +359,15 @@ def project_backward(
     rows: wp.array(dtype=wp.int32),  # [M] with has_rows: the Gaussians the forward projected
     has_rows: int,  # then the forward's outputs, their gradients and the camera partials are [M]; the
     #                 inputs' gradients [N] are added at rows (kernels/rows.py)
-    work: wp.array(dtype=wp.int32),  # [M] project_cull's list (the outputs project_visible ran), first work_count
-    work_count: wp.array(dtype=wp.int32),  # [1]
+    capacity: int,  # project_cull's work lists (the outputs project_visible ran)
+    work: wp.array(dtype=wp.int32),
+    work_counts: wp.array(dtype=wp.int32),
 ):
-    # launched over M, run by the first work_count threads: every other row is culled and keeps the
-    # zeros the caller filled every gradient and camera partial with
-    w = wp.tid()
-    if w >= work_count[0]:
+    # launched over the work lists' slots, run where one lists an output: every other row is culled
+    # and keeps the zeros the caller filled every gradient and camera partial with
+    j = work_item(wp.tid(), capacity, work, work_counts)
+    if j < 0:
         return
-    j = work[w]
     i = j
     if has_rows != 0:
         i = rows[j]
