@@ -467,12 +467,11 @@ def med(xs):
 
 
 # Stages of a frame, and the kernel-name fragments (lower case) that put a kernel in one: tomgs's Warp
-# kernels (and their names before session 20) and gsplat 1.5.3's CUDA kernels (projection_ewa_3dgs_fused_*, intersect_tile/offset,
+# kernels and gsplat 1.5.3's CUDA kernels (projection_ewa_3dgs_fused_*, intersect_tile/offset,
 # rasterize_to_pixels_3dgs_*); the first match wins, anything else (fills, the loss, the gradients'
 # accumulation, gsplat's torch-side opacity) is "other".
 STAGES = (
-    ("project fwd", ("project_cull", "project_visible", "project_forward", "projection_ewa_3dgs_fused_fwd",
-                     "fused_projection_fwd")),
+    ("project fwd", ("project_forward", "project_listed", "projection_ewa_3dgs_fused_fwd", "fused_projection_fwd")),
     ("project bwd", ("project_backward", "projection_ewa_3dgs_fused_bwd", "fused_projection_bwd")),
     ("sort", ("radix",)),
     ("binning", ("write_tile_keys", "pad_tile_keys", "tile_ranges", "frame_stats", "scan", "intersect", "isect")),

@@ -8,7 +8,7 @@ import pytest
 import warp as wp
 
 from scenes import devices
-from tomgs.kernels.lanes import append_slot
+from tomgs.kernels.lanes import append_slot, lanes_count
 
 
 @wp.kernel
@@ -43,3 +43,24 @@ def test_append_slot_lists_every_kept_thread_once(device, share, lists):
         assert sorted(listed[which, :count].tolist()) == want
         if device == "cpu":
             assert listed[which, :count].tolist() == want
+
+
+@wp.kernel
+def _count_kept(keep: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.int32)):
+    i = wp.tid()
+    out[i] = lanes_count(keep[i] != 0)
+
+
+@pytest.mark.parametrize("device", devices())
+def test_lanes_count_counts_a_group_of_lanes(device):
+    """Each thread gets the count of its group of 32 (a launch's last group partial); on the CPU,
+    where every thread runs alone, its own 0 or 1."""
+    keep = (np.random.default_rng(3).random(1000) < 0.4).astype(np.int32)
+    out = wp.zeros(1000, dtype=wp.int32, device=device)
+    wp.launch(_count_kept, 1000, inputs=[wp.array(keep, device=device), out], device=device)
+    got = out.numpy()
+    if device == "cpu":
+        assert got.tolist() == keep.tolist()
+    else:
+        want = np.repeat(np.add.reduceat(keep, np.arange(0, 1000, 32)), 32)[:1000]
+        assert got.tolist() == want.tolist()

@@ -12,7 +12,7 @@ import torch
 
 import tomgs
 from tomgs.constants import ALPHA_MIN
-from scenes import INPUT_NAMES, devices, random_scene, render_both, rel_l2
+from scenes import INPUT_NAMES, devices, random_scene, render_both, rel_l2, split
 
 IMAGE_TOL = 1e-4  # max abs error of image and alpha
 GRAD_TOL = 1e-3  # relative L2 error of each input's gradient
@@ -214,6 +214,38 @@ def test_dead_gaussians_cost_no_tile_work(device):
     (image_alive, _, meta_alive), _, _, _ = render_both(alive_only, device)
     assert torch.equal(image, image_alive)
     assert meta["n_intersections"] == meta_alive["n_intersections"]
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("with_rows", [False, True])
+def test_projection_long_path_inline_or_listed_gives_the_same(device, with_rows):
+    """The projection's long path run by each warp itself (inline) or from the work lists in full
+    warps (tomgs/kernels/project.py): the same image, footprints and gradients, bit for bit, camera
+    gradients and rendered rows (a repeated one too) included, on a scene where most Gaussians are dead."""
+    from tomgs.render import _Project
+
+    scene = random_scene(70, n=400)
+    scene["t_scales"] = scene["t_scales"] * 0.2  # most dead at t
+    rows = torch.tensor([*range(0, 400, 3), 5, 5], dtype=torch.int32, device=device) if with_rows else None
+    results = []
+    kept = _Project.inline_lanes
+    try:
+        for inline_lanes in (1, 33):  # every thread inline; every warp (at most 32 lanes) listed
+            _Project.inline_lanes = inline_lanes
+            inputs, rest = split({k: (v.float() if isinstance(v, torch.Tensor) else v) for k, v in scene.items()},
+                                 device)
+            named = dict(zip(INPUT_NAMES, inputs))
+            image, alpha, meta = tomgs.rasterize(**named, width=rest["width"], height=rest["height"], t=rest["t"],
+                                                 rows=rows)
+            weights = torch.rand(image.shape, generator=torch.Generator().manual_seed(1)).to(image)
+            ((image * weights).sum() + alpha.sum()).backward()
+            results.append([image, meta["radii"], meta["means2d"], meta["conics"], meta["depths"],
+                            *(x.grad for x in inputs if x.requires_grad)])
+    finally:
+        _Project.inline_lanes = kept
+    assert 0 < int((results[0][1] > 0).any(-1).sum()) < len(results[0][1]) // 2  # a minority visible
+    for a, b in zip(*results):
+        assert a is not None and torch.equal(a, b)
 
 
 @pytest.mark.parametrize("device", DEVICES)

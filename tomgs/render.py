@@ -128,6 +128,17 @@ class _Frame:
 
 
 class _Project(torch.autograd.Function):
+    # Alive lanes from which a warp runs the long path itself rather than listing them for a pass in
+    # full warps (tomgs/kernels/project.py). None: INLINE_LANES on CUDA, 1 on a CPU (every thread runs
+    # alone: the list would only add a pass). Set it to compare the two paths in one process (tests).
+    inline_lanes: int | None = None
+
+    @staticmethod
+    def _inline_lanes(device: torch.device) -> int:
+        if _Project.inline_lanes is not None:
+            return _Project.inline_lanes
+        return project.INLINE_LANES if device.type == "cuda" else 1
+
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, t_means, t_scales, viewmat, K, flags, frame: _Frame,
                 wrapped: dict, rows: torch.Tensor | None):
@@ -149,56 +160,62 @@ class _Project(torch.autograd.Function):
                        radii=wrap(radii, wp.vec2i), opacities_t=wrap(opacities_t),
                        tiles_touched=wrap(tiles_touched), viewmat=inputs[6], K=inputs[7])
         rows_d = NO_ARRAY if rows is None else wrap(rows)
-        # the outputs alive at t and in depth range: the lists the long path runs over, forward and backward
+        # work lists: the long path of the outputs in warps with few alive ones, run in full warps after
         capacity = project.work_capacity(n)
         work = torch.empty(project.WORK_LISTS * capacity, device=means.device, dtype=torch.int32)
         work_counts = torch.zeros(project.WORK_LISTS, device=means.device, dtype=torch.int32)
         work_d = (capacity, wrap(work), wrap(work_counts))
-        launch(project.project_cull, n, device=frame.device, args=[
-            inputs[0], inputs[2], *inputs[3:7], frame.t_hi, frame.t_lo, frame.near, frame.far, wrapped["means2d"],
-            wrapped["conics"], wrapped["depths"], wrapped["radii"], wrapped["opacities_t"], wrapped["tiles_touched"],
-            wrap(flags), rows_d, int(rows is not None), means.shape[0], *work_d,
+        launch(project.project_forward, n, device=frame.device, args=[
+            *inputs, frame.width, frame.height, frame.t_hi, frame.t_lo, frame.near, frame.far, frame.tiles_x,
+            frame.tiles_y, wrapped["means2d"], wrapped["conics"], wrapped["depths"], wrapped["radii"],
+            wrapped["opacities_t"], wrapped["tiles_touched"], wrap(flags), rows_d, int(rows is not None),
+            means.shape[0], _Project._inline_lanes(means.device), *work_d,
         ])
-        launch(project.project_visible, work.shape[0], device=frame.device, args=[
+        launch(project.project_listed, work.shape[0], device=frame.device, args=[
             *inputs[:3], *inputs[6:], frame.width, frame.height, frame.tiles_x, frame.tiles_y, wrapped["opacities_t"],
             *work_d, rows_d, int(rows is not None), wrapped["means2d"], wrapped["conics"], wrapped["radii"],
             wrapped["tiles_touched"],
         ])
         ctx.frame = frame
         ctx.rows = rows
-        ctx.descriptors = (inputs, wrapped["radii"], rows_d, work_d)
-        ctx.save_for_backward(means, quats, scales, opacities, t_means, t_scales, viewmat, K, radii, conics, work,
-                              work_counts)
+        ctx.descriptors = (inputs, wrapped["radii"], rows_d)
+        ctx.save_for_backward(means, quats, scales, opacities, t_means, t_scales, viewmat, K, radii, conics)
         ctx.mark_non_differentiable(depths, radii, tiles_touched)
         ctx.set_materialize_grads(False)  # no zero-filled gradients for depths, radii, tiles (never read)
         return means2d, conics, depths, radii, opacities_t, tiles_touched
 
     @staticmethod
     def backward(ctx, v_means2d, v_conics, _v_depths, _v_radii, v_opacities_t, _v_tiles):
-        means, quats, scales, opacities, t_means, t_scales, viewmat, K, radii, conics, work, _ = ctx.saved_tensors
+        means, quats, scales, opacities, t_means, t_scales, viewmat, K, radii, conics = ctx.saved_tensors
         frame, rows = ctx.frame, ctx.rows
         n = radii.shape[0]  # M: the Gaussians projected
         camera_grads = ctx.needs_input_grad[6] or ctx.needs_input_grad[7]
-        # zero filled (at full bandwidth): the kernel writes the visible rows only
-        v_means, v_quats, v_scales = torch.zeros_like(means), torch.zeros_like(quats), torch.zeros_like(scales)
-        v_opacities, v_t_means, v_t_scales = (torch.zeros_like(x) for x in (opacities, t_means, t_scales))
-        inputs, radii_d, rows_d, work_d = ctx.descriptors
+        # every row written, or with rows only theirs: the rest stays zero
+        fresh = torch.empty_like if rows is None else torch.zeros_like
+        v_means, v_quats, v_scales = fresh(means), fresh(quats), fresh(scales)
+        v_opacities, v_t_means, v_t_scales = fresh(opacities), fresh(t_means), fresh(t_scales)
+        inputs, radii_d, rows_d = ctx.descriptors
         # named, so that a dense copy lives until the launch is queued (a descriptor does not own it)
         v_means2d, v_conics = indexable(v_means2d, conics, n, 2), indexable(v_conics, conics)
         v_opacities_t = indexable(v_opacities_t, conics, n)
         if camera_grads:  # per-Gaussian camera partials only when someone asked
-            v_viewmat_parts = torch.zeros(n, 4, 4, device=means.device, dtype=torch.float32)
-            v_K_parts = torch.zeros(n, 4, device=means.device, dtype=torch.float32)
+            v_viewmat_parts = torch.empty(n, 4, 4, device=means.device, dtype=torch.float32)
+            v_K_parts = torch.empty(n, 4, device=means.device, dtype=torch.float32)
             parts = [wrap(v_viewmat_parts, wp.mat44), wrap(v_K_parts, wp.vec4)]
         else:
             parts = [NO_ARRAY, NO_ARRAY]
+        capacity = project.work_capacity(n)  # the visible outputs of warps holding few, run in full warps after
+        work = torch.empty(project.WORK_LISTS * capacity, device=means.device, dtype=torch.int32)
+        work_counts = torch.zeros(project.WORK_LISTS, device=means.device, dtype=torch.int32)
         with scope(means.device) as device:
-            launch(project.project_backward, work.shape[0], device=device, args=[
-                *inputs, frame.width, frame.height, frame.t_hi, frame.t_lo, radii_d,
-                wrap(v_means2d, wp.vec2), wrap(v_conics, wp.vec3), wrap(v_opacities_t), int(camera_grads),
-                wrap(v_means, wp.vec3), wrap(v_quats, wp.vec4), wrap(v_scales, wp.vec3), wrap(v_opacities),
-                wrap(v_t_means), wrap(v_t_scales), *parts, rows_d, int(rows is not None), *work_d,
-            ])
+            shared = [*inputs, frame.width, frame.height, frame.t_hi, frame.t_lo]
+            grads = [wrap(v_means2d, wp.vec2), wrap(v_conics, wp.vec3), wrap(v_opacities_t), int(camera_grads),
+                     wrap(v_means, wp.vec3), wrap(v_quats, wp.vec4), wrap(v_scales, wp.vec3), wrap(v_opacities),
+                     wrap(v_t_means), wrap(v_t_scales), *parts, rows_d, int(rows is not None)]
+            work_d = [capacity, wrap(work), wrap(work_counts)]
+            launch(project.project_backward, n, device=device, args=[
+                *shared, radii_d, *grads, _Project._inline_lanes(means.device), *work_d])
+            launch(project.project_backward_listed, work.shape[0], device=device, args=[*shared, *grads, *work_d])
         v_viewmat = v_K = None
         if camera_grads:
             v_viewmat = v_viewmat_parts.sum(0)

@@ -48,6 +48,18 @@ def lanes_any(pred: bool) -> bool: ...
 
 @wp.func_native("""
 #if defined(__CUDA_ARCH__)
+    return __popc(__ballot_sync(__activemask(), pred));
+#else
+    return pred ? 1 : 0;
+#endif
+""")
+def lanes_count(pred: bool) -> int:
+    """How many running lanes of this group hold `pred` (the same for all of them): 0 or 1 on the CPU."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
     wp::int32 r = x;
     for (int o = 16; o > 0; o >>= 1) {
         const wp::int32 other = __shfl_xor_sync(0xffffffffu, r, o);

@@ -1,10 +1,11 @@
 """Stage 1: project Gaussians to the image, one thread per Gaussian, and its backward.
 
-In two passes: `project_cull` over every Gaussian settles what a dead one needs (o_i(t), depth,
-zeros, the contract checks) and lists the Gaussians alive at t and in depth range; `project_visible`
-and `project_backward` run the long path over that list only, in full warps. With ~15% of a fitted
-clip alive at a frame, one pass over all of them left nearly every warp holding a live lane and so
-as slow as projecting every Gaussian.
+A warp takes as long as its slowest lane: with ~15% of a fitted clip alive at a frame, nearly every
+warp of a pass over all Gaussians holds a few alive ones, and one pass cost what projecting every
+Gaussian costs. So `project_forward` settles what a dead Gaussian needs (o_i(t), depth, zeros, the
+contract checks) for all of them and runs the long path only in warps holding at least INLINE_LANES
+alive ones (on a CPU, where every thread runs alone, each runs its own); the others' alive Gaussians go to work lists that `project_listed` runs in full warps.
+The backward splits the visible ones the same way (`project_backward`, `project_backward_listed`).
 
 Forward writes, per Gaussian i: means2d (px), conic (inverse 2D covariance, upper triangle),
 depth (camera z), radii (px per axis; 0 = culled), temporal opacity o_i(t), and tiles touched.
@@ -21,7 +22,7 @@ import warp as wp
 
 from tomgs import constants
 from tomgs.kernels.binning import opacity_extent, tiles_of
-from tomgs.kernels.lanes import append_slot
+from tomgs.kernels.lanes import append_slot, lanes_count
 from tomgs.kernels.rows import put
 
 wp.set_module_options({"enable_backward": False})
@@ -34,9 +35,10 @@ MAX_RADIUS = wp.constant(float(2**30))  # keeps radii inside int32; tiles are cl
 
 mat23 = wp.types.matrix(shape=(2, 3), dtype=wp.float32)
 
-# project_cull's work list is WORK_LISTS lists, warp w appending to list w % WORK_LISTS, so that the
+# a pass's work list is WORK_LISTS lists, warp w appending to list w % WORK_LISTS, so that the
 # warps running at once add to different counters (one counter took ~150k contended atomics a frame)
 WORK_LISTS = wp.constant(64)
+INLINE_LANES = 16  # on CUDA, the alive lanes from which a warp runs its long path itself
 
 
 def work_capacity(m: int) -> int:
@@ -53,7 +55,7 @@ def work_item(w: int, capacity: int, work: wp.array(dtype=wp.int32), work_counts
         return -1
     return work[w]
 
-# slots of the int64 `flags` array shared by project_cull and frame_stats (tomgs.render reads it)
+# slots of the int64 `flags` array shared by project_forward and frame_stats (tomgs.render reads it)
 FLAG_TOTAL = wp.constant(0)  # the frame's Gaussian-tile intersection count
 FLAG_OPACITIES = wp.constant(1)  # an opacity outside [0, 1] (NaN included)
 FLAG_SCALES = wp.constant(2)  # a negative scale
@@ -187,35 +189,72 @@ def scaled_rotation(q: wp.vec4, s: wp.vec3) -> wp.mat33:
     )
 
 
+@wp.func
+def footprint(j: int, p: wp.vec3, opac: float, q: wp.vec4, s: wp.vec3, viewmat: wp.mat44, K: wp.mat33,
+              width: int, height: int, tiles_x: int, tiles_y: int, means2d: wp.array(dtype=wp.vec2),
+              conics: wp.array(dtype=wp.vec3), radii: wp.array(dtype=wp.vec2i),
+              tiles_touched: wp.array(dtype=wp.int32)):
+    """The long path of output j (camera point p, alive at opacity opac, inside the depth range): its
+    screen-space footprint written where it is visible; off screen or non-finite it stays culled."""
+    J = ewa_jacobian(p, K, fov_limits(K, width, height))
+    A = J * view_rotation(viewmat) * scaled_rotation(q, s)
+    conic = conic_of(A)
+    a = A[0, 0] * A[0, 0] + A[0, 1] * A[0, 1] + A[0, 2] * A[0, 2] + EPS2D
+    c = A[1, 0] * A[1, 0] + A[1, 1] * A[1, 1] + A[1, 2] * A[1, 2] + EPS2D
+    center = wp.vec2(K[0, 0] * p[0] / p[2] + K[0, 2], K[1, 1] * p[1] / p[2] + K[1, 2])
+
+    # opacity-aware extent: beyond it the Gaussian's alpha is below 1/255 everywhere
+    extend = opacity_extent(opac)
+    rx = wp.min(wp.ceil(extend * wp.sqrt(a)), MAX_RADIUS)
+    ry = wp.min(wp.ceil(extend * wp.sqrt(c)), MAX_RADIUS)
+    finite = wp.isfinite(center) and wp.isfinite(conic) and wp.isfinite(rx) and wp.isfinite(ry)
+    on_screen = not (center[0] + rx <= 0.0 or center[0] - rx >= float(width) or center[1] + ry <= 0.0
+                     or center[1] - ry >= float(height))
+    if finite and (rx > 0.0 or ry > 0.0) and on_screen:
+        radius = wp.vec2i(int(rx), int(ry))
+        means2d[j] = center
+        conics[j] = conic
+        radii[j] = radius
+        tiles_touched[j] = tiles_of(center, conic, radius, opac, tiles_x, tiles_y)
+
+
 @wp.kernel
-def project_cull(
+def project_forward(
     means: wp.array(dtype=wp.vec3),  # [N]
+    quats: wp.array(dtype=wp.vec4),  # [N] w x y z, any norm
     scales: wp.array(dtype=wp.vec3),  # [N]
     opacities: wp.array(dtype=float),  # [N] base opacity
     t_means: wp.array(dtype=float),  # [N]
     t_scales: wp.array(dtype=float),  # [N] sigma
     viewmats: wp.array(dtype=wp.mat44),  # [1] world -> camera
+    Ks: wp.array(dtype=wp.mat33),  # [1]
+    width: int,
+    height: int,
     t_hi: float,  # t = t_hi + t_lo
     t_lo: float,
     near: float,
     far: float,
-    means2d: wp.array(dtype=wp.vec2),  # out [N]: zero (project_visible fills the visible)
-    conics: wp.array(dtype=wp.vec3),  # out [N]: zero
+    tiles_x: int,
+    tiles_y: int,
+    means2d: wp.array(dtype=wp.vec2),  # out [N]
+    conics: wp.array(dtype=wp.vec3),  # out [N]
     depths: wp.array(dtype=float),  # out [N]
-    radii: wp.array(dtype=wp.vec2i),  # out [N]: (0, 0)
+    radii: wp.array(dtype=wp.vec2i),  # out [N], (0, 0) when culled
     opacities_t: wp.array(dtype=float),  # out [N] o_i(t)
-    tiles_touched: wp.array(dtype=wp.int32),  # out [N]: 0
+    tiles_touched: wp.array(dtype=wp.int32),  # out [N]
     flags: wp.array(dtype=wp.int64),  # [NUM_FLAGS] zeroed by the caller; set to 1 on a contract violation
     rows: wp.array(dtype=wp.int32),  # [M] with has_rows: the Gaussians projected (the outputs are [M])
     has_rows: int,
     n: int,  # N, the Gaussians the inputs hold
+    inline_lanes: int,  # a warp holding this many alive lanes runs their long path (INLINE_LANES; 1 on a CPU)
     capacity: int,  # slots of each work list (work_capacity)
-    work: wp.array(dtype=wp.int32),  # out [WORK_LISTS x capacity]: the outputs alive at t and in (near, far)
+    work: wp.array(dtype=wp.int32),  # out [WORK_LISTS x capacity]: outputs left to project_listed
     work_counts: wp.array(dtype=wp.int32),  # [WORK_LISTS] zeroed by the caller: how many each list holds
 ):
-    # Stage 1a, every Gaussian: what a dead one needs (its contract checks, o_i(t), depth, zeros) at a
-    # few loads and stores a thread, so that the long path runs in full warps over the list it makes
-    # (a warp takes as long as its slowest lane: with ~15% alive nearly every warp held one).
+    # Every Gaussian: what a dead one needs (contract checks, o_i(t), depth, zeros). The long path
+    # runs here for the alive ones (and in depth range) of a warp holding at least inline_lanes of
+    # them; a warp holding fewer lists them for project_listed, which runs them in full warps (a warp
+    # takes as long as its slowest lane: with ~15% alive, nearly every warp holds a few)
     j = wp.tid()
     i = j
     radii[j] = wp.vec2i(0, 0)
@@ -229,6 +268,9 @@ def project_cull(
             flags[FLAG_ROWS] = wp.int64(1)
             valid = False
     keep = False
+    opac = float(0.0)
+    p = wp.vec3(0.0)
+    viewmat = viewmats[0]
     if valid:
         base = opacities[i]
         s = scales[i]
@@ -240,76 +282,53 @@ def project_cull(
             flags[FLAG_T_SCALES] = wp.int64(1)
         z = temporal_z(t_hi, t_lo, t_means[i], t_scales[i])
         opac = base * wp.exp(-0.5 * z * z)
-        opacities_t[j] = opac
-        depth = world_to_camera(viewmats[0], means[i])[2]
-        depths[j] = depth
+        p = world_to_camera(viewmat, means[i])
         # alive (also rejects NaN) and inside the depth range
-        keep = opac >= ALPHA_MIN and opac <= 1.0e30 and depth > near and depth < far
-    else:
-        opacities_t[j] = 0.0
-        depths[j] = 0.0
-    which = (j // 32) % WORK_LISTS  # one list for a warp's 32 lanes
-    slot = append_slot(keep, work_counts, which)  # every lane reaches it: no return above
+        keep = opac >= ALPHA_MIN and opac <= 1.0e30 and p[2] > near and p[2] < far
+    opacities_t[j] = opac
+    depths[j] = p[2]
+    inline = lanes_count(keep) >= inline_lanes  # the same for the warp's lanes
+    which = (j // 32) % WORK_LISTS  # one list for a warp's lanes
+    slot = append_slot(keep and not inline, work_counts, which)  # every lane reaches it: no return above
     if slot >= 0:
         work[which * capacity + slot] = j
+    if keep and inline:
+        footprint(j, p, opac, quats[i], scales[i], viewmat, Ks[0], width, height, tiles_x, tiles_y, means2d, conics,
+                  radii, tiles_touched)
 
 
 @wp.kernel
-def project_visible(
+def project_listed(
     means: wp.array(dtype=wp.vec3),  # [N]
-    quats: wp.array(dtype=wp.vec4),  # [N] w x y z, any norm
+    quats: wp.array(dtype=wp.vec4),  # [N]
     scales: wp.array(dtype=wp.vec3),  # [N]
-    viewmats: wp.array(dtype=wp.mat44),  # [1] world -> camera
+    viewmats: wp.array(dtype=wp.mat44),  # [1]
     Ks: wp.array(dtype=wp.mat33),  # [1]
     width: int,
     height: int,
     tiles_x: int,
     tiles_y: int,
-    opacities_t: wp.array(dtype=float),  # [M] from project_cull
-    capacity: int,  # from project_cull: its work lists, the outputs to project
+    opacities_t: wp.array(dtype=float),  # [M] from project_forward
+    capacity: int,  # project_forward's work lists: the outputs it left
     work: wp.array(dtype=wp.int32),
     work_counts: wp.array(dtype=wp.int32),
     rows: wp.array(dtype=wp.int32),  # [M] with has_rows: output j is Gaussian rows[j]
     has_rows: int,
     means2d: wp.array(dtype=wp.vec2),  # out [M], written where visible
     conics: wp.array(dtype=wp.vec3),  # out [M]
-    radii: wp.array(dtype=wp.vec2i),  # out [M], left (0, 0) when culled
+    radii: wp.array(dtype=wp.vec2i),  # out [M]
     tiles_touched: wp.array(dtype=wp.int32),  # out [M]
 ):
-    # Stage 1b, launched over the work lists' slots, run where one lists an output: the screen-space
-    # footprint of the Gaussians alive and in depth range; off screen or non-finite ones stay culled
+    # launched over the work lists' slots, run where one lists an output
     j = work_item(wp.tid(), capacity, work, work_counts)
     if j < 0:
         return
     i = j
     if has_rows != 0:
         i = rows[j]
-    opac = opacities_t[j]
     viewmat = viewmats[0]
-    p = world_to_camera(viewmat, means[i])
-    K = Ks[0]
-    J = ewa_jacobian(p, K, fov_limits(K, width, height))
-    A = J * view_rotation(viewmat) * scaled_rotation(quats[i], scales[i])
-    conic = conic_of(A)
-    a = A[0, 0] * A[0, 0] + A[0, 1] * A[0, 1] + A[0, 2] * A[0, 2] + EPS2D
-    c = A[1, 0] * A[1, 0] + A[1, 1] * A[1, 1] + A[1, 2] * A[1, 2] + EPS2D
-    center = wp.vec2(K[0, 0] * p[0] / p[2] + K[0, 2], K[1, 1] * p[1] / p[2] + K[1, 2])
-
-    # opacity-aware extent: beyond it the Gaussian's alpha is below 1/255 everywhere
-    extend = opacity_extent(opac)
-    rx = wp.min(wp.ceil(extend * wp.sqrt(a)), MAX_RADIUS)
-    ry = wp.min(wp.ceil(extend * wp.sqrt(c)), MAX_RADIUS)
-    finite = wp.isfinite(center) and wp.isfinite(conic) and wp.isfinite(rx) and wp.isfinite(ry)
-    if not finite or (rx <= 0.0 and ry <= 0.0):
-        return
-    if center[0] + rx <= 0.0 or center[0] - rx >= float(width) or center[1] + ry <= 0.0 or center[1] - ry >= float(height):
-        return
-
-    radius = wp.vec2i(int(rx), int(ry))
-    means2d[j] = center
-    conics[j] = conic
-    radii[j] = radius
-    tiles_touched[j] = tiles_of(center, conic, radius, opac, tiles_x, tiles_y)
+    footprint(j, world_to_camera(viewmat, means[i]), opacities_t[j], quats[i], scales[i], viewmat, Ks[0], width,
+              height, tiles_x, tiles_y, means2d, conics, radii, tiles_touched)
 
 
 @wp.func
@@ -329,9 +348,11 @@ def rotation_vjp(q: wp.vec4, g: wp.mat33) -> wp.vec4:
     return wp.vec4(vw, vx, vy, vz)
 
 
-@wp.kernel
-def project_backward(
-    means: wp.array(dtype=wp.vec3),  # [N] (forward inputs, as above)
+@wp.func
+def gradients(
+    j: int,  # the output
+    i: int,  # its Gaussian
+    means: wp.array(dtype=wp.vec3),
     quats: wp.array(dtype=wp.vec4),
     scales: wp.array(dtype=wp.vec3),
     opacities: wp.array(dtype=float),
@@ -343,38 +364,22 @@ def project_backward(
     height: int,
     t_hi: float,
     t_lo: float,
-    radii: wp.array(dtype=wp.vec2i),  # [N] from the forward; (0, 0) = culled, no gradient
-    v_means2d: wp.array(dtype=wp.vec2),  # [N] incoming gradients
+    v_means2d: wp.array(dtype=wp.vec2),
     v_conics: wp.array(dtype=wp.vec3),
     v_opacities_t: wp.array(dtype=float),
-    camera_grads: int,  # 1: write per-Gaussian viewmat and K partials below
-    v_means: wp.array(dtype=wp.vec3),  # out [N]
-    v_quats: wp.array(dtype=wp.vec4),  # out [N]
-    v_scales: wp.array(dtype=wp.vec3),  # out [N]
-    v_opacities: wp.array(dtype=float),  # out [N]
-    v_t_means: wp.array(dtype=float),  # out [N]
-    v_t_scales: wp.array(dtype=float),  # out [N]
-    v_viewmat_parts: wp.array(dtype=wp.mat44),  # out [N] when camera_grads, summed by the caller
-    v_K_parts: wp.array(dtype=wp.vec4),  # out [N] (fx, fy, cx, cy) when camera_grads
-    rows: wp.array(dtype=wp.int32),  # [M] with has_rows: the Gaussians the forward projected
-    has_rows: int,  # then the forward's outputs, their gradients and the camera partials are [M]; the
-    #                 inputs' gradients [N] are added at rows (kernels/rows.py)
-    capacity: int,  # project_cull's work lists (the outputs project_visible ran)
-    work: wp.array(dtype=wp.int32),
-    work_counts: wp.array(dtype=wp.int32),
+    camera_grads: int,
+    v_means: wp.array(dtype=wp.vec3),
+    v_quats: wp.array(dtype=wp.vec4),
+    v_scales: wp.array(dtype=wp.vec3),
+    v_opacities: wp.array(dtype=float),
+    v_t_means: wp.array(dtype=float),
+    v_t_scales: wp.array(dtype=float),
+    v_viewmat_parts: wp.array(dtype=wp.mat44),
+    v_K_parts: wp.array(dtype=wp.vec4),
+    has_rows: int,
 ):
-    # launched over the work lists' slots, run where one lists an output: every other row is culled
-    # and keeps the zeros the caller filled every gradient and camera partial with
-    j = work_item(wp.tid(), capacity, work, work_counts)
-    if j < 0:
-        return
-    i = j
-    if has_rows != 0:
-        i = rows[j]
-    r = radii[j]
-    if r[0] == 0 and r[1] == 0:  # culled off screen or non-finite: no gradient
-        return
-
+    """The long path of the backward for visible output j (Gaussian i): its gradients (added at i
+    with rows) and camera partials."""
     # temporal window: o = a g, g = exp(-z^2 / 2), z = (t - m) / sigma
     sigma = t_scales[i]
     z = temporal_z(t_hi, t_lo, t_means[i], sigma)
@@ -473,6 +478,117 @@ def project_backward(
             0.0, 0.0, 0.0, 0.0,
         )
         v_K_parts[j] = wp.vec4(v_fx, v_fy, vm2[0], vm2[1])
+
+
+
+@wp.kernel
+def project_backward(
+    means: wp.array(dtype=wp.vec3),  # [N] (forward inputs, as above)
+    quats: wp.array(dtype=wp.vec4),
+    scales: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    t_means: wp.array(dtype=float),
+    t_scales: wp.array(dtype=float),
+    viewmats: wp.array(dtype=wp.mat44),
+    Ks: wp.array(dtype=wp.mat33),
+    width: int,
+    height: int,
+    t_hi: float,
+    t_lo: float,
+    radii: wp.array(dtype=wp.vec2i),  # [M] from the forward; (0, 0) = culled, no gradient
+    v_means2d: wp.array(dtype=wp.vec2),  # [M] incoming gradients
+    v_conics: wp.array(dtype=wp.vec3),
+    v_opacities_t: wp.array(dtype=float),
+    camera_grads: int,  # 1: write per-Gaussian viewmat and K partials below
+    v_means: wp.array(dtype=wp.vec3),  # out [N]
+    v_quats: wp.array(dtype=wp.vec4),  # out [N]
+    v_scales: wp.array(dtype=wp.vec3),  # out [N]
+    v_opacities: wp.array(dtype=float),  # out [N]
+    v_t_means: wp.array(dtype=float),  # out [N]
+    v_t_scales: wp.array(dtype=float),  # out [N]
+    v_viewmat_parts: wp.array(dtype=wp.mat44),  # out [M] when camera_grads, summed by the caller
+    v_K_parts: wp.array(dtype=wp.vec4),  # out [M] (fx, fy, cx, cy) when camera_grads
+    rows: wp.array(dtype=wp.int32),  # [M] with has_rows: the Gaussians the forward projected
+    has_rows: int,  # then the forward's outputs, their gradients and the camera partials are [M]; the
+    #                 inputs' gradients [N], zeroed by the caller, are added at rows (kernels/rows.py)
+    inline_lanes: int,  # as project_forward's
+    capacity: int,  # slots of each work list (work_capacity)
+    work: wp.array(dtype=wp.int32),  # out [WORK_LISTS x capacity]: visible outputs left to project_backward_listed
+    work_counts: wp.array(dtype=wp.int32),  # [WORK_LISTS] zeroed by the caller
+):
+    # as project_forward: the visible outputs of a warp holding at least inline_lanes of them run the
+    # long path here, the others are listed for project_backward_listed; every other row gets zeros
+    # (without rows: the listed ones too, which project_backward_listed overwrites after)
+    j = wp.tid()
+    i = j
+    if has_rows != 0:
+        i = rows[j]
+    r = radii[j]
+    visible = r[0] != 0 or r[1] != 0  # a culled or bad row: no gradient
+    inline = lanes_count(visible) >= inline_lanes
+    which = (j // 32) % WORK_LISTS
+    slot = append_slot(visible and not inline, work_counts, which)  # every lane reaches it
+    if slot >= 0:
+        work[which * capacity + slot] = j
+    if visible and inline:
+        gradients(j, i, means, quats, scales, opacities, t_means, t_scales, viewmats, Ks, width, height, t_hi, t_lo,
+                  v_means2d, v_conics, v_opacities_t, camera_grads, v_means, v_quats, v_scales, v_opacities, v_t_means,
+                  v_t_scales, v_viewmat_parts, v_K_parts, has_rows)
+    else:
+        if has_rows == 0:
+            v_means[i] = wp.vec3(0.0)
+            v_quats[i] = wp.vec4(0.0)
+            v_scales[i] = wp.vec3(0.0)
+            v_opacities[i] = 0.0
+            v_t_means[i] = 0.0
+            v_t_scales[i] = 0.0
+        if camera_grads != 0:
+            v_viewmat_parts[j] = wp.mat44(0.0)
+            v_K_parts[j] = wp.vec4(0.0)
+
+
+@wp.kernel
+def project_backward_listed(
+    means: wp.array(dtype=wp.vec3),  # [N] (as project_backward)
+    quats: wp.array(dtype=wp.vec4),
+    scales: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    t_means: wp.array(dtype=float),
+    t_scales: wp.array(dtype=float),
+    viewmats: wp.array(dtype=wp.mat44),
+    Ks: wp.array(dtype=wp.mat33),
+    width: int,
+    height: int,
+    t_hi: float,
+    t_lo: float,
+    v_means2d: wp.array(dtype=wp.vec2),
+    v_conics: wp.array(dtype=wp.vec3),
+    v_opacities_t: wp.array(dtype=float),
+    camera_grads: int,
+    v_means: wp.array(dtype=wp.vec3),
+    v_quats: wp.array(dtype=wp.vec4),
+    v_scales: wp.array(dtype=wp.vec3),
+    v_opacities: wp.array(dtype=float),
+    v_t_means: wp.array(dtype=float),
+    v_t_scales: wp.array(dtype=float),
+    v_viewmat_parts: wp.array(dtype=wp.mat44),
+    v_K_parts: wp.array(dtype=wp.vec4),
+    rows: wp.array(dtype=wp.int32),
+    has_rows: int,
+    capacity: int,  # project_backward's work lists: the visible outputs it left
+    work: wp.array(dtype=wp.int32),
+    work_counts: wp.array(dtype=wp.int32),
+):
+    # launched over the work lists' slots, run where one lists an output
+    j = work_item(wp.tid(), capacity, work, work_counts)
+    if j < 0:
+        return
+    i = j
+    if has_rows != 0:
+        i = rows[j]
+    gradients(j, i, means, quats, scales, opacities, t_means, t_scales, viewmats, Ks, width, height, t_hi, t_lo,
+              v_means2d, v_conics, v_opacities_t, camera_grads, v_means, v_quats, v_scales, v_opacities, v_t_means,
+              v_t_scales, v_viewmat_parts, v_K_parts, has_rows)
 
 
 @wp.func
