@@ -220,8 +220,10 @@ def test_dead_gaussians_cost_no_tile_work(device):
 @pytest.mark.parametrize("with_rows", [False, True])
 def test_projection_long_path_inline_or_listed_gives_the_same(device, with_rows):
     """The projection's long path run by each warp itself (inline) or from the work lists in full
-    warps (tomgs/kernels/project.py): the same image, footprints and gradients, bit for bit, camera
-    gradients and rendered rows (a repeated one too) included, on a scene where most Gaussians are dead."""
+    warps (tomgs/kernels/project.py): the same image, footprints and gradients, camera gradients and
+    rendered rows (a repeated one too) included, on a scene where most Gaussians are dead. Bit for bit
+    on the CPU; on CUDA to float32 rounding (the two kernels may contract multiply-adds differently,
+    and the raster backward adds by atomics in no fixed order)."""
     from tomgs.render import _Project
 
     scene = random_scene(70, n=400)
@@ -245,7 +247,11 @@ def test_projection_long_path_inline_or_listed_gives_the_same(device, with_rows)
         _Project.inline_lanes = kept
     assert 0 < int((results[0][1] > 0).any(-1).sum()) < len(results[0][1]) // 2  # a minority visible
     for a, b in zip(*results):
-        assert a is not None and torch.equal(a, b)
+        assert a is not None
+        if device == "cpu" or not a.is_floating_point():
+            assert torch.equal(a, b)
+        else:
+            torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
 
 
 @pytest.mark.parametrize("device", DEVICES)
