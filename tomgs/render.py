@@ -140,6 +140,19 @@ class _Project(torch.autograd.Function):
         return project.INLINE_LANES if device.type == "cuda" else 1
 
     @staticmethod
+    def _work_lists(n: int, inline_lanes: int, device: torch.device) -> tuple:
+        """((work [WORK_LISTS x capacity], counts [WORK_LISTS]) int32, held by the caller until its
+        launches are queued (descriptors do not own them), or None; the kernels' (capacity, work,
+        counts) arguments) for M = n outputs. None when every lane runs inline (inline_lanes 1:
+        nothing is ever listed)."""
+        if inline_lanes <= 1:
+            return None, (0, NO_ARRAY, NO_ARRAY)
+        capacity = project.work_capacity(n)
+        work = torch.empty(project.WORK_LISTS * capacity, device=device, dtype=torch.int32)
+        counts = torch.zeros(project.WORK_LISTS, device=device, dtype=torch.int32)
+        return (work, counts), (capacity, wrap(work), wrap(counts))
+
+    @staticmethod
     def forward(ctx, means, quats, scales, opacities, t_means, t_scales, viewmat, K, flags, frame: _Frame,
                 wrapped: dict, rows: torch.Tensor | None):
         """Outputs (means2d [M,2], conics [M,3], depths [M], radii [M,2] int32, opacities_t [M],
@@ -161,21 +174,20 @@ class _Project(torch.autograd.Function):
                        tiles_touched=wrap(tiles_touched), viewmat=inputs[6], K=inputs[7])
         rows_d = NO_ARRAY if rows is None else wrap(rows)
         # work lists: the long path of the outputs in warps with few alive ones, run in full warps after
-        capacity = project.work_capacity(n)
-        work = torch.empty(project.WORK_LISTS * capacity, device=means.device, dtype=torch.int32)
-        work_counts = torch.zeros(project.WORK_LISTS, device=means.device, dtype=torch.int32)
-        work_d = (capacity, wrap(work), wrap(work_counts))
+        inline_lanes = _Project._inline_lanes(means.device)
+        lists, work_d = _Project._work_lists(n, inline_lanes, means.device)
         launch(project.project_forward, n, device=frame.device, args=[
             *inputs, frame.width, frame.height, frame.t_hi, frame.t_lo, frame.near, frame.far, frame.tiles_x,
             frame.tiles_y, wrapped["means2d"], wrapped["conics"], wrapped["depths"], wrapped["radii"],
             wrapped["opacities_t"], wrapped["tiles_touched"], wrap(flags), rows_d, int(rows is not None),
-            means.shape[0], _Project._inline_lanes(means.device), *work_d,
+            means.shape[0], inline_lanes, *work_d,
         ])
-        launch(project.project_listed, work.shape[0], device=frame.device, args=[
-            *inputs[:3], *inputs[6:], frame.width, frame.height, frame.tiles_x, frame.tiles_y, wrapped["opacities_t"],
-            *work_d, rows_d, int(rows is not None), wrapped["means2d"], wrapped["conics"], wrapped["radii"],
-            wrapped["tiles_touched"],
-        ])
+        if lists is not None:
+            launch(project.project_listed, lists[0].shape[0], device=frame.device, args=[
+                *inputs[:3], *inputs[6:], frame.width, frame.height, frame.tiles_x, frame.tiles_y,
+                wrapped["opacities_t"], *work_d, rows_d, int(rows is not None), wrapped["means2d"], wrapped["conics"],
+                wrapped["radii"], wrapped["tiles_touched"],
+            ])
         ctx.frame = frame
         ctx.rows = rows
         ctx.descriptors = (inputs, wrapped["radii"], rows_d)
@@ -204,18 +216,18 @@ class _Project(torch.autograd.Function):
             parts = [wrap(v_viewmat_parts, wp.mat44), wrap(v_K_parts, wp.vec4)]
         else:
             parts = [NO_ARRAY, NO_ARRAY]
-        capacity = project.work_capacity(n)  # the visible outputs of warps holding few, run in full warps after
-        work = torch.empty(project.WORK_LISTS * capacity, device=means.device, dtype=torch.int32)
-        work_counts = torch.zeros(project.WORK_LISTS, device=means.device, dtype=torch.int32)
+        # the visible outputs of warps holding few, run in full warps after
+        inline_lanes = _Project._inline_lanes(means.device)
+        lists, work_d = _Project._work_lists(n, inline_lanes, means.device)
         with scope(means.device) as device:
             shared = [*inputs, frame.width, frame.height, frame.t_hi, frame.t_lo]
             grads = [wrap(v_means2d, wp.vec2), wrap(v_conics, wp.vec3), wrap(v_opacities_t), int(camera_grads),
                      wrap(v_means, wp.vec3), wrap(v_quats, wp.vec4), wrap(v_scales, wp.vec3), wrap(v_opacities),
                      wrap(v_t_means), wrap(v_t_scales), *parts, rows_d, int(rows is not None)]
-            work_d = [capacity, wrap(work), wrap(work_counts)]
-            launch(project.project_backward, n, device=device, args=[
-                *shared, radii_d, *grads, _Project._inline_lanes(means.device), *work_d])
-            launch(project.project_backward_listed, work.shape[0], device=device, args=[*shared, *grads, *work_d])
+            launch(project.project_backward, n, device=device, args=[*shared, radii_d, *grads, inline_lanes, *work_d])
+            if lists is not None:
+                launch(project.project_backward_listed, lists[0].shape[0], device=device,
+                       args=[*shared, *grads, *work_d])
         v_viewmat = v_K = None
         if camera_grads:
             v_viewmat = v_viewmat_parts.sum(0)
