@@ -443,5 +443,8 @@ def pays_on(device) -> bool:
     against 63.4 without (torch gathers of the rows, before the kernels read them in place: 59.0).
     On the H100 (4M Gaussians, 15% alive, 854x480) it loses even with the kernels reading the rows in
     place: a step 8.93 ms against 7.32, frames 587 against 653 fps, rendering 18.3% of the rows for
-    13.2% alive (`alive_index.py --device cuda`, session 16; where its time goes is not profiled yet)."""
+    13.2% alive (`alive_index.py --device cuda`, session 16). Storing the cloud in time order, so
+    that a frame's rows lie in runs, did not change that (session 20: an indexed step 3.95-4.54 ms
+    against 3.30-3.50 rendering all; indexed frames 624-678 fps against 778-934 before): scattered
+    rows are not what the index costs there."""
     return torch.device(device).type != "cuda"
