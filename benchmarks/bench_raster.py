@@ -768,7 +768,8 @@ def markdown(results: dict) -> str:
                 pr = d["profile"]
                 cells = " | ".join(fmt(pr["stages_ms"][k]) for k in STAGE_NAMES)
                 totals = " | ".join(fmt(pr[k]) for k in ("kernels_total_ms", "profiled_fb_ms", "host_wait_ms"))
-                lines.append(f"| {c['width']}x{c['height']} | {c['n']} | {c['variant']} | {name} | {cells} | {totals} |")
+                case = f"{c['width']}x{c['height']} | {c['n']} | {c['variant']}"
+                lines.append(f"| {case} | {name} | {cells} | {totals} |")
     errs = [(c, name, d["error"]) for c in results["cases"] for name, d in c.get("libs", {}).items() if d.get("error")]
     if errs:
         lines += ["", "Errors:"]

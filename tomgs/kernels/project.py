@@ -4,8 +4,9 @@ A warp takes as long as its slowest lane: with ~15% of a fitted clip alive at a 
 warp of a pass over all Gaussians holds a few alive ones, and one pass cost what projecting every
 Gaussian costs. So `project_forward` settles what a dead Gaussian needs (o_i(t), depth, zeros, the
 contract checks) for all of them and runs the long path only in warps holding at least INLINE_LANES
-alive ones (on a CPU, where every thread runs alone, each runs its own); the others' alive Gaussians go to work lists that `project_listed` runs in full warps.
-The backward splits the visible ones the same way (`project_backward`, `project_backward_listed`).
+alive ones (on a CPU, where every thread runs alone, each runs its own); the others' alive Gaussians
+go to work lists that `project_listed` runs in full warps. The backward splits the visible ones the
+same way (`project_backward`, `project_backward_listed`).
 
 Forward writes, per Gaussian i: means2d (px), conic (inverse 2D covariance, upper triangle),
 depth (camera z), radii (px per axis; 0 = culled), temporal opacity o_i(t), and tiles touched.
@@ -54,6 +55,7 @@ def work_item(w: int, capacity: int, work: wp.array(dtype=wp.int32), work_counts
     if w % capacity >= work_counts[w // capacity]:
         return -1
     return work[w]
+
 
 # slots of the int64 `flags` array shared by project_forward and frame_stats (tomgs.render reads it)
 FLAG_TOTAL = wp.constant(0)  # the frame's Gaussian-tile intersection count
@@ -478,7 +480,6 @@ def gradients(
             0.0, 0.0, 0.0, 0.0,
         )
         v_K_parts[j] = wp.vec4(v_fx, v_fy, vm2[0], vm2[1])
-
 
 
 @wp.kernel
