@@ -20,6 +20,11 @@ from bench_raster import camera, make_scene, parse_count, parse_size, temporal_s
 import tomgs  # noqa: E402
 
 
+# a kernel's name as reported: long enough to tell cub's sort kernels apart (their first 80 characters
+# are the same namespace)
+KEY_CHARS = 140
+
+
 def kernel_times(step, iters: int) -> dict[str, float]:
     """GPU milliseconds per call of `step`, by kernel name (torch profiler; Warp's kernels included)."""
     acts = [torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
@@ -35,7 +40,7 @@ def kernel_times(step, iters: int) -> dict[str, float]:
     for evt in events:
         if evt.device_type == torch.autograd.DeviceType.CUDA and evt.device_time_total > 0 \
                 and evt.key not in host_ranges:
-            per_kernel[evt.key[:80]] += evt.device_time_total / iters / 1e3
+            per_kernel[evt.key[:KEY_CHARS]] += evt.device_time_total / iters / 1e3
     return dict(per_kernel)
 
 

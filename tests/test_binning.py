@@ -187,11 +187,12 @@ def test_no_tile_with_a_drawn_pixel_is_dropped(seed, size, device):
 # ---- keys written before the frame's host sync: the capacity guard, and the sort on tensors --------
 
 def write_keys(inputs, touched: torch.Tensor, width: int, height: int, capacity: int, size: int,
-               ends: torch.Tensor | None = None, sentinel: int = -7):
+               ends: torch.Tensor | None = None, sentinel: int = -7, inline_lanes: int = 1):
     """binning.write_tile_keys launched as rasterize launches it, with `capacity`, into keys and ids of
-    `size` slots filled with `sentinel`: (keys, ids)."""
+    `size` slots filled with `sentinel`: (keys, ids). `inline_lanes` 33: every warp lists its visible
+    Gaussians, which write_tile_keys_listed writes."""
     from tomgs.kernels import binning
-    from tomgs.render import _Frame
+    from tomgs.render import _Frame, _WorkLists, _pass_args
     from tomgs.runtime import launch, scope, wrap
     import warp as wp
 
@@ -200,26 +201,37 @@ def write_keys(inputs, touched: torch.Tensor, width: int, height: int, capacity:
     keys = torch.full((size,), sentinel, dtype=torch.int64, device=means2d.device)
     ids = torch.full((size,), sentinel, dtype=torch.int32, device=means2d.device)
     frame = _Frame(width, height, 0.0, 0.0, 0.01, 1e10, "cpu")
+    lists = _WorkLists(len(means2d), 1, inline_lanes, means2d.device) if inline_lanes > 1 else None
+    assert inline_lanes in (1, 33)
     with scope(means2d.device) as device:
-        launch(binning.write_tile_keys, len(means2d), device=device, args=[
-            wrap(means2d, wp.vec2), wrap(conics, wp.vec3), wrap(opacities), wrap(radii, wp.vec2i), wrap(depths),
-            wrap(ends), frame.tiles_x, frame.tiles_y, capacity, wrap(keys), wrap(ids)])
+        shared = [wrap(means2d, wp.vec2), wrap(conics, wp.vec3), wrap(opacities), wrap(radii, wp.vec2i), wrap(depths),
+                  wrap(ends), frame.tiles_x, frame.tiles_y, capacity, wrap(keys), wrap(ids)]
+        work = _pass_args(lists, 0)
+        launch(binning.write_tile_keys, len(means2d), device=device, args=[*shared, *work])
+        if lists:
+            launch(binning.write_tile_keys_listed, lists.slots, device=device, args=[*shared, *work[1:]])
+            assert int(lists.counts.sum()) == int((radii != 0).any(-1).sum())  # every visible one listed
     return keys.cpu(), ids.cpu()
 
 
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("share", [0.0, 0.37, 0.999, 1.0])
-def test_keys_stop_at_the_capacity(share, device):
+@pytest.mark.parametrize("inline_lanes", [1, 33])
+def test_keys_stop_at_the_capacity(share, inline_lanes, device):
     """Launched before the intersection count is known, write_tile_keys writes only the slots below its
-    capacity: those exactly as with room for all, and nothing past them (the sentinel after stays)."""
+    capacity: those exactly as with room for all, and nothing past them (the sentinel after stays),
+    whether each warp writes its Gaussians' keys itself or lists them for write_tile_keys_listed.
+    Every third Gaussian is culled (radii 0, no tiles): no keys, not listed."""
     width, height = 200, 96
     inputs = [x.to(device) for x in awkward_ellipses(11, 200, width, height)]
+    inputs[3][::3] = 0
     touched = tiles_touched_reference(*[x.cpu() for x in inputs[:4]], width, height).int().to(device)
+    touched[::3] = 0
     total = int(touched.sum())
     full_keys, full_ids = write_keys(inputs, touched, width, height, total, total)
     assert (full_keys != -7).all() and total > 100
     capacity = int(share * total)
-    keys, ids = write_keys(inputs, touched, width, height, capacity, total + 64)
+    keys, ids = write_keys(inputs, touched, width, height, capacity, total + 64, inline_lanes=inline_lanes)
     assert torch.equal(keys[:capacity], full_keys[:capacity]) and torch.equal(ids[:capacity], full_ids[:capacity])
     assert (keys[capacity:] == -7).all() and (ids[capacity:] == -7).all()
 

@@ -218,22 +218,23 @@ def test_dead_gaussians_cost_no_tile_work(device):
 
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("with_rows", [False, True])
-def test_projection_long_path_inline_or_listed_gives_the_same(device, with_rows):
-    """The projection's long path run by each warp itself (inline) or from the work lists in full
-    warps (tomgs/kernels/project.py): the same image, footprints and gradients, camera gradients and
-    rendered rows (a repeated one too) included, on a scene where most Gaussians are dead. Bit for bit
-    on the CPU; on CUDA to float32 rounding (the two kernels may contract multiply-adds differently,
-    and the raster backward adds by atomics in no fixed order)."""
-    from tomgs.render import _Project
+def test_long_paths_inline_or_listed_give_the_same(device, with_rows, monkeypatch):
+    """The projection's long path and binning's keys written by each warp itself (inline) or from the
+    work lists in full warps (tomgs/kernels/lanes.py): the same image, footprints and gradients, camera
+    gradients and rendered rows (a repeated one too) included, on a scene where most Gaussians are dead;
+    binning's lists serve both a frame's keys written after its sync (the first of its size) and before
+    it (the next). Bit for bit on the CPU; on CUDA to float32 rounding (the two kernels may contract
+    multiply-adds differently, and the raster backward adds by atomics in no fixed order)."""
+    from tomgs import render
 
     scene = random_scene(70, n=400)
     scene["t_scales"] = scene["t_scales"] * 0.2  # most dead at t
     rows = torch.tensor([*range(0, 400, 3), 5, 5], dtype=torch.int32, device=device) if with_rows else None
     results = []
-    kept = _Project.inline_lanes
-    try:
-        for inline_lanes in (1, 33):  # every thread inline; every warp (at most 32 lanes) listed
-            _Project.inline_lanes = inline_lanes
+    for inline_lanes in (1, 33):  # every thread inline; every warp (at most 32 lanes) listed
+        monkeypatch.setattr(render, "inline_lanes", inline_lanes)
+        monkeypatch.setattr(render, "_bounds", render._Bounds())  # keys after the sync, then before it
+        for _ in range(2):
             inputs, rest = split({k: (v.float() if isinstance(v, torch.Tensor) else v) for k, v in scene.items()},
                                  device)
             named = dict(zip(INPUT_NAMES, inputs))
@@ -243,15 +244,14 @@ def test_projection_long_path_inline_or_listed_gives_the_same(device, with_rows)
             ((image * weights).sum() + alpha.sum()).backward()
             results.append([image, meta["radii"], meta["means2d"], meta["conics"], meta["depths"],
                             *(x.grad for x in inputs if x.requires_grad)])
-    finally:
-        _Project.inline_lanes = kept
     assert 0 < int((results[0][1] > 0).any(-1).sum()) < len(results[0][1]) // 2  # a minority visible
-    for a, b in zip(*results):
-        assert a is not None
-        if device == "cpu" or not a.is_floating_point():
-            assert torch.equal(a, b)
-        else:
-            torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
+    for other in results[1:]:
+        for a, b in zip(results[0], other):
+            assert a is not None
+            if device == "cpu" or not a.is_floating_point():
+                assert torch.equal(a, b)
+            else:
+                torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -512,9 +512,9 @@ def write_capacities(monkeypatch):
     asked = []
     write = render._write_keys
 
-    def spy(wrapped, n, ends, frame, capacity):
+    def spy(wrapped, n, ends, frame, capacity, lists=None):
         asked.append(capacity)
-        return write(wrapped, n, ends, frame, capacity)
+        return write(wrapped, n, ends, frame, capacity, lists)
 
     monkeypatch.setattr(render, "_write_keys", spy)
     return asked

@@ -19,8 +19,8 @@ import warp as wp
 from tomgs import alive
 from tomgs.constants import TILE_SIZE
 from tomgs.inputs import RasterInputs, RenderError, prepare_inputs
-from tomgs.kernels import binning, project, raster, raster_batched
-from tomgs.runtime import NO_ARRAY, indexable, launch, scope, sort_pairs, whole_blocks, wrap
+from tomgs.kernels import binning, lanes, project, raster, raster_batched
+from tomgs.runtime import NO_ARRAY, indexable, launch, scope, sort_pairs, whole_blocks, wrap, wrap_part
 
 # The radix sort needs 2 x count slots and counts in int32: 2^30 keeps both inside int32.
 MAX_INTERSECTIONS = 2**30
@@ -127,37 +127,57 @@ class _Frame:
 # between frames). benchmarks/host_ops.py counts ops and launches, and those after the sync.
 
 
+# Visible (or alive) lanes from which a warp runs a stage's long path itself rather than listing its rows
+# for a pass in full warps (tomgs/kernels/lanes.py). None: lanes.INLINE_LANES on CUDA, 1 on a CPU (every
+# thread runs alone: lists would only add passes). Set it to compare the two paths in one process (tests).
+inline_lanes: int | None = None
+
+
+def _inline_lanes(device: torch.device) -> int:
+    if inline_lanes is not None:
+        return inline_lanes
+    return lanes.INLINE_LANES if device.type == "cuda" else 1
+
+
+class _WorkLists:
+    """Work lists (tomgs/kernels/lanes.py) of `passes` passes over M rows, one after another on one
+    stream: work [WORK_LISTS x capacity] int32, shared (a pass's listed launch has read it before the
+    next pass writes it), and counts [passes x WORK_LISTS] int32, zeroed, each pass its own. Descriptors
+    do not own their tensors: keep this object until the last launch reading them is queued."""
+
+    def __init__(self, m: int, passes: int, inline: int, device: torch.device):
+        self.inline = inline
+        self.capacity = lanes.work_capacity(m)
+        self.slots = int(lanes.WORK_LISTS) * self.capacity  # a listed launch's size
+        self.work = torch.empty(self.slots, device=device, dtype=torch.int32)
+        self.counts = torch.zeros(passes * int(lanes.WORK_LISTS), device=device, dtype=torch.int32)
+        self._work_d = wrap(self.work)
+
+    @staticmethod
+    def of(m: int, passes: int, device: torch.device) -> _WorkLists | None:
+        """Lists for M rows, or None where every lane runs inline (`_inline_lanes` 1: nothing is listed)."""
+        inline = _inline_lanes(device)
+        return _WorkLists(m, passes, inline, device) if inline > 1 else None
+
+    def args(self, k: int) -> list:
+        """Pass k's (inline lanes, capacity, work, counts) kernel arguments; a listed launch takes the last three."""
+        lists = int(lanes.WORK_LISTS)
+        return [self.inline, self.capacity, self._work_d, wrap_part(self.counts, k * lists, lists)]
+
+
+def _pass_args(lists: _WorkLists | None, k: int) -> list:
+    """Pass k's (inline lanes, capacity, work, counts) arguments; without lists every lane runs inline."""
+    return [1, 0, NO_ARRAY, NO_ARRAY] if lists is None else lists.args(k)
+
+
 class _Project(torch.autograd.Function):
-    # Alive lanes from which a warp runs the long path itself rather than listing them for a pass in
-    # full warps (tomgs/kernels/project.py). None: INLINE_LANES on CUDA, 1 on a CPU (every thread runs
-    # alone: the list would only add a pass). Set it to compare the two paths in one process (tests).
-    inline_lanes: int | None = None
-
-    @staticmethod
-    def _inline_lanes(device: torch.device) -> int:
-        if _Project.inline_lanes is not None:
-            return _Project.inline_lanes
-        return project.INLINE_LANES if device.type == "cuda" else 1
-
-    @staticmethod
-    def _work_lists(n: int, inline_lanes: int, device: torch.device) -> tuple:
-        """((work [WORK_LISTS x capacity], counts [WORK_LISTS]) int32, held by the caller until its
-        launches are queued (descriptors do not own them), or None; the kernels' (capacity, work,
-        counts) arguments) for M = n outputs. None when every lane runs inline (inline_lanes 1:
-        nothing is ever listed)."""
-        if inline_lanes <= 1:
-            return None, (0, NO_ARRAY, NO_ARRAY)
-        capacity = project.work_capacity(n)
-        work = torch.empty(project.WORK_LISTS * capacity, device=device, dtype=torch.int32)
-        counts = torch.zeros(project.WORK_LISTS, device=device, dtype=torch.int32)
-        return (work, counts), (capacity, wrap(work), wrap(counts))
-
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, t_means, t_scales, viewmat, K, flags, frame: _Frame,
-                wrapped: dict, rows: torch.Tensor | None):
+                wrapped: dict, rows: torch.Tensor | None, lists: _WorkLists | None):
         """Outputs (means2d [M,2], conics [M,3], depths [M], radii [M,2] int32, opacities_t [M],
         tiles_touched [M] int32) of Gaussians `rows` (int32 [M]; None: all, M = N); their
-        descriptors, and the camera's, go into `wrapped` by name."""
+        descriptors, and the camera's, go into `wrapped` by name. `lists`: work lists for M rows
+        (`_WorkLists.of`), pass 0 this stage's."""
         n = means.shape[0] if rows is None else rows.shape[0]
         f32 = dict(device=means.device, dtype=torch.float32)
         means2d = torch.empty(n, 2, **f32)
@@ -173,19 +193,18 @@ class _Project(torch.autograd.Function):
                        radii=wrap(radii, wp.vec2i), opacities_t=wrap(opacities_t),
                        tiles_touched=wrap(tiles_touched), viewmat=inputs[6], K=inputs[7])
         rows_d = NO_ARRAY if rows is None else wrap(rows)
-        # work lists: the long path of the outputs in warps with few alive ones, run in full warps after
-        inline_lanes = _Project._inline_lanes(means.device)
-        lists, work_d = _Project._work_lists(n, inline_lanes, means.device)
+        # the long path of the outputs in warps holding few alive ones is listed, run in full warps after
+        work_d = _pass_args(lists, 0)
         launch(project.project_forward, n, device=frame.device, args=[
             *inputs, frame.width, frame.height, frame.t_hi, frame.t_lo, frame.near, frame.far, frame.tiles_x,
             frame.tiles_y, wrapped["means2d"], wrapped["conics"], wrapped["depths"], wrapped["radii"],
             wrapped["opacities_t"], wrapped["tiles_touched"], wrap(flags), rows_d, int(rows is not None),
-            means.shape[0], inline_lanes, *work_d,
+            means.shape[0], *work_d,
         ])
         if lists is not None:
-            launch(project.project_listed, lists[0].shape[0], device=frame.device, args=[
+            launch(project.project_listed, lists.slots, device=frame.device, args=[
                 *inputs[:3], *inputs[6:], frame.width, frame.height, frame.tiles_x, frame.tiles_y,
-                wrapped["opacities_t"], *work_d, rows_d, int(rows is not None), wrapped["means2d"], wrapped["conics"],
+                wrapped["opacities_t"], *work_d[1:], rows_d, int(rows is not None), wrapped["means2d"], wrapped["conics"],
                 wrapped["radii"], wrapped["tiles_touched"],
             ])
         ctx.frame = frame
@@ -217,24 +236,25 @@ class _Project(torch.autograd.Function):
         else:
             parts = [NO_ARRAY, NO_ARRAY]
         # the visible outputs of warps holding few, run in full warps after
-        inline_lanes = _Project._inline_lanes(means.device)
-        lists, work_d = _Project._work_lists(n, inline_lanes, means.device)
+        lists = _WorkLists.of(n, 1, means.device)
+        work_d = _pass_args(lists, 0)
         with scope(means.device) as device:
             shared = [*inputs, frame.width, frame.height, frame.t_hi, frame.t_lo]
             grads = [wrap(v_means2d, wp.vec2), wrap(v_conics, wp.vec3), wrap(v_opacities_t), int(camera_grads),
                      wrap(v_means, wp.vec3), wrap(v_quats, wp.vec4), wrap(v_scales, wp.vec3), wrap(v_opacities),
                      wrap(v_t_means), wrap(v_t_scales), *parts, rows_d, int(rows is not None)]
-            launch(project.project_backward, n, device=device, args=[*shared, radii_d, *grads, inline_lanes, *work_d])
+            launch(project.project_backward, n, device=device, args=[*shared, radii_d, *grads, *work_d])
             if lists is not None:
-                launch(project.project_backward_listed, lists[0].shape[0], device=device,
-                       args=[*shared, *grads, *work_d])
+                launch(project.project_backward_listed, lists.slots, device=device,
+                       args=[*shared, *grads, *work_d[1:]])
         v_viewmat = v_K = None
         if camera_grads:
             v_viewmat = v_viewmat_parts.sum(0)
             fx, fy, cx, cy = v_K_parts.sum(0).unbind()
             zero = torch.zeros_like(fx)
             v_K = torch.stack([fx, zero, cx, zero, fy, cy, zero, zero, zero]).reshape(3, 3)
-        return v_means, v_quats, v_scales, v_opacities, v_t_means, v_t_scales, v_viewmat, v_K, None, None, None, None
+        return (v_means, v_quats, v_scales, v_opacities, v_t_means, v_t_scales, v_viewmat, v_K, None, None, None, None,
+                None)
 
 
 class _Bounds:
@@ -269,34 +289,40 @@ class _Bounds:
 _bounds = _Bounds()
 
 
-def _write_keys(wrapped: dict, n: int, ends: torch.Tensor, frame: _Frame, capacity: int):
+def _write_keys(wrapped: dict, n: int, ends: torch.Tensor, frame: _Frame, capacity: int,
+                lists: _WorkLists | None = None):
     """Stage 2's list, unsorted, in buffers of `capacity` pairs plus the sort's scratch: (keys [2 capacity]
     int64 `tile << 32 | depth bits`, ids [2 capacity] int32 the Gaussian of each), Gaussian i in slots
     [ends[i-1], ends[i]) (`ends` [N] int64 the inclusive scan of tiles touched, binning.tiles_of),
     those below `capacity` only. Needs no intersection count, so it runs before the host sync.
 
     `wrapped`: descriptors of projection's means2d, conics, opacities_t, radii, depths [N]; those of
-    keys and ids go into it (for the stages after the sync, replacing any before).
+    keys and ids go into it (for the stages after the sync, replacing any before). `lists`: the
+    frame's work lists (`_project_frame`), pass 1 binning's, for one call (its counts are not zeroed
+    again); without them every warp writes its own keys.
     """
     keys = torch.empty(2 * capacity, device=ends.device, dtype=torch.int64)  # the sort uses the upper half
     ids = torch.empty(2 * capacity, device=ends.device, dtype=torch.int32)
     wrapped.update(keys=wrap(keys), ids=wrap(ids))
     if capacity:
-        launch(binning.write_tile_keys, n, device=frame.device, args=[
-            wrapped["means2d"], wrapped["conics"], wrapped["opacities_t"], wrapped["radii"], wrapped["depths"],
-            wrap(ends), frame.tiles_x, frame.tiles_y, capacity, wrapped["keys"], wrapped["ids"],
-        ])
+        # the visible Gaussians of warps holding few are listed, their keys written in full warps after
+        work_d = _pass_args(lists, 1)
+        shared = [wrapped["means2d"], wrapped["conics"], wrapped["opacities_t"], wrapped["radii"], wrapped["depths"],
+                  wrap(ends), frame.tiles_x, frame.tiles_y, capacity, wrapped["keys"], wrapped["ids"]]
+        launch(binning.write_tile_keys, n, device=frame.device, args=[*shared, *work_d])
+        if lists is not None:
+            launch(binning.write_tile_keys_listed, lists.slots, device=frame.device, args=[*shared, *work_d[1:]])
     return keys, ids
 
 
 def _bin(wrapped: dict, n: int, ends: torch.Tensor, frame: _Frame, total: int,
-         written: tuple[torch.Tensor, torch.Tensor] | None = None):
+         written: tuple[torch.Tensor, torch.Tensor] | None = None, lists: _WorkLists | None = None):
     """Stage 2 after the host sync: (ids [>= total] int32 Gaussian per intersection, keys [>= total] int64
     `tile << 32 | depth bits`, sorted; the first `total` entries are the list), and the ranges [tiles, 2]
     int32 of `wrapped` (zeroed by the caller) filled with each tile's [start, end) into them.
 
     `written`: (keys, ids) from `_write_keys` before the sync; written again here, at the right size,
-    when `total` exceeds their capacity (or for None). `wrapped` and `ends` as for `_write_keys`;
+    when `total` exceeds their capacity (or for None). `wrapped`, `ends` and `lists` as for `_write_keys`;
     `wrapped` holds the descriptor of `ranges` too.
     """
     if total > MAX_INTERSECTIONS:
@@ -304,7 +330,7 @@ def _bin(wrapped: dict, n: int, ends: torch.Tensor, frame: _Frame, total: int,
             f"this frame needs {total:,} Gaussian-tile intersections, more than the {MAX_INTERSECTIONS:,} the "
             f"rasterizer can sort; render at a lower resolution or with fewer or smaller Gaussians")
     if written is None or written[0].shape[0] < 2 * total:  # past the bound: correct, just slower
-        written = _write_keys(wrapped, n, ends, frame, total)
+        written = _write_keys(wrapped, n, ends, frame, total, lists)
     return _sort_and_range(wrapped, written, total, frame)
 
 
@@ -402,20 +428,22 @@ class _Rasterize(torch.autograd.Function):
 def _project_frame(p: RasterInputs, frame: _Frame, wrapped: dict):
     """Stage 1, launched, and the buffers the frame's one host sync reads: ((means2d, conics, depths, radii,
     opacities_t, tiles_touched), ends [N] int64 the inclusive scan of tiles touched, flags
-    [project.NUM_FLAGS] int64 for `_read_flags`). Fills `wrapped` with projection's descriptors."""
+    [project.NUM_FLAGS] int64 for `_read_flags`, the work lists of projection (pass 0) and binning
+    (pass 1) or None). Fills `wrapped` with projection's descriptors."""
     viewmat, K = p.viewmat.contiguous(), p.K.contiguous()
+    n = p.means.shape[0] if p.rows is None else p.rows.shape[0]  # M: the Gaussians projected
     # contract flags, counts and the intersection count, written on the device, read back together
     flags = torch.zeros(project.NUM_FLAGS, device=p.means.device, dtype=torch.int64)
+    lists = _WorkLists.of(n, 2, p.means.device)
     outputs = _Project.apply(p.means.contiguous(), p.quats.contiguous(), p.scales.contiguous(),
                              p.opacities.contiguous(), p.t_means.contiguous(), p.t_scales.contiguous(), viewmat, K,
-                             flags, frame, wrapped, p.rows)
-    n = outputs[0].shape[0]  # M: the Gaussians projected
+                             flags, frame, wrapped, p.rows, lists)
     ends = torch.cumsum(outputs[-1], 0, dtype=torch.int64)  # [N] inclusive scan of tiles touched
     has_bg = p.background is not None
     launch(project.frame_stats, whole_blocks(n), device=frame.device, args=[
         wrapped["tiles_touched"], wrapped["opacities_t"], wrap(ends), n, wrapped["viewmat"], wrapped["K"],
         wrap(p.background, wp.vec3) if has_bg else NO_ARRAY, int(has_bg), wrap(flags)])
-    return outputs, ends, flags
+    return outputs, ends, flags, lists
 
 
 def _read_flags(flags: torch.Tensor, p: RasterInputs) -> list[int]:
@@ -527,13 +555,13 @@ def render_frame(means, quats, scales, opacities, colors, t_means, t_scales, vie
         if frame.num_tiles * TILE_SIZE * TILE_SIZE > MAX_THREADS:
             raise RenderError(f"a {frame.width}x{frame.height} image is too large to render in one piece: keep "
                               f"width x height below {MAX_THREADS:,} pixels")
-        (means2d, conics, depths, radii, opacities_t, _), ends, flags = _project_frame(p, frame, wrapped)
+        (means2d, conics, depths, radii, opacities_t, _), ends, flags, lists = _project_frame(p, frame, wrapped)
         # before the sync, what needs no intersection count (the GPU projects meanwhile): the keys,
         # up to the bound of recent frames of this size, and the buffers of the sort and the raster.
         # Fresh buffers every frame: the backward reads ids, and two frames' backwards may be pending.
         n = means2d.shape[0]
         capacity = _bounds.capacity(frame)
-        written = _write_keys(wrapped, n, ends, frame, capacity)
+        written = _write_keys(wrapped, n, ends, frame, capacity, lists)
         ranges = torch.zeros(frame.num_tiles, 2, device=p.means.device, dtype=torch.int32)
         pixels = _Image(frame, p.means.device)
         colors = p.colors.contiguous()
@@ -545,7 +573,8 @@ def render_frame(means, quats, scales, opacities, colors, t_means, t_scales, vie
             stats = _read_flags(flags, p)
             # after it, on a GPU's critical path (idle until issued): the sort, the ranges, the raster
             total = stats[project.FLAG_TOTAL]
-            ids, _ = _bin(wrapped, n, ends, frame, total, written)
+            # binning's lists serve the one call that writes keys: this one, if none was written before
+            ids, _ = _bin(wrapped, n, ends, frame, total, written, None if capacity else lists)
         color, trans = _Rasterize.apply(means2d, conics, opacities_t, colors, ranges, ids, frame, wrapped, pixels)
         if counts is None:
             _bounds.remember(frame, total)
@@ -584,7 +613,7 @@ def project_stage(
                        None, near, far, torch.float32)
     with scope(p.means.device) as wp_device:
         frame = _Frame(p.width, p.height, t_hi, t_lo, p.near, p.far, wp_device)
-        outputs, _, flags = _project_frame(p, frame, {})
+        outputs, _, flags, _ = _project_frame(p, frame, {})
         _read_flags(flags, p)
     return dict(zip(("means2d", "conics", "depths", "radii", "opacities_t", "tiles_touched"), outputs))
 

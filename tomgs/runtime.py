@@ -230,6 +230,15 @@ def wrap_flat(tensor: torch.Tensor):
     return _descriptor_1d(tensor.data_ptr(), tensor.numel(), tensor.element_size())
 
 
+def wrap_part(tensor: torch.Tensor, start: int, length: int):
+    """Elements [start, start + length) of a contiguous 1D tensor as a 1D array (no torch view call)."""
+    if tensor.dim() != 1 or not tensor.is_contiguous() or start < 0 or start + length > tensor.shape[0]:
+        raise ValueError(f"wrap_part takes a range of a contiguous 1D tensor, got [{start}, {start + length}) "
+                         f"of shape {tuple(tensor.shape)}")
+    item = tensor.element_size()
+    return _descriptor_1d(tensor.data_ptr() + start * item, length, item)
+
+
 # an empty array: what a kernel receives for an output it is told not to write (no allocation)
 NO_ARRAY = ArrayDescriptor(0, 0, 1, (0,), (4,))
 

@@ -11,6 +11,7 @@ function, `row_tiles`, one tile row at a time, so that the two agree exactly.
 import warp as wp
 
 from tomgs import constants
+from tomgs.kernels.lanes import WORK_LISTS, append_slot, lanes_count, work_item
 
 wp.set_module_options({"enable_backward": False})
 
@@ -117,26 +118,24 @@ def tiles_of(center: wp.vec2, conic: wp.vec3, radius: wp.vec2i, opac: float, til
     return count
 
 
-@wp.kernel
-def write_tile_keys(
-    means2d: wp.array(dtype=wp.vec2),  # [N]
-    conics: wp.array(dtype=wp.vec3),  # [N]
-    opacities_t: wp.array(dtype=float),  # [N]
-    radii: wp.array(dtype=wp.vec2i),  # [N]
-    depths: wp.array(dtype=float),  # [N] > 0 for every visible Gaussian
-    ends: wp.array(dtype=wp.int64),  # [N] inclusive scan of tiles touched (`tiles_of`)
+@wp.func
+def write_keys_of(
+    i: int,  # a visible Gaussian
+    r: wp.vec2i,  # its radii
+    means2d: wp.array(dtype=wp.vec2),
+    conics: wp.array(dtype=wp.vec3),
+    opacities_t: wp.array(dtype=float),
+    depths: wp.array(dtype=float),
+    ends: wp.array(dtype=wp.int64),
     tiles_x: int,
     tiles_y: int,
-    capacity: int,  # slots of keys and ids that may be written: [0, capacity); total may exceed it
-    keys: wp.array(dtype=wp.int64),  # out [>= capacity] tile << 32 | depth bits
-    gaussian_ids: wp.array(dtype=wp.int32),  # out [>= capacity]
+    capacity: int,
+    keys: wp.array(dtype=wp.int64),
+    gaussian_ids: wp.array(dtype=wp.int32),
 ):
-    i = wp.tid()
-    r = radii[i]
-    if r[0] == 0 and r[1] == 0:  # culled (most rows of a frame, the dead): its scan entries are not read
-        return
-    # this Gaussian's slots, clipped to the capacity in int64 (launched before the total is known,
-    # when ends may exceed int32): a frame past the capacity writes a prefix and nothing beyond
+    """Gaussian i's keys and ids, in its slots [ends[i-1], ends[i]) below `capacity` (as write_tile_keys)."""
+    # its slots, clipped to the capacity in int64 (launched before the total is known, when ends may
+    # exceed int32): a frame past the capacity writes a prefix and nothing beyond
     k = int(0)
     if i > 0:
         k = int(wp.min(ends[i - 1], wp.int64(capacity)))
@@ -159,6 +158,65 @@ def write_tile_keys(
     if k < end:  # the ellipse reached no tile: the box's first one, as `tiles_of` counts
         keys[k] = (wp.int64(rect[1] * tiles_x + rect[0]) << wp.int64(32)) | depth_bits
         gaussian_ids[k] = i
+
+
+@wp.kernel
+def write_tile_keys(
+    means2d: wp.array(dtype=wp.vec2),  # [N]
+    conics: wp.array(dtype=wp.vec3),  # [N]
+    opacities_t: wp.array(dtype=float),  # [N]
+    radii: wp.array(dtype=wp.vec2i),  # [N] (0, 0): culled
+    depths: wp.array(dtype=float),  # [N] > 0 for every visible Gaussian
+    ends: wp.array(dtype=wp.int64),  # [N] inclusive scan of tiles touched (`tiles_of`)
+    tiles_x: int,
+    tiles_y: int,
+    capacity: int,  # slots of keys and ids that may be written: [0, capacity); total may exceed it
+    keys: wp.array(dtype=wp.int64),  # out [>= capacity] tile << 32 | depth bits
+    gaussian_ids: wp.array(dtype=wp.int32),  # out [>= capacity]
+    inline_lanes: int,  # a warp holding this many visible lanes writes their keys (INLINE_LANES; 1 on a CPU)
+    list_capacity: int,  # slots of each work list (lanes.work_capacity(N))
+    work: wp.array(dtype=wp.int32),  # out [WORK_LISTS x list_capacity]: Gaussians left to write_tile_keys_listed
+    work_counts: wp.array(dtype=wp.int32),  # [WORK_LISTS] zeroed by the caller
+):
+    # the visible Gaussians of a warp holding at least inline_lanes of them write their keys here, the
+    # others' are listed for write_tile_keys_listed, which writes them in full warps (with ~10-25% of
+    # the Gaussians visible at a frame nearly every warp holds a few, and takes as long as its slowest)
+    i = wp.tid()
+    r = radii[i]
+    visible = r[0] != 0 or r[1] != 0  # else culled (most rows of a frame, the dead): its scan entries are not read
+    inline = lanes_count(visible) >= inline_lanes  # the same for the warp's lanes
+    which = (i // 32) % WORK_LISTS
+    slot = append_slot(visible and not inline, work_counts, which)  # every lane reaches it: no return above
+    if slot >= 0:
+        work[which * list_capacity + slot] = i
+    if visible and inline:
+        write_keys_of(i, r, means2d, conics, opacities_t, depths, ends, tiles_x, tiles_y, capacity, keys,
+                      gaussian_ids)
+
+
+@wp.kernel
+def write_tile_keys_listed(
+    means2d: wp.array(dtype=wp.vec2),  # [N] (as write_tile_keys)
+    conics: wp.array(dtype=wp.vec3),
+    opacities_t: wp.array(dtype=float),
+    radii: wp.array(dtype=wp.vec2i),
+    depths: wp.array(dtype=float),
+    ends: wp.array(dtype=wp.int64),
+    tiles_x: int,
+    tiles_y: int,
+    capacity: int,
+    keys: wp.array(dtype=wp.int64),
+    gaussian_ids: wp.array(dtype=wp.int32),
+    list_capacity: int,  # write_tile_keys's work lists: the visible Gaussians it left
+    work: wp.array(dtype=wp.int32),
+    work_counts: wp.array(dtype=wp.int32),
+):
+    # launched over the work lists' slots, run where one lists a Gaussian
+    i = work_item(wp.tid(), list_capacity, work, work_counts)
+    if i < 0:
+        return
+    write_keys_of(i, radii[i], means2d, conics, opacities_t, depths, ends, tiles_x, tiles_y, capacity, keys,
+                  gaussian_ids)
 
 
 @wp.kernel

@@ -112,3 +112,29 @@ def append_slot(keep: bool, counters: wp.array(dtype=wp.int32), which: int) -> i
     is not fixed. Every lane of a group must name the same list and reach the call (no lane-dependent
     branch around it)."""
     ...
+
+
+# ---- work lists: a stage's long path run in full warps -------------------------------------------
+# A warp takes as long as its slowest lane, so a pass over every Gaussian where ~15% hold work costs
+# what running all of them costs. A dense pass settles what every row needs; a warp holding at least
+# INLINE_LANES rows with work runs their long path itself, the others append those rows to work lists
+# (`append_slot`) that a second pass, launched over the lists' slots, runs in full warps.
+# WORK_LISTS lists, warp w appending to list w % WORK_LISTS, so that the warps running at once add to
+# different counters (one counter took ~150k contended atomics a frame).
+WORK_LISTS = wp.constant(64)
+INLINE_LANES = 16  # on CUDA; on a CPU every thread runs alone, so each runs its own (inline lanes 1)
+
+
+def work_capacity(m: int) -> int:
+    """Slots of each work list for a pass over M rows: the rows of the warps that append to it."""
+    warps = -(-m // 32)
+    return -(-warps // int(WORK_LISTS)) * 32
+
+
+@wp.func
+def work_item(w: int, capacity: int, work: wp.array(dtype=wp.int32), work_counts: wp.array(dtype=wp.int32)) -> int:
+    """The row listed at slot w of the work lists laid end to end (`capacity` slots each), -1 past
+    its list's count."""
+    if w % capacity >= work_counts[w // capacity]:
+        return -1
+    return work[w]

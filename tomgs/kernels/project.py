@@ -3,9 +3,10 @@
 A warp takes as long as its slowest lane: with ~15% of a fitted clip alive at a frame, nearly every
 warp of a pass over all Gaussians holds a few alive ones, and one pass cost what projecting every
 Gaussian costs. So `project_forward` settles what a dead Gaussian needs (o_i(t), depth, zeros, the
-contract checks) for all of them and runs the long path only in warps holding at least INLINE_LANES
-alive ones (on a CPU, where every thread runs alone, each runs its own); the others' alive Gaussians
-go to work lists that `project_listed` runs in full warps. The backward splits the visible ones the
+contract checks) for all of them and runs the long path only in warps holding at least `inline_lanes`
+alive ones (lanes.INLINE_LANES; on a CPU, where every thread runs alone, each runs its own); the
+others' alive Gaussians go to work lists (tomgs/kernels/lanes.py) that `project_listed` runs in full
+warps. The backward splits the visible ones the
 same way (`project_backward`, `project_backward_listed`).
 
 Forward writes, per Gaussian i: means2d (px), conic (inverse 2D covariance, upper triangle),
@@ -23,7 +24,7 @@ import warp as wp
 
 from tomgs import constants
 from tomgs.kernels.binning import opacity_extent, tiles_of
-from tomgs.kernels.lanes import append_slot, lanes_count
+from tomgs.kernels.lanes import WORK_LISTS, append_slot, lanes_count, work_item
 from tomgs.kernels.rows import put
 
 wp.set_module_options({"enable_backward": False})
@@ -35,27 +36,6 @@ QUAT_EPS = wp.constant(constants.QUAT_EPS)
 MAX_RADIUS = wp.constant(float(2**30))  # keeps radii inside int32; tiles are clamped to the image anyway
 
 mat23 = wp.types.matrix(shape=(2, 3), dtype=wp.float32)
-
-# a pass's work list is WORK_LISTS lists, warp w appending to list w % WORK_LISTS, so that the
-# warps running at once add to different counters (one counter took ~150k contended atomics a frame)
-WORK_LISTS = wp.constant(64)
-INLINE_LANES = 16  # on CUDA, the alive lanes from which a warp runs its long path itself
-
-
-def work_capacity(m: int) -> int:
-    """Slots of each work list for M outputs: the rows of the warps that append to it."""
-    warps = -(-m // 32)
-    return -(-warps // int(WORK_LISTS)) * 32
-
-
-@wp.func
-def work_item(w: int, capacity: int, work: wp.array(dtype=wp.int32), work_counts: wp.array(dtype=wp.int32)) -> int:
-    """The output listed at slot w of the work lists laid end to end (`capacity` slots each), -1 past
-    its list's count."""
-    if w % capacity >= work_counts[w // capacity]:
-        return -1
-    return work[w]
-
 
 # slots of the int64 `flags` array shared by project_forward and frame_stats (tomgs.render reads it)
 FLAG_TOTAL = wp.constant(0)  # the frame's Gaussian-tile intersection count
