@@ -204,8 +204,8 @@ class _Project(torch.autograd.Function):
         if lists is not None:
             launch(project.project_listed, lists.slots, device=frame.device, args=[
                 *inputs[:3], *inputs[6:], frame.width, frame.height, frame.tiles_x, frame.tiles_y,
-                wrapped["opacities_t"], *work_d[1:], rows_d, int(rows is not None), wrapped["means2d"], wrapped["conics"],
-                wrapped["radii"], wrapped["tiles_touched"],
+                wrapped["opacities_t"], *work_d[1:], rows_d, int(rows is not None), wrapped["means2d"],
+                wrapped["conics"], wrapped["radii"], wrapped["tiles_touched"],
             ])
         ctx.frame = frame
         ctx.rows = rows
