@@ -224,7 +224,8 @@ def test_long_paths_inline_or_listed_give_the_same(device, with_rows, monkeypatc
     gradients and rendered rows (a repeated one too) included, on a scene where most Gaussians are dead;
     binning's lists serve both a frame's keys written after its sync (the first of its size) and before
     it (the next). Bit for bit on the CPU; on CUDA to float32 rounding (the two kernels may contract
-    multiply-adds differently, and the raster backward adds by atomics in no fixed order)."""
+    multiply-adds differently, and the raster backward adds by atomics in no fixed order, which the
+    camera gradient, a sum over every Gaussian, carries at the oracle's 1e-3 of its largest entry)."""
     from tomgs import render
 
     scene = random_scene(70, n=400)
@@ -251,7 +252,7 @@ def test_long_paths_inline_or_listed_give_the_same(device, with_rows, monkeypatc
             if device == "cpu" or not a.is_floating_point():
                 assert torch.equal(a, b)
             else:
-                torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
+                torch.testing.assert_close(a, b, rtol=1e-4, atol=max(1e-5, 1e-3 * float(a.abs().max())))
 
 
 @pytest.mark.parametrize("device", DEVICES)

@@ -42,3 +42,29 @@ def test_wrap_part_refuses_a_strided_or_2d_tensor():
         wrap_part(torch.zeros(20, dtype=torch.int32)[::2], 0, 2)
     with pytest.raises(ValueError, match="contiguous 1D"):
         wrap_part(torch.zeros(4, 5, dtype=torch.int32), 0, 2)
+
+
+@pytest.mark.parametrize("device", devices())
+def test_a_recorded_launch_reads_each_calls_arrays_and_leaves_theirs_alone(device):
+    """Launches re-arms one recorded command per kernel: each call's arrays are copied into the
+    command's own descriptors, so every call reads its own tensors, and the descriptors a caller
+    passed before (NO_ARRAY, a frame's saved ones) keep pointing where they did."""
+    from tomgs.runtime import NO_ARRAY, Launches
+
+    fresh = Launches()
+    empty_before = bytes(NO_ARRAY)
+    with scope(torch.device(device)) as wp_device:
+        held = []
+        for k in range(3):
+            src = torch.arange(5, dtype=torch.int32, device=device) * (k + 1)
+            dst = torch.zeros(5, dtype=torch.int32, device=device)
+            src_d, dst_d = wrap(src), wrap(dst)
+            before = bytes(src_d), bytes(dst_d)
+            fresh(_copy, 5, [src_d, dst_d], wp_device)
+            assert torch.equal(dst.cpu(), torch.arange(5, dtype=torch.int32) * (k + 1))
+            held.append((src, dst, src_d, dst_d, before))
+        for _, _, src_d, dst_d, before in held:
+            assert (bytes(src_d), bytes(dst_d)) == before
+        with pytest.raises(TypeError, match="wrap"):
+            fresh(_copy, 5, [wp.zeros(5, dtype=wp.int32, device=wp_device), wrap(dst)], wp_device)
+    assert bytes(NO_ARRAY) == empty_before

@@ -142,15 +142,15 @@ def _inline_lanes(device: torch.device) -> int:
 class _WorkLists:
     """Work lists (tomgs/kernels/lanes.py) of `passes` passes over M rows, one after another on one
     stream: work [WORK_LISTS x capacity] int32, shared (a pass's listed launch has read it before the
-    next pass writes it), and counts [passes x WORK_LISTS] int32, zeroed, each pass its own. Descriptors
-    do not own their tensors: keep this object until the last launch reading them is queued."""
+    next pass writes it), and counts [lanes.work_counters(passes)] int32, zeroed, each pass its own.
+    Descriptors do not own their tensors: keep this object until the last launch reading them is queued."""
 
     def __init__(self, m: int, passes: int, inline: int, device: torch.device):
         self.inline = inline
         self.capacity = lanes.work_capacity(m)
         self.slots = int(lanes.WORK_LISTS) * self.capacity  # a listed launch's size
         self.work = torch.empty(self.slots, device=device, dtype=torch.int32)
-        self.counts = torch.zeros(passes * int(lanes.WORK_LISTS), device=device, dtype=torch.int32)
+        self.counts = torch.zeros(lanes.work_counters(passes), device=device, dtype=torch.int32)
         self._work_d = wrap(self.work)
 
     @staticmethod
@@ -161,8 +161,8 @@ class _WorkLists:
 
     def args(self, k: int) -> list:
         """Pass k's (inline lanes, capacity, work, counts) kernel arguments; a listed launch takes the last three."""
-        lists = int(lanes.WORK_LISTS)
-        return [self.inline, self.capacity, self._work_d, wrap_part(self.counts, k * lists, lists)]
+        size = lanes.work_counters(1)
+        return [self.inline, self.capacity, self._work_d, wrap_part(self.counts, k * size, size)]
 
 
 def _pass_args(lists: _WorkLists | None, k: int) -> list:

@@ -37,6 +37,7 @@ on tensors (the public function wants full Warp arrays; see there).
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import os
 import struct
 import sys
@@ -166,6 +167,7 @@ def _inner_axes(dtype) -> int:
 # Packing them and copying the bytes in is ~2x quicker than the structure's own __init__ (a Python
 # loop over the axes), and a frame builds ~40 descriptors.
 _DESCRIPTOR_BYTES = struct.Struct("=QQ4i4iHH4x")
+_DESCRIPTOR_SIZE = _DESCRIPTOR_BYTES.size
 _NO_AXES = (0, 0, 0, 0)
 
 
@@ -274,7 +276,8 @@ class Launches:
     """
 
     def __init__(self):
-        # (kernel key, device, block size) -> [command, its dim, the arguments it holds]
+        # (kernel key, device, block size) -> [command, its dim, the arguments it holds, the
+        # addresses of its own array descriptors (0 for a scalar)]
         self._recorded: dict[tuple, list] = {}
 
     def __call__(self, kernel, dim: int, args: list, device: str, block_dim: int = 256) -> None:
@@ -284,16 +287,29 @@ class Launches:
         entry = self._recorded.get(key)
         if entry is None:
             cmd = wp.launch(kernel, dim=dim, inputs=args, device=device, block_dim=block_dim, record_cmd=True)
-            self._recorded[key] = [cmd, dim, list(args)]
+            # each array argument gets a descriptor of the command's own (the launch may hold the
+            # caller's, which is shared: NO_ARRAY, a frame's saved descriptors), and later ones have
+            # their bytes copied into it, where the launch already points (params[0] is the bounds)
+            slots = [0] * len(args)
+            for i, arg in enumerate(args):
+                if type(arg) is ArrayDescriptor:
+                    cmd.set_param_at_index_from_ctype(i, ArrayDescriptor.from_buffer_copy(arg))
+                    slots[i] = ctypes.addressof(cmd.params[i + 1])
+            self._recorded[key] = [cmd, dim, list(args), slots]
         else:
-            cmd, last_dim, held = entry
+            cmd, last_dim, held, slots = entry
             if dim != last_dim:
                 cmd.set_dim(dim)
                 entry[1] = dim
             for i, arg in enumerate(args):
-                # an int the command already holds (sizes, flags: most scalars, frame after frame) is
-                # not set again; anything else is (a descriptor is a new object every frame)
-                if type(arg) is not int or type(held[i]) is not int or arg != held[i]:
+                if slots[i]:  # an array: a descriptor is a new object every frame
+                    if type(arg) is not ArrayDescriptor:
+                        raise TypeError(f"{kernel.key} argument {i}: a recorded launch takes `wrap`ped arrays, "
+                                        f"got {type(arg).__name__}")
+                    ctypes.memmove(slots[i], ctypes.addressof(arg), _DESCRIPTOR_SIZE)
+                elif type(arg) is not int or type(held[i]) is not int or arg != held[i]:
+                    # an int the command already holds (sizes, flags: most scalars, frame after frame)
+                    # is not set again
                     cmd.set_param_at_index_from_ctype(i, arg)
                     held[i] = arg
         cmd.launch(None if device == "cpu" else torch_stream(device))

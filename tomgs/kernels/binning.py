@@ -6,12 +6,16 @@ A Gaussian touches the tiles of its box (`tile_rect`) whose pixel centres its el
 {d : d^T conic d <= level}, the pixels where alpha = o exp(-d^T conic d / 2) can reach 1/255
 (`ellipse_level`). Projection counts them and `write_tile_keys` writes them with the same
 function, `row_tiles`, one tile row at a time, so that the two agree exactly.
+
+With ~10-25% of the Gaussians visible at a frame, nearly every warp of a pass over all of them holds
+a few: a warp holding at least `inline_lanes` visible ones writes their keys itself, the others list
+theirs for `write_tile_keys_listed`, which writes them in full warps (tomgs/kernels/lanes.py).
 """
 
 import warp as wp
 
 from tomgs import constants
-from tomgs.kernels.lanes import WORK_LISTS, append_slot, lanes_count, work_item
+from tomgs.kernels.lanes import lanes_count, list_row, work_item
 
 wp.set_module_options({"enable_backward": False})
 
@@ -176,7 +180,7 @@ def write_tile_keys(
     inline_lanes: int,  # a warp holding this many visible lanes writes their keys (INLINE_LANES; 1 on a CPU)
     list_capacity: int,  # slots of each work list (lanes.work_capacity(N))
     work: wp.array(dtype=wp.int32),  # out [WORK_LISTS x list_capacity]: Gaussians left to write_tile_keys_listed
-    work_counts: wp.array(dtype=wp.int32),  # [WORK_LISTS] zeroed by the caller
+    work_counts: wp.array(dtype=wp.int32),  # [lanes.work_counters(1)] zeroed by the caller
 ):
     # the visible Gaussians of a warp holding at least inline_lanes of them write their keys here, the
     # others' are listed for write_tile_keys_listed, which writes them in full warps (with ~10-25% of
@@ -185,10 +189,7 @@ def write_tile_keys(
     r = radii[i]
     visible = r[0] != 0 or r[1] != 0  # else culled (most rows of a frame, the dead): its scan entries are not read
     inline = lanes_count(visible) >= inline_lanes  # the same for the warp's lanes
-    which = (i // 32) % WORK_LISTS
-    slot = append_slot(visible and not inline, work_counts, which)  # every lane reaches it: no return above
-    if slot >= 0:
-        work[which * list_capacity + slot] = i
+    list_row(visible and not inline, i, list_capacity, work, work_counts)  # every lane reaches it: no return above
     if visible and inline:
         write_keys_of(i, r, means2d, conics, opacities_t, depths, ends, tiles_x, tiles_y, capacity, keys,
                       gaussian_ids)
@@ -211,7 +212,7 @@ def write_tile_keys_listed(
     work: wp.array(dtype=wp.int32),
     work_counts: wp.array(dtype=wp.int32),
 ):
-    # launched over the work lists' slots, run where one lists a Gaussian
+    # launched over the work lists' slots, run where one lists a row
     i = work_item(wp.tid(), list_capacity, work, work_counts)
     if i < 0:
         return

@@ -24,7 +24,7 @@ import warp as wp
 
 from tomgs import constants
 from tomgs.kernels.binning import opacity_extent, tiles_of
-from tomgs.kernels.lanes import WORK_LISTS, append_slot, lanes_count, work_item
+from tomgs.kernels.lanes import lanes_count, list_row, work_item
 from tomgs.kernels.rows import put
 
 wp.set_module_options({"enable_backward": False})
@@ -231,7 +231,7 @@ def project_forward(
     inline_lanes: int,  # a warp holding this many alive lanes runs their long path (INLINE_LANES; 1 on a CPU)
     capacity: int,  # slots of each work list (work_capacity)
     work: wp.array(dtype=wp.int32),  # out [WORK_LISTS x capacity]: outputs left to project_listed
-    work_counts: wp.array(dtype=wp.int32),  # [WORK_LISTS] zeroed by the caller: how many each list holds
+    work_counts: wp.array(dtype=wp.int32),  # [lanes.work_counters(1)] zeroed by the caller: each list's count
 ):
     # Every Gaussian: what a dead one needs (contract checks, o_i(t), depth, zeros). The long path
     # runs here for the alive ones (and in depth range) of a warp holding at least inline_lanes of
@@ -270,10 +270,7 @@ def project_forward(
     opacities_t[j] = opac
     depths[j] = p[2]
     inline = lanes_count(keep) >= inline_lanes  # the same for the warp's lanes
-    which = (j // 32) % WORK_LISTS  # one list for a warp's lanes
-    slot = append_slot(keep and not inline, work_counts, which)  # every lane reaches it: no return above
-    if slot >= 0:
-        work[which * capacity + slot] = j
+    list_row(keep and not inline, j, capacity, work, work_counts)  # every lane reaches it: no return above
     if keep and inline:
         footprint(j, p, opac, quats[i], scales[i], viewmat, Ks[0], width, height, tiles_x, tiles_y, means2d, conics,
                   radii, tiles_touched)
@@ -301,7 +298,7 @@ def project_listed(
     radii: wp.array(dtype=wp.vec2i),  # out [M]
     tiles_touched: wp.array(dtype=wp.int32),  # out [M]
 ):
-    # launched over the work lists' slots, run where one lists an output
+    # launched over the work lists' slots, run where one lists a row
     j = work_item(wp.tid(), capacity, work, work_counts)
     if j < 0:
         return
@@ -309,8 +306,8 @@ def project_listed(
     if has_rows != 0:
         i = rows[j]
     viewmat = viewmats[0]
-    footprint(j, world_to_camera(viewmat, means[i]), opacities_t[j], quats[i], scales[i], viewmat, Ks[0], width,
-              height, tiles_x, tiles_y, means2d, conics, radii, tiles_touched)
+    footprint(j, world_to_camera(viewmat, means[i]), opacities_t[j], quats[i], scales[i], viewmat, Ks[0],
+              width, height, tiles_x, tiles_y, means2d, conics, radii, tiles_touched)
 
 
 @wp.func
@@ -495,7 +492,7 @@ def project_backward(
     inline_lanes: int,  # as project_forward's
     capacity: int,  # slots of each work list (work_capacity)
     work: wp.array(dtype=wp.int32),  # out [WORK_LISTS x capacity]: visible outputs left to project_backward_listed
-    work_counts: wp.array(dtype=wp.int32),  # [WORK_LISTS] zeroed by the caller
+    work_counts: wp.array(dtype=wp.int32),  # [lanes.work_counters(1)] zeroed by the caller
 ):
     # as project_forward: the visible outputs of a warp holding at least inline_lanes of them run the
     # long path here, the others are listed for project_backward_listed; every other row gets zeros
@@ -507,10 +504,7 @@ def project_backward(
     r = radii[j]
     visible = r[0] != 0 or r[1] != 0  # a culled or bad row: no gradient
     inline = lanes_count(visible) >= inline_lanes
-    which = (j // 32) % WORK_LISTS
-    slot = append_slot(visible and not inline, work_counts, which)  # every lane reaches it
-    if slot >= 0:
-        work[which * capacity + slot] = j
+    list_row(visible and not inline, j, capacity, work, work_counts)  # every lane reaches it
     if visible and inline:
         gradients(j, i, means, quats, scales, opacities, t_means, t_scales, viewmats, Ks, width, height, t_hi, t_lo,
                   v_means2d, v_conics, v_opacities_t, camera_grads, v_means, v_quats, v_scales, v_opacities, v_t_means,
@@ -560,16 +554,16 @@ def project_backward_listed(
     work: wp.array(dtype=wp.int32),
     work_counts: wp.array(dtype=wp.int32),
 ):
-    # launched over the work lists' slots, run where one lists an output
+    # launched over the work lists' slots, run where one lists a row
     j = work_item(wp.tid(), capacity, work, work_counts)
     if j < 0:
         return
     i = j
     if has_rows != 0:
         i = rows[j]
-    gradients(j, i, means, quats, scales, opacities, t_means, t_scales, viewmats, Ks, width, height, t_hi, t_lo,
-              v_means2d, v_conics, v_opacities_t, camera_grads, v_means, v_quats, v_scales, v_opacities, v_t_means,
-              v_t_scales, v_viewmat_parts, v_K_parts, has_rows)
+    gradients(j, i, means, quats, scales, opacities, t_means, t_scales, viewmats, Ks, width, height, t_hi,
+              t_lo, v_means2d, v_conics, v_opacities_t, camera_grads, v_means, v_quats, v_scales, v_opacities,
+              v_t_means, v_t_scales, v_viewmat_parts, v_K_parts, has_rows)
 
 
 @wp.func
