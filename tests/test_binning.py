@@ -214,6 +214,19 @@ def write_keys(inputs, touched: torch.Tensor, width: int, height: int, capacity:
     return keys.cpu(), ids.cpu()
 
 
+def test_a_pass_of_the_work_lists_serves_one_launch():
+    """A pass's counters are zeroed once: the pass runs listed the first time its arguments are taken,
+    and inline after (a frame's keys written again past their bound append to no used list)."""
+    from tomgs.render import _WorkLists, _pass_args
+
+    lists = _WorkLists(100, 2, 33, torch.device("cpu"))
+    first = _pass_args(lists, 1)
+    assert first[:2] == [33, lists.capacity] and lists.capacity > 0
+    assert _pass_args(lists, 1)[:2] == [1, 0]  # taken: inline, no list
+    assert _pass_args(lists, 0)[:2] == [33, lists.capacity]  # the other pass is its own
+    assert _pass_args(None, 0)[:2] == [1, 0]
+
+
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("share", [0.0, 0.37, 0.999, 1.0])
 @pytest.mark.parametrize("inline_lanes", [1, 33])

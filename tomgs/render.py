@@ -142,7 +142,8 @@ def _inline_lanes(device: torch.device) -> int:
 class _WorkLists:
     """Work lists (tomgs/kernels/lanes.py) of `passes` passes over M rows, one after another on one
     stream: work [WORK_LISTS x capacity] int32, shared (a pass's listed launch has read it before the
-    next pass writes it), and counts [lanes.work_counters(passes)] int32, zeroed, each pass its own.
+    next pass writes it), and counts [lanes.work_counters(passes)] int32, zeroed, each pass its own,
+    for one dense launch (a pass asked for again runs inline: its counts are not zeroed again).
     Descriptors do not own their tensors: keep this object until the last launch reading them is queued."""
 
     def __init__(self, m: int, passes: int, inline: int, device: torch.device):
@@ -152,6 +153,7 @@ class _WorkLists:
         self.work = torch.empty(self.slots, device=device, dtype=torch.int32)
         self.counts = torch.zeros(lanes.work_counters(passes), device=device, dtype=torch.int32)
         self._work_d = wrap(self.work)
+        self._taken: set[int] = set()
 
     @staticmethod
     def of(m: int, passes: int, device: torch.device) -> _WorkLists | None:
@@ -159,15 +161,20 @@ class _WorkLists:
         inline = _inline_lanes(device)
         return _WorkLists(m, passes, inline, device) if inline > 1 else None
 
-    def args(self, k: int) -> list:
-        """Pass k's (inline lanes, capacity, work, counts) kernel arguments; a listed launch takes the last three."""
+    def take(self, k: int) -> list | None:
+        """Pass k's (inline lanes, capacity, work, counts) kernel arguments the first time they are asked
+        for, None after; a listed launch takes the last three."""
+        if k in self._taken:
+            return None
+        self._taken.add(k)
         size = lanes.work_counters(1)
         return [self.inline, self.capacity, self._work_d, wrap_part(self.counts, k * size, size)]
 
 
 def _pass_args(lists: _WorkLists | None, k: int) -> list:
-    """Pass k's (inline lanes, capacity, work, counts) arguments; without lists every lane runs inline."""
-    return [1, 0, NO_ARRAY, NO_ARRAY] if lists is None else lists.args(k)
+    """Pass k's (inline lanes, capacity, work, counts) arguments: every lane runs inline (lanes 1, nothing
+    listed: no listed launch) without lists or once their pass k has been taken."""
+    return (lists and lists.take(k)) or [1, 0, NO_ARRAY, NO_ARRAY]
 
 
 class _Project(torch.autograd.Function):
@@ -201,7 +208,7 @@ class _Project(torch.autograd.Function):
             wrapped["opacities_t"], wrapped["tiles_touched"], wrap(flags), rows_d, int(rows is not None),
             means.shape[0], *work_d,
         ])
-        if lists is not None:
+        if work_d[0] > 1:
             launch(project.project_listed, lists.slots, device=frame.device, args=[
                 *inputs[:3], *inputs[6:], frame.width, frame.height, frame.tiles_x, frame.tiles_y,
                 wrapped["opacities_t"], *work_d[1:], rows_d, int(rows is not None), wrapped["means2d"],
@@ -244,7 +251,7 @@ class _Project(torch.autograd.Function):
                      wrap(v_means, wp.vec3), wrap(v_quats, wp.vec4), wrap(v_scales, wp.vec3), wrap(v_opacities),
                      wrap(v_t_means), wrap(v_t_scales), *parts, rows_d, int(rows is not None)]
             launch(project.project_backward, n, device=device, args=[*shared, radii_d, *grads, *work_d])
-            if lists is not None:
+            if work_d[0] > 1:
                 launch(project.project_backward_listed, lists.slots, device=device,
                        args=[*shared, *grads, *work_d[1:]])
         v_viewmat = v_K = None
@@ -298,8 +305,8 @@ def _write_keys(wrapped: dict, n: int, ends: torch.Tensor, frame: _Frame, capaci
 
     `wrapped`: descriptors of projection's means2d, conics, opacities_t, radii, depths [N]; those of
     keys and ids go into it (for the stages after the sync, replacing any before). `lists`: the
-    frame's work lists (`_project_frame`), pass 1 binning's, for one call (its counts are not zeroed
-    again); without them every warp writes its own keys.
+    frame's work lists (`_project_frame`), pass 1 binning's (taken by the call that launches: a
+    frame's keys written again, past their bound, run inline); without them every warp writes its own.
     """
     keys = torch.empty(2 * capacity, device=ends.device, dtype=torch.int64)  # the sort uses the upper half
     ids = torch.empty(2 * capacity, device=ends.device, dtype=torch.int32)
@@ -310,7 +317,7 @@ def _write_keys(wrapped: dict, n: int, ends: torch.Tensor, frame: _Frame, capaci
         shared = [wrapped["means2d"], wrapped["conics"], wrapped["opacities_t"], wrapped["radii"], wrapped["depths"],
                   wrap(ends), frame.tiles_x, frame.tiles_y, capacity, wrapped["keys"], wrapped["ids"]]
         launch(binning.write_tile_keys, n, device=frame.device, args=[*shared, *work_d])
-        if lists is not None:
+        if work_d[0] > 1:
             launch(binning.write_tile_keys_listed, lists.slots, device=frame.device, args=[*shared, *work_d[1:]])
     return keys, ids
 
@@ -573,8 +580,7 @@ def render_frame(means, quats, scales, opacities, colors, t_means, t_scales, vie
             stats = _read_flags(flags, p)
             # after it, on a GPU's critical path (idle until issued): the sort, the ranges, the raster
             total = stats[project.FLAG_TOTAL]
-            # binning's lists serve the one call that writes keys: this one, if none was written before
-            ids, _ = _bin(wrapped, n, ends, frame, total, written, None if capacity else lists)
+            ids, _ = _bin(wrapped, n, ends, frame, total, written, lists)
         color, trans = _Rasterize.apply(means2d, conics, opacities_t, colors, ranges, ids, frame, wrapped, pixels)
         if counts is None:
             _bounds.remember(frame, total)

@@ -6,8 +6,7 @@ Gaussian costs. So `project_forward` settles what a dead Gaussian needs (o_i(t),
 contract checks) for all of them and runs the long path only in warps holding at least `inline_lanes`
 alive ones (lanes.INLINE_LANES; on a CPU, where every thread runs alone, each runs its own); the
 others' alive Gaussians go to work lists (tomgs/kernels/lanes.py) that `project_listed` runs in full
-warps. The backward splits the visible ones the
-same way (`project_backward`, `project_backward_listed`).
+warps. The backward splits the visible ones the same way (`project_backward`, `project_backward_listed`).
 
 Forward writes, per Gaussian i: means2d (px), conic (inverse 2D covariance, upper triangle),
 depth (camera z), radii (px per axis; 0 = culled), temporal opacity o_i(t), and tiles touched.
