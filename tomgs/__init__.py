@@ -13,6 +13,7 @@ __version__ = "0.1.0"
 # public name -> owning module (one module owns each concept; see DESIGN.md)
 _EXPORTS = {
     "rasterize": "tomgs.render",
+    "FrameGraph": "tomgs.captured",
     "RenderError": "tomgs.errors",
     "rasterize_reference": "tomgs.reference",
     "eval_sh": "tomgs.sh",

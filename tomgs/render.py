@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 import struct
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 import warp as wp
@@ -95,6 +95,9 @@ class _Frame:
     near: float
     far: float
     device: str  # the Warp device its launches go to ("cpu", "cuda:N"), inside a runtime.scope
+    # a descriptor of (t_hi, t_lo) float32 [2] in device memory, read in place of the two above (a frame
+    # replayed from a CUDA graph, tomgs.captured); NO_ARRAY: the scalars hold t
+    times: object = field(default=NO_ARRAY, compare=False)
 
     @property
     def tiles_x(self) -> int:
@@ -203,8 +206,8 @@ class _Project(torch.autograd.Function):
         # the long path of the outputs in warps holding few alive ones is listed, run in full warps after
         work_d = _pass_args(lists, 0)
         launch(project.project_forward, n, device=frame.device, args=[
-            *inputs, frame.width, frame.height, frame.t_hi, frame.t_lo, frame.near, frame.far, frame.tiles_x,
-            frame.tiles_y, wrapped["means2d"], wrapped["conics"], wrapped["depths"], wrapped["radii"],
+            *inputs, frame.width, frame.height, frame.t_hi, frame.t_lo, frame.times, frame.near, frame.far,
+            frame.tiles_x, frame.tiles_y, wrapped["means2d"], wrapped["conics"], wrapped["depths"], wrapped["radii"],
             wrapped["opacities_t"], wrapped["tiles_touched"], wrap(flags), rows_d, int(rows is not None),
             means.shape[0], *work_d,
         ])
@@ -246,7 +249,7 @@ class _Project(torch.autograd.Function):
         lists = _WorkLists.of(n, 1, means.device)
         work_d = _pass_args(lists, 0)
         with scope(means.device) as device:
-            shared = [*inputs, frame.width, frame.height, frame.t_hi, frame.t_lo]
+            shared = [*inputs, frame.width, frame.height, frame.t_hi, frame.t_lo, frame.times]
             grads = [wrap(v_means2d, wp.vec2), wrap(v_conics, wp.vec3), wrap(v_opacities_t), int(camera_grads),
                      wrap(v_means, wp.vec3), wrap(v_quats, wp.vec4), wrap(v_scales, wp.vec3), wrap(v_opacities),
                      wrap(v_t_means), wrap(v_t_scales), *parts, rows_d, int(rows is not None)]
@@ -496,6 +499,10 @@ class FrameCounts:
             self._counts = _counts(stats)
         return self._counts
 
+    def known(self) -> dict | None:
+        """The counts if `read` has read them, else None (nothing waits)."""
+        return self._counts
+
     @property
     def overflowed(self) -> bool:
         return self.read()["n_intersections"] > self.capacity
@@ -555,41 +562,56 @@ def render_frame(means, quats, scales, opacities, colors, t_means, t_scales, vie
     t_hi, t_lo = _check_scalars(width, height, t, near, far)
     p = prepare_inputs(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width, height, t,
                        background, near, far, torch.float32, fused_sh=True, rows=rows)
-    wrapped = {}  # Warp descriptors of the frame's buffers, by name, built once for the stages that follow
-    counts = None
     with scope(p.means.device) as wp_device:
         frame = _Frame(p.width, p.height, t_hi, t_lo, p.near, p.far, wp_device)
-        if frame.num_tiles * TILE_SIZE * TILE_SIZE > MAX_THREADS:
-            raise RenderError(f"a {frame.width}x{frame.height} image is too large to render in one piece: keep "
-                              f"width x height below {MAX_THREADS:,} pixels")
-        (means2d, conics, depths, radii, opacities_t, _), ends, flags, lists = _project_frame(p, frame, wrapped)
-        # before the sync, what needs no intersection count (the GPU projects meanwhile): the keys,
-        # up to the bound of recent frames of this size, and the buffers of the sort and the raster.
-        # Fresh buffers every frame: the backward reads ids, and two frames' backwards may be pending.
-        n = means2d.shape[0]
         capacity = _bounds.capacity(frame)
-        written = _write_keys(wrapped, n, ends, frame, capacity, lists)
-        ranges = torch.zeros(frame.num_tiles, 2, device=p.means.device, dtype=torch.int32)
-        pixels = _Image(frame, p.means.device)
-        colors = p.colors.contiguous()
-        wrapped.update(ranges=wrap(ranges), colors=wrap(colors, wp.vec3))
-        if defer and capacity:
+        image, alpha, meta, _, counts = issue_frame(p, frame, capacity, wait=not (defer and capacity))
+    return image, alpha, meta, counts
+
+
+def issue_frame(p: RasterInputs, frame: _Frame, capacity: int, wait: bool, queue_counts: bool = True):
+    """A frame of prepared inputs `p` (float32, colours evaluated) issued on `frame.device`, inside its
+    runtime.scope: (image [H,W,3] over p's background, alpha [H,W,1], meta, flags [project.NUM_FLAGS]
+    int64 on the device, counts).
+
+    `wait`: the frame's one host sync reads the flags (RenderError for inputs outside the contract),
+    sizes the sort to the intersection count and remembers it in the bound; meta holds the counts and
+    counts is None. Else (`capacity` > 0) nothing waits: the keys are held to `capacity` and sorted
+    padded (`_bin_padded`), and counts is a FrameCounts, its copy queued once projection has written
+    the flags; or None without `queue_counts` (a frame captured in a CUDA graph, whose caller reads
+    `flags` after each replay)."""
+    if frame.num_tiles * TILE_SIZE * TILE_SIZE > MAX_THREADS:
+        raise RenderError(f"a {frame.width}x{frame.height} image is too large to render in one piece: keep "
+                          f"width x height below {MAX_THREADS:,} pixels")
+    wrapped = {}  # Warp descriptors of the frame's buffers, by name, built once for the stages that follow
+    (means2d, conics, depths, radii, opacities_t, _), ends, flags, lists = _project_frame(p, frame, wrapped)
+    # before the sync, what needs no intersection count (the GPU projects meanwhile): the keys,
+    # up to the bound of recent frames of this size, and the buffers of the sort and the raster.
+    # Fresh buffers every frame: the backward reads ids, and two frames' backwards may be pending.
+    n = means2d.shape[0]
+    written = _write_keys(wrapped, n, ends, frame, capacity, lists)
+    ranges = torch.zeros(frame.num_tiles, 2, device=p.means.device, dtype=torch.int32)
+    pixels = _Image(frame, p.means.device)
+    colors = p.colors.contiguous()
+    wrapped.update(ranges=wrap(ranges), colors=wrap(colors, wp.vec3))
+    counts = None
+    if wait:
+        stats = _read_flags(flags, p)
+        # after it, on a GPU's critical path (idle until issued): the sort, the ranges, the raster
+        total = stats[project.FLAG_TOTAL]
+        ids, _ = _bin(wrapped, n, ends, frame, total, written, lists)
+    else:
+        if queue_counts:
             counts = FrameCounts(flags, p, frame, capacity)
-            ids, _ = _bin_padded(wrapped, n, ends, frame, written)
-        else:
-            stats = _read_flags(flags, p)
-            # after it, on a GPU's critical path (idle until issued): the sort, the ranges, the raster
-            total = stats[project.FLAG_TOTAL]
-            ids, _ = _bin(wrapped, n, ends, frame, total, written, lists)
-        color, trans = _Rasterize.apply(means2d, conics, opacities_t, colors, ranges, ids, frame, wrapped, pixels)
-        if counts is None:
-            _bounds.remember(frame, total)
+        ids, _ = _bin_padded(wrapped, n, ends, frame, written)
+    color, trans = _Rasterize.apply(means2d, conics, opacities_t, colors, ranges, ids, frame, wrapped, pixels)
     image = color if p.background is None else color + trans * p.background
     meta = dict(radii=radii, means2d=means2d, depths=depths, conics=conics, opacities_t=opacities_t,
                 tile_size=TILE_SIZE, width=frame.width, height=frame.height)
-    if counts is None:
+    if wait:
+        _bounds.remember(frame, total)
         meta.update(_counts(stats))
-    return image, 1.0 - trans, meta, counts
+    return image, 1.0 - trans, meta, flags, counts
 
 
 def project_stage(

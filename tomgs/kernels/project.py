@@ -16,7 +16,9 @@ finite or has fx, fy <= 0): flagged in `flags` for the caller to refuse, never s
 
 Time: t arrives as two float32s, t_hi + t_lo (t_hi = t rounded), and t - m is formed as
 (t_hi - m) + t_lo, exact to float32 rounding of the difference, so temporal scales far below
-float32's resolution of t itself (6e-8 near t = 0.5) are honoured.
+float32's resolution of t itself (6e-8 near t = 0.5) are honoured. A frame replayed from a CUDA
+graph (tomgs.captured) cannot change scalar arguments: its (t_hi, t_lo) are read from `times` [2]
+in device memory instead, written per frame by `set_frame` (`times` empty: the scalars hold t).
 """
 
 import warp as wp
@@ -89,6 +91,14 @@ def rotation_from_unit_quat(q: wp.vec4) -> wp.mat33:
 def temporal_z(t_hi: float, t_lo: float, t_mean: float, t_scale: float) -> float:
     # (t - m) / sigma with t = t_hi + t_lo: t_hi - m is exact when m is near t (Sterbenz)
     return ((t_hi - t_mean) + t_lo) / t_scale
+
+
+@wp.func
+def frame_time(t_hi: float, t_lo: float, times: wp.array(dtype=float)) -> wp.vec2:
+    # (t_hi, t_lo) from `times` [2] when it holds them (a replayed frame), else the scalars
+    if times.shape[0] == 2:
+        return wp.vec2(times[0], times[1])
+    return wp.vec2(t_hi, t_lo)
 
 
 @wp.func
@@ -213,6 +223,7 @@ def project_forward(
     height: int,
     t_hi: float,  # t = t_hi + t_lo
     t_lo: float,
+    times: wp.array(dtype=float),  # [2] (t_hi, t_lo) in device memory, read in place of the two above; or empty
     near: float,
     far: float,
     tiles_x: int,
@@ -261,7 +272,8 @@ def project_forward(
             flags[FLAG_SCALES] = wp.int64(1)
         if t_scales[i] < 0.0:
             flags[FLAG_T_SCALES] = wp.int64(1)
-        z = temporal_z(t_hi, t_lo, t_means[i], t_scales[i])
+        t = frame_time(t_hi, t_lo, times)
+        z = temporal_z(t[0], t[1], t_means[i], t_scales[i])
         opac = base * wp.exp(-0.5 * z * z)
         p = world_to_camera(viewmat, means[i])
         # alive (also rejects NaN) and inside the depth range
@@ -472,6 +484,7 @@ def project_backward(
     height: int,
     t_hi: float,
     t_lo: float,
+    times: wp.array(dtype=float),  # as project_forward's
     radii: wp.array(dtype=wp.vec2i),  # [M] from the forward; (0, 0) = culled, no gradient
     v_means2d: wp.array(dtype=wp.vec2),  # [M] incoming gradients
     v_conics: wp.array(dtype=wp.vec3),
@@ -505,7 +518,8 @@ def project_backward(
     inline = lanes_count(visible) >= inline_lanes
     list_row(visible and not inline, j, capacity, work, work_counts)  # every lane reaches it
     if visible and inline:
-        gradients(j, i, means, quats, scales, opacities, t_means, t_scales, viewmats, Ks, width, height, t_hi, t_lo,
+        t = frame_time(t_hi, t_lo, times)
+        gradients(j, i, means, quats, scales, opacities, t_means, t_scales, viewmats, Ks, width, height, t[0], t[1],
                   v_means2d, v_conics, v_opacities_t, camera_grads, v_means, v_quats, v_scales, v_opacities, v_t_means,
                   v_t_scales, v_viewmat_parts, v_K_parts, has_rows)
     else:
@@ -535,6 +549,7 @@ def project_backward_listed(
     height: int,
     t_hi: float,
     t_lo: float,
+    times: wp.array(dtype=float),
     v_means2d: wp.array(dtype=wp.vec2),
     v_conics: wp.array(dtype=wp.vec3),
     v_opacities_t: wp.array(dtype=float),
@@ -560,8 +575,9 @@ def project_backward_listed(
     i = j
     if has_rows != 0:
         i = rows[j]
-    gradients(j, i, means, quats, scales, opacities, t_means, t_scales, viewmats, Ks, width, height, t_hi,
-              t_lo, v_means2d, v_conics, v_opacities_t, camera_grads, v_means, v_quats, v_scales, v_opacities,
+    t = frame_time(t_hi, t_lo, times)
+    gradients(j, i, means, quats, scales, opacities, t_means, t_scales, viewmats, Ks, width, height, t[0],
+              t[1], v_means2d, v_conics, v_opacities_t, camera_grads, v_means, v_quats, v_scales, v_opacities,
               v_t_means, v_t_scales, v_viewmat_parts, v_K_parts, has_rows)
 
 
@@ -623,3 +639,20 @@ def frame_stats(
         if n > 0:
             flags[FLAG_TOTAL] = ends[n - 1]
         check_camera(viewmats, Ks, background, has_background, flags)
+
+
+@wp.kernel
+def set_frame(
+    viewmat: wp.array(dtype=wp.mat44),  # [1] a frame's world -> camera
+    K: wp.array(dtype=wp.mat33),  # [1]
+    t_hi: float,  # its t = t_hi + t_lo
+    t_lo: float,
+    viewmats: wp.array(dtype=wp.mat44),  # out [1]: where a replayed frame reads its camera
+    Ks: wp.array(dtype=wp.mat33),  # out [1]
+    times: wp.array(dtype=float),  # out [2]: and its time (`frame_time`)
+):
+    # one thread: a replayed frame's camera and time in one launch (tomgs.captured)
+    viewmats[0] = viewmat[0]
+    Ks[0] = K[0]
+    times[0] = t_hi
+    times[1] = t_lo

@@ -1,0 +1,200 @@
+"""tomgs.captured.FrameGraph: frames replayed from CUDA graphs (issued from Python on a CPU) render and
+differentiate what `rasterize` does, one frame at a time, and never hand out memory a later frame
+overwrites without saying so."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+import tomgs
+from tomgs import render
+from tomgs.captured import FrameGraph
+from tomgs.inputs import RenderError
+from scenes import devices, random_scene
+
+DEVICES = devices()
+NAMES = ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales")
+COUNTS = ("n_visible", "n_alive", "n_intersections")
+
+
+@pytest.fixture
+def fresh_bounds(monkeypatch):
+    bounds = render._Bounds()
+    monkeypatch.setattr(render, "_bounds", bounds)
+    import tomgs.captured
+    monkeypatch.setattr(tomgs.captured, "_bounds", bounds)
+    return bounds
+
+
+def cloud_on(device: str, seed: int = 4, n: int = 400, width: int = 45, height: int = 37, sh_degree=None):
+    """(leaf tensors requiring grad, another copy of them, cameras [(viewmat, K, t)], background)."""
+    scene = random_scene(seed, n=n, width=width, height=height, sh_degree=sh_degree)
+    cloud = {name: scene[name].float().to(device).requires_grad_() for name in NAMES}
+    twin = {name: tensor.detach().clone().requires_grad_() for name, tensor in cloud.items()}
+    viewmat, K = scene["viewmat"].float().to(device), scene["K"].float().to(device)
+    turned = viewmat.clone()
+    turned[0, 3] += 0.05  # a second camera: the graph reads each call's
+    # the second time is not a float32: its low part (t_lo) must reach the kernels too
+    frames = [(viewmat, K, 0.5), (turned, K * 1.02, 0.3 + 1e-9), (viewmat, K, 0.7)]
+    return cloud, twin, frames, scene["background"].float().to(device)
+
+
+def weights(device: str, width: int = 45, height: int = 37, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    return (torch.rand(height, width, 3, generator=g).to(device), torch.rand(height, width, 1, generator=g).to(device))
+
+
+def assert_close(got: torch.Tensor, want: torch.Tensor, device: str, gradient: bool = False):
+    if device == "cpu":  # the same kernels on the same inputs, in one thread: bit for bit
+        assert torch.equal(got, want)
+    elif gradient:  # atomics add in no fixed order: the oracle's gradient tolerance
+        torch.testing.assert_close(got, want, rtol=1e-3, atol=1e-3 * float(want.abs().max()))
+    else:
+        torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
+
+
+def assert_kept_or_refused(next_frame, held: torch.Tensor, message: str, device: str):
+    """`next_frame()` leaves `held` as it was, or refuses with `message` (a captured graph, which writes
+    its frames in its own memory): never overwrites it."""
+    kept = held.clone()
+    try:
+        next_frame()
+    except RenderError as error:
+        assert device != "cpu" and message in str(error)
+    assert torch.equal(held, kept)
+
+
+@pytest.mark.parametrize("sh_degree", [None, 1])
+@pytest.mark.parametrize("device", DEVICES)
+def test_replayed_frames_render_and_differentiate_as_rasterize(device, sh_degree, fresh_bounds):
+    cloud, twin, frames, background = cloud_on(device, sh_degree=sh_degree)
+    w_image, w_alpha = weights(device)
+    graph = FrameGraph(**cloud, width=45, height=37, background=background)
+    for viewmat, K, t in frames:
+        image, alpha, counts = graph(viewmat, K, t)
+        (image * w_image).sum().add((alpha * w_alpha).sum()).backward()
+        want, want_alpha, meta = tomgs.rasterize(**twin, viewmat=viewmat, K=K, width=45, height=37, t=t,
+                                                 background=background)
+        (want * w_image).sum().add((want_alpha * w_alpha).sum()).backward()
+        assert not counts.overflowed
+        assert counts.read() == {k: meta[k] for k in COUNTS} and meta["n_intersections"] > 0
+        assert_close(image, want, device)
+        assert_close(alpha, want_alpha, device)
+        for name in NAMES:  # summed over the frames on both sides: a later frame adds, never overwrites
+            assert_close(cloud[name].grad, twin[name].grad, device, gradient=True)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_images_are_the_callers(device, fresh_bounds):
+    cloud, twin, frames, _ = cloud_on(device)
+    graph = FrameGraph(**{k: v.detach() for k, v in cloud.items()}, width=45, height=37)
+    kept = [graph(*frame)[0] for frame in frames]  # no gradients: frames follow one another freely
+    for image, (viewmat, K, t) in zip(kept, frames):
+        want = tomgs.rasterize(**twin, viewmat=viewmat, K=K, width=45, height=37, t=t)[0]
+        assert_close(image, want, device)
+    assert not torch.equal(kept[0], kept[1])
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_a_view_of_a_held_image_is_refused_not_overwritten(device, fresh_bounds):
+    cloud, _, frames, _ = cloud_on(device)
+    graph = FrameGraph(**{k: v.detach() for k, v in cloud.items()}, width=45, height=37)
+    corner = graph(*frames[0])[0][:5, :5]  # a view, not the image handed out
+    assert_kept_or_refused(lambda: graph(*frames[1]), corner, "a view of the last frame's image is still held",
+                           device)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_one_frame_at_a_time(device, fresh_bounds):
+    cloud, _, frames, _ = cloud_on(device)
+    graph = FrameGraph(**cloud, width=45, height=37)
+    image, alpha, _ = graph(*frames[0])
+    with pytest.raises(RenderError, match="one frame at a time"):
+        graph(*frames[1])  # the first frame's backward would read what this one writes
+    del image, alpha  # dropped without a backward: the next frame may come
+    image, _, _ = graph(*frames[1])
+    image.sum().backward()
+    with torch.no_grad():
+        graph(*frames[2])
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_a_held_gradient_is_refused_not_overwritten(device, fresh_bounds):
+    cloud, _, frames, _ = cloud_on(device)
+    graph = FrameGraph(**cloud, width=45, height=37)
+    graph(*frames[0])[0].sum().backward()
+    held = cloud["means"].grad
+    for tensor in cloud.values():
+        tensor.grad = None
+    assert_kept_or_refused(lambda: graph(*frames[1])[0].sum().backward(), held, "gradient of means is still held",
+                           device)
+
+
+def graph_at_bound(device: str, bounds, total: int):
+    """(cloud, twin, its FrameGraph, a frame) with the bound of the graph's size set by one frame of `total`
+    intersections (the cloud's frames have ~1000)."""
+    cloud, twin, frames, _ = cloud_on(device)
+    graph = FrameGraph(**cloud, width=45, height=37)
+    bounds.remember(graph._frame, total)
+    return cloud, twin, graph, frames[0]
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_a_frame_past_its_keys_renders_again_at_a_grown_bound(device, fresh_bounds):
+    _, twin, graph, (viewmat, K, t) = graph_at_bound(device, fresh_bounds, 1)  # far below its ~1000
+    image, alpha, counts = graph(viewmat, K, t)
+    assert counts.overflowed and graph.capacity < counts.read()["n_intersections"]
+    del image, alpha
+    image, _, counts = graph(viewmat, K, t)
+    assert not counts.overflowed and graph.capacity > counts.read()["n_intersections"]
+    assert_close(image, tomgs.rasterize(**twin, viewmat=viewmat, K=K, width=45, height=37, t=t)[0], device)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_the_keys_shrink_with_the_bound(device, fresh_bounds):
+    cloud, twin, graph, (viewmat, K, t) = graph_at_bound(device, fresh_bounds, 100_000)  # far above its ~1000
+    for _ in range(render._Bounds.FRAMES + 1):  # until the large total has left the bound's frames
+        first = graph.capacity
+        image, alpha, counts = graph(viewmat, K, t)
+        (image.sum() + alpha.sum()).backward()
+        counts.read()
+    assert first > 100_000 and graph.capacity < 2_000  # the padded sort sorts what the capacity holds
+    for tensor in cloud.values():
+        tensor.grad = None
+    image, _, counts = graph(viewmat, K, t)
+    image.sum().backward()
+    want = tomgs.rasterize(**twin, viewmat=viewmat, K=K, width=45, height=37, t=t)[0]
+    want.sum().backward()
+    assert not counts.overflowed and graph.capacity == fresh_bounds.capacity(graph._frame)
+    assert_close(image, want, device)
+    for name in NAMES:
+        assert_close(cloud[name].grad, twin[name].grad, device, gradient=True)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_bad_input_is_refused(device, fresh_bounds):
+    cloud, _, frames, _ = cloud_on(device)
+    viewmat, K, t = frames[0]
+    with pytest.raises(RenderError, match="means must have shape"):
+        FrameGraph(**dict(cloud, means=cloud["means"][:, :2]), width=45, height=37)
+    with pytest.raises(RenderError, match="width must be a positive integer"):
+        FrameGraph(**cloud, width=0, height=37)
+    graph = FrameGraph(**cloud, width=45, height=37)
+    with pytest.raises(RenderError, match="viewmat must be a floating-point tensor of shape"):
+        graph(viewmat[:3], K, t)
+    with pytest.raises(RenderError, match="K must be a floating-point tensor"):
+        graph(viewmat, K.int(), t)
+    with pytest.raises(RenderError, match="t must be a finite time"):
+        graph(viewmat, K, math.nan)
+    graph(viewmat, K, t)[0].sum().backward()  # a good frame first: the graph is captured
+    bad = K.clone()
+    bad[0, 0] = math.inf
+    image, alpha, counts = graph(viewmat, bad, t)
+    with pytest.raises(RenderError, match="K must be finite"):
+        counts.read()
+    del image, alpha
+    image, _, counts = graph(viewmat, K, t)  # and it goes on rendering good frames
+    assert counts.read()["n_intersections"] > 0 and image.abs().sum() > 0

@@ -1,0 +1,292 @@
+"""Frames replayed from CUDA graphs: `rasterize`'s forward and backward for one cloud and one image
+size, captured once and replayed for any camera and time.
+
+A frame issued from Python costs a GPU machine's CPU ~1 ms (~20 torch ops and ~10 launches at 10-60 us
+each), more than the kernels of a 1M-Gaussian frame take, so such a frame is host bound. A captured
+frame is one replay for the forward and one for the backward; the device runs the kernels back to back.
+
+    graph = FrameGraph(means=..., quats=..., scales=..., opacities=..., colors=..., t_means=...,
+                       t_scales=..., width=854, height=480)
+    image, alpha, counts = graph(viewmat, K, t)    # differentiable in the cloud's tensors
+    loss(image, alpha).backward()
+    if counts.overflowed: ...                       # its image lacked entries: call again (recaptured)
+
+Fixed at capture: the cloud's tensors, read in place at every replay (update them in place, as an
+optimiser does; new tensors, a new N or other requires_grad flags need a new FrameGraph), the image
+size, background, near and far, and the capacity of the tile keys (tomgs.render's bound of recent
+frames of this size). Per call: the camera and the time, written into device memory the graph reads
+(`project.set_frame`). What it renders is `rasterize`'s image to the last bit (the same kernels).
+
+One frame at a time: a frame's backward runs before the next frame is rendered (a frame whose image
+takes gradients and is still held raises RenderError at the next call). A frame's image, alpha and
+gradients lie in the graph's memory (an eager frame's memory, without copies), so the next call
+writes them again: before it does, an image or alpha the caller still holds, and a `.grad` still
+holding the gradients, get copies of their own (gradients summed over frames stay right); a view
+of them, or a gradient held elsewhere, raises RenderError rather than being overwritten.
+
+On a CPU nothing is captured: each call issues the same frame from Python, with the same results.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import weakref
+
+import torch
+import warp as wp
+
+from tomgs.errors import RenderError
+from tomgs.inputs import prepare_inputs
+from tomgs.kernels import project
+from tomgs.render import FrameCounts, _bounds, _check_scalars, _Frame, issue_frame
+from tomgs.runtime import launch, scope, torch_stream, warp_device, wrap
+
+def _use_count(tensor: torch.Tensor) -> int | None:
+    """References to `tensor`'s storage (tensors viewing it), or None where torch does not say."""
+    count = getattr(torch._C, "_storage_Use_Count", None)  # private to torch: checked, not relied on
+    return None if count is None else count(tensor.untyped_storage()._cdata)
+
+
+class FrameGraph:
+    """`rasterize` of one cloud at one image size, for any camera and time: captured as CUDA graphs
+    (forward, and backward where a cloud tensor requires grad) on a GPU, issued from Python on a CPU.
+    See the module docstring for what is fixed and what is shared."""
+
+    def __init__(self, means, quats, scales, opacities, colors, t_means, t_scales, width: int, height: int, *,
+                 background: torch.Tensor | None = None, near: float = 0.01, far: float = 1e10):
+        self.cloud = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
+                          t_means=t_means, t_scales=t_scales)
+        _check_scalars(width, height, 0.0, near, far)
+        device = means.device if isinstance(means, torch.Tensor) else torch.device("cpu")
+        f32 = dict(device=device, dtype=torch.float32)
+        # where each call writes its camera and time (set_frame) and the frame reads them; a camera
+        # to check the cloud against until the first call's is written
+        self._viewmat, self._K, self._times = torch.eye(4, **f32), torch.eye(3, **f32), torch.zeros(2, **f32)
+        self._leaves = self.cloud  # what a frame reads: the cloud's tensors, or leaves of their own (`_own_leaves`)
+        self._prepare = lambda: prepare_inputs(**self._leaves, viewmat=self._viewmat, K=self._K, width=width,
+                                               height=height, t=0.0, background=background, near=near, far=far,
+                                               dtype=torch.float32, fused_sh=True)
+        p = self._prepare()  # RenderError now for a cloud outside the contract's shapes and types
+        self.width, self.height, self.device = p.width, p.height, device
+        self.near, self.far = p.near, p.far
+        with scope(device) as wp_device:
+            self._frame = _Frame(p.width, p.height, 0.0, 0.0, p.near, p.far, wp_device, times=wrap(self._times))
+        self._set_args = [wrap(self._viewmat, wp.mat44), wrap(self._K, wp.mat33), wrap(self._times)]
+        self._params = [(name, tensor) for name, tensor in self.cloud.items() if tensor.requires_grad]
+        self._captured = device.type == "cuda"
+        if not self._captured:
+            self._own_leaves()
+        self.capacity = 0  # the tile keys a frame holds (0: none captured yet)
+        self._graphs = None  # (forward, backward or None) once captured
+        self._outputs = None  # (image, alpha, flags) of the captured forward, or of the last frame on a CPU
+        self._output_refs = ()  # references to the image's and alpha's memory while nothing else holds them
+        self._grads = None  # the captured backward's gradients, one per param (None: unused)
+        self._handed_out = False  # a backward handed them out since `_release_grads` last found them free
+        self._v = None  # (v_image, v_alpha): where the backward reads its incoming gradients
+        self._in_flight = None  # a weak reference to the last frame's backward node until its backward ran
+        self._handed = ()  # weak references to the last frame's image and alpha, as handed out
+        self._last_counts = None
+
+    # ---------------------------------------------------------------------------------------------- a frame
+
+    def __call__(self, viewmat: torch.Tensor, K: torch.Tensor, t: float):
+        """(image [H,W,3], alpha [H,W,1], counts) of the cloud seen by `viewmat` [4,4] and `K` [3,3] at
+        time t, as `rasterize` gives them (differentiable in the cloud's tensors that require grad);
+        counts a tomgs.render.FrameCounts: read it (after the backward) before trusting the image."""
+        t_hi, t_lo = _check_scalars(self.width, self.height, t, self.near, self.far)
+        viewmat, K = self._camera(viewmat, "viewmat", (4, 4)), self._camera(K, "K", (3, 3))
+        node = self._in_flight() if self._in_flight is not None else None
+        if node is not None:
+            raise RenderError("FrameGraph renders one frame at a time: run the last frame's backward (or drop its "
+                              "image) before rendering the next")
+        self._release_outputs()
+        self._release_grads()
+        with scope(self.device) as wp_device:
+            frame = [wrap(viewmat, wp.mat44), wrap(K, wp.mat33), t_hi, t_lo, *self._set_args]  # set_frame's
+            self._fit_capacity(wp_device, frame)
+            image, alpha = _Replayed.apply(self, wp_device, frame, *(tensor for _, tensor in self._params))
+        if image.grad_fn is not None:
+            self._in_flight = weakref.ref(image.grad_fn)
+        if self._captured:
+            self._handed = (weakref.ref(image), weakref.ref(alpha))
+        counts = FrameCounts(self._outputs[2], self._p, self._frame, self.capacity)
+        self._last_counts = counts
+        return image, alpha, counts
+
+    def _camera(self, value, name: str, shape: tuple) -> torch.Tensor:
+        """A camera tensor as set_frame reads it: float32, contiguous, on the cloud's device."""
+        if not isinstance(value, torch.Tensor) or tuple(value.shape) != shape or not value.is_floating_point():
+            got = f"{tuple(value.shape)} {value.dtype}" if isinstance(value, torch.Tensor) else type(value).__name__
+            raise RenderError(f"{name} must be a floating-point tensor of shape {shape}, got {got}")
+        return value.to(self.device, torch.float32).contiguous()
+
+    def _fit_capacity(self, wp_device: str, frame: list) -> None:
+        """The keys' capacity follows the bound of recent frames of this size (tomgs.render): taken at
+        the first frame (which waits for its count where no frame of this size has been counted),
+        grown after a frame whose keys overflowed (read from its counts), shrunk once it holds more
+        than 1/16 above the bound (the padded sort costs what the capacity holds); captured again at
+        each change (two eager frames and the capture: a few frames' time). `frame`: set_frame's
+        arguments, for the frames run here."""
+        last = self._last_counts.known() if self._last_counts is not None else None
+        overflowed = last is not None and last["n_intersections"] > self.capacity
+        bound = _bounds.capacity(self._frame)
+        if self.capacity and not overflowed and bound + bound // 16 >= self.capacity:
+            return
+        launch(project.set_frame, 1, device=wp_device, args=frame)
+        if not bound:  # a first frame of this size: counted (the bound learns it)
+            with torch.no_grad():
+                issue_frame(self._prepare(), self._frame, 0, wait=True)
+        self.capacity = _bounds.capacity(self._frame)
+        if self._captured:
+            self._capture()
+
+    # ------------------------------------------------------------------------------- capture and replay
+
+    def _issue(self):
+        """The frame from the camera and time in device memory, issued: (image, alpha, flags)."""
+        self._p = self._prepare()
+        image, alpha, _, flags, _ = issue_frame(self._p, self._frame, self.capacity, wait=False, queue_counts=False)
+        return image, alpha, flags
+
+    def _own_leaves(self) -> None:
+        """Frames read leaves of their own, sharing the cloud's memory: a captured autograd graph must not
+        hold the cloud's own gradient accumulators (made on the caller's stream, which a capture could
+        not then depend on), and the caller's backward reaches the cloud through `_Replayed` alone."""
+        self._leaves = {name: tensor.detach().requires_grad_() if tensor.requires_grad else tensor
+                        for name, tensor in self.cloud.items()}
+
+    def _backward_of(self, outputs, v) -> tuple:
+        leaves = [self._leaves[name] for name, _ in self._params]
+        return torch.autograd.grad(outputs[:2], leaves, v, allow_unused=True)
+
+    def _capture(self) -> None:
+        """The forward and backward graphs at `capacity`, after two frames run eagerly on a side stream
+        (Warp's modules loaded, launches recorded, the sort's scratch reserved: nothing is allocated
+        or loaded while capturing)."""
+        # the last capture's memory goes back first (what a caller holds of it, the new graph never writes)
+        self._graphs = self._outputs = self._grads = self._v = None
+        self._handed_out = False
+        self._handed = ()
+        self._p = None
+        self._own_leaves()
+        h, w = self.height, self.width
+        current = torch.cuda.current_stream(self.device)
+        side = torch.cuda.Stream(self.device)
+        side.wait_stream(current)
+        with torch.cuda.stream(side), torch.enable_grad():
+            for _ in range(2):
+                outputs = self._issue()
+                if self._params:
+                    self._backward_of(outputs, (torch.zeros_like(outputs[0]), torch.zeros_like(outputs[1])))
+            del outputs
+        current.wait_stream(side)
+        # one pool: the backward reuses the forward's scratch (keys, scans), as an eager frame does, so
+        # its gradients may lie where the next forward writes (`_release_grads` runs before both)
+        pool = torch.cuda.graph_pool_handle()
+        forward = torch.cuda.CUDAGraph()
+        with torch.enable_grad(), torch.cuda.graph(forward, pool=pool), _known_to_warp(self.device):
+            self._outputs = self._issue()
+        self._output_refs = [_use_count(x) for x in self._outputs[:2]]
+        backward = None
+        if self._params:
+            backward = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(backward, pool=pool):
+                # the incoming gradients' buffers come from the pool too, where the forward's scratch
+                # (dead by then) may lie: written before each backward replay, as an eager frame's are
+                self._v = (torch.empty(h, w, 3, device=self.device), torch.empty(h, w, 1, device=self.device))
+                self._grads = self._backward_of(self._outputs, self._v)
+            self._grad_refs = [None if g is None else _use_count(g) for g in self._grads]
+        self._graphs = (forward, backward)
+
+    def _run_forward(self, wp_device: str, frame: list) -> tuple[torch.Tensor, torch.Tensor]:
+        launch(project.set_frame, 1, device=wp_device, args=frame)
+        if self._captured:
+            self._graphs[0].replay()
+        else:
+            with torch.enable_grad():
+                self._outputs = self._issue()
+        image, alpha, _ = self._outputs
+        return image.detach(), alpha.detach()
+
+    def _run_backward(self, v_image, v_alpha) -> list:
+        if not self._captured:
+            return list(self._backward_of(self._outputs, (self._zeros_for(v_image, 3), self._zeros_for(v_alpha, 1))))
+        for buffer, v in zip(self._v, (v_image, v_alpha)):
+            if v is None:
+                buffer.zero_()
+            else:
+                buffer.copy_(v)
+        self._release_grads()
+        self._graphs[1].replay()
+        self._handed_out = True
+        return [None if g is None else g.detach() for g in self._grads]
+
+    def _zeros_for(self, v, channels: int) -> torch.Tensor:
+        return torch.zeros(self.height, self.width, channels, device=self.device) if v is None else v
+
+    def _release_outputs(self) -> None:
+        """Before the forward writes the image and alpha again: those handed out and still held get
+        memory of their own; a view of them still held raises RenderError."""
+        for name, static, refs, handed in zip(("image", "alpha"), self._outputs or (), self._output_refs,
+                                              self._handed):
+            count = _use_count(static)
+            if count is not None and count <= refs:
+                continue
+            held = handed()
+            if held is not None:  # the caller's tensor takes a copy: what it reads stays what it was
+                held.data = held.data.clone()
+                del held
+                count = _use_count(static)
+            if count is not None and count > refs:
+                raise RenderError(f"a view of the last frame's {name} is still held: clone what you keep of a "
+                                  "FrameGraph's images before its next frame")
+        self._handed = ()
+
+    def _release_grads(self) -> None:
+        """Before a replay writes where the gradients lie: a `.grad` still holding them gets its own
+        copy; anything else holding them raises RenderError (a frame's gradients are the graph's)."""
+        if not self._handed_out:
+            return
+        for (name, tensor), grad, refs in zip(self._params, self._grads, self._grad_refs):
+            count = None if grad is None else _use_count(grad)
+            if grad is None or count is not None and count <= refs:
+                continue
+            held = tensor.grad
+            if held is not None and held.data_ptr() == grad.data_ptr():
+                tensor.grad = held.clone()
+                del held
+                count = _use_count(grad)
+            if count is not None and count > refs:
+                raise RenderError(f"the last frame's gradient of {name} is still held outside its .grad: clone what "
+                                  "you keep of a FrameGraph's gradients before its next frame")
+        self._handed_out = False
+
+
+@contextlib.contextmanager
+def _known_to_warp(device: torch.device):
+    """Tell Warp that torch is capturing its current stream (torch.cuda.graph's default mode, global):
+    Warp's sort then takes its scratch from the graph, where it is freed, and not from memory it would
+    leak (and warn about) at every capture."""
+    stream = torch_stream(warp_device(device))
+    wp.capture_begin(stream=stream, external=True, capture_mode=wp.CaptureMode.GLOBAL)
+    try:
+        yield
+    finally:
+        wp.capture_end(stream=stream)
+
+
+class _Replayed(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, graph: FrameGraph, wp_device: str, frame: list, *params):
+        """(image, alpha) of `graph`'s frame seen by `frame` (set_frame's arguments), in its memory."""
+        ctx.graph = graph
+        ctx.set_materialize_grads(False)  # an unused image or alpha passes None
+        image, alpha = graph._run_forward(wp_device, frame)
+        return image, alpha
+
+    @staticmethod
+    def backward(ctx, v_image, v_alpha):
+        graph = ctx.graph
+        grads = graph._run_backward(v_image, v_alpha)
+        graph._in_flight = None
+        return (None, None, None, *grads)
