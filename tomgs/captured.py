@@ -161,8 +161,8 @@ class FrameGraph:
 
     def _capture(self) -> None:
         """The forward and backward graphs at `capacity`, after two frames run eagerly on a side stream
-        (Warp's modules loaded, launches recorded, the sort's scratch reserved: nothing is allocated
-        or loaded while capturing)."""
+        (Warp's modules loaded and launches recorded before capturing; the sort's scratch is the
+        graph's, `_known_to_warp`)."""
         # the last capture's memory goes back first (what a caller holds of it, the new graph never writes)
         self._graphs = self._outputs = self._grads = self._v = None
         self._handed_out = False
@@ -180,6 +180,10 @@ class FrameGraph:
                     self._backward_of(outputs, (torch.zeros_like(outputs[0]), torch.zeros_like(outputs[1])))
             del outputs
         current.wait_stream(side)
+        # fresh leaves for the capture: the warm-up's gradient accumulators were made on the side
+        # stream, and its last inputs (SH colours with their graph) would have kept them alive
+        self._p = None
+        self._own_leaves()
         # one pool: the backward reuses the forward's scratch (keys, scans), as an eager frame does, so
         # its gradients may lie where the next forward writes (`_release_grads` runs before both)
         pool = torch.cuda.graph_pool_handle()
