@@ -198,3 +198,19 @@ def test_bad_input_is_refused(device, fresh_bounds):
     del image, alpha
     image, _, counts = graph(viewmat, K, t)  # and it goes on rendering good frames
     assert counts.read()["n_intersections"] > 0 and image.abs().sum() > 0
+
+
+@pytest.mark.skipif(not torch.cuda.is_available() or torch.cuda.device_count() < 2, reason="needs two GPUs")
+def test_a_graph_on_a_second_gpu_captures_and_renders_there(fresh_bounds):
+    assert torch.cuda.current_device() == 0  # the cloud is elsewhere: the graph must not follow the current device
+    cloud, twin, frames, _ = cloud_on("cuda:1")
+    graph = FrameGraph(**cloud, width=45, height=37)
+    for viewmat, K, t in frames:
+        image, alpha, counts = graph(viewmat, K, t)
+        (image.sum() + alpha.sum()).backward()
+        want, want_alpha, _ = tomgs.rasterize(**twin, viewmat=viewmat, K=K, width=45, height=37, t=t)
+        (want.sum() + want_alpha.sum()).backward()
+        assert image.device == torch.device("cuda:1") and not counts.overflowed
+        assert_close(image, want, "cuda:1")
+        for name in NAMES:
+            assert_close(cloud[name].grad, twin[name].grad, "cuda:1", gradient=True)

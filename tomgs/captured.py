@@ -138,7 +138,8 @@ class FrameGraph:
                 issue_frame(self._prepare(), self._frame, 0, wait=True)
         self.capacity = _bounds.capacity(self._frame)
         if self._captured:
-            self._capture()
+            with torch.cuda.device(self.device):  # torch.cuda.graph captures on the current device
+                self._capture()
 
     # ------------------------------------------------------------------------------- capture and replay
 
@@ -171,7 +172,7 @@ class FrameGraph:
         self._own_leaves()
         h, w = self.height, self.width
         current = torch.cuda.current_stream(self.device)
-        side = torch.cuda.Stream(self.device)
+        side = torch.cuda.Stream(self.device)  # the warm-up's and the captures' (torch's default is one device's)
         side.wait_stream(current)
         with torch.cuda.stream(side), torch.enable_grad():
             for _ in range(2):
@@ -188,13 +189,13 @@ class FrameGraph:
         # its gradients may lie where the next forward writes (`_release_grads` runs before both)
         pool = torch.cuda.graph_pool_handle()
         forward = torch.cuda.CUDAGraph()
-        with torch.enable_grad(), torch.cuda.graph(forward, pool=pool), _known_to_warp(self.device):
+        with torch.enable_grad(), torch.cuda.graph(forward, pool=pool, stream=side), _known_to_warp(self.device):
             self._outputs = self._issue()
         self._output_refs = [_use_count(x) for x in self._outputs[:2]]
         backward = None
         if self._params:
             backward = torch.cuda.CUDAGraph()
-            with torch.cuda.graph(backward, pool=pool):
+            with torch.cuda.graph(backward, pool=pool, stream=side):
                 # the incoming gradients' buffers come from the pool too, where the forward's scratch
                 # (dead by then) may lie: written before each backward replay, as an eager frame's are
                 self._v = (torch.empty(h, w, 3, device=self.device), torch.empty(h, w, 1, device=self.device))
