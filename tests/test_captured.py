@@ -24,15 +24,14 @@ COUNTS = ("n_visible", "n_alive", "n_intersections")
 def fresh_bounds(monkeypatch):
     bounds = render._Bounds()
     monkeypatch.setattr(render, "_bounds", bounds)
-    import tomgs.captured
-    monkeypatch.setattr(tomgs.captured, "_bounds", bounds)
     return bounds
 
 
-def cloud_on(device: str, seed: int = 4, n: int = 400, width: int = 45, height: int = 37, sh_degree=None):
-    """(leaf tensors requiring grad, another copy of them, cameras [(viewmat, K, t)], background)."""
+def cloud_on(device: str, seed: int = 4, n: int = 400, width: int = 45, height: int = 37, sh_degree=None,
+             dtype=torch.float32):
+    """(leaf tensors of `dtype` requiring grad, another copy of them, cameras [(viewmat, K, t)], background)."""
     scene = random_scene(seed, n=n, width=width, height=height, sh_degree=sh_degree)
-    cloud = {name: scene[name].float().to(device).requires_grad_() for name in NAMES}
+    cloud = {name: scene[name].float().to(device, dtype).requires_grad_() for name in NAMES}
     twin = {name: tensor.detach().clone().requires_grad_() for name, tensor in cloud.items()}
     viewmat, K = scene["viewmat"].float().to(device), scene["K"].float().to(device)
     turned = viewmat.clone()
@@ -67,10 +66,11 @@ def assert_kept_or_refused(next_frame, held: torch.Tensor, message: str, device:
     assert torch.equal(held, kept)
 
 
-@pytest.mark.parametrize("sh_degree", [None, 1])
+@pytest.mark.parametrize("sh_degree, dtype", [(None, torch.float32), (1, torch.float32), (None, torch.float64)])
 @pytest.mark.parametrize("device", DEVICES)
-def test_replayed_frames_render_and_differentiate_as_rasterize(device, sh_degree, fresh_bounds):
-    cloud, twin, frames, background = cloud_on(device, sh_degree=sh_degree)
+def test_replayed_frames_render_and_differentiate_as_rasterize(device, sh_degree, dtype, fresh_bounds):
+    """float64 clouds are rendered in float32 (cast inside the graph), their gradients float64."""
+    cloud, twin, frames, background = cloud_on(device, sh_degree=sh_degree, dtype=dtype)
     w_image, w_alpha = weights(device)
     graph = FrameGraph(**cloud, width=45, height=37, background=background)
     for viewmat, K, t in frames:

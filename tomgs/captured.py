@@ -38,7 +38,8 @@ import warp as wp
 from tomgs.errors import RenderError
 from tomgs.inputs import prepare_inputs
 from tomgs.kernels import project
-from tomgs.render import FrameCounts, _bounds, _check_scalars, _Frame, issue_frame
+from tomgs import render
+from tomgs.render import FrameCounts, _check_scalars, _Frame, issue_frame
 from tomgs.runtime import launch, scope, torch_stream, warp_device, wrap
 
 def _use_count(tensor: torch.Tensor) -> int | None:
@@ -129,14 +130,14 @@ class FrameGraph:
         arguments, for the frames run here."""
         last = self._last_counts.known() if self._last_counts is not None else None
         overflowed = last is not None and last["n_intersections"] > self.capacity
-        bound = _bounds.capacity(self._frame)
+        bound = render._bounds.capacity(self._frame)
         if self.capacity and not overflowed and bound + bound // 16 >= self.capacity:
             return
         launch(project.set_frame, 1, device=wp_device, args=frame)
         if not bound:  # a first frame of this size: counted (the bound learns it)
             with torch.no_grad():
                 issue_frame(self._prepare(), self._frame, 0, wait=True)
-        self.capacity = _bounds.capacity(self._frame)
+        self.capacity = render._bounds.capacity(self._frame)
         if self._captured:
             with torch.cuda.device(self.device):  # torch.cuda.graph captures on the current device
                 self._capture()
