@@ -175,6 +175,23 @@ def test_the_keys_shrink_with_the_bound(device, fresh_bounds):
 
 
 @pytest.mark.parametrize("device", DEVICES)
+def test_a_cloud_given_new_memory_is_refused_not_rendered_stale(device, fresh_bounds):
+    cloud, twin, frames, _ = cloud_on(device)
+    graph = FrameGraph(**cloud, width=45, height=37)
+    graph(*frames[0])[0].sum().backward()
+    with torch.no_grad():
+        for tensor in (cloud["means"], twin["means"]):
+            tensor.add_(0.01)  # in place: the graph reads it
+    viewmat, K, t = frames[1]
+    image = graph(viewmat, K, t)[0]
+    assert_close(image, tomgs.rasterize(**twin, viewmat=viewmat, K=K, width=45, height=37, t=t)[0], device)
+    image.sum().backward()
+    cloud["scales"].data = cloud["scales"].data * 2  # new memory: the graph would read the old
+    with pytest.raises(RenderError, match="scales changed memory or shape"):
+        graph(*frames[2])
+
+
+@pytest.mark.parametrize("device", DEVICES)
 def test_bad_input_is_refused(device, fresh_bounds):
     cloud, _, frames, _ = cloud_on(device)
     viewmat, K, t = frames[0]

@@ -12,10 +12,11 @@ frame is one replay for the forward and one for the backward; the device runs th
     if counts.overflowed: ...                       # its image lacked entries: call again (recaptured)
 
 Fixed at capture: the cloud's tensors, read in place at every replay (update them in place, as an
-optimiser does; new tensors, a new N or other requires_grad flags need a new FrameGraph), the image
-size, background, near and far, and the capacity of the tile keys (tomgs.render's bound of recent
-frames of this size). Per call: the camera and the time, written into device memory the graph reads
-(`project.set_frame`). What it renders is `rasterize`'s image to the last bit (the same kernels).
+optimiser does; new tensors, a new N or other requires_grad flags need a new FrameGraph, and a tensor
+given new memory, `.data =`, is refused at the next call), the image size, background, near and far,
+and the capacity of the tile keys (tomgs.render's bound of recent frames of this size). Per call: the
+camera and the time, written into device memory the graph reads (`project.set_frame`). The kernels are
+`rasterize`'s: the same image and gradients (bit for bit on a CPU).
 
 One frame at a time: a frame's backward runs before the next frame is rendered (a frame whose image
 takes gradients and is still held raises RenderError at the next call). A frame's image, alpha and
@@ -74,6 +75,7 @@ class FrameGraph:
             self._frame = _Frame(p.width, p.height, 0.0, 0.0, p.near, p.far, wp_device, times=wrap(self._times))
         self._set_args = [wrap(self._viewmat, wp.mat44), wrap(self._K, wp.mat33), wrap(self._times)]
         self._params = [(name, tensor) for name, tensor in self.cloud.items() if tensor.requires_grad]
+        self._storage = self._storage_of_cloud()  # what the frames read: checked at every call
         self._captured = device.type == "cuda"
         if not self._captured:
             self._own_leaves()
@@ -96,6 +98,11 @@ class FrameGraph:
         counts a tomgs.render.FrameCounts: read it (after the backward) before trusting the image."""
         t_hi, t_lo = _check_scalars(self.width, self.height, t, self.near, self.far)
         viewmat, K = self._camera(viewmat, "viewmat", (4, 4)), self._camera(K, "K", (3, 3))
+        storage = self._storage_of_cloud()
+        if storage != self._storage:
+            changed = ", ".join(name for name, now, then in zip(self.cloud, storage, self._storage) if now != then)
+            raise RenderError(f"the cloud's {changed} changed memory or shape since this FrameGraph was made (a "
+                              "`.data =` or resize): frames read the memory it had; make a new FrameGraph")
         node = self._in_flight() if self._in_flight is not None else None
         if node is not None:
             raise RenderError("FrameGraph renders one frame at a time: run the last frame's backward (or drop its "
@@ -113,6 +120,10 @@ class FrameGraph:
         counts = FrameCounts(self._outputs[2], self._p, self._frame, self.capacity)
         self._last_counts = counts
         return image, alpha, counts
+
+    def _storage_of_cloud(self) -> list[tuple]:
+        """(address, shape, dtype) of each cloud tensor: in-place updates keep them, `.data =` does not."""
+        return [(tensor.data_ptr(), tensor.shape, tensor.dtype) for tensor in self.cloud.values()]
 
     def _camera(self, value, name: str, shape: tuple) -> torch.Tensor:
         """A camera tensor as set_frame reads it: float32, contiguous, on the cloud's device."""
