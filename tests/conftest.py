@@ -30,3 +30,14 @@ def chromium() -> str:
 def blender() -> str:
     """Blender, for the round trip through its Python (tests/test_blender.py)."""
     return required_program("blender", "Debian: apt-get install blender python3-numpy")
+
+
+@pytest.fixture
+def fresh_bounds(monkeypatch):
+    """A process's bounds of its own (tomgs.render's keys bound), so a test sets them without reaching
+    other tests."""
+    from tomgs import render
+
+    bounds = render._Bounds()
+    monkeypatch.setattr(render, "_bounds", bounds)
+    return bounds

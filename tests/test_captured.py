@@ -20,13 +20,6 @@ NAMES = ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales
 COUNTS = ("n_visible", "n_alive", "n_intersections")
 
 
-@pytest.fixture
-def fresh_bounds(monkeypatch):
-    bounds = render._Bounds()
-    monkeypatch.setattr(render, "_bounds", bounds)
-    return bounds
-
-
 def cloud_on(device: str, seed: int = 4, n: int = 400, width: int = 45, height: int = 37, sh_degree=None,
              dtype=torch.float32):
     """(leaf tensors of `dtype` requiring grad, another copy of them, cameras [(viewmat, K, t)], background)."""

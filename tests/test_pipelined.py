@@ -19,14 +19,6 @@ DEVICES = devices()
 NAMES = ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales")
 
 
-@pytest.fixture
-def fresh_bounds(monkeypatch):
-    """A process's bounds of its own, so a test sets them without reaching other tests."""
-    bounds = render._Bounds()
-    monkeypatch.setattr(render, "_bounds", bounds)
-    return bounds
-
-
 def scene_on(device: str, seed: int = 4, n: int = 400, width: int = 45, height: int = 37):
     scene = random_scene(seed, n=n, width=width, height=height)
     gaussians = {name: scene[name].float().to(device) for name in NAMES}

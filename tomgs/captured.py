@@ -64,7 +64,7 @@ class FrameGraph:
         # where each call writes its camera and time (set_frame) and the frame reads them; a camera
         # to check the cloud against until the first call's is written
         self._viewmat, self._K, self._times = torch.eye(4, **f32), torch.eye(3, **f32), torch.zeros(2, **f32)
-        self._leaves = self.cloud  # what a frame reads: the cloud's tensors, or leaves of their own (`_own_leaves`)
+        self._leaves = self.cloud  # what a frame reads: the cloud's tensors, then leaves of their own (`_own_leaves`)
         self._prepare = lambda: prepare_inputs(**self._leaves, viewmat=self._viewmat, K=self._K, width=width,
                                                height=height, t=0.0, background=background, near=near, far=far,
                                                dtype=torch.float32, fused_sh=True)
@@ -77,8 +77,7 @@ class FrameGraph:
         self._params = [(name, tensor) for name, tensor in self.cloud.items() if tensor.requires_grad]
         self._storage = self._storage_of_cloud()  # what the frames read: checked at every call
         self._captured = device.type == "cuda"
-        if not self._captured:
-            self._own_leaves()
+        self._own_leaves()
         self.capacity = 0  # the tile keys a frame holds (0: none captured yet)
         self._graphs = None  # (forward, backward or None) once captured
         self._outputs = None  # (image, alpha, flags) of the captured forward, or of the last frame on a CPU
@@ -181,7 +180,6 @@ class FrameGraph:
         self._handed_out = False
         self._handed = ()
         self._p = None
-        self._own_leaves()
         h, w = self.height, self.width
         current = torch.cuda.current_stream(self.device)
         side = torch.cuda.Stream(self.device)  # the warm-up's and the captures' (torch's default is one device's)
