@@ -43,8 +43,11 @@ def main() -> None:
     ap.add_argument("--raster", choices=["auto", "batched", "per-pixel"], default="auto",
                     help="the compositing kernel pair (auto: batched on CUDA); for A/B timings in one command")
     ap.add_argument("--fps", action="store_true", help="with --scene: also time render_sequence over every frame (3 passes)")
+    ap.add_argument("--tiles", choices=["auto", "longest-first", "in-order"], default="auto",
+                    help="which tile each raster block takes (auto: longest list first on CUDA); for A/B timings")
     args = ap.parse_args()
     _Rasterize.batched = {"auto": None, "batched": True, "per-pixel": False}[args.raster]
+    _Rasterize.ordered_tiles = {"auto": None, "longest-first": True, "in-order": False}[args.tiles]
     source = args.clip / "images" if (args.clip / "images").exists() else args.clip
     video = read_video(source)
     T, H, W = video.frames.shape[:3]

@@ -18,6 +18,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_raster import camera, make_scene, parse_count, parse_size, temporal_scales  # noqa: E402
 
 import tomgs  # noqa: E402
+from tomgs.render import _Rasterize  # noqa: E402
 
 
 # a kernel's name as reported: long enough to tell cub's sort kernels apart (their first 80 characters
@@ -113,7 +114,10 @@ def main() -> None:
     ap.add_argument("--host", action="store_true", help="also print the Python functions that cost host time")
     ap.add_argument("--gaps", action="store_true", help="also print where the GPU idles in the forward and the "
                     "backward, each between syncs as bench_raster times them")
+    ap.add_argument("--tiles", choices=["auto", "longest-first", "in-order"], default="auto",
+                    help="which tile each raster block takes (auto: longest list first on CUDA); for A/B timings")
     args = ap.parse_args()
+    _Rasterize.ordered_tiles = {"auto": None, "longest-first": True, "in-order": False}[args.tiles]
     width, height = parse_size(args.size)
     n = parse_count(args.n)
     dev = torch.device("cuda")

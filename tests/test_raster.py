@@ -197,6 +197,35 @@ def test_dense_overlap_stops_on_transmittance(device):
     assert_matches_reference(scene, device)
 
 
+@pytest.mark.parametrize("batched", [False, True])
+def test_alpha_at_the_skip_threshold(batched, monkeypatch):
+    """One opaque Gaussian over a 256x256 image, its 1/255 level a circle ~100 px out: pixels whose
+    alpha lies just above 1/255 are composited, those just below are not, as in the float64
+    reference. The kernels skip an entry past POWER_SKIP without its exp; a threshold below
+    ln(255), by 1e-3 or more, would drop pixels of the first ring."""
+    from tomgs.render import _Rasterize
+
+    monkeypatch.setattr(_Rasterize, "batched", batched)
+    one = dict(means=torch.tensor([[0.0123, 0.0071, 2.0]], dtype=torch.float64), quats=torch.tensor([[1.0, 0, 0, 0]]).double(),
+               scales=torch.full((1, 3), 0.47, dtype=torch.float64), opacities=torch.ones(1, dtype=torch.float64),
+               colors=torch.ones(1, 3, dtype=torch.float64), t_means=torch.zeros(1, dtype=torch.float64),
+               t_scales=torch.ones(1, dtype=torch.float64), viewmat=torch.eye(4, dtype=torch.float64),
+               K=torch.tensor([[128.0, 0, 128.0], [0, 128.0, 128.0], [0, 0, 1.0]], dtype=torch.float64),
+               width=256, height=256, t=0.0)
+    _, alpha, _ = tomgs.rasterize(**one)
+    _, ref_alpha, meta = tomgs.rasterize_reference(**one)
+    alpha = alpha.double()
+    ys, xs = torch.meshgrid(torch.arange(256.0) + 0.5, torch.arange(256.0) + 0.5, indexing="ij")
+    d, (a, b, c) = meta["means2d"][0] - torch.stack([xs, ys], -1).double(), meta["conics"][0]
+    raw = torch.exp(-(0.5 * (a * d[..., 0] ** 2 + c * d[..., 1] ** 2) + b * d[..., 0] * d[..., 1]))[..., None]
+    just_above = (raw >= ALPHA_MIN * (1 + 1e-4)) & (raw <= ALPHA_MIN * 1.1)  # o = 1: alpha = exp(-power)
+    just_below = (raw < ALPHA_MIN * (1 - 1e-4)) & (raw >= ALPHA_MIN * 0.9)
+    assert int(just_above.sum()) >= 20 and int(just_below.sum()) >= 20
+    assert (alpha[just_above] - ref_alpha[just_above]).abs().max() <= 1e-4 * ALPHA_MIN  # float32 rounding
+    assert (alpha[just_below] == 0).all()
+    assert (alpha - ref_alpha).abs().max() <= IMAGE_TOL
+
+
 @pytest.mark.parametrize("device", DEVICES)
 def test_dead_gaussians_cost_no_tile_work(device):
     """A Gaussian whose temporal opacity is below 1/255 at t is culled in projection."""
@@ -421,9 +450,8 @@ def test_batched_image_sizes(size, batched_on_cpu):
     assert_batched_matches(random_scene(20, n=80, width=size[0], height=size[1]))
 
 
-def raster_end(out: torch.Tensor) -> torch.Tensor:
-    """The raster stage's saved `end` [H, W] (one past each pixel's last composited list entry) of a
-    render whose output `out` is still attached to the graph."""
+def raster_node(out: torch.Tensor):
+    """The raster stage's backward node of a render whose output `out` is still attached."""
     todo, seen = [out.grad_fn], set()
     while todo:
         node = todo.pop()
@@ -431,9 +459,15 @@ def raster_end(out: torch.Tensor) -> torch.Tensor:
             continue
         seen.add(node)
         if type(node).__name__ == "_RasterizeBackward":
-            return node.saved_tensors[-1]
+            return node
         todo += [parent for parent, _ in node.next_functions]
     raise AssertionError("no raster stage in the graph")
+
+
+def raster_end(out: torch.Tensor) -> torch.Tensor:
+    """The raster stage's saved `end` [H, W] (one past each pixel's last composited list entry) of a
+    render whose output `out` is still attached to the graph."""
+    return raster_node(out).saved_tensors[-1]
 
 
 @pytest.mark.parametrize("n", [300, 700])
@@ -484,6 +518,28 @@ def test_batched_alpha_clamp(batched_on_cpu):
     """Opacities above 0.99: alpha clamps at 0.99 and passes no gradient through the clamp."""
     scene = covering_scene(120, 40, width=20, height=18, opacity=(0.992, 1.0), scale=(0.05, 0.2))
     assert_batched_matches(scene)
+
+
+@pytest.mark.parametrize("batched", [False, True])
+def test_tiles_taken_longest_first_give_the_same_frame(batched, monkeypatch):
+    """Blocks that take the tiles in order of list length (the CUDA default) composite the same
+    image as blocks in tile order, with either kernel pair, and the same gradients to float32
+    rounding (the tiles add into each Gaussian's sums in another order)."""
+    from tomgs.render import _Rasterize
+
+    monkeypatch.setattr(_Rasterize, "batched", batched)
+    scene = random_scene(31, n=150, width=70, height=41)  # 5x3 tiles, lists of many lengths
+    outs = []
+    for ordered in (False, True):
+        monkeypatch.setattr(_Rasterize, "ordered_tiles", ordered)
+        (image, alpha, meta), _, ins, _ = render_both(scene, "cpu")
+        grads = torch.autograd.grad((image * torch.linspace(-1, 1, image.numel()).view(image.shape)).sum()
+                                    + alpha.sum(), ins[:7])
+        outs.append((image, alpha, grads))
+    assert meta["n_intersections"] > 100
+    assert torch.equal(outs[0][0], outs[1][0]) and torch.equal(outs[0][1], outs[1][1])
+    for name, a, b in zip(INPUT_NAMES, outs[0][2], outs[1][2]):
+        assert rel_l2(a, b) <= 1e-4, name
 
 
 @pytest.mark.parametrize("cooperative", [False, True])

@@ -19,6 +19,7 @@ from tomgs.train import Trainer, preset
 from tomgs.train.densify import Densifier
 from tomgs.train.optim import SeenAdam
 from tomgs.train.sampler import FrameSampler
+from scenes import devices
 
 CPU = torch.device("cpu")
 
@@ -57,16 +58,20 @@ def test_adam_is_sparse_on_a_gpu_and_dense_on_a_cpu_unless_asked():
         trainer.step()
 
 
-def test_seen_adam_is_adam_on_the_rows_in_view():
+@pytest.mark.parametrize("device", devices())
+def test_seen_adam_is_adam_on_the_rows_in_view(device):
     """SeenAdam against torch's Adam in float64 on fresh random gradients: seen rows take Adam's
-    step, unseen rows keep their values and moments; parameters of 1-3 axes and an empty one, and
+    step, unseen rows keep their values and moments; parameters of 1-3 axes, rows wider than a warp
+    (45 columns, the SH of degree 3) and an empty one, 40 rows (not whole warps), and
     more parameters than one launch takes (kernels/adam.py SLOTS); moments replaced by other tensors
-    (a checkpoint loaded) and a parameter replaced (densification) between steps."""
+    (a checkpoint loaded) and a parameter replaced (densification) between steps. On a GPU the warps
+    vote and update their seen rows together."""
     g = torch.Generator().manual_seed(7)
     n = 40
     params = [torch.randn(n, 3, generator=g), torch.randn(n, generator=g), torch.randn(n, 1, 3, generator=g),
-              torch.zeros(n, 0, 3)] + [torch.randn(n, 1 + i % 4, generator=g) for i in range(7)]
-    ours = [p.clone().requires_grad_(True) for p in params]
+              torch.zeros(n, 0, 3), torch.randn(n, 15, 3, generator=g)] + [torch.randn(n, 1 + i % 4, generator=g)
+                                                                         for i in range(7)]
+    ours = [p.clone().to(device).requires_grad_(True) for p in params]
     ref = [p.double().requires_grad_(True) for p in params]
     opt = SeenAdam([dict(params=[p], lr=0.01 * (i + 1)) for i, p in enumerate(ours)], eps=1e-15)
     adam = torch.optim.Adam([dict(params=[p], lr=0.01 * (i + 1)) for i, p in enumerate(ref)], eps=1e-15)
@@ -86,7 +91,7 @@ def test_seen_adam_is_adam_on_the_rows_in_view():
         for p, q in zip(ours, ref):
             grad = torch.randn(p.shape, generator=g, dtype=torch.float64) * scale
             grad *= seen.view(-1, *([1] * (p.dim() - 1)))
-            p.grad, q.grad = grad.float(), grad
+            p.grad, q.grad = grad.float().to(device), grad
         kept = [(q.detach().clone(), {k: v.clone() for k, v in adam.state[q].items()}) for q in ref]
         adam.step()
         with torch.no_grad():  # Adam on the seen rows only: put the unseen rows back
@@ -95,14 +100,14 @@ def test_seen_adam_is_adam_on_the_rows_in_view():
                 for key in ("exp_avg", "exp_avg_sq"):
                     if key in state:
                         adam.state[q][key][~seen] = state[key][~seen]
-        opt.step(seen)
+        opt.step(seen.to(device))
     for p, q in zip(ours, ref):
         assert torch.isfinite(p).all()
-        assert torch.allclose(p.double(), q, atol=1e-5)
+        assert torch.allclose(p.double().cpu(), q, atol=1e-5)
         if p.numel():
-            assert torch.allclose(opt.state[p]["exp_avg"].double(), adam.state[q]["exp_avg"], atol=1e-5)
+            assert torch.allclose(opt.state[p]["exp_avg"].double().cpu(), adam.state[q]["exp_avg"], atol=1e-5)
     with pytest.raises(ValueError, match="rows"):
-        opt.step(torch.ones(n + 1, dtype=torch.bool))
+        opt.step(torch.ones(n + 1, dtype=torch.bool, device=device))
     with pytest.raises(ValueError, match="betas and eps"):
         SeenAdam([dict(params=[ours[0]]), dict(params=[ours[1]], betas=(0.5, 0.9))])
 

@@ -384,6 +384,10 @@ class _Rasterize(torch.autograd.Function):
     # thread at a time, where staging only adds copies, so it keeps the per-pixel pair.
     # Set it to compare the two in one process (tests, A/B timings).
     batched: bool | None = None
+    # Blocks take the tiles longest list first, forward and backward (None: on CUDA, where blocks run
+    # at once and a long tile started last runs alone at the end; a CPU runs the tiles one by one, in
+    # any order alike).
+    ordered_tiles: bool | None = None
 
     @staticmethod
     def _kernels(device: torch.device) -> tuple:
@@ -400,8 +404,13 @@ class _Rasterize(torch.autograd.Function):
         """(color [H,W,3], trans [H,W,1]) of `image`, composited; `wrapped` holds the descriptors of
         means2d, conics, opacities_t, colors, ranges and ids (built before the frame's host sync)."""
         # the list, the per-Gaussian inputs and the per-pixel state, shared with the backward
+        order = NO_ARRAY
+        if means2d.device.type == "cuda" if _Rasterize.ordered_tiles is None else _Rasterize.ordered_tiles:
+            tile_order = torch.argsort(ranges[:, 0] - ranges[:, 1]).to(torch.int32)  # [tiles], the longest first
+            order = wrap(tile_order)
+            ctx.tile_order = tile_order  # alive while the backward's launch reads it
         shared = [wrapped["ranges"], wrapped["ids"], wrapped["means2d"], wrapped["conics"], wrapped["opacities_t"],
-                  wrapped["colors"], frame.width, frame.height, frame.tiles_x]
+                  wrapped["colors"], frame.width, frame.height, frame.tiles_x, order]
         kernels = _Rasterize._kernels(means2d.device)
         launch(kernels[0], frame.num_tiles * TILE_SIZE * TILE_SIZE, device=frame.device, block_dim=kernels[2],
                args=[*shared, image.color_d, *image.state])

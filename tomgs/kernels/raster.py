@@ -4,6 +4,8 @@ Threads are laid out tile by tile (256 consecutive threads = one 16x16 tile = on
 block walks one tile's depth-sorted list together and the per-Gaussian loads are shared in cache.
 """
 
+import math
+
 import warp as wp
 
 from tomgs import constants
@@ -19,6 +21,10 @@ ALPHA_MIN = wp.constant(constants.ALPHA_MIN)
 ALPHA_MAX = wp.constant(constants.ALPHA_MAX)
 T_MIN = wp.constant(constants.T_MIN)
 ONE_MINUS_ALPHA_FLOOR = wp.constant(constants.ONE_MINUS_ALPHA_FLOOR)
+# Past this power, o exp(-power) < ALPHA_MIN for any opacity o <= 1 (the contract), so an entry is
+# skipped there without its exp: the same image, and most of a small Gaussian's entries in a tile
+# (the pixels outside its ellipse) cost no exp. The margin covers fast math's approximate exp.
+POWER_SKIP = wp.constant(math.log(1.0 / constants.ALPHA_MIN) + 1.0e-3)
 
 
 @wp.func
@@ -29,6 +35,17 @@ def pixel_of(tid: int, tiles_x: int) -> wp.vec3i:
     ty = tile // tiles_x
     tx = tile - ty * tiles_x
     return wp.vec3i(tile, tx * TILE + local % TILE, ty * TILE + local // TILE)
+
+
+@wp.func
+def ordered(tid: int, tile_order: wp.array(dtype=wp.int32)) -> int:
+    """Thread `tid` of a launch whose block b composites tile tile_order[b] (the longest lists first,
+    so that no long tile starts last and runs alone), as the thread of that tile: the index
+    `pixel_of` takes. An empty `tile_order` keeps block b on tile b."""
+    if tile_order.shape[0] == 0:
+        return tid
+    block = tid // TILE_PIXELS
+    return tile_order[block] * TILE_PIXELS + tid - block * TILE_PIXELS
 
 
 @wp.func
@@ -86,11 +103,12 @@ def raster_forward(
     width: int,
     height: int,
     tiles_x: int,
+    tile_order: wp.array(dtype=wp.int32),  # [tiles] the tile of each block, or empty (block b: tile b)
     out_color: wp.array2d(dtype=wp.vec3),  # out [H, W] premultiplied, no background
     out_trans: wp.array2d(dtype=float),  # out [H, W] final transmittance
     out_end: wp.array2d(dtype=wp.int32),  # out [H, W] one past the last composited list entry
 ):
-    tile_xy = pixel_of(wp.tid(), tiles_x)
+    tile_xy = pixel_of(ordered(wp.tid(), tile_order), tiles_x)
     x = tile_xy[1]
     y = tile_xy[2]
     if x >= width or y >= height:
@@ -104,7 +122,10 @@ def raster_forward(
     last = start
     for k in range(start, end):
         g = gaussian_ids[k]
-        alpha = wp.min(ALPHA_MAX, opacities_t[g] * wp.exp(-gaussian_power(means2d[g], conics[g], pixel)))
+        power = gaussian_power(means2d[g], conics[g], pixel)
+        if power > POWER_SKIP:
+            continue
+        alpha = wp.min(ALPHA_MAX, opacities_t[g] * wp.exp(-power))
         if alpha < ALPHA_MIN:
             continue
         next_trans = trans * (1.0 - alpha)
@@ -129,6 +150,7 @@ def raster_backward(
     width: int,
     height: int,
     tiles_x: int,
+    tile_order: wp.array(dtype=wp.int32),  # [tiles] the tile of each block, or empty (block b: tile b)
     out_trans: wp.array2d(dtype=float),  # [H, W] from the forward
     out_end: wp.array2d(dtype=wp.int32),  # [H, W] from the forward
     v_color: wp.array2d(dtype=wp.vec3),  # [H, W] dL/d(premultiplied colour)
@@ -140,7 +162,7 @@ def raster_backward(
 ):
     # All 32 lanes of a GPU warp lie in one tile and walk its list in lockstep, so each Gaussian's
     # gradient is summed across the lanes before a single atomic add. No lane may return early.
-    tile_xy = pixel_of(wp.tid(), tiles_x)
+    tile_xy = pixel_of(ordered(wp.tid(), tile_order), tiles_x)
     tile = tile_xy[0]
     x = tile_xy[1]
     y = tile_xy[2]

@@ -18,8 +18,8 @@ Launch 1D over num_tiles * 256 threads with block_dim 256 (or 1), so block b is 
 import warp as wp
 
 from tomgs.kernels.lanes import lane_index, lanes_any, lanes_max, lanes_sum, lanes_sum_vec2, lanes_sum_vec3
-from tomgs.kernels.raster import (ALPHA_MAX, ALPHA_MIN, T_MIN, TILE_PIXELS, gaussian_power, pixel_backward_state,
-                                  pixel_of, unblend)
+from tomgs.kernels.raster import (ALPHA_MAX, ALPHA_MIN, POWER_SKIP, T_MIN, TILE_PIXELS, gaussian_power,
+                                  ordered, pixel_backward_state, pixel_of, unblend)
 
 # fast math as in raster.py (the same per-pixel arithmetic, issue bound on the GPU)
 wp.set_module_options({"enable_backward": False, "fast_math": True})
@@ -56,12 +56,13 @@ def raster_forward_batched(
     width: int,
     height: int,
     tiles_x: int,
+    tile_order: wp.array(dtype=wp.int32),  # [tiles] the tile of each block, or empty (block b: tile b)
     out_color: wp.array2d(dtype=wp.vec3),  # out [H, W] premultiplied, no background
     out_trans: wp.array2d(dtype=float),  # out [H, W] final transmittance
     out_end: wp.array2d(dtype=wp.int32),  # out [H, W] one past the last composited list entry
 ):
     tid = wp.tid()
-    tile_xy = pixel_of(tid, tiles_x)
+    tile_xy = pixel_of(ordered(tid, tile_order), tiles_x)
     tile = tile_xy[0]
     x = tile_xy[1]
     y = tile_xy[2]
@@ -94,6 +95,8 @@ def raster_forward_batched(
             for j in range(count):
                 record = wp.tile_extract(xy_opacity, j)
                 power = gaussian_power(wp.vec2(record[0], record[1]), wp.tile_extract(conic_batch, j), pixel)
+                if power > POWER_SKIP:
+                    continue
                 alpha = wp.min(ALPHA_MAX, record[2] * wp.exp(-power))
                 if alpha < ALPHA_MIN:
                     continue
@@ -121,6 +124,7 @@ def raster_backward_batched(
     width: int,
     height: int,
     tiles_x: int,
+    tile_order: wp.array(dtype=wp.int32),  # [tiles] the tile of each block, or empty (block b: tile b)
     out_trans: wp.array2d(dtype=float),  # [H, W] from the forward
     out_end: wp.array2d(dtype=wp.int32),  # [H, W] from the forward
     v_color: wp.array2d(dtype=wp.vec3),  # [H, W] dL/d(premultiplied colour)
@@ -133,7 +137,7 @@ def raster_backward_batched(
     # The block walks back from its largest `end` in batches, every thread through every batch (no
     # early return: barriers and the warp-lane sums before the atomics need all threads).
     tid = wp.tid()
-    tile_xy = pixel_of(tid, tiles_x)
+    tile_xy = pixel_of(ordered(tid, tile_order), tiles_x)
     tile = tile_xy[0]
     x = tile_xy[1]
     y = tile_xy[2]
