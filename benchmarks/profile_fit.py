@@ -42,7 +42,8 @@ def main() -> None:
     ap.add_argument("--host", action="store_true", help="also print the Python functions that cost host time")
     ap.add_argument("--raster", choices=["auto", "batched", "per-pixel"], default="auto",
                     help="the compositing kernel pair (auto: batched on CUDA); for A/B timings in one command")
-    ap.add_argument("--fps", action="store_true", help="with --scene: also time render_sequence over every frame (3 passes)")
+    ap.add_argument("--fps", action="store_true",
+                    help="with --scene: also time render_sequence over every frame (the quickest of 5 passes)")
     ap.add_argument("--tiles", choices=["auto", "longest-first", "in-order"], default="auto",
                     help="which tile each raster block takes (auto: longest list first on CUDA); for A/B timings")
     args = ap.parse_args()

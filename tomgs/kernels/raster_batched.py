@@ -12,7 +12,8 @@ of raster.py, so both pairs give the same image to rounding.
 Block width: 256 on CUDA; on the CPU Warp runs a block of width 1 (every thread alone: it stages
 the whole batch itself, which gives exactly the per-pixel result), or of 256 cooperative fibers
 with `wp.config.enable_cpu_blocks` (real block semantics: barriers and reductions, for tests).
-Launch 1D over num_tiles * 256 threads with block_dim 256 (or 1), so block b is tile b.
+Launch 1D over num_tiles * 256 threads with block_dim 256 (or 1), so block b is tile b, or tile_order[b]
+when the caller orders the tiles (`raster.ordered`: on CUDA the longest lists first).
 """
 
 import warp as wp
