@@ -206,7 +206,8 @@ def test_alpha_at_the_skip_threshold(batched, monkeypatch):
     from tomgs.render import _Rasterize
 
     monkeypatch.setattr(_Rasterize, "batched", batched)
-    one = dict(means=torch.tensor([[0.0123, 0.0071, 2.0]], dtype=torch.float64), quats=torch.tensor([[1.0, 0, 0, 0]]).double(),
+    one = dict(means=torch.tensor([[0.0123, 0.0071, 2.0]], dtype=torch.float64),
+               quats=torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64),
                scales=torch.full((1, 3), 0.47, dtype=torch.float64), opacities=torch.ones(1, dtype=torch.float64),
                colors=torch.ones(1, 3, dtype=torch.float64), t_means=torch.zeros(1, dtype=torch.float64),
                t_scales=torch.ones(1, dtype=torch.float64), viewmat=torch.eye(4, dtype=torch.float64),
@@ -533,6 +534,9 @@ def test_tiles_taken_longest_first_give_the_same_frame(batched, monkeypatch):
     for ordered in (False, True):
         monkeypatch.setattr(_Rasterize, "ordered_tiles", ordered)
         (image, alpha, meta), _, ins, _ = render_both(scene, "cpu")
+        if ordered:  # the blocks did take the tiles out of tile order
+            order = raster_node(alpha).tile_order
+            assert not torch.equal(order, torch.arange(len(order)))
         grads = torch.autograd.grad((image * torch.linspace(-1, 1, image.numel()).view(image.shape)).sum()
                                     + alpha.sum(), ins[:7])
         outs.append((image, alpha, grads))

@@ -61,11 +61,10 @@ def test_adam_is_sparse_on_a_gpu_and_dense_on_a_cpu_unless_asked():
 @pytest.mark.parametrize("device", devices())
 def test_seen_adam_is_adam_on_the_rows_in_view(device):
     """SeenAdam against torch's Adam in float64 on fresh random gradients: seen rows take Adam's
-    step, unseen rows keep their values and moments; parameters of 1-3 axes, rows wider than a warp
-    (45 columns, the SH of degree 3) and an empty one, 40 rows (not whole warps), and
-    more parameters than one launch takes (kernels/adam.py SLOTS); moments replaced by other tensors
-    (a checkpoint loaded) and a parameter replaced (densification) between steps. On a GPU the warps
-    vote and update their seen rows together."""
+    step, unseen rows keep their values and moments; parameters of 1-3 axes, 45 columns (the SH of
+    degree 3) and an empty one, and more parameters than one launch takes (kernels/adam.py SLOTS);
+    moments replaced by other tensors (a checkpoint loaded) and a parameter replaced (densification)
+    between steps. On every device the tests run on."""
     g = torch.Generator().manual_seed(7)
     n = 40
     params = [torch.randn(n, 3, generator=g), torch.randn(n, generator=g), torch.randn(n, 1, 3, generator=g),

@@ -43,6 +43,7 @@ from tomgs import render
 from tomgs.render import FrameCounts, _check_scalars, _Frame, issue_frame
 from tomgs.runtime import launch, scope, torch_stream, warp_device, wrap
 
+
 def _use_count(tensor: torch.Tensor) -> int | None:
     """References to `tensor`'s storage (tensors viewing it), or None where torch does not say."""
     count = getattr(torch._C, "_storage_Use_Count", None)  # private to torch: checked, not relied on
@@ -64,7 +65,7 @@ class FrameGraph:
         # where each call writes its camera and time (set_frame) and the frame reads them; a camera
         # to check the cloud against until the first call's is written
         self._viewmat, self._K, self._times = torch.eye(4, **f32), torch.eye(3, **f32), torch.zeros(2, **f32)
-        self._leaves = self.cloud  # what a frame reads: the cloud's tensors, then leaves of their own (`_own_leaves`)
+        self._own_leaves()  # what a frame reads: leaves of its own, sharing the cloud's memory
         self._prepare = lambda: prepare_inputs(**self._leaves, viewmat=self._viewmat, K=self._K, width=width,
                                                height=height, t=0.0, background=background, near=near, far=far,
                                                dtype=torch.float32, fused_sh=True)
@@ -77,7 +78,6 @@ class FrameGraph:
         self._params = [(name, tensor) for name, tensor in self.cloud.items() if tensor.requires_grad]
         self._storage = self._storage_of_cloud()  # what the frames read: checked at every call
         self._captured = device.type == "cuda"
-        self._own_leaves()
         self.capacity = 0  # the tile keys a frame holds (0: none captured yet)
         self._graphs = None  # (forward, backward or None) once captured
         self._outputs = None  # (image, alpha, flags) of the captured forward, or of the last frame on a CPU
