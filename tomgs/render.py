@@ -406,7 +406,7 @@ class _Rasterize(torch.autograd.Function):
         # the list, the per-Gaussian inputs and the per-pixel state, shared with the backward
         order = NO_ARRAY
         if means2d.device.type == "cuda" if _Rasterize.ordered_tiles is None else _Rasterize.ordered_tiles:
-            tile_order = torch.argsort(ranges[:, 0] - ranges[:, 1])  # [tiles] int64, the longest first
+            tile_order = torch.argsort(ranges[:, 0] - ranges[:, 1]).to(torch.int32)  # [tiles], the longest first
             order = wrap(tile_order)
             ctx.tile_order = tile_order  # alive while the backward's launch reads it
         shared = [wrapped["ranges"], wrapped["ids"], wrapped["means2d"], wrapped["conics"], wrapped["opacities_t"],

@@ -38,14 +38,14 @@ def pixel_of(tid: int, tiles_x: int) -> wp.vec3i:
 
 
 @wp.func
-def ordered(tid: int, tile_order: wp.array(dtype=wp.int64)) -> int:
+def ordered(tid: int, tile_order: wp.array(dtype=wp.int32)) -> int:
     """Thread `tid` of a launch whose block b composites tile tile_order[b] (the longest lists first,
     so that no long tile starts last and runs alone), as the thread of that tile: the index
     `pixel_of` takes. An empty `tile_order` keeps block b on tile b."""
     if tile_order.shape[0] == 0:
         return tid
     block = tid // TILE_PIXELS
-    return int(tile_order[block]) * TILE_PIXELS + tid - block * TILE_PIXELS
+    return tile_order[block] * TILE_PIXELS + tid - block * TILE_PIXELS
 
 
 @wp.func
@@ -103,7 +103,7 @@ def raster_forward(
     width: int,
     height: int,
     tiles_x: int,
-    tile_order: wp.array(dtype=wp.int64),  # [tiles] the tile of each block, or empty (block b: tile b)
+    tile_order: wp.array(dtype=wp.int32),  # [tiles] the tile of each block, or empty (block b: tile b)
     out_color: wp.array2d(dtype=wp.vec3),  # out [H, W] premultiplied, no background
     out_trans: wp.array2d(dtype=float),  # out [H, W] final transmittance
     out_end: wp.array2d(dtype=wp.int32),  # out [H, W] one past the last composited list entry
@@ -150,7 +150,7 @@ def raster_backward(
     width: int,
     height: int,
     tiles_x: int,
-    tile_order: wp.array(dtype=wp.int64),  # [tiles] the tile of each block, or empty (block b: tile b)
+    tile_order: wp.array(dtype=wp.int32),  # [tiles] the tile of each block, or empty (block b: tile b)
     out_trans: wp.array2d(dtype=float),  # [H, W] from the forward
     out_end: wp.array2d(dtype=wp.int32),  # [H, W] from the forward
     v_color: wp.array2d(dtype=wp.vec3),  # [H, W] dL/d(premultiplied colour)

@@ -57,7 +57,7 @@ def raster_forward_batched(
     width: int,
     height: int,
     tiles_x: int,
-    tile_order: wp.array(dtype=wp.int64),  # [tiles] the tile of each block, or empty (block b: tile b)
+    tile_order: wp.array(dtype=wp.int32),  # [tiles] the tile of each block, or empty (block b: tile b)
     out_color: wp.array2d(dtype=wp.vec3),  # out [H, W] premultiplied, no background
     out_trans: wp.array2d(dtype=float),  # out [H, W] final transmittance
     out_end: wp.array2d(dtype=wp.int32),  # out [H, W] one past the last composited list entry
@@ -125,7 +125,7 @@ def raster_backward_batched(
     width: int,
     height: int,
     tiles_x: int,
-    tile_order: wp.array(dtype=wp.int64),  # [tiles] the tile of each block, or empty (block b: tile b)
+    tile_order: wp.array(dtype=wp.int32),  # [tiles] the tile of each block, or empty (block b: tile b)
     out_trans: wp.array2d(dtype=float),  # [H, W] from the forward
     out_end: wp.array2d(dtype=wp.int32),  # [H, W] from the forward
     v_color: wp.array2d(dtype=wp.vec3),  # [H, W] dL/d(premultiplied colour)
