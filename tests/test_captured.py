@@ -4,7 +4,9 @@ overwrites without saying so."""
 
 from __future__ import annotations
 
+import gc
 import math
+import weakref
 
 import pytest
 import torch
@@ -147,6 +149,25 @@ def test_a_frame_past_its_keys_renders_again_at_a_grown_bound(device, fresh_boun
 
 
 @pytest.mark.parametrize("device", DEVICES)
+def test_keys_grow_after_any_frame_read_past_them(device, fresh_bounds):
+    """A caller that reads a frame's counts after issuing the next (a pipeline) finds the next call
+    grown, though the frame before it was not read."""
+    cloud, twin, frames, _ = cloud_on(device)
+    still = {name: tensor.detach() for name, tensor in cloud.items()}  # no backward owed between frames
+    graph = FrameGraph(**still, width=45, height=37)
+    fresh_bounds.remember(graph._frame, 1)  # far below the frames' ~1000
+    image, _, first = graph(*frames[0])
+    del image
+    image, _, second = graph(*frames[1])
+    assert first.overflowed and second.known() is None
+    del image
+    image, _, again = graph(*frames[0])
+    assert not again.overflowed and graph.capacity > first.read()["n_intersections"]
+    viewmat, K, t = frames[0]
+    assert_close(image, tomgs.rasterize(**twin, viewmat=viewmat, K=K, width=45, height=37, t=t)[0], device)
+
+
+@pytest.mark.parametrize("device", DEVICES)
 def test_the_keys_shrink_with_the_bound(device, fresh_bounds):
     cloud, twin, graph, (viewmat, K, t) = graph_at_bound(device, fresh_bounds, 100_000)  # far above its ~1000
     for _ in range(render._Bounds.FRAMES + 1):  # until the large total has left the bound's frames
@@ -165,6 +186,25 @@ def test_the_keys_shrink_with_the_bound(device, fresh_bounds):
     assert_close(image, want, device)
     for name in NAMES:
         assert_close(cloud[name].grad, twin[name].grad, device, gradient=True)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_a_graph_goes_with_its_last_reference(device, fresh_bounds):
+    """A FrameGraph (its CUDA graphs and their memory) is freed when the last reference to it goes, not
+    at a later garbage collection: one that destroys a graph while another is being captured spoils
+    that capture."""
+    cloud, _, frames, _ = cloud_on(device)
+    graph = FrameGraph(**cloud, width=45, height=37)
+    image, alpha, counts = graph(*frames[0])
+    (image.sum() + alpha.sum()).backward()
+    counts.read()
+    gone = weakref.ref(graph)
+    gc.disable()
+    try:
+        del graph, image, alpha, counts
+        assert gone() is None
+    finally:
+        gc.enable()
 
 
 @pytest.mark.parametrize("device", DEVICES)

@@ -31,6 +31,7 @@ On a CPU nothing is captured: each call issues the same frame from Python, with 
 from __future__ import annotations
 
 import contextlib
+import gc
 import weakref
 
 import torch
@@ -66,9 +67,10 @@ class FrameGraph:
         # to check the cloud against until the first call's is written
         self._viewmat, self._K, self._times = torch.eye(4, **f32), torch.eye(3, **f32), torch.zeros(2, **f32)
         self._own_leaves()  # what a frame reads: leaves of its own, sharing the cloud's memory
-        self._prepare = lambda: prepare_inputs(**self._leaves, viewmat=self._viewmat, K=self._K, width=width,
-                                               height=height, t=0.0, background=background, near=near, far=far,
-                                               dtype=torch.float32, fused_sh=True)
+        # what `_prepare` passes besides the leaves (kept apart from self: a graph holding a function of
+        # itself would be freed by the garbage collector, at any time, not when its last reference goes)
+        self._scalars = dict(width=width, height=height, t=0.0, background=background, near=near, far=far,
+                             dtype=torch.float32, fused_sh=True)
         p = self._prepare()  # RenderError now for a cloud outside the contract's shapes and types
         self.width, self.height, self.device = p.width, p.height, device
         self.near, self.far = p.near, p.far
@@ -87,7 +89,6 @@ class FrameGraph:
         self._v = None  # (v_image, v_alpha): where the backward reads its incoming gradients
         self._in_flight = None  # a weak reference to the last frame's backward node until its backward ran
         self._handed = ()  # weak references to the last frame's image and alpha, as handed out
-        self._last_counts = None
 
     # ---------------------------------------------------------------------------------------------- a frame
 
@@ -117,7 +118,6 @@ class FrameGraph:
         if self._captured:
             self._handed = (weakref.ref(image), weakref.ref(alpha))
         counts = FrameCounts(self._outputs[2], self._p, self._frame, self.capacity)
-        self._last_counts = counts
         return image, alpha, counts
 
     def _storage_of_cloud(self) -> list[tuple]:
@@ -134,14 +134,13 @@ class FrameGraph:
     def _fit_capacity(self, wp_device: str, frame: list) -> None:
         """The keys' capacity follows the bound of recent frames of this size (tomgs.render): taken at
         the first frame (which waits for its count where no frame of this size has been counted),
-        grown after a frame whose keys overflowed (read from its counts), shrunk once it holds more
-        than 1/16 above the bound (the padded sort costs what the capacity holds); captured again at
-        each change (two eager frames and the capture: a few frames' time). `frame`: set_frame's
-        arguments, for the frames run here."""
-        last = self._last_counts.known() if self._last_counts is not None else None
-        overflowed = last is not None and last["n_intersections"] > self.capacity
+        grown once the bound passes it (after any frame read past it, not only the last frame: a
+        caller may read a frame's counts after issuing the next), shrunk once it holds more than 1/16
+        above the bound (the padded sort costs what the capacity holds); captured again at each
+        change (two eager frames and the capture: 7-12 ms on an H100 at 854x480). `frame`:
+        set_frame's arguments, for the frames run here."""
         bound = render._bounds.capacity(self._frame)
-        if self.capacity and not overflowed and bound + bound // 16 >= self.capacity:
+        if self.capacity and bound <= self.capacity <= bound + bound // 16:
             return
         launch(project.set_frame, 1, device=wp_device, args=frame)
         if not bound:  # a first frame of this size: counted (the bound learns it)
@@ -153,6 +152,9 @@ class FrameGraph:
                 self._capture()
 
     # ------------------------------------------------------------------------------- capture and replay
+
+    def _prepare(self):
+        return prepare_inputs(**self._leaves, viewmat=self._viewmat, K=self._K, **self._scalars)
 
     def _issue(self):
         """The frame from the camera and time in device memory, issued: (image, alpha, flags)."""
@@ -199,13 +201,14 @@ class FrameGraph:
         # its gradients may lie where the next forward writes (`_release_grads` runs before both)
         pool = torch.cuda.graph_pool_handle()
         forward = torch.cuda.CUDAGraph()
-        with torch.enable_grad(), torch.cuda.graph(forward, pool=pool, stream=side), _known_to_warp(self.device):
+        with _no_collection(), torch.enable_grad(), torch.cuda.graph(forward, pool=pool, stream=side), \
+                _known_to_warp(self.device):
             self._outputs = self._issue()
         self._output_refs = [_use_count(x) for x in self._outputs[:2]]
         backward = None
         if self._params:
             backward = torch.cuda.CUDAGraph()
-            with torch.cuda.graph(backward, pool=pool, stream=side):
+            with _no_collection(), torch.cuda.graph(backward, pool=pool, stream=side):
                 # the incoming gradients' buffers come from the pool too, where the forward's scratch
                 # (dead by then) may lie: written before each backward replay, as an eager frame's are
                 self._v = (torch.empty(h, w, 3, device=self.device), torch.empty(h, w, 1, device=self.device))
@@ -275,6 +278,19 @@ class FrameGraph:
                 raise RenderError(f"the last frame's gradient of {name} is still held outside its .grad: clone what "
                                   "you keep of a FrameGraph's gradients before its next frame")
         self._handed_out = False
+
+
+@contextlib.contextmanager
+def _no_collection():
+    """No garbage collection while capturing: a collection may free another CUDA graph, and a graph
+    destroyed during a capture (global mode) invalidates the capture."""
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if enabled:
+            gc.enable()
 
 
 @contextlib.contextmanager
