@@ -21,6 +21,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import tomgs  # noqa: E402
+from tomgs.alive import index_of  # noqa: E402
 from tomgs.render import rasterize, render_sequence  # noqa: E402
 
 
@@ -76,7 +77,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--json", type=Path)
     ap.add_argument("--profile", action="store_true", help="also the GPU time per frame by kernel (torch profiler), "
-                    "of the default render_sequence")
+                    "of the pipelined render_sequence with the alive index and without")
     args = ap.parse_args()
     device = torch.device(args.device)
     if args.profile and device.type != "cuda":
@@ -87,17 +88,23 @@ def main() -> None:
     modes = render_modes(inputs, cams, device)
     best = fastest_turns(modes, args.repeats, device)
     alive = [int(scene.model.alive_at(t).sum()) for t in cams.times]
+    index = index_of(inputs["opacities"], inputs["t_means"], inputs["t_scales"], list(cams.times))
+    listed = [len(scene.model) if rows is None else len(rows)
+              for rows in (index.rows(k) for k in range(len(cams)))]
     out = dict(scene=str(args.scene), gaussians=len(scene.model), frames=len(cams), size=[cams.width, cams.height],
                alive_share=round(sum(alive) / len(alive) / max(len(scene.model), 1), 4),
+               indexed_share=round(sum(listed) / max(len(listed), 1) / max(len(scene.model), 1), 4),
                fps={mode: round(len(cams) / seconds, 1) for mode, seconds in best.items()})
     if args.profile:
         from profile_raster import kernel_times
 
-        with torch.no_grad():
-            per_kernel = kernel_times(modes["default"], 1)
-        out["gpu_ms_per_frame"] = {name: round(ms / len(cams), 4)
-                                   for name, ms in sorted(per_kernel.items(), key=lambda kv: -kv[1])[:14]}
-        out["gpu_ms_per_frame_total"] = round(sum(per_kernel.values()) / len(cams), 4)
+        out["gpu_ms_per_frame"], out["gpu_ms_per_frame_total"] = {}, {}
+        for mode in ("sequence pipelined", "sequence pipelined index"):
+            with torch.no_grad():
+                per_kernel = kernel_times(modes[mode], 1)
+            out["gpu_ms_per_frame"][mode] = {name: round(ms / len(cams), 4)
+                                             for name, ms in sorted(per_kernel.items(), key=lambda kv: -kv[1])[:16]}
+            out["gpu_ms_per_frame_total"][mode] = round(sum(per_kernel.values()) / len(cams), 4)
     print(json.dumps(out, indent=1))
     if args.json:
         args.json.write_text(json.dumps(out, indent=1) + "\n")

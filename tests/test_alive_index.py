@@ -75,6 +75,29 @@ def test_index_lists_every_gaussian_projection_finds_alive(seed):
     assert index.entries <= alive.ENTRIES_PER_GAUSSIAN * n
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_bucket_sizes_are_weighed_as_the_per_gaussian_sums(seed):
+    """The build weighs each bucket size (entries, frames rendered) and counts each bucket's
+    Gaussians from two histograms of where windows start and stop: the per-Gaussian sums exactly."""
+    rng = np.random.default_rng(seed)
+    times = np.concatenate([np.linspace(0.0, 1.0, 41), [0.3, 0.3, 0.9]])
+    rng.shuffle(times)
+    count = len(times)
+    a, m, sigma = extreme_windows(3000, times, seed)
+    start, stop = alive._frame_span(*alive.windows(a, m, sigma), torch.as_tensor(np.sort(times)))
+    listed = stop > start
+    starts_at, stops_at = alive._spans_histogram(start, stop, listed, count)
+    for size in (1, 2, 3, 4, 7, 16, 43, 44):
+        b_first, b_last = start // size, (stop - 1) // size
+        entries = int(torch.where(listed, b_last - b_first + 1, 0).sum())
+        work = int(torch.where(listed, torch.clamp_max((b_last + 1) * size, count) - b_first * size, 0).sum())
+        assert alive._entries_and_work(starts_at, stops_at, size, count) == (entries, work), size
+    index = alive.index_of(a, m, sigma, times)
+    b_first, b_last = start // index.size, (stop - 1) // index.size
+    per_bucket = [int((listed & (b_first <= b) & (b <= b_last)).sum()) for b in range(index.num_buckets)]
+    assert np.diff(index.offsets).tolist() == per_bucket
+
+
 def test_index_memory_is_bounded_and_chunks_build_the_same(monkeypatch):
     n, times = 2000, np.linspace(0.0, 1.0, 300)
     g = torch.Generator().manual_seed(2)
@@ -348,11 +371,15 @@ def test_the_bound_kernel_keeps_the_torch_formula(dense, spikes, headroom):
 
 def test_the_index_is_used_where_it_pays():
     """On a CPU a trainer indexes by default; on a GPU it renders every Gaussian (tomgs.alive.pays_on:
-    on the H100 the gathers cost more than projection's culling), unless asked either way."""
+    on the H100 the gathers cost more than projection's culling), unless asked either way. A
+    sequence of one cloud's frames is indexed on a GPU from SEQUENCE_FRAMES frames."""
     from tomgs.alive import pays_on
 
     assert pays_on(torch.device("cpu")) and pays_on("cpu")
     assert not pays_on(torch.device("cuda")) and not pays_on("cuda:1")
+    # rendering one cloud: its index pays for its build over a few tens of frames on a GPU
+    assert alive.pays_for_sequence("cpu", 1) and alive.pays_for_sequence("cuda", alive.SEQUENCE_FRAMES)
+    assert not alive.pays_for_sequence("cuda:1", alive.SEQUENCE_FRAMES - 1)
     images, cams, points, colors = synthetic_clip(3, 24, 14)
     for asked, indexed in ((None, True), (False, False), (True, True)):
         trainer = Trainer(images, cams, points, colors, small_config(5, alive_index=asked), torch.device("cpu"))

@@ -113,15 +113,10 @@ def build(first: torch.Tensor, last: torch.Tensor, times, budget: float = ENTRIE
     sorted_times = torch.as_tensor(times[order], device=device)
     start, stop = _frame_span(first.double(), last.double(), sorted_times)
     listed = stop > start
-    # entries and rows rendered over the clip for each bucket size, read back together
+    # how many Gaussians start and stop at each frame position: all the bucket sizes need (one sync)
+    starts_at, stops_at = _spans_histogram(start, stop, listed, count)
     sizes = [1 << i for i in range(max(count - 1, 0).bit_length())] + [max(count, 1)]  # 1, 2, 4, .., one bucket
-    totals = []
-    for size in sizes:
-        b_first, b_last = start // size, (stop - 1) // size
-        rendered = torch.clamp_max((b_last + 1) * size, count) - b_first * size  # frames of its buckets
-        totals.append(torch.stack([torch.where(listed, b_last - b_first + 1, 0).sum(),
-                                   torch.where(listed, rendered, 0).sum()]))
-    options = [(size, entries, work) for size, (entries, work) in zip(sizes, torch.stack(totals).tolist())]
+    options = [(size, *_entries_and_work(starts_at, stops_at, size, count)) for size in sizes]
     fitting = [o for o in options if o[1] <= budget * max(n, 1)] or options[-1:]  # one bucket holds <= N
     least = min(o[2] for o in fitting)
     size = max(o[0] for o in fitting if o[2] <= least * (1 + WORK_TOLERANCE))
@@ -131,17 +126,40 @@ def build(first: torch.Tensor, last: torch.Tensor, times, budget: float = ENTRIE
     bucket_of[order] = np.arange(count) // size
     b_first = torch.where(listed, start // size, 1)  # unlisted: 1 > 0
     b_last = torch.where(listed, (stop - 1) // size, 0)
-    spare = torch.full_like(b_first, buckets + 1)  # unlisted Gaussians count in a slot past the end
-    delta = (torch.bincount(torch.where(listed, b_first, spare), minlength=buckets + 2)
-             - torch.bincount(torch.where(listed, b_last + 1, spare), minlength=buckets + 2))
-    per_bucket = torch.cumsum(delta, 0)[:buckets]  # Gaussians listed in each bucket
-    offsets = [0] + torch.cumsum(per_bucket, 0).tolist()
+    positions = np.arange(count + 1)
+    # Gaussians listed in bucket b: those starting in a bucket <= b less those ending in one < b
+    first_in, last_in = np.zeros(buckets + 1, dtype=np.int64), np.zeros(buckets, dtype=np.int64)
+    np.add.at(first_in, positions // size, starts_at)  # starts_at[count] is 0: no Gaussian starts there
+    np.add.at(last_in, (positions[1:] - 1) // size, stops_at[1:])
+    per_bucket = np.cumsum(first_in[:buckets]) - np.cumsum(last_in) + last_in
+    offsets = [0] + np.cumsum(per_bucket).tolist()
     ids = torch.empty(offsets[-1], dtype=torch.int32 if n < 2**31 else torch.int64, device=device)
     small = torch.int32 if buckets < 2**31 else torch.int64
     b_first, b_last = b_first.to(small), b_last.to(small)
     _fill(ids, b_first, b_last, torch.tensor(offsets[:-1], dtype=torch.int64, device=device), buckets)
     return AliveIndex(n=n, size=size, bucket_of=bucket_of, times=sorted_times, offsets=offsets, ids=ids,
                       b_first=b_first, b_last=b_last)
+
+
+def _spans_histogram(start: torch.Tensor, stop: torch.Tensor, listed: torch.Tensor,
+                     count: int) -> tuple[np.ndarray, np.ndarray]:
+    """(starts_at, stops_at) int64 [count + 1] on the host: of the listed Gaussians (bool [N]), how
+    many have start_i = f and stop_i = f (frame positions, _frame_span's), for f in 0..count."""
+    past = count + 1  # the unlisted fall past the end and are dropped
+    both = torch.stack([torch.where(listed, start, past), torch.where(listed, stop, past)])
+    counts = torch.stack([torch.bincount(row, minlength=past + 1) for row in both]).cpu().numpy()
+    return counts[0, :past], counts[1, :past]
+
+
+def _entries_and_work(starts_at: np.ndarray, stops_at: np.ndarray, size: int, count: int) -> tuple[int, int]:
+    """(entries, frames rendered) of the index in buckets of `size` frames, from the histograms of
+    `_spans_histogram`: Gaussian i sits in buckets start_i // size .. (stop_i - 1) // size, and is
+    rendered at each frame of them, of which the last bucket may hold fewer."""
+    f = np.arange(count + 1, dtype=np.int64)
+    first, last = f // size, (f[1:] - 1) // size  # bucket of a start at f, of a stop at f (f >= 1)
+    entries = int((stops_at[1:] * last).sum() - (starts_at * first).sum() + starts_at.sum())
+    work = int((stops_at[1:] * np.minimum((last + 1) * size, count)).sum() - (starts_at * first * size).sum())
+    return entries, work
 
 
 def _fill(ids: torch.Tensor, b_first: torch.Tensor, b_last: torch.Tensor, starts: torch.Tensor, buckets: int) -> None:
@@ -151,27 +169,31 @@ def _fill(ids: torch.Tensor, b_first: torch.Tensor, b_last: torch.Tensor, starts
     device = ids.device
     per_gaussian = (b_last.long() - b_first.long() + 1).clamp_min(0)
     ends = torch.cumsum(per_gaussian, 0)
-    total = int(ends[-1]) if len(ends) else 0
+    total = len(ids)
     marks = torch.tensor(list(range(CHUNK_ENTRIES, total, CHUNK_ENTRIES)), dtype=torch.int64, device=device)
     bounds = [0] + torch.searchsorted(ends, marks, side="right").tolist() + [len(ends)]
+    # the entries before each chunk, read in one sync (not two a chunk: the host would wait each time)
+    inner = torch.tensor(bounds[1:-1], device=device, dtype=torch.int64)
+    before = [0] + torch.where(inner > 0, ends[(inner - 1).clamp_min(0)], 0).tolist() + [total]
     placed = torch.zeros(buckets, dtype=torch.int64, device=device)  # entries written so far per bucket
     key = torch.int16 if buckets < 2**15 else torch.int32
-    for g0, g1 in zip(bounds[:-1], bounds[1:]):
+    for g0, g1, e0, e1 in zip(bounds[:-1], bounds[1:], before[:-1], before[1:]):
         if g1 <= g0:
             continue
         counts = per_gaussian[g0:g1]
-        entries = int(ends[g1 - 1]) - (int(ends[g0 - 1]) if g0 else 0)
+        entries = e1 - e0
         gaussian = torch.repeat_interleave(torch.arange(g0, g1, device=device), counts, output_size=entries)
         # entry j of Gaussian i is in bucket b_first_i + j: its base minus where its run starts, plus j
         base = torch.repeat_interleave(b_first[g0:g1].long() - (torch.cumsum(counts, 0) - counts), counts,
                                        output_size=entries)
         bucket, order = torch.sort((base + torch.arange(entries, device=device)).to(key), stable=True)
-        bucket = bucket.long()
-        in_chunk = torch.bincount(bucket, minlength=buckets)
+        # where each bucket's run begins in the sorted entries (a search, not a histogram: a GPU's
+        # bincount into a few bins serialises on its atomics)
+        runs = torch.searchsorted(bucket, torch.arange(buckets + 1, device=device, dtype=key))
         # bucket b's entries of this chunk go after those of the earlier chunks
-        shift = starts + placed - (torch.cumsum(in_chunk, 0) - in_chunk)
-        ids[shift[bucket] + torch.arange(entries, device=device)] = gaussian[order].to(ids.dtype)
-        placed += in_chunk
+        shift = starts + placed - runs[:-1]
+        ids[shift[bucket.long()] + torch.arange(entries, device=device)] = gaussian[order].to(ids.dtype)
+        placed += runs[1:] - runs[:-1]
 
 
 def index_of(opacities: torch.Tensor, t_means: torch.Tensor, t_scales: torch.Tensor, times,
@@ -437,8 +459,8 @@ class TrainingIndex:
 
 
 def pays_on(device) -> bool:
-    """Whether rendering a frame's indexed rows (`rasterize(rows=)`) beats rendering every Gaussian
-    on `device` (where projection culls the dead ones). On a CPU, whose kernels pay for every
+    """Whether a training step renders its frame's indexed rows (`rasterize(rows=)`) rather than every
+    Gaussian on `device` (where projection culls the dead ones). On a CPU, whose kernels pay for every
     Gaussian, it does: benchmarks/alive_index.py, 100k Gaussians 15% alive at 160x90, a step 56.5 ms
     against 63.4 without (torch gathers of the rows, before the kernels read them in place: 59.0).
     On the H100 (4M Gaussians, 15% alive, 854x480) it loses even with the kernels reading the rows in
@@ -446,5 +468,18 @@ def pays_on(device) -> bool:
     13.2% alive (`alive_index.py --device cuda`, session 16). Storing the cloud in time order, so
     that a frame's rows lie in runs, did not change that (session 20: an indexed step 3.95-4.54 ms
     against 3.30-3.50 rendering all; indexed frames 624-678 fps against 778-934 before): scattered
-    rows are not what the index costs there."""
+    rows are not what the index costs there. (Rendering a fixed cloud: `pays_for_sequence`.)"""
     return torch.device(device).type != "cuda"
+
+
+# frames of one cloud a GPU sequence renders before its index has paid for its build (pays_for_sequence)
+SEQUENCE_FRAMES = 32
+
+
+def pays_for_sequence(device, frames: int) -> bool:
+    """Whether `render_sequence` renders `frames` frames of one cloud from its index (built once for
+    them). On a CPU it does (`pays_on`). On the H100 an indexed frame of a fitted DAVIS clip (5M
+    Gaussians, 10-21% alive, 854x480) takes 0.33-0.36 ms less than one of every Gaussian (kite-surf
+    0.93-0.96 against 1.29 ms, camel 1.51-1.54 against 1.88: benchmarks/render_speed.py, session 24),
+    while the build takes ~15 ms: it pays from a few tens of frames (SEQUENCE_FRAMES), not for one."""
+    return pays_on(device) or int(frames) >= SEQUENCE_FRAMES

@@ -709,10 +709,10 @@ def render_sequence(gaussians, cameras, indices=None, *, background=None, device
     `gaussians`: mapping with means, quats, scales, opacities, colors (RGB or SH), t_means,
     t_scales; or a callable k -> such a mapping, a per-frame cloud (an edit over time, a simulated
     shot). `cameras`: a `tomgs.Cameras`; frame k renders at t = cameras.times[k]. No gradients.
-    With `alive_index` (None: where it pays, tomgs.alive.pays_on) only the Gaussians that may be
-    alive at a frame's time are rendered (tomgs.alive: an index over the frames; `rasterize(rows=)`
-    reads them in place), so a long clip pays per frame for what lives in it; without it projection
-    culls the dead. `meta` describes what was rendered, meta['rows'] names it (int [M] Gaussian
+    With `alive_index` (None: where it pays, tomgs.alive.pays_for_sequence: on a CPU, and on a GPU
+    for a few tens of frames of one cloud) only the Gaussians that may be alive at a frame's time
+    are rendered (tomgs.alive: an index over the frames; `rasterize(rows=)` reads them in place), so
+    a long clip pays per frame for what lives in it; without it projection culls the dead. `meta` describes what was rendered, meta['rows'] names it (int [M] Gaussian
     indices; None: all). Images come back on the CPU unless `to_cpu` is False.
 
     `pipelined` (None: on a GPU): a frame does not wait for its counts (`render_frame(defer=True)`); they
@@ -727,7 +727,7 @@ def render_sequence(gaussians, cameras, indices=None, *, background=None, device
         """(inputs on the device, their alive index over `times`, the device)."""
         dev = torch.device(device) if device is not None else g["means"].device
         g = {name: g[name].detach().to(dev) for name in names}
-        use = alive.pays_on(dev) if alive_index is None else alive_index
+        use = alive.pays_for_sequence(dev, len(times)) if alive_index is None else alive_index
         index = alive.index_of(g["opacities"], g["t_means"], g["t_scales"], times) if use else None
         return g, index, dev
 
