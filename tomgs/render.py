@@ -712,8 +712,9 @@ def render_sequence(gaussians, cameras, indices=None, *, background=None, device
     With `alive_index` (None: where it pays, tomgs.alive.pays_for_sequence: on a CPU, and on a GPU
     for a few tens of frames of one cloud) only the Gaussians that may be alive at a frame's time
     are rendered (tomgs.alive: an index over the frames; `rasterize(rows=)` reads them in place), so
-    a long clip pays per frame for what lives in it; without it projection culls the dead. `meta` describes what was rendered, meta['rows'] names it (int [M] Gaussian
-    indices; None: all). Images come back on the CPU unless `to_cpu` is False.
+    a long clip pays per frame for what lives in it; without it projection culls the dead. `meta`
+    describes what was rendered, meta['rows'] names it (int [M] Gaussian indices; None: all).
+    Images come back on the CPU unless `to_cpu` is False.
 
     `pipelined` (None: on a GPU): a frame does not wait for its counts (`render_frame(defer=True)`); they
     are read after the next frame has been issued, so the device renders while the host prepares
