@@ -330,23 +330,25 @@ def test_import_is_cheap():
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_sequences_gather_only_what_is_alive_and_render_the_same(device):
-    """render_sequence renders each few frames from the Gaussians alive around their times: the
-    images equal a render of every Gaussian, and a Gaussian alive only at one frame is kept."""
+    """render_sequence renders each few frames from the Gaussians alive around their times (on a GPU
+    too: a sequence of SEQUENCE_FRAMES or more): the images equal a render of every Gaussian, and a
+    Gaussian alive only at one frame is kept."""
     from tomgs import alive
     from tomgs.cameras import Cameras
     from tomgs.render import render_sequence
 
     scene = random_scene(11, n=300, width=40, height=30)
+    count = alive.SEQUENCE_FRAMES + 8
     g = torch.Generator().manual_seed(3)
     n = scene["means"].shape[0]
     gaussians = {k: scene[k].float().to(device) for k in ("means", "quats", "scales", "opacities", "colors")}
     gaussians["t_means"] = torch.rand(n, generator=g).to(device)
     gaussians["t_scales"] = (10.0 ** (-3 + 3 * torch.rand(n, generator=g))).to(device)  # 1e-3 .. 1: mostly short
     gaussians["opacities"][0] = ALPHA_MIN  # alive only at the instant t = t_mean
-    gaussians["t_means"][0] = 12 / 29
+    gaussians["t_means"][0] = 12 / (count - 1)
     viewmat = scene["viewmat"].numpy()
-    cams = Cameras.create(np.repeat(np.linalg.inv(viewmat)[None], 30, 0), scene["K"].numpy(), 40, 30)
-    frames = list(range(30))[::-1]
+    cams = Cameras.create(np.repeat(np.linalg.inv(viewmat)[None], count, 0), scene["K"].numpy(), 40, 30)
+    frames = list(range(count))[::-1]
     alive_counts = []
     for k, image, meta in render_sequence(gaussians, cams, frames, device=device, to_cpu=False):
         full, _, full_meta = tomgs.rasterize(**gaussians, viewmat=scene["viewmat"].float().to(device),
@@ -355,10 +357,10 @@ def test_sequences_gather_only_what_is_alive_and_render_the_same(device):
         assert torch.equal(image, full.clamp(0, 1)), k
         assert int(meta["n_alive"]) == int(full_meta["n_alive"])
         alive_counts.append(int(meta["radii"].shape[0]))
-    if alive.pays_for_sequence(device, len(frames)):  # else every Gaussian, culled in projection
-        assert max(alive_counts) < n  # some frames really rendered a subset
+    assert alive.pays_for_sequence(device, len(frames))
+    assert max(alive_counts) < n  # some frames really rendered a subset
     first, last = alive.windows(gaussians["opacities"], gaussians["t_means"], gaussians["t_scales"])
-    assert first[0] <= 12 / 29 <= last[0]
+    assert first[0] <= 12 / (count - 1) <= last[0]
 
 
 def test_an_unfinished_sequence_leaves_gradients_on():
