@@ -479,7 +479,8 @@ SEQUENCE_FRAMES = 32
 def pays_for_sequence(device, frames: int) -> bool:
     """Whether `render_sequence` renders `frames` frames of one cloud from its index (built once for
     them). On a CPU it does (`pays_on`). On the H100 an indexed frame of a fitted DAVIS clip (5M
-    Gaussians, 10-21% alive, 854x480) takes 0.33-0.36 ms less than one of every Gaussian (kite-surf
-    0.93-0.96 against 1.29 ms, camel 1.51-1.54 against 1.88: benchmarks/render_speed.py, session 24),
-    while the build takes ~15 ms: it pays from a few tens of frames (SEQUENCE_FRAMES), not for one."""
+    Gaussians, 10-21% alive, 854x480) took 0.3-0.38 ms less than one of every Gaussian (kite-surf
+    0.93-0.98 against 1.29 ms, camel 1.48-1.54 against 1.86: benchmarks/render_speed.py, session 24),
+    while the build takes ~7 ms: it pays from a few tens of frames (SEQUENCE_FRAMES), not for one.
+    (On a machine whose host set the pace, ~1.7 ms a frame either way, a light clip lost 3% with it.)"""
     return pays_on(device) or int(frames) >= SEQUENCE_FRAMES
