@@ -23,15 +23,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import tomgs  # noqa: E402
 from tomgs import alive  # noqa: E402
-from tomgs.alive import index_of  # noqa: E402
 from tomgs.render import rasterize, render_sequence  # noqa: E402
 
 
-def render_modes(inputs: dict, cams, device: torch.device) -> dict:
+def render_modes(inputs: dict, cams, device: torch.device, built: alive.AliveIndex) -> dict:
     """Name -> a callable rendering every frame of `cams` from `inputs` (rasterize's keyword
     arguments of one cloud, on `device`), images left there: rasterize frame by frame, and
-    render_sequence waiting or pipelined, with the alive index or without, and pipelined with an index
-    built before the turn (the frames alone: what a longer clip's frames cost, the build aside)."""
+    render_sequence waiting or pipelined, with the alive index or without, and pipelined with `built`
+    (the scene's, built beforehand: the frames alone, what a longer clip's frames cost, the build aside)."""
     frames = list(range(len(cams)))
     viewmats, Ks = cams.viewmats(device), cams.Ks(device)
 
@@ -54,28 +53,25 @@ def render_modes(inputs: dict, cams, device: torch.device) -> dict:
             modes[name] = sequence(pipelined, index)
     indexed = sequence(True, True)
 
-    built = []  # the index, built at the first (untimed) turn
-
     def prebuilt():
-        built[:] = built or [index_of(inputs["opacities"], inputs["t_means"], inputs["t_scales"], list(cams.times))]
-        with mock.patch.object(alive, "index_of", lambda *args, **kwargs: built[0]):
+        with mock.patch.object(alive, "index_of", lambda *args, **kwargs: built):
             indexed()
     modes["sequence pipelined index prebuilt"] = prebuilt
     modes["default"] = sequence(None, None)  # render_sequence as `tomgs render` calls it (not timed)
     return modes
 
 
-def build_ms(inputs: dict, cams, device: torch.device, repeats: int) -> float:
-    """Milliseconds of the quickest of `repeats` builds of the scene's alive index over its frames."""
+def built_index(inputs: dict, cams, device: torch.device, repeats: int) -> tuple[float, alive.AliveIndex]:
+    """(milliseconds of the quickest of `repeats` builds, the index): the scene's alive index over its frames."""
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     best = math.inf
     for _ in range(repeats + 1):  # the first loads what the build runs
         sync()
         start = time.perf_counter()
-        index_of(inputs["opacities"], inputs["t_means"], inputs["t_scales"], list(cams.times))
+        index = alive.index_of(inputs["opacities"], inputs["t_means"], inputs["t_scales"], list(cams.times))
         sync()
         best = min(best, time.perf_counter() - start)
-    return best * 1e3
+    return best * 1e3, index
 
 
 def fastest_turns(modes: dict, repeats: int, device: torch.device) -> dict[str, float]:
@@ -110,11 +106,10 @@ def main() -> None:
     scene = tomgs.load_scene(args.scene, device=device)
     inputs = {k: v.detach() for k, v in scene.model.render_inputs().items()}
     cams = scene.cameras
-    modes = render_modes(inputs, cams, device)
+    build, index = built_index(inputs, cams, device, args.repeats)
+    modes = render_modes(inputs, cams, device, index)
     best = fastest_turns(modes, args.repeats, device)
-    build = build_ms(inputs, cams, device, args.repeats)
     alive_counts = [int(scene.model.alive_at(t).sum()) for t in cams.times]
-    index = index_of(inputs["opacities"], inputs["t_means"], inputs["t_scales"], list(cams.times))
     listed = [len(scene.model) if rows is None else len(rows)
               for rows in (index.rows(k) for k in range(len(cams)))]
     out = dict(scene=str(args.scene), gaussians=len(scene.model), frames=len(cams), size=[cams.width, cams.height],
