@@ -276,14 +276,14 @@ class Launches:
     """
 
     def __init__(self):
-        # (kernel key, device, block size) -> [command, its dim, the arguments it holds, the
+        # (kernel, device, block size) -> [command, its dim, the arguments it holds, the
         # addresses of its own array descriptors (0 for a scalar)]
         self._recorded: dict[tuple, list] = {}
 
     def __call__(self, kernel, dim: int, args: list, device: str, block_dim: int = 256) -> None:
         if dim == 0:
             return  # nothing to run, and Warp records no command for an empty launch
-        key = (kernel.key, device, block_dim)
+        key = (kernel, device, block_dim)  # the kernel itself: two modules may name kernels alike
         entry = self._recorded.get(key)
         if entry is None:
             cmd = wp.launch(kernel, dim=dim, inputs=args, device=device, block_dim=block_dim, record_cmd=True)

@@ -7,9 +7,11 @@ its moments (the sparse Adam of Taming 3DGS, Mallick et al. 2024). The update is
 with the bias corrections of each parameter's step count.
 
 One launch updates up to SLOTS parameters (a training step's eight: means, quats, scales, opacity,
-two SH blocks, temporal mean and scale): one thread per element of their concatenation, each
-parameter viewed as [N, D]. A launch per parameter cost the GPU machine's host more than the
-update itself (eight launches and ~40 torch calls per step).
+two SH blocks, temporal mean and scale), each viewed as [N, D]: one thread per row, which returns at
+once where the row was not seen and else updates the row's elements of every parameter. A launch
+per parameter cost the GPU machine's host more than the update itself (eight launches and ~40 torch
+calls per step); a thread per element of all of them (~16 N threads) cost more GPU time than the
+update's memory traffic (benchmarks/RASTER_NOTES.md, "Session 25").
 """
 
 import warp as wp
@@ -18,17 +20,15 @@ wp.set_module_options({"enable_backward": False})
 
 SLOTS = 8
 vec_slots = wp.types.vector(length=SLOTS, dtype=float)
-vec_slots_i = wp.types.vector(length=SLOTS, dtype=wp.int32)
 
 
 @wp.func
-def adam_element(
-    param: wp.array2d(dtype=float),  # [N, D] updated in place
+def adam_row(
+    param: wp.array2d(dtype=float),  # [N, D] updated in place (an unused slot: [0, 1])
     grad: wp.array2d(dtype=float),  # [N, D]
     exp_avg: wp.array2d(dtype=float),  # [N, D] first moment, in place
     exp_avg_sq: wp.array2d(dtype=float),  # [N, D] second moment, in place
-    seen: wp.array(dtype=wp.bool),  # [N] True where the row's Gaussian was in view
-    element: int,  # index into the parameter's N x D elements
+    row: int,
     lr: float,
     beta1: float,
     beta2: float,
@@ -36,16 +36,15 @@ def adam_element(
     bias1: float,  # 1 - beta1^step
     bias2_sqrt: float,  # sqrt(1 - beta2^step)
 ):
-    d = param.shape[1]
-    row = element // d
-    if seen[row]:
-        col = element - row * d
-        g = grad[row, col]
-        m = beta1 * exp_avg[row, col] + (1.0 - beta1) * g
-        v = beta2 * exp_avg_sq[row, col] + (1.0 - beta2) * g * g
-        exp_avg[row, col] = m
-        exp_avg_sq[row, col] = v
-        param[row, col] = param[row, col] - (lr / bias1) * m / (wp.sqrt(v) / bias2_sqrt + eps)
+    if row < param.shape[0]:
+        step = lr / bias1
+        for col in range(param.shape[1]):
+            g = grad[row, col]
+            m = beta1 * exp_avg[row, col] + (1.0 - beta1) * g
+            v = beta2 * exp_avg_sq[row, col] + (1.0 - beta2) * g * g
+            exp_avg[row, col] = m
+            exp_avg_sq[row, col] = v
+            param[row, col] = param[row, col] - step * m / (wp.sqrt(v) / bias2_sqrt + eps)
 
 
 @wp.kernel
@@ -59,7 +58,6 @@ def adam_seen_rows(
     p6: wp.array2d(dtype=float), g6: wp.array2d(dtype=float), m6: wp.array2d(dtype=float), v6: wp.array2d(dtype=float),
     p7: wp.array2d(dtype=float), g7: wp.array2d(dtype=float), m7: wp.array2d(dtype=float), v7: wp.array2d(dtype=float),
     seen: wp.array(dtype=wp.bool),  # [N]
-    ends: vec_slots_i,  # cumulative element counts of the slots (an unused slot ends where the last did)
     lr: vec_slots,
     bias1: vec_slots,
     bias2_sqrt: vec_slots,
@@ -67,21 +65,14 @@ def adam_seen_rows(
     beta2: float,
     eps: float,
 ):
-    e = wp.tid()
-    # parameter (slot) of element e, and e's index inside it
-    if e < ends[0]:
-        adam_element(p0, g0, m0, v0, seen, e, lr[0], beta1, beta2, eps, bias1[0], bias2_sqrt[0])
-    elif e < ends[1]:
-        adam_element(p1, g1, m1, v1, seen, e - ends[0], lr[1], beta1, beta2, eps, bias1[1], bias2_sqrt[1])
-    elif e < ends[2]:
-        adam_element(p2, g2, m2, v2, seen, e - ends[1], lr[2], beta1, beta2, eps, bias1[2], bias2_sqrt[2])
-    elif e < ends[3]:
-        adam_element(p3, g3, m3, v3, seen, e - ends[2], lr[3], beta1, beta2, eps, bias1[3], bias2_sqrt[3])
-    elif e < ends[4]:
-        adam_element(p4, g4, m4, v4, seen, e - ends[3], lr[4], beta1, beta2, eps, bias1[4], bias2_sqrt[4])
-    elif e < ends[5]:
-        adam_element(p5, g5, m5, v5, seen, e - ends[4], lr[5], beta1, beta2, eps, bias1[5], bias2_sqrt[5])
-    elif e < ends[6]:
-        adam_element(p6, g6, m6, v6, seen, e - ends[5], lr[6], beta1, beta2, eps, bias1[6], bias2_sqrt[6])
-    elif e < ends[7]:
-        adam_element(p7, g7, m7, v7, seen, e - ends[6], lr[7], beta1, beta2, eps, bias1[7], bias2_sqrt[7])
+    row = wp.tid()
+    if not seen[row]:
+        return
+    adam_row(p0, g0, m0, v0, row, lr[0], beta1, beta2, eps, bias1[0], bias2_sqrt[0])
+    adam_row(p1, g1, m1, v1, row, lr[1], beta1, beta2, eps, bias1[1], bias2_sqrt[1])
+    adam_row(p2, g2, m2, v2, row, lr[2], beta1, beta2, eps, bias1[2], bias2_sqrt[2])
+    adam_row(p3, g3, m3, v3, row, lr[3], beta1, beta2, eps, bias1[3], bias2_sqrt[3])
+    adam_row(p4, g4, m4, v4, row, lr[4], beta1, beta2, eps, bias1[4], bias2_sqrt[4])
+    adam_row(p5, g5, m5, v5, row, lr[5], beta1, beta2, eps, bias1[5], bias2_sqrt[5])
+    adam_row(p6, g6, m6, v6, row, lr[6], beta1, beta2, eps, bias1[6], bias2_sqrt[6])
+    adam_row(p7, g7, m7, v7, row, lr[7], beta1, beta2, eps, bias1[7], bias2_sqrt[7])

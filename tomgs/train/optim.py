@@ -127,18 +127,13 @@ class SeenAdam:
         with scope(seen.device) as device:
             for first in range(0, len(slots), adam.SLOTS):
                 chunk = slots[first:first + adam.SLOTS]
-                arrays, ends, total = [], [], 0
-                for p, grad, exp_avg, exp_avg_sq, *_ in chunk:
-                    arrays += [wrap_rows(t) for t in (p, grad, exp_avg, exp_avg_sq)]
-                    total += p.numel()
-                    ends.append(total)
                 unused = adam.SLOTS - len(chunk)
+                arrays = [wrap_rows(t) for slot in chunk for t in slot[:4]]  # param, grad, exp_avg, exp_avg_sq
                 arrays += [wrap(empty)] * (4 * unused)
-                ends += [total] * unused
                 lr, bias1, bias2_sqrt = ([s[i] for s in chunk] + [1.0] * unused for i in (4, 5, 6))
-                launch(adam.adam_seen_rows, total, device=device, args=[
-                    *arrays, wrap(seen), adam.vec_slots_i(*ends), adam.vec_slots(*lr), adam.vec_slots(*bias1),
-                    adam.vec_slots(*bias2_sqrt), beta1, beta2, self.defaults["eps"]])
+                launch(adam.adam_seen_rows, seen.shape[0], device=device, args=[
+                    *arrays, wrap(seen), adam.vec_slots(*lr), adam.vec_slots(*bias1), adam.vec_slots(*bias2_sqrt),
+                    beta1, beta2, self.defaults["eps"]])
 
 
 def adam_estimates(optimizer: torch.optim.Optimizer) -> dict[str, tuple[torch.Tensor, torch.Tensor, int]]:
