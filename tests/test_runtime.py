@@ -68,3 +68,32 @@ def test_a_recorded_launch_reads_each_calls_arrays_and_leaves_theirs_alone(devic
         with pytest.raises(TypeError, match="wrap"):
             fresh(_copy, 5, [wp.zeros(5, dtype=wp.int32, device=wp_device), wrap(dst)], wp_device)
     assert bytes(NO_ARRAY) == empty_before
+
+
+def test_kernels_of_one_name_in_two_modules_keep_their_own_recorded_launches(tmp_path):
+    """Launches records a command per kernel, not per kernel name: a kernel named like another
+    module's (a benchmark importing an older copy of a module beside the current one) runs itself,
+    with its own arguments, instead of re-arming the other's command."""
+    import importlib.util
+
+    from tomgs.runtime import Launches
+
+    def module(name: str, body: str):
+        path = tmp_path / f"{name}.py"
+        path.write_text("import warp as wp\n\n\n@wp.kernel\ndef fill(out: wp.array(dtype=wp.int32)" + body)
+        spec = importlib.util.spec_from_file_location(name, path)
+        loaded = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(loaded)
+        return loaded
+
+    first = module("tomgs_test_fill_one", "):\n    out[wp.tid()] = 1\n")
+    second = module("tomgs_test_fill_value", ", value: int):\n    out[wp.tid()] = value\n")
+    fresh = Launches()
+    out = torch.zeros(4, dtype=torch.int32)
+    with scope(torch.device("cpu")) as wp_device:
+        fresh(first.fill, 4, [wrap(out)], wp_device)
+        assert out.tolist() == [1] * 4
+        fresh(second.fill, 4, [wrap(out), 7], wp_device)
+        assert out.tolist() == [7] * 4
+        fresh(first.fill, 4, [wrap(out)], wp_device)
+        assert out.tolist() == [1] * 4
