@@ -8,7 +8,8 @@ Without --scene, poses are identity and the model starts with points-per-frame x
 (each alive around its frame), the regime a long fit reaches in size. With --scene, a fitted scene
 and its cameras train on: the regime at the end of a real fit, where the share of Gaussians alive
 at a frame's time (printed) decides how much of the per-Gaussian work is wasted.
-Densification is off in both: the loop itself is measured.
+Densification is off in both: the loop itself is measured. --host-parts splits a step's host time by
+part (where the host, not the GPU, sets the pace: early in a fit, light clips).
 """
 
 from __future__ import annotations
@@ -40,6 +41,8 @@ def main() -> None:
     ap.add_argument("--iters", type=int, default=40)
     ap.add_argument("--device", default="cuda", help="cuda (the profile), or cpu for a dry run of the script")
     ap.add_argument("--host", action="store_true", help="also print the Python functions that cost host time")
+    ap.add_argument("--host-parts", action="store_true",
+                    help="also print a step's host time by part (the frame's issue, the backward, Adam, ...)")
     ap.add_argument("--raster", choices=["auto", "batched", "per-pixel"], default="auto",
                     help="the compositing kernel pair (auto: batched on CUDA); for A/B timings in one command")
     ap.add_argument("--fps", action="store_true",
@@ -91,9 +94,62 @@ def main() -> None:
     print(f"wall {wall:.2f} ms per iteration, GPU kernels {gpu:.2f} ms (gap {wall - gpu:.2f} ms)")
     for name, ms in sorted(per_kernel.items(), key=lambda kv: -kv[1])[:25]:
         print(f"  {ms:8.3f} ms  {name}")
+    if args.host_parts:
+        host, parts = host_parts(trainer, args.iters)
+        print(f"\nhost time per iteration {host:.2f} ms, by part:")
+        for name, ms in parts.items():
+            print(f"  {ms:8.3f} ms  {name}")
     if args.host:
         print(f"\nhost time per iteration, top functions (cumulative over {args.iters} iterations):")
         host_profile(trainer.step, args.iters)
+
+
+def host_parts(trainer, iters: int) -> tuple[float, dict]:
+    """(host ms per step, {part: host ms per step}) over `iters` steps of `trainer` (CUDA): the wall time
+    of each part of `Trainer.step`, taken around the methods it calls. A pipelined step has no sync
+    inside, so while the host is the slower side (the queue never fills) these are host times; where
+    the GPU is slower they include waits. No profiler: no inflation of Python's calls."""
+    spent: dict[str, float] = {}
+    saved = []
+
+    def timed(owner, name: str, label: str) -> None:
+        original = getattr(owner, name)
+
+        def wrapper(*args, **kwargs):
+            began = time.perf_counter()
+            try:
+                return original(*args, **kwargs)
+            finally:
+                spent[label] = spent.get(label, 0.0) + time.perf_counter() - began
+
+        saved.append((owner, name, original, name in vars(owner)))
+        setattr(owner, name, wrapper)
+
+    timed(trainer, "render", "the frame's forward (issue)")
+    timed(torch.Tensor, "backward", "the backward (autograd and its launches)")
+    timed(trainer.optimizer, "step", "Adam")
+    timed(trainer, "loss", "the loss's forward")
+    timed(trainer, "_psnr", "the sampler's PSNR")
+    timed(trainer.sampler, "sample", "drawing the frame")
+    timed(trainer, "target", "the target frame")
+    timed(trainer.densifier, "step_post_backward", "the densifier")
+    timed(trainer, "flush_measurements", "handing PSNRs to the sampler")
+    try:
+        torch.cuda.synchronize()
+        began = time.perf_counter()
+        for _ in range(iters):
+            trainer.step()
+        host = (time.perf_counter() - began) / iters * 1e3
+        torch.cuda.synchronize()
+    finally:
+        for owner, name, original, own in reversed(saved):
+            if own:
+                setattr(owner, name, original)
+            else:
+                delattr(owner, name)
+    parts = {label: seconds / iters * 1e3 for label, seconds in sorted(spent.items(), key=lambda kv: -kv[1])}
+    parts["the rest of Trainer.step"] = host - sum(parts.values())
+    return host, parts
 
 
 if __name__ == "__main__":
