@@ -41,6 +41,8 @@ def main() -> None:
     ap.add_argument("--iters", type=int, default=40)
     ap.add_argument("--device", default="cuda", help="cuda (the profile), or cpu for a dry run of the script")
     ap.add_argument("--host", action="store_true", help="also print the Python functions that cost host time")
+    ap.add_argument("--alive-index", choices=["auto", "on", "off"], default="auto",
+                    help="train from the alive index's rows (auto: where it pays, tomgs.alive.pays_on); for A/B")
     ap.add_argument("--host-parts", action="store_true",
                     help="also print a step's host time by part (the frame's issue, the backward, Adam, ...)")
     ap.add_argument("--raster", choices=["auto", "batched", "per-pixel"], default="auto",
@@ -56,8 +58,9 @@ def main() -> None:
     video = read_video(source)
     T, H, W = video.frames.shape[:3]
     device = torch.device(args.device)
-    config = preset("default", init_points_per_frame=args.points_per_frame, max_gaussians=10**9, densify_start_fraction=2.0,
-                    log_interval=10**9, eval_interval_s=1e9)
+    index = {"auto": None, "on": True, "off": False}[args.alive_index]
+    config = preset("default", init_points_per_frame=args.points_per_frame, max_gaussians=10**9,
+                    densify_start_fraction=2.0, log_interval=10**9, eval_interval_s=1e9, alive_index=index)
     no_points = np.zeros((0, 3)), np.zeros((0, 3), np.float32)
     if args.scene is not None:
         scene = tomgs.load_scene(args.scene, device=device)
