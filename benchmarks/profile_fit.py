@@ -128,15 +128,19 @@ def host_parts(trainer, iters: int) -> tuple[float, dict]:
         saved.append((owner, name, original, name in vars(owner)))
         setattr(owner, name, wrapper)
 
-    timed(trainer, "render", "the frame's forward (issue)")
-    timed(torch.Tensor, "backward", "the backward (autograd and its launches)")
-    timed(trainer.optimizer, "step", "Adam")
-    timed(trainer, "loss", "the loss's forward")
-    timed(trainer, "_psnr", "the sampler's PSNR")
-    timed(trainer.sampler, "sample", "drawing the frame")
-    timed(trainer, "target", "the target frame")
-    timed(trainer.densifier, "step_post_backward", "the densifier")
-    timed(trainer, "flush_measurements", "handing PSNRs to the sampler")
+    for owner, name, label in (
+            (trainer, "render", "the frame's forward (issue)"),
+            (torch.Tensor, "backward", "the backward (autograd and its launches)"),
+            (trainer.optimizer, "step", "Adam"),
+            (trainer, "_loss_and_psnr", "the loss's forward, with the sampler's PSNR"),
+            (trainer, "loss", "the loss's forward"),  # a step that calls them apart (older trees)
+            (trainer, "_psnr", "the sampler's PSNR"),
+            (trainer.sampler, "sample", "drawing the frame"),
+            (trainer, "target", "the target frame"),
+            (trainer.densifier, "step_post_backward", "the densifier"),
+            (trainer, "flush_measurements", "handing PSNRs to the sampler")):
+        if hasattr(owner, name):
+            timed(owner, name, label)
     try:
         torch.cuda.synchronize()
         began = time.perf_counter()

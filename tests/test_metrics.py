@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from tomgs.metrics import LPIPS, evaluate, l1_dssim, psnr, ssim, ssim_map, ssim_map_conv
+from tomgs.metrics import LPIPS, evaluate, l1_dssim, l1_dssim_and_psnr, psnr, ssim, ssim_map, ssim_map_conv
 
 LPIPS_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "lpips"
 
@@ -195,6 +195,27 @@ def test_the_training_loss_in_the_ssim_passes_matches_the_float64_formula(weight
     assert torch.autograd.gradcheck(lambda p, q: l1_dssim(p, q, 0.2), (a64, b64), eps=1e-6, atol=1e-6, fast_mode=True)
 
 
+def test_the_training_loss_measures_its_psnr_from_its_own_sums():
+    """l1_dssim_and_psnr: the loss as l1_dssim gives it, and the PSNR of all values as psnr computes
+    it in float64 (on the Warp path from the loss's sums, in float32: within 1e-4 dB), on fresh random
+    images and the extremes (one pixel, a near-identical pair at ~90 dB, equal images: inf), single and
+    batched; no gradient reaches the image through the PSNR. The torch path (float64) gives the same."""
+    for seed in (21, 22):
+        cases = [(a[0], b[0]) for a, b in _ssim_cases(seed)] + [(a, b) for a, b in _ssim_cases(seed + 100)][:2]
+        for a, b in cases:
+            want = float(-10 * torch.log10((a - b).square().mean()))
+            for x, y in ((a.float(), b.float()), (a, b)):  # the Warp passes, then the torch formulas
+                x = x.clone().requires_grad_(True)
+                loss, measured = l1_dssim_and_psnr(x, y, 0.2)
+                assert measured.shape == () and not measured.requires_grad
+                assert float(measured) == pytest.approx(want, abs=1e-4 if x.dtype == torch.float32 else 1e-9)
+                assert float(loss) == float(l1_dssim(x.detach(), y, 0.2))
+                loss.backward()
+                assert torch.isfinite(x.grad).all()
+        same = torch.rand(5, 6, 3, generator=torch.Generator().manual_seed(seed))
+        assert float(l1_dssim_and_psnr(same, same.clone(), 0.2)[1]) == float("inf")
+
+
 def test_the_training_losss_block_sums_hold_in_cooperative_blocks(monkeypatch):
     """The loss's sums run per block of 256 threads on a GPU (a block sum, one atomic per block, the
     last block partly past the image): the same on the CPU in 256 cooperative fibers as one thread a
@@ -205,11 +226,13 @@ def test_the_training_losss_block_sums_hold_in_cooperative_blocks(monkeypatch):
 
     g = torch.Generator().manual_seed(12)
     a, b = torch.rand(13, 11, 3, generator=g), torch.rand(13, 11, 3, generator=g)  # 429 values
-    alone = l1_dssim(a, b, 0.2)
+    alone, alone_psnr = l1_dssim_and_psnr(a, b, 0.2)
     monkeypatch.setattr(runtime, "launch", runtime.Launches())  # launches recorded afresh, as fibers
     monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
-    together = l1_dssim(a, b, 0.2)
+    together, together_psnr = l1_dssim_and_psnr(a, b, 0.2)
     assert float(together) == pytest.approx(float(alone), rel=1e-6)
+    assert float(together_psnr) == pytest.approx(float(psnr(a.double(), b.double())), abs=1e-4)
+    assert float(together_psnr) == pytest.approx(float(alone_psnr), abs=1e-5)
     want = 0.8 * (a.double() - b.double()).abs().mean() + 0.2 * (1 - ssim(a.double(), b.double()))
     assert float(together) == pytest.approx(float(want), abs=1e-5)
 

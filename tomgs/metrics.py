@@ -5,7 +5,7 @@ returns one value per image (a 0-d tensor for [H,W,3], [B] for a batch). Protoco
 evaluation, as their numbers were made): float renders, no 8-bit rounding; PSNR per frame, averaged over frames.
 
 `l1_dssim` is the training loss, (1 - w) L1 + w (1 - SSIM), in the SSIM passes (no torch operation
-over the image, forward or backward).
+over the image, forward or backward); `l1_dssim_and_psnr` also gives the PSNR, from the same sums.
 
 SSIM follows the 3DGS implementation exactly: 11x11 Gaussian window (sigma 1.5), C1 = 0.01^2,
 C2 = 0.03^2, per channel, zero "same" padding (conv2d padding=5), mean over all pixels and
@@ -165,7 +165,8 @@ class _WarpSSIM(torch.autograd.Function):
 
 
 class _WarpLoss(torch.autograd.Function):
-    """`l1_dssim` of float32 images and a constant reference: 0-d, gradient to the image only."""
+    """`l1_dssim` of float32 images and a constant reference, and the PSNR of all their values: two
+    0-d tensors, the loss's gradient to the image only (the PSNR has none)."""
 
     @staticmethod
     def forward(ctx, img, ref, ssim_weight: float):
@@ -175,18 +176,21 @@ class _WarpLoss(torch.autograd.Function):
         x, y = img.contiguous(), ref.contiguous()
         n = x.numel()
         out, partials = _ssim_passes(x, y)
-        sums = torch.zeros(2, device=x.device, dtype=torch.float32)
+        sums = torch.zeros(3, device=x.device, dtype=torch.float32)
         loss = torch.empty((), device=x.device, dtype=torch.float32)
+        measured = torch.empty((), device=x.device, dtype=torch.float32)
         with scope(x.device) as device:
             launch(kernels.loss_sums, whole_blocks(n), device=device, args=[
                 wrap_flat(x), wrap_flat(y), wrap_flat(out), n, wrap(sums)])
-            launch(kernels.combine_loss, 1, device=device, args=[wrap(sums), n, float(ssim_weight), wrap(loss)])
+            launch(kernels.combine_loss, 1, device=device, args=[
+                wrap(sums), n, float(ssim_weight), wrap(loss), wrap(measured)])
         ctx.save_for_backward(x, y, partials)
         ctx.ssim_weight = float(ssim_weight)
-        return loss
+        ctx.mark_non_differentiable(measured)
+        return loss, measured
 
     @staticmethod
-    def backward(ctx, v_loss):
+    def backward(ctx, v_loss, _v_psnr):
         x, y, partials = ctx.saved_tensors
         n, weight = x.numel(), ctx.ssim_weight
         # uniform upstreams, left on the device: one value each, seen [n] through a zero stride
@@ -200,10 +204,18 @@ def l1_dssim(img: torch.Tensor, ref: torch.Tensor, ssim_weight: float) -> torch.
     [0,1] ([H,W,3] or [B,H,W,3], the means over every value): 0-d. Float32 images with a constant
     reference take the Warp passes, which give the L1 term's gradient with the SSIM's (no torch
     operation over the image); anything else the torch formulas."""
+    return l1_dssim_and_psnr(img, ref, ssim_weight)[0]
+
+
+def l1_dssim_and_psnr(img: torch.Tensor, ref: torch.Tensor, ssim_weight: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(`l1_dssim`, the PSNR of all of img's values against ref's: 0-d, no gradient; for one image
+    [H,W,3] `psnr`'s). On the Warp path the PSNR comes from the loss's own sums: a training step
+    measures its frame without further operations over the image (each a dispatch of host time)."""
     _check_pair(img, ref, "l1_dssim")
     if _warp_ssim_takes(img, ref):
         return _WarpLoss.apply(img, ref, ssim_weight)
-    return (1 - ssim_weight) * (img - ref).abs().mean() + ssim_weight * (1 - ssim(img, ref).mean())
+    loss = (1 - ssim_weight) * (img - ref).abs().mean() + ssim_weight * (1 - ssim(img, ref).mean())
+    return loss, -10.0 * torch.log10(F.mse_loss(img.detach(), ref.detach()))
 
 
 def ssim(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:

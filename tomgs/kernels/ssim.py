@@ -20,9 +20,10 @@ pixel p,
 reference is a constant of the training loss. Two 1D passes each way, no atomics.
 
 The training loss L = (1 - w) mean|x - y| + w (1 - mean S) comes from the same passes: `loss_sums`
-adds |x - y| and S over every value (block sums, one atomic per block) and `combine_loss` forms L on
-the device; its gradient is the SSIM backward with a uniform upstream g = -w dL / n, and grad_cols adds
-the L1 term (1 - w) dL / n sign(x - y) as it writes dL/dx. dL (the loss's upstream) stays on the
+adds |x - y|, S and (x - y)^2 over every value (block sums, one atomic per block) and `combine_loss`
+forms L, and the PSNR a training step hands its frame sampler, on the device; L's gradient is the
+SSIM backward with a uniform upstream g = -w dL / n, and grad_cols adds the L1 term
+(1 - w) dL / n sign(x - y) as it writes dL/dx. dL (the loss's upstream) stays on the
 device: the uniform arrays are a single value seen through a zero stride.
 """
 
@@ -122,30 +123,37 @@ def loss_sums(
     y: wp.array(dtype=float),  # [B*H*W*3]
     ssim: wp.array(dtype=float),  # [B*H*W*3] from ssim_cols
     n: int,  # values; launched over n rounded up to whole blocks
-    sums: wp.array(dtype=float),  # [2] zeroed: (sum |x - y|, sum S) added
+    sums: wp.array(dtype=float),  # [3] zeroed: (sum |x - y|, sum S, sum (x - y)^2) added
 ):
     # every thread reaches the block sums (no return before them); one per block adds them
     i = wp.tid()
     l1 = float(0.0)
     s = float(0.0)
+    sq = float(0.0)
     if i < n:
-        l1 = wp.abs(x[i] - y[i])
+        d = x[i] - y[i]
+        l1 = wp.abs(d)
         s = ssim[i]
+        sq = d * d
     block_l1 = wp.tile_extract(wp.tile_sum(wp.tile(l1)), 0)
     block_s = wp.tile_extract(wp.tile_sum(wp.tile(s)), 0)
+    block_sq = wp.tile_extract(wp.tile_sum(wp.tile(sq)), 0)
     if i % wp.block_dim() == 0:
         wp.atomic_add(sums, 0, block_l1)
         wp.atomic_add(sums, 1, block_s)
+        wp.atomic_add(sums, 2, block_sq)
 
 
 @wp.kernel
 def combine_loss(
-    sums: wp.array(dtype=float),  # [2] from loss_sums
+    sums: wp.array(dtype=float),  # [3] from loss_sums
     n: int,
     ssim_weight: float,
     loss: wp.array(dtype=float),  # [1] out
+    psnr: wp.array(dtype=float),  # [1] out: of x against y over all n values
 ):
     loss[0] = (1.0 - ssim_weight) * sums[0] / float(n) + ssim_weight * (1.0 - sums[1] / float(n))
+    psnr[0] = -10.0 * wp.log10(sums[2] / float(n))  # inf where x == y, as tomgs.metrics.psnr
 
 
 @wp.kernel

@@ -35,7 +35,7 @@ import torch
 
 from tomgs.alive import TrainingIndex, pays_on
 from tomgs.cameras import Cameras
-from tomgs.metrics import l1_dssim, psnr, ssim_map
+from tomgs.metrics import l1_dssim_and_psnr, psnr, ssim_map
 from tomgs.model import GaussianModel, nearest_neighbour_distance
 from tomgs.render import render_frame
 from tomgs.temporal import frames_to_clip_time
@@ -280,19 +280,26 @@ class Trainer:
     def loss(self, k: int, image: torch.Tensor, alpha: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         """(1 - w) L1 + w D-SSIM of the render image [H,W,3] against `target` (`self.target(k, image)`)
         over frame k's weighted pixels, plus L1 of alpha [H,W,1] against its target when there is one."""
+        return self._loss_and_psnr(k, image, alpha, target)[0]
+
+    def _loss_and_psnr(self, k: int, image: torch.Tensor, alpha: torch.Tensor,
+                       target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(`loss`, `_psnr` of the same image and target): without weights both come from the loss's
+        passes, so a step measures its frame for its sampler at no further host cost."""
         c = self.config
         if self.weights is None:
-            loss = l1_dssim(image, target, c.ssim_weight)
+            loss, measured = l1_dssim_and_psnr(image, target, c.ssim_weight)
         else:
             w = self._weight(k)
             total = 3 * w.sum().clamp_min(1e-12)
             l1 = (image - target).abs().sum() / total
             similarity = (ssim_map(image[None], target[None])[0] * w.permute(2, 0, 1)).sum() / total
             loss = (1 - c.ssim_weight) * l1 + c.ssim_weight * (1 - similarity)
+            measured = self._psnr(k, image, target)
         if self.alpha_targets is not None:
             alpha_target = self.alpha_targets[k].to(self.device, non_blocking=True).float() / 255.0
             loss = loss + (alpha[..., 0] - alpha_target).abs().mean()
-        return loss
+        return loss, measured
 
     def measure(self, k: int, image: torch.Tensor, target: torch.Tensor | None = None) -> float:
         """PSNR of the render image [H,W,3] against frame k (or its `target`, already made) over its
@@ -328,14 +335,15 @@ class Trainer:
                 self.alive.settle()  # the last step's check, from a copy queued a step ago
             self.densifier.step_pre_backward(meta, self.progress)
             target = self.target(k, image)  # once per step: the loss and the sampler's PSNR share it
-            self.loss(k, image, alpha, target).backward()
+            loss, measured = self._loss_and_psnr(k, image, alpha, target)
+            loss.backward()
             # read once the backward is queued, so the device is busy meanwhile; a frame whose keys
             # overflowed their bound lacks entries: its gradients go, and it renders again, waiting
             if meta["counts"] is None or not meta["counts"].overflowed:
                 break
             self.optimizer.zero_grad(set_to_none=True)
             defer = False
-        self._measured.append((k, self._psnr(k, image, target)))
+        self._measured.append((k, measured))
         if len(self._measured) >= SAMPLER_LAG:
             self.flush_measurements(wait=not self.pipelined)
         seen = in_view = (meta["radii"] > 0).any(-1)  # bool [M]: the rendered rows this step's gradient reaches
