@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from scenes import devices
 from tomgs.metrics import LPIPS, evaluate, l1_dssim, l1_dssim_and_psnr, psnr, ssim, ssim_map, ssim_map_conv
 
 LPIPS_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "lpips"
@@ -195,24 +196,28 @@ def test_the_training_loss_in_the_ssim_passes_matches_the_float64_formula(weight
     assert torch.autograd.gradcheck(lambda p, q: l1_dssim(p, q, 0.2), (a64, b64), eps=1e-6, atol=1e-6, fast_mode=True)
 
 
-def test_the_training_loss_measures_its_psnr_from_its_own_sums():
+@pytest.mark.parametrize("device", devices())
+def test_the_training_loss_measures_its_psnr_from_its_own_sums(device):
     """l1_dssim_and_psnr: the loss as l1_dssim gives it, and the PSNR of all values as psnr computes
     it in float64 (on the Warp path from the loss's sums, in float32: within 1e-4 dB), on fresh random
     images and the extremes (one pixel, a near-identical pair at ~90 dB, equal images: inf), single and
-    batched; no gradient reaches the image through the PSNR. The torch path (float64) gives the same."""
+    batched; no gradient reaches the image through the PSNR. The torch path (float64) gives the same.
+    On every device the tests run on (a GPU sums in blocks of 256 threads)."""
     for seed in (21, 22):
         cases = [(a[0], b[0]) for a, b in _ssim_cases(seed)] + [(a, b) for a, b in _ssim_cases(seed + 100)][:2]
         for a, b in cases:
+            a, b = a.to(device), b.to(device)
             want = float(-10 * torch.log10((a - b).square().mean()))
             for x, y in ((a.float(), b.float()), (a, b)):  # the Warp passes, then the torch formulas
                 x = x.clone().requires_grad_(True)
                 loss, measured = l1_dssim_and_psnr(x, y, 0.2)
                 assert measured.shape == () and not measured.requires_grad
                 assert float(measured) == pytest.approx(want, abs=1e-4 if x.dtype == torch.float32 else 1e-9)
-                assert float(loss) == float(l1_dssim(x.detach(), y, 0.2))
+                # a GPU adds its block sums in any order: equal to float32 rounding
+                assert float(loss) == pytest.approx(float(l1_dssim(x.detach(), y, 0.2)), rel=1e-6, abs=1e-7)
                 loss.backward()
                 assert torch.isfinite(x.grad).all()
-        same = torch.rand(5, 6, 3, generator=torch.Generator().manual_seed(seed))
+        same = torch.rand(5, 6, 3, generator=torch.Generator().manual_seed(seed)).to(device)
         assert float(l1_dssim_and_psnr(same, same.clone(), 0.2)[1]) == float("inf")
 
 
