@@ -24,7 +24,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from davis import render_fps  # noqa: E402
-from profile_raster import host_profile, kernel_times  # noqa: E402
+from profile_raster import TILE_ORDERS, add_tiles_option, host_profile, kernel_times  # noqa: E402
 
 import tomgs
 from tomgs.cameras import Cameras, intrinsics
@@ -49,11 +49,10 @@ def main() -> None:
                     help="the compositing kernel pair (auto: batched on CUDA); for A/B timings in one command")
     ap.add_argument("--fps", action="store_true",
                     help="with --scene: also time render_sequence over every frame (the quickest of 5 passes)")
-    ap.add_argument("--tiles", choices=["auto", "longest-first", "in-order"], default="auto",
-                    help="which tile each raster block takes (auto: longest list first on CUDA); for A/B timings")
+    add_tiles_option(ap)
     args = ap.parse_args()
     _Rasterize.batched = {"auto": None, "batched": True, "per-pixel": False}[args.raster]
-    _Rasterize.ordered_tiles = {"auto": None, "longest-first": True, "in-order": False}[args.tiles]
+    _Rasterize.ordered_tiles = TILE_ORDERS[args.tiles]
     source = args.clip / "images" if (args.clip / "images").exists() else args.clip
     video = read_video(source)
     T, H, W = video.frames.shape[:3]

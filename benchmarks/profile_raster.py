@@ -105,6 +105,15 @@ def host_profile(step, iters: int, top: int = 25) -> None:
     pstats.Stats(profiler).sort_stats("tottime").print_stats(top)
 
 
+# --tiles: which tile each raster block takes (tomgs.render._Rasterize.ordered_tiles), for A/B timings
+TILE_ORDERS = {"auto": None, "longest-first": True, "in-order": False}
+
+
+def add_tiles_option(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("--tiles", choices=list(TILE_ORDERS), default="auto",
+                    help="which tile each raster block takes (auto: longest list first on CUDA); for A/B timings")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--size", default="854x480")
@@ -114,10 +123,9 @@ def main() -> None:
     ap.add_argument("--host", action="store_true", help="also print the Python functions that cost host time")
     ap.add_argument("--gaps", action="store_true", help="also print where the GPU idles in the forward and the "
                     "backward, each between syncs as bench_raster times them")
-    ap.add_argument("--tiles", choices=["auto", "longest-first", "in-order"], default="auto",
-                    help="which tile each raster block takes (auto: longest list first on CUDA); for A/B timings")
+    add_tiles_option(ap)
     args = ap.parse_args()
-    _Rasterize.ordered_tiles = {"auto": None, "longest-first": True, "in-order": False}[args.tiles]
+    _Rasterize.ordered_tiles = TILE_ORDERS[args.tiles]
     width, height = parse_size(args.size)
     n = parse_count(args.n)
     dev = torch.device("cuda")

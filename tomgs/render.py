@@ -405,7 +405,8 @@ class _Rasterize(torch.autograd.Function):
         means2d, conics, opacities_t, colors, ranges and ids (built before the frame's host sync)."""
         # the list, the per-Gaussian inputs and the per-pixel state, shared with the backward
         order = NO_ARRAY
-        if means2d.device.type == "cuda" if _Rasterize.ordered_tiles is None else _Rasterize.ordered_tiles:
+        longest_first = means2d.device.type == "cuda" if _Rasterize.ordered_tiles is None else _Rasterize.ordered_tiles
+        if longest_first:
             tile_order = torch.argsort(ranges[:, 0] - ranges[:, 1]).to(torch.int32)  # [tiles], the longest first
             order = wrap(tile_order)
             ctx.tile_order = tile_order  # alive while the backward's launch reads it
