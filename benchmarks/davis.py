@@ -161,6 +161,7 @@ def main() -> None:
                    paper_lpips=paper.get("lpips"), gaussians=len(result.model), iterations=result.iterations,
                    steps_per_s=result.iterations / max(result.seconds, 1e-9), fit_s=result.seconds, wall_s=wall,
                    before_train_s=before, phases=result.phase_seconds, fps=render_fps(scene, device),
+                   notes=result.notes,
                    paper_at_s=time_to(paths["csv"], paper["psnr"], before) if paper else None,
                    **{f"psnr_{m}s": psnr_at(paths["csv"], m, before) for m in MARKS})
         if args.profile and device.type == "cuda":

@@ -54,6 +54,22 @@ def test_fit_on_every_kth_frame_records_their_rate(clip, tmp_path):
     assert loaded.cameras.frame_indices.tolist() == [0, 2, 4] and loaded.info["fps"] == pytest.approx(12.0)
 
 
+def test_fit_leaves_out_what_no_frame_shows_unless_asked_to_keep_all(clip, tmp_path):
+    from tomgs.io.scene import load_scene
+
+    counts = {}
+    for compact in ("0", "0.2"):
+        scene = tmp_path / f"scene{compact}.ply"
+        result = run("fit", clip, "-o", scene, "--preset", "quick", "--iterations", "30", "--device", "cpu",
+                     "--poses", "identity", "--compact", compact, "--seed", "3")
+        assert result.exit_code == 0, result.output
+        assert ("Gaussians that gave no frame 0.2 of a pixel's colour" in result.output) == (compact != "0")
+        counts[compact] = len(load_scene(scene).model)
+    assert 0 < counts["0.2"] < counts["0"]
+    result = CliRunner().invoke(main, ["fit", str(clip), "-o", str(tmp_path / "s.ply"), "--compact", "-1"])
+    assert result.exit_code == 2 and "--compact" in result.output
+
+
 @pytest.mark.parametrize("setup, args, message", [
     ("corrupt", ["{video}", "-o", "{tmp}/s.ply"], "cannot open video"),
     ("clip", ["{clip}", "-o", "{tmp}/s.ply", "--device", "tpu"], "device"),

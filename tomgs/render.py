@@ -562,6 +562,22 @@ def rasterize(
     return image, alpha, meta
 
 
+def blend_weights(means, quats, scales, opacities, t_means, t_scales, viewmat, K, width: int, height: int,
+                  t: float, *, near: float = 0.01, far: float = 1e10, rows: torch.Tensor | None = None) -> torch.Tensor:
+    """[N]: each Gaussian's blend weights alpha_i T_i summed over the frame's pixels (`rasterize`'s
+    arguments without colours; with `rows`, 0 for the others): how many pixels' worth of colour it
+    gives the image at time t (0 where culled, out of view or hidden behind opaque ones). It is the
+    gradient of the image's sum (one channel) with respect to its colour, from the renderer's own
+    backward."""
+    ones = torch.ones(means.shape[0], 3, device=means.device, requires_grad=True)
+    gaussians = [x.detach() for x in (means, quats, scales, opacities)]
+    with torch.enable_grad():
+        image, _, _ = rasterize(*gaussians, ones, t_means.detach(), t_scales.detach(), viewmat, K, width, height, t,
+                                near=near, far=far, rows=rows)
+        (grad,) = torch.autograd.grad(image[..., 0].sum(), ones)
+    return grad[:, 0]
+
+
 def render_frame(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width, height, t, *,
                  background=None, near=0.01, far=1e10, rows=None, defer: bool = False):
     """`rasterize` (same arguments) -> (image, alpha, meta, counts). With `defer`, once frames of this

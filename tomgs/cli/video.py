@@ -82,6 +82,9 @@ def poses(video, output, masks, frames, method, focal, max_side, json_out, overw
 @click.option("--static", "static_3dgs", is_flag=True, help="ablation: no temporal opacity (static 3DGS)")
 @click.option("--opacity-reset", type=click.IntRange(0), default=None, help="ablation: reset opacities every N")
 @click.option("--sh-degree", type=click.IntRange(0, 3), default=None, help="view-dependent colour (default 0)")
+@click.option("--compact", "compact_pixels", type=click.FloatRange(min=0.0), default=None,
+              help="at the end, leave out the Gaussians that give no frame this many pixels' worth of colour "
+                   "(default 0.01; 0 keeps every Gaussian)")
 @click.option("--seed", type=int, default=None)
 @click.option("--resume", is_flag=True, help="continue from the checkpoint beside OUTPUT")
 @click.option("--layer", type=click.Choice(["background", "foreground"]), default=None,
@@ -95,8 +98,8 @@ def poses(video, output, masks, frames, method, focal, max_side, json_out, overw
 @overwrite_option
 @user_errors
 def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal, device, max_gaussians, max_seconds,
-        sampling, static_3dgs, opacity_reset, sh_degree, seed, resume, layer, mask_dilation, gpus, json_out,
-        overwrite):
+        sampling, static_3dgs, opacity_reset, sh_degree, compact_pixels, seed, resume, layer, mask_dilation, gpus,
+        json_out, overwrite):
     """Fit a TOM-GS scene to VIDEO (a video file or a folder of frames).
 
     \b
@@ -122,7 +125,8 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
 
     started = process_started()
     overrides = dict(iterations=iterations, max_gaussians=max_gaussians, max_seconds=max_seconds, sampling=sampling,
-                     opacity_reset_interval=opacity_reset, sh_degree=sh_degree, seed=seed)
+                     opacity_reset_interval=opacity_reset, sh_degree=sh_degree, compact_pixels=compact_pixels,
+                     seed=seed)
     overrides = {k: v for k, v in overrides.items() if v is not None}
     if static_3dgs:
         overrides["temporal"] = False

@@ -39,6 +39,11 @@ class TrainConfig:
     percent_dense: float = 0.01  # clone below this fraction of the scene extent, split above
     max_gaussians: int | None = None  # None: by the clip and device (tomgs.train.plan.auto_cap)
     prune_opacity: float = 0.005
+    # at the end of training, leave out the Gaussians that give no frame of the clip this many pixels'
+    # worth of colour (their blend weights summed over a frame's pixels: tomgs.render.blend_weights).
+    # 1-minute DAVIS fits (H100): 10% of camel's and kite-surf's 5M Gaussians, -0.001 dB, renders +7%;
+    # at 0.05, 22% and -0.10 dB (benchmarks/RESULTS.md, session 26). 0: keep every Gaussian
+    compact_pixels: float = 0.01
     opacity_reset_interval: int = 0  # 0: off (TOM-GS); 3000 reproduces the 3DGS heuristic (ablation)
     # sampling of training frames: "inverse_psnr" (TOM-GS) or "uniform" (ablation)
     sampling: str = "inverse_psnr"

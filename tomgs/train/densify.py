@@ -118,10 +118,15 @@ class Densifier:
 
     def prune(self, model: GaussianModel, optimizer) -> int:
         """Remove Gaussians that are transparent, or dead over the whole clip [0, 1]."""
-        remove = self._prunable(model)
-        if remove.any():
-            _apply(model, optimizer, ~remove, None)
-        return int(remove.sum())
+        return self.remove(model, optimizer, self._prunable(model))
+
+    def remove(self, model: GaussianModel, optimizer, rows: torch.Tensor) -> int:
+        """Remove the Gaussians `rows` (bool [N]) and their Adam moments; returns how many went. The
+        statistics keep their rows: `reset_stats` before the next step that collects."""
+        count = int(rows.sum())
+        if count:
+            _apply(model, optimizer, ~rows, None)
+        return count
 
     @torch.no_grad()
     def _prunable(self, model: GaussianModel) -> torch.Tensor:

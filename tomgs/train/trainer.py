@@ -37,7 +37,7 @@ from tomgs.alive import TrainingIndex, pays_on
 from tomgs.cameras import Cameras
 from tomgs.metrics import l1_dssim_and_psnr, psnr, ssim_map
 from tomgs.model import GaussianModel, nearest_neighbour_distance
-from tomgs.render import render_frame
+from tomgs.render import blend_weights, render_frame
 from tomgs.temporal import frames_to_clip_time
 from tomgs.errors import InputError
 from tomgs.outputs import write_text
@@ -64,6 +64,9 @@ CHEAP_EVAL = 1.0  # seconds: a measurement this quick is taken whenever it is du
 # MIN_EVAL_FRAMES (a 900-frame 1080p clip's full measurement first fitted the 10% after 1.5 minutes)
 EVAL_FRAMES = 64
 MIN_EVAL_FRAMES = 8
+# the compaction at a run's end costs per frame what this many frames of a clip PSNR cost (a forward and
+# a backward: camel at 5M Gaussians, H100, ~7 ms a frame against ~2)
+COMPACT_SHARE = 3.0
 RENDER_SHARE = 0.5  # a forward render's time over a training step's (CPU, the bundled clip: 0.11 / 0.22 s)
 STATIC_T_SCALE = 1e3  # temporal sigma of every Gaussian of a static fit (clip time: alive throughout)
 
@@ -404,6 +407,31 @@ class Trainer:
                 tick(f"clip PSNR {i + 1}/{len(frames)}" + ("" if len(frames) == self.num_frames else " frames"))
         return torch.stack(out).tolist() if out else []
 
+    def compact(self, tick=None) -> int:
+        """Leave out the Gaussians that give no frame of the clip `config.compact_pixels` pixels' worth
+        of colour (`tomgs.render.blend_weights`, the largest over the frames); returns how many went
+        (noted in `notes`). tick(text) after each frame. The end of a run calls it before its last
+        measurement, so the PSNR it reports is the saved scene's."""
+        threshold = self.config.compact_pixels
+        if threshold <= 0 or len(self.model) == 0:
+            return 0
+        began = time.perf_counter()
+        gaussians = {k: v.detach() for k, v in self.model.render_inputs().items() if k != "colors"}
+        largest = torch.zeros(len(self.model), device=self.device)
+        for k in range(self.num_frames):
+            rows = None if self.alive is None else self.alive.rows(k, self.model, self.optimizer, self.iteration)
+            weights = blend_weights(**gaussians, viewmat=self.viewmats[k], K=self.K, width=self.width,
+                                    height=self.height, t=self.times[k], rows=rows)
+            torch.maximum(largest, weights, out=largest)
+            if tick is not None:
+                tick(f"leaving out unused Gaussians {k + 1}/{self.num_frames}")
+        removed = self.densifier.remove(self.model, self.optimizer, largest < threshold)
+        if removed:
+            self.densifier.reset_stats(len(self.model), self.device)
+            self.notes.append(f"left out {removed:,} Gaussians that gave no frame {threshold:g} of a pixel's colour "
+                              f"({len(self.model):,} kept; {time.perf_counter() - began:.1f} s)")
+        return removed
+
     def eval_frames(self, now: float, frame_seconds: float) -> int:
         """How many frames a clip PSNR taken `now` seconds into the run covers when a frame takes
         `frame_seconds`: all when that is under CHEAP_EVAL or EVAL_OVERHEAD of the run so far; else
@@ -462,8 +490,12 @@ class Trainer:
                 tick(self.iteration, now, None)
                 # until one is measured, a frame of the clip PSNR costs what RENDER_SHARE of a step costs
                 frame_seconds = self.eval_frame_seconds or RENDER_SHARE * (step_seconds or 0.0)
-                out_of_time = 0 < limit <= now + frame_seconds * self.num_frames  # the last covers all
+                # the last measurement covers every frame, after the compaction's pass over them
+                ending = frame_seconds * self.num_frames * (1 + (COMPACT_SHARE if c.compact_pixels > 0 else 0))
+                out_of_time = 0 < limit <= now + ending
                 last = self.iteration == c.iterations or out_of_time
+                if last:
+                    self.compact(lambda text: tick(self.iteration, now, text))
                 count = self.num_frames if last else self.eval_frames(now, frame_seconds)
                 settled = self.iteration - self.densifier.changed_at >= settle
                 measure = last or (now >= next_eval and count > 0 and settled)
