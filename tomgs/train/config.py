@@ -41,7 +41,7 @@ class TrainConfig:
     prune_opacity: float = 0.005
     # at the end of training, leave out the Gaussians that give no frame of the clip this many pixels'
     # worth of colour (their blend weights summed over a frame's pixels: tomgs.render.blend_weights).
-    # 1-minute DAVIS fits (H100): 10% of camel's and kite-surf's 5M Gaussians, -0.001 dB, renders +7%;
+    # 1-minute DAVIS fits (H100): 10% of camel's and kite-surf's 5M Gaussians, -0.001 dB, renders +8%;
     # at 0.05, 22% and -0.10 dB (benchmarks/RESULTS.md, session 26). 0: keep every Gaussian
     compact_pixels: float = 0.01
     opacity_reset_interval: int = 0  # 0: off (TOM-GS); 3000 reproduces the 3DGS heuristic (ablation)
