@@ -87,8 +87,9 @@ def sequence_setup(device: str, frames: int = 12):
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("to_cpu", [True, False])
 def test_pipelined_sequences_yield_what_waiting_ones_do(device, to_cpu, fresh_bounds):
-    """Every frame equal to rasterize's, in order, with its counts; the callable form too, and a
-    sequence whose bound is too small for its frames (each is rendered again before it is yielded)."""
+    """Every frame equal to rasterize's, in order, with its counts; the callable form too (the same
+    cloud, or new tensors for every frame, let go while the frame may still read them), and a sequence
+    whose bound is too small for its frames (each is rendered again before it is yielded)."""
     gaussians, cams = sequence_setup(device)
     order = [3, 0, 7, 11, 5, 6, 1]
     want = {}
@@ -102,7 +103,10 @@ def test_pipelined_sequences_yield_what_waiting_ones_do(device, to_cpu, fresh_bo
         calls.append(k)
         return gaussians
 
-    for source in (gaussians, per_frame, "shrunk"):
+    def fresh_per_frame(k):  # new tensors every frame, released while the frame may still read them
+        return {name: value.clone() for name, value in gaussians.items()}
+
+    for source in (gaussians, per_frame, fresh_per_frame, "shrunk"):
         if source == "shrunk":
             assert min(want[k][1] for k in order[:2]) > 300  # the first two frames overflow a bound of 300
             for key in fresh_bounds._capacity:
