@@ -168,6 +168,23 @@ def test_keys_grow_after_any_frame_read_past_them(device, fresh_bounds):
 
 
 @pytest.mark.parametrize("device", DEVICES)
+def test_keys_every_frame_fits_are_not_captured_again(device, fresh_bounds):
+    """Totals that spread raise the bound by its headroom; while no frame is past the keys, the graph
+    keeps them (each capture costs two eager frames and the capture itself)."""
+    cloud, twin, graph, (viewmat, K, t) = graph_at_bound(device, fresh_bounds, 5_000)  # above its ~1000
+    for _ in range(2):
+        image, alpha, counts = graph(viewmat, K, t)
+        (image.sum() + alpha.sum()).backward()
+        held = graph.capacity
+        assert counts.read()["n_intersections"] < 2_000 < 5_000 < held
+        for tensor in cloud.values():
+            tensor.grad = None
+    # [5000, ~1000, ~1000] spread the bound past the keys; none of the frames was past them
+    assert fresh_bounds.capacity(graph._frame) > held and graph.capacity == held
+    assert_close(image, tomgs.rasterize(**twin, viewmat=viewmat, K=K, width=45, height=37, t=t)[0], device)
+
+
+@pytest.mark.parametrize("device", DEVICES)
 def test_the_keys_shrink_with_the_bound(device, fresh_bounds):
     cloud, twin, graph, (viewmat, K, t) = graph_at_bound(device, fresh_bounds, 100_000)  # far above its ~1000
     for _ in range(render._Bounds.FRAMES + 1):  # until the large total has left the bound's frames

@@ -134,13 +134,14 @@ class FrameGraph:
     def _fit_capacity(self, wp_device: str, frame: list) -> None:
         """The keys' capacity follows the bound of recent frames of this size (tomgs.render): taken at
         the first frame (which waits for its count where no frame of this size has been counted),
-        grown once the bound passes it (after any frame read past it, not only the last frame: a
-        caller may read a frame's counts after issuing the next), shrunk once it holds more than 1/16
-        above the bound (the padded sort costs what the capacity holds); captured again at each
-        change (two eager frames and the capture: 7-12 ms on an H100 at 854x480). `frame`:
-        set_frame's arguments, for the frames run here."""
+        grown to the bound once a recent frame was read past it (any frame, not only the last: a
+        caller may read a frame's counts after issuing the next; not when only the bound's headroom
+        passed it: frames whose totals spread would be captured again at each new spread), shrunk
+        once it holds more than 1/16 above the bound (the padded sort costs what the capacity holds);
+        captured again at each change (two eager frames and the capture: 7-12 ms on an H100 at
+        854x480). `frame`: set_frame's arguments, for the frames run here."""
         bound = render._bounds.capacity(self._frame)
-        if self.capacity and bound <= self.capacity <= bound + bound // 16:
+        if self.capacity and render._bounds.largest(self._frame) <= self.capacity <= bound + bound // 16:
             return
         launch(project.set_frame, 1, device=wp_device, args=frame)
         if not bound:  # a first frame of this size: counted (the bound learns it)

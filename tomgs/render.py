@@ -286,6 +286,10 @@ class _Bounds:
     def capacity(self, frame: _Frame) -> int:
         return self._capacity.get((frame.device, frame.width, frame.height), 0)
 
+    def largest(self, frame: _Frame) -> int:
+        """The largest total of the last FRAMES frames of this size (0: none counted)."""
+        return max(self._recent.get((frame.device, frame.width, frame.height), ()), default=0)
+
     def remember(self, frame: _Frame, total: int) -> None:
         key = (frame.device, frame.width, frame.height)
         recent = self._recent.setdefault(key, deque(maxlen=self.FRAMES))
