@@ -26,7 +26,9 @@ import torch
 import warp as wp
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from bench_raster import parse_count  # noqa: E402
 from tomgs.runtime import sort_pairs  # noqa: E402
 
 TILES = 54 * 30  # 854x480 in 16x16 tiles
@@ -145,8 +147,7 @@ def main(argv=None) -> int:
     if device.type == "cuda" and device.index is None:
         device = torch.device("cuda", torch.cuda.current_device())
     rows = []
-    for m_text in args.entries.split(","):
-        m = int(float(m_text.rstrip("MK")) * {"M": 1e6, "K": 1e3}.get(m_text[-1], 1))
+    for m in map(parse_count, args.entries.split(",")):
         for ratio in (int(r) for r in args.per_gaussian.split(",")):
             depth, owner, tile = synthetic(m, max(1, m // ratio), device)
             now, split = Now(depth, owner, tile), Split(depth, owner, tile)

@@ -283,15 +283,19 @@ class _Bounds:
         self._recent: dict[tuple, deque] = {}
         self._capacity: dict[tuple, int] = {}
 
+    @staticmethod
+    def _key(frame: _Frame) -> tuple:
+        return frame.device, frame.width, frame.height
+
     def capacity(self, frame: _Frame) -> int:
-        return self._capacity.get((frame.device, frame.width, frame.height), 0)
+        return self._capacity.get(self._key(frame), 0)
 
     def largest(self, frame: _Frame) -> int:
         """The largest total of the last FRAMES frames of this size (0: none counted)."""
-        return max(self._recent.get((frame.device, frame.width, frame.height), ()), default=0)
+        return max(self._recent.get(self._key(frame), ()), default=0)
 
     def remember(self, frame: _Frame, total: int) -> None:
-        key = (frame.device, frame.width, frame.height)
+        key = self._key(frame)
         recent = self._recent.setdefault(key, deque(maxlen=self.FRAMES))
         recent.append(total)
         top = max(recent)
