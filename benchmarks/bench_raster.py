@@ -119,6 +119,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--tomgs-graph", action="store_true",
                    help="time tomgs replayed from CUDA graphs (tomgs.captured.FrameGraph, one per scene, captured at "
                         "its first frame): camera and time written per call, counts read after the backward")
+    p.add_argument("--kernel-options", default=None, metavar="SPEC",
+                   help="time tomgs with Warp launch options changed per kernel, as benchmarks/kernel_options.py "
+                        "takes them (kernel:option=value[+...]): an option's gain in the ratios before it is adopted")
     p.add_argument("--no-sanity", action="store_true", help="skip the tomgs vs gsplat image comparison")
     p.add_argument("--stages", action="store_true",
                    help="also profile each library's fwd+bwd (torch profiler, CUDA only) and report GPU time by stage "
@@ -873,6 +876,12 @@ def main(argv=None) -> int:
     log(f"bench_raster on {env.get('gpu', device)}; torch {env['torch']}, warp {env['warp']}, "
         f"commit {env.get('commit')}; budget {args.budget_s:.0f}s")
 
+    if args.kernel_options:
+        from kernel_options import Patched, frame_kernels, parse_variant
+
+        known = frame_kernels()
+        Patched(parse_variant(args.kernel_options, known), known).apply()  # for the whole run
+        results["notes"].append(f"tomgs's kernels rebuilt with Warp launch options {args.kernel_options}")
     fns = {}
     if "tomgs" in args.lib_list:
         try:

@@ -114,6 +114,26 @@ def add_tiles_option(ap: argparse.ArgumentParser) -> None:
                     help="which tile each raster block takes (auto: longest list first on CUDA); for A/B timings")
 
 
+def scene_step(width: int, height: int, n: int, variant: str, t: float = 0.5):
+    """(step, scene): one fwd+bwd of tomgs.rasterize at time t on bench_raster's random scene of n
+    Gaussians (CUDA), its inputs requiring grad, the loss a fixed random weighting of the image plus alpha."""
+    dev = torch.device("cuda")
+    P = make_scene(n, 0, dev)
+    P["t_scales"] = (temporal_scales(P["opacities"], 0.1) if variant == "temporal"
+                     else torch.full((n,), 1e3, device=dev))
+    viewmat, K = camera(width, height, dev)
+    for v in P.values():
+        v.requires_grad_(True)
+    w = torch.rand(height, width, 3, device=dev)
+
+    def step():
+        img, alpha, _ = tomgs.rasterize(P["means"], P["quats"], P["scales"], P["opacities"], P["colors"],
+                                        P["t_means"], P["t_scales"], viewmat, K, width, height, t)
+        ((img * w).sum() + alpha.sum()).backward()
+
+    return step, dict(P=P, viewmat=viewmat, K=K, w=w)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--size", default="854x480")
@@ -128,19 +148,8 @@ def main() -> None:
     _Rasterize.ordered_tiles = TILE_ORDERS[args.tiles]
     width, height = parse_size(args.size)
     n = parse_count(args.n)
-    dev = torch.device("cuda")
-    P = make_scene(n, 0, dev)
-    P["t_scales"] = (temporal_scales(P["opacities"], 0.1) if args.variant == "temporal"
-                     else torch.full((n,), 1e3, device=dev))
-    viewmat, K = camera(width, height, dev)
-    for v in P.values():
-        v.requires_grad_(True)
-    w = torch.rand(height, width, 3, device=dev)
-
-    def step(t=0.5):
-        img, alpha, _ = tomgs.rasterize(P["means"], P["quats"], P["scales"], P["opacities"], P["colors"],
-                                        P["t_means"], P["t_scales"], viewmat, K, width, height, t)
-        ((img * w).sum() + alpha.sum()).backward()
+    step, scene = scene_step(width, height, n, args.variant)
+    P, viewmat, K, w = scene["P"], scene["viewmat"], scene["K"], scene["w"]
 
     for _ in range(5):
         step()
