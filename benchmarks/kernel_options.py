@@ -9,7 +9,8 @@ spread between rounds rather than as a difference between variants.
     python benchmarks/kernel_options.py --size 1920x1080 --n 5M --variant temporal \\
         base project_forward:cuda_max_registers=40 "project_forward:launch_bounds=256,4+write_tile_keys:grid_stride=0"
 
-A variant is `base` (the kernels as they are) or `+`-joined `kernel:option=value` settings. Register
+A variant is `base` (the kernels as they are) or `+`-joined `kernel:option=value` settings; a rebuilt
+kernel takes only the options its variant names (its decorator's own are dropped). Register
 counts: `cuobjdump --dump-resource-usage` on the cubins of WARP_CACHE_PATH after the run.
 """
 
@@ -91,6 +92,14 @@ class Patched:
         self.restore()
 
 
+def image_and_grads(step, params: dict) -> dict[str, torch.Tensor]:
+    """One step's image and the gradients it alone gives each input."""
+    for p in params.values():
+        p.grad = None
+    image = step()
+    return dict(image=image, **{name: p.grad.clone() for name, p in params.items()})
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -105,13 +114,20 @@ def main() -> None:
     known = frame_kernels()
     variants = {spec: parse_variant(spec, known) for spec in args.variants}
     width, height = parse_size(args.size)
-    step, _ = scene_step(width, height, parse_count(args.n), args.variant)
+    step, scene = scene_step(width, height, parse_count(args.n), args.variant)
     patched = {spec: Patched(settings, known) for spec, settings in variants.items()}
-    for spec in variants:  # compile and warm up each variant before any is timed
+    outputs = {}
+    for spec in variants:  # compile and warm up each variant before any is timed; keep what it computes
         with patched[spec]:
             for _ in range(3):
                 step()
+            outputs[spec] = image_and_grads(step, scene["P"])
     torch.cuda.synchronize()
+    for spec in variants:  # an option changes the speed, never the image or the gradients
+        differs = {k: float((v - outputs[args.variants[0]][k]).abs().max()) for k, v in outputs[spec].items()}
+        print(f"{spec}: largest difference from {args.variants[0]} " +
+              ", ".join(f"{k} {d:.3g}" for k, d in differs.items() if d) if any(differs.values())
+              else f"{spec}: image and gradients equal to {args.variants[0]}'s")
     rounds: dict[str, list[dict]] = {spec: [] for spec in variants}
     for _ in range(args.rounds):
         for spec in variants:

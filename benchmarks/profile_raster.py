@@ -116,7 +116,8 @@ def add_tiles_option(ap: argparse.ArgumentParser) -> None:
 
 def scene_step(width: int, height: int, n: int, variant: str, t: float = 0.5):
     """(step, scene): one fwd+bwd of tomgs.rasterize at time t on bench_raster's random scene of n
-    Gaussians (CUDA), its inputs requiring grad, the loss a fixed random weighting of the image plus alpha."""
+    Gaussians (CUDA), its inputs requiring grad (gradients add up over steps), the loss a fixed random
+    weighting of the image plus alpha; step() returns the image."""
     dev = torch.device("cuda")
     P = make_scene(n, 0, dev)
     P["t_scales"] = (temporal_scales(P["opacities"], 0.1) if variant == "temporal"
@@ -130,6 +131,7 @@ def scene_step(width: int, height: int, n: int, variant: str, t: float = 0.5):
         img, alpha, _ = tomgs.rasterize(P["means"], P["quats"], P["scales"], P["opacities"], P["colors"],
                                         P["t_means"], P["t_scales"], viewmat, K, width, height, t)
         ((img * w).sum() + alpha.sum()).backward()
+        return img.detach()
 
     return step, dict(P=P, viewmat=viewmat, K=K, w=w)
 

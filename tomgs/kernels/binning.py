@@ -15,7 +15,7 @@ theirs for `write_tile_keys_listed`, which writes them in full warps (tomgs/kern
 import warp as wp
 
 from tomgs import constants
-from tomgs.kernels.lanes import lanes_count, list_row, work_item
+from tomgs.kernels.lanes import DENSE_REGISTERS, lanes_count, list_row, work_item
 
 wp.set_module_options({"enable_backward": False})
 
@@ -164,7 +164,7 @@ def write_keys_of(
         gaussian_ids[k] = i
 
 
-@wp.kernel
+@wp.kernel(cuda_max_registers=DENSE_REGISTERS)
 def write_tile_keys(
     means2d: wp.array(dtype=wp.vec2),  # [N]
     conics: wp.array(dtype=wp.vec3),  # [N]

@@ -25,7 +25,7 @@ import warp as wp
 
 from tomgs import constants
 from tomgs.kernels.binning import opacity_extent, tiles_of
-from tomgs.kernels.lanes import lanes_count, list_row, work_item
+from tomgs.kernels.lanes import DENSE_REGISTERS, lanes_count, list_row, work_item
 from tomgs.kernels.rows import put
 
 wp.set_module_options({"enable_backward": False})
@@ -209,7 +209,7 @@ def footprint(j: int, p: wp.vec3, opac: float, q: wp.vec4, s: wp.vec3, viewmat: 
         tiles_touched[j] = tiles_of(center, conic, radius, opac, tiles_x, tiles_y)
 
 
-@wp.kernel
+@wp.kernel(cuda_max_registers=DENSE_REGISTERS, grid_stride=False)  # one thread per row: no loop to carry
 def project_forward(
     means: wp.array(dtype=wp.vec3),  # [N]
     quats: wp.array(dtype=wp.vec4),  # [N] w x y z, any norm
@@ -470,7 +470,7 @@ def gradients(
         v_K_parts[j] = wp.vec4(v_fx, v_fy, vm2[0], vm2[1])
 
 
-@wp.kernel
+@wp.kernel(cuda_max_registers=DENSE_REGISTERS)
 def project_backward(
     means: wp.array(dtype=wp.vec3),  # [N] (forward inputs, as above)
     quats: wp.array(dtype=wp.vec4),
