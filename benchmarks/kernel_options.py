@@ -10,7 +10,8 @@ spread between rounds rather than as a difference between variants.
         base project_forward:cuda_max_registers=40 "project_forward:launch_bounds=256,4+write_tile_keys:grid_stride=0"
 
 A variant is `base` (the kernels as they are) or `+`-joined `kernel:option=value` settings; a rebuilt
-kernel takes only the options its variant names (its decorator's own are dropped). Register
+kernel keeps its decorator's options but those its variant names (`launch_bounds` and
+`cuda_max_registers` replace each other: Warp takes one of the two). Register
 counts: `cuobjdump --dump-resource-usage` on the cubins of WARP_CACHE_PATH after the run.
 """
 
@@ -35,6 +36,7 @@ from tomgs.kernels import binning, project, raster, raster_batched  # noqa: E402
 
 MODULES = (project, binning, raster, raster_batched)
 OPTIONS = ("cuda_max_registers", "launch_bounds", "grid_stride")
+EXCLUSIVE = {"cuda_max_registers": "launch_bounds", "launch_bounds": "cuda_max_registers"}
 WARP_SUFFIX = re.compile(r"_[0-9a-f]{8}_cuda_kernel_forward")  # a module's hash: differs for a rebuilt kernel
 
 
@@ -74,7 +76,9 @@ class Patched:
         for kernel, options in settings.items():
             module = known[kernel]
             original = getattr(module, kernel)
-            rebuilt = wp.kernel(original.func, module="unique", enable_backward=False, **options)
+            dropped = {EXCLUSIVE.get(name) for name in options}
+            kept = {name: value for name, value in original.options.items() if name in OPTIONS and name not in dropped}
+            rebuilt = wp.kernel(original.func, module="unique", enable_backward=False, **{**kept, **options})
             self.swaps.append((module, kernel, original, rebuilt))
 
     def apply(self) -> None:

@@ -117,7 +117,8 @@ def add_tiles_option(ap: argparse.ArgumentParser) -> None:
 def scene_step(width: int, height: int, n: int, variant: str, t: float = 0.5):
     """(step, scene): one fwd+bwd of tomgs.rasterize at time t on bench_raster's random scene of n
     Gaussians (CUDA), its inputs requiring grad (gradients add up over steps), the loss a fixed random
-    weighting of the image plus alpha; step() returns the image."""
+    weighting of the image plus alpha; step() returns the image. scene: the inputs `P` and `forward`,
+    () -> (image, loss), the step's forward alone."""
     dev = torch.device("cuda")
     P = make_scene(n, 0, dev)
     P["t_scales"] = (temporal_scales(P["opacities"], 0.1) if variant == "temporal"
@@ -127,13 +128,17 @@ def scene_step(width: int, height: int, n: int, variant: str, t: float = 0.5):
         v.requires_grad_(True)
     w = torch.rand(height, width, 3, device=dev)
 
-    def step():
+    def forward():
         img, alpha, _ = tomgs.rasterize(P["means"], P["quats"], P["scales"], P["opacities"], P["colors"],
                                         P["t_means"], P["t_scales"], viewmat, K, width, height, t)
-        ((img * w).sum() + alpha.sum()).backward()
+        return img, (img * w).sum() + alpha.sum()
+
+    def step():
+        img, loss = forward()
+        loss.backward()
         return img.detach()
 
-    return step, dict(P=P, viewmat=viewmat, K=K, w=w)
+    return step, dict(P=P, forward=forward)
 
 
 def main() -> None:
@@ -151,7 +156,6 @@ def main() -> None:
     width, height = parse_size(args.size)
     n = parse_count(args.n)
     step, scene = scene_step(width, height, n, args.variant)
-    P, viewmat, K, w = scene["P"], scene["viewmat"], scene["K"], scene["w"]
 
     for _ in range(5):
         step()
@@ -172,9 +176,7 @@ def main() -> None:
         held = {}
 
         def forward():
-            img, alpha, _ = tomgs.rasterize(P["means"], P["quats"], P["scales"], P["opacities"], P["colors"],
-                                            P["t_means"], P["t_scales"], viewmat, K, width, height, 0.5)
-            held["loss"] = (img * w).sum() + alpha.sum()
+            held["loss"] = scene["forward"]()[1]
 
         idle_gaps([("forward", forward), ("backward", lambda: held.pop("loss").backward())], args.iters)
     if args.host:
