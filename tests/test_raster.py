@@ -12,6 +12,7 @@ import torch
 
 import tomgs
 from tomgs.constants import ALPHA_MIN
+from tomgs.kernels import project
 from scenes import INPUT_NAMES, devices, random_scene, render_both, rel_l2, split
 
 IMAGE_TOL = 1e-4  # max abs error of image and alpha
@@ -551,8 +552,9 @@ def test_tiles_taken_longest_first_give_the_same_frame(batched, monkeypatch):
 @pytest.mark.parametrize("cooperative", [False, True])
 def test_frame_counts_come_with_the_sync(cooperative, monkeypatch):
     """meta's n_visible and n_alive are summed per block on the device and read with the intersection
-    count (Python ints): equal to counting the per-Gaussian outputs, over several blocks and a partial
-    one, also in 256-fiber blocks on the CPU (block sums as on a GPU)."""
+    count (Python ints): equal to counting the per-Gaussian outputs, over several blocks whose threads
+    each count rows a launch apart (project.STATS_ROWS) and a partial one, also in 256-fiber blocks on
+    the CPU (block sums as on a GPU)."""
     import warp as wp
 
     from tomgs import render, runtime
@@ -560,13 +562,14 @@ def test_frame_counts_come_with_the_sync(cooperative, monkeypatch):
     if cooperative:  # fresh recorded launches, so that every kernel runs in blocks of 256 fibers
         monkeypatch.setattr(render, "launch", runtime.Launches())
         monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
-    scene = random_scene(1, n=700)
+    n = 2 * 256 * project.STATS_ROWS + 700  # three blocks, the last one's threads counting fewer rows
+    scene = random_scene(1, n=n)
     names = ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales", "viewmat", "K")
     _, _, meta = tomgs.rasterize(*(scene[k].float() for k in names), scene["width"], scene["height"], scene["t"])
     assert isinstance(meta["n_visible"], int) and isinstance(meta["n_alive"], int)
-    assert meta["n_visible"] == int((meta["radii"] > 0).any(-1).sum()) > 256
+    assert meta["n_visible"] == int((meta["radii"] > 0).any(-1).sum()) > 256 * project.STATS_ROWS
     assert meta["n_alive"] == int((meta["opacities_t"] >= ALPHA_MIN).sum())
-    assert 0 < meta["n_visible"] < meta["n_alive"] < 700
+    assert 0 < meta["n_visible"] < meta["n_alive"] < n
 
 
 # ---- tile keys written before the host sync, into buffers of a bound kept between frames ----------

@@ -41,14 +41,21 @@ from tomgs.errors import RenderError
 from tomgs.inputs import prepare_inputs
 from tomgs.kernels import project
 from tomgs import render
-from tomgs.render import FrameCounts, _check_scalars, _Frame, issue_frame
+from tomgs.render import FrameCounts, _check_scalars, _check_time, _Frame, issue_frame
 from tomgs.runtime import launch, scope, torch_stream, warp_device, wrap
 
 
-def _use_count(tensor: torch.Tensor) -> int | None:
-    """References to `tensor`'s storage (tensors viewing it), or None where torch does not say."""
+def _storage_of(tensor: torch.Tensor) -> int:
+    """The address of `tensor`'s storage, for `_use_count`: read once, when the tensor is captured (a
+    storage object costs a GPU machine's host microseconds to build, at every check of every frame)."""
+    return tensor.untyped_storage()._cdata
+
+
+def _use_count(storage: int) -> int | None:
+    """References to the storage at `storage` (`_storage_of` a tensor that keeps it alive: tensors viewing
+    it), or None where torch does not say."""
     count = getattr(torch._C, "_storage_Use_Count", None)  # private to torch: checked, not relied on
-    return None if count is None else count(tensor.untyped_storage()._cdata)
+    return None if count is None else count(storage)
 
 
 class FrameGraph:
@@ -78,12 +85,14 @@ class FrameGraph:
             self._frame = _Frame(p.width, p.height, 0.0, 0.0, p.near, p.far, wp_device, times=wrap(self._times))
         self._set_args = [wrap(self._viewmat, wp.mat44), wrap(self._K, wp.mat33), wrap(self._times)]
         self._params = [(name, tensor) for name, tensor in self.cloud.items() if tensor.requires_grad]
+        self._param_tensors = tuple(tensor for _, tensor in self._params)
         self._storage = self._storage_of_cloud()  # what the frames read: checked at every call
         self._captured = device.type == "cuda"
         self.capacity = 0  # the tile keys a frame holds (0: none captured yet)
         self._graphs = None  # (forward, backward or None) once captured
         self._outputs = None  # (image, alpha, flags) of the captured forward, or of the last frame on a CPU
-        self._output_refs = ()  # references to the image's and alpha's memory while nothing else holds them
+        # (storage, references to it while nothing else holds it) of the captured image and alpha
+        self._output_refs = ()
         self._grads = None  # the captured backward's gradients, one per param (None: unused)
         self._handed_out = False  # a backward handed them out since `_release_grads` last found them free
         self._v = None  # (v_image, v_alpha): where the backward reads its incoming gradients
@@ -96,7 +105,7 @@ class FrameGraph:
         """(image [H,W,3], alpha [H,W,1], counts) of the cloud seen by `viewmat` [4,4] and `K` [3,3] at
         time t, as `rasterize` gives them (differentiable in the cloud's tensors that require grad);
         counts a tomgs.render.FrameCounts: read it (after the backward) before trusting the image."""
-        t_hi, t_lo = _check_scalars(self.width, self.height, t, self.near, self.far)
+        t_hi, t_lo = _check_time(t)  # the size and planes were checked when it was made
         viewmat, K = self._camera(viewmat, "viewmat", (4, 4)), self._camera(K, "K", (3, 3))
         storage = self._storage_of_cloud()
         if storage != self._storage:
@@ -112,7 +121,7 @@ class FrameGraph:
         with scope(self.device) as wp_device:
             frame = [wrap(viewmat, wp.mat44), wrap(K, wp.mat33), t_hi, t_lo, *self._set_args]  # set_frame's
             self._fit_capacity(wp_device, frame)
-            image, alpha = _Replayed.apply(self, wp_device, frame, *(tensor for _, tensor in self._params))
+            image, alpha = _Replayed.apply(self, wp_device, frame, *self._param_tensors)
         if image.grad_fn is not None:
             self._in_flight = weakref.ref(image.grad_fn)
         if self._captured:
@@ -126,9 +135,11 @@ class FrameGraph:
 
     def _camera(self, value, name: str, shape: tuple) -> torch.Tensor:
         """A camera tensor as set_frame reads it: float32, contiguous, on the cloud's device."""
-        if not isinstance(value, torch.Tensor) or tuple(value.shape) != shape or not value.is_floating_point():
+        if not isinstance(value, torch.Tensor) or value.shape != shape or not value.is_floating_point():
             got = f"{tuple(value.shape)} {value.dtype}" if isinstance(value, torch.Tensor) else type(value).__name__
             raise RenderError(f"{name} must be a floating-point tensor of shape {shape}, got {got}")
+        if value.dtype == torch.float32 and value.device == self.device and value.is_contiguous():
+            return value  # as a training loop passes it: `.to` and `.contiguous` would each cost host time
         return value.to(self.device, torch.float32).contiguous()
 
     def _fit_capacity(self, wp_device: str, frame: list) -> None:
@@ -180,6 +191,7 @@ class FrameGraph:
         graph's, `_known_to_warp`)."""
         # the last capture's memory goes back first (what a caller holds of it, the new graph never writes)
         self._graphs = self._outputs = self._grads = self._v = None
+        self._output_refs = ()  # their storages may go with them
         self._handed_out = False
         self._handed = ()
         self._p = None
@@ -205,7 +217,7 @@ class FrameGraph:
         with _no_collection(), torch.enable_grad(), torch.cuda.graph(forward, pool=pool, stream=side), \
                 _known_to_warp(self.device):
             self._outputs = self._issue()
-        self._output_refs = [_use_count(x) for x in self._outputs[:2]]
+        self._output_refs = [(storage, _use_count(storage)) for storage in map(_storage_of, self._outputs[:2])]
         backward = None
         if self._params:
             backward = torch.cuda.CUDAGraph()
@@ -214,7 +226,8 @@ class FrameGraph:
                 # (dead by then) may lie: written before each backward replay, as an eager frame's are
                 self._v = (torch.empty(h, w, 3, device=self.device), torch.empty(h, w, 1, device=self.device))
                 self._grads = self._backward_of(self._outputs, self._v)
-            self._grad_refs = [None if g is None else _use_count(g) for g in self._grads]
+            storages = [None if g is None else _storage_of(g) for g in self._grads]
+            self._grad_refs = [None if storage is None else (storage, _use_count(storage)) for storage in storages]
         self._graphs = (forward, backward)
 
     def _run_forward(self, wp_device: str, frame: list) -> tuple[torch.Tensor, torch.Tensor]:
@@ -246,16 +259,15 @@ class FrameGraph:
     def _release_outputs(self) -> None:
         """Before the forward writes the image and alpha again: those handed out and still held get
         memory of their own; a view of them still held raises RenderError."""
-        for name, static, refs, handed in zip(("image", "alpha"), self._outputs or (), self._output_refs,
-                                              self._handed):
-            count = _use_count(static)
+        for name, (storage, refs), handed in zip(("image", "alpha"), self._output_refs, self._handed):
+            count = _use_count(storage)
             if count is not None and count <= refs:
                 continue
             held = handed()
             if held is not None:  # the caller's tensor takes a copy: what it reads stays what it was
                 held.data = held.data.clone()
                 del held
-                count = _use_count(static)
+                count = _use_count(storage)
             if count is not None and count > refs:
                 raise RenderError(f"a view of the last frame's {name} is still held: clone what you keep of a "
                                   "FrameGraph's images before its next frame")
@@ -266,15 +278,18 @@ class FrameGraph:
         copy; anything else holding them raises RenderError (a frame's gradients are the graph's)."""
         if not self._handed_out:
             return
-        for (name, tensor), grad, refs in zip(self._params, self._grads, self._grad_refs):
-            count = None if grad is None else _use_count(grad)
-            if grad is None or count is not None and count <= refs:
+        for (name, tensor), grad, watched in zip(self._params, self._grads, self._grad_refs):
+            if grad is None:
+                continue
+            storage, refs = watched
+            count = _use_count(storage)
+            if count is not None and count <= refs:
                 continue
             held = tensor.grad
             if held is not None and held.data_ptr() == grad.data_ptr():
                 tensor.grad = held.clone()
                 del held
-                count = _use_count(grad)
+                count = _use_count(storage)
             if count is not None and count > refs:
                 raise RenderError(f"the last frame's gradient of {name} is still held outside its .grad: clone what "
                                   "you keep of a FrameGraph's gradients before its next frame")

@@ -35,14 +35,7 @@ def _check_scalars(width, height, t, near, far) -> tuple[float, float]:
         ok = isinstance(value, (int, float)) and not isinstance(value, bool) or hasattr(value, "__index__")
         if not ok or not math.isfinite(value) or value != int(value) or value < 1:
             raise RenderError(f"{name} must be a positive integer, got {value!r}")
-    try:
-        t = float(t)
-        t_hi = struct.unpack("f", struct.pack("f", t))[0]  # OverflowError beyond float32
-    except (TypeError, ValueError, OverflowError):
-        raise RenderError(f"t must be a finite time within float32's range, got {t!r}") from None
-    if not math.isfinite(t_hi):
-        raise RenderError(f"t must be a finite time within float32's range, got {t!r}")
-    t_lo = struct.unpack("f", struct.pack("f", t - t_hi))[0]
+    t_hi, t_lo = _check_time(t)
     for name, value in (("near", near), ("far", far)):
         try:
             value = float(value)
@@ -51,6 +44,19 @@ def _check_scalars(width, height, t, near, far) -> tuple[float, float]:
         if math.isnan(value) or (name == "near" and not math.isfinite(value)):
             raise RenderError(f"need 0 < near < far (near finite, far may be inf), got near={near}, far={far}")
     return t_hi, t_lo
+
+
+def _check_time(t) -> tuple[float, float]:
+    """t as float32 (t_hi, t_lo), t_hi + t_lo = t to ~48 bits; RenderError for a time that is not a finite
+    number within float32's range."""
+    try:
+        t = float(t)
+        t_hi = struct.unpack("f", struct.pack("f", t))[0]  # OverflowError beyond float32
+    except (TypeError, ValueError, OverflowError):
+        raise RenderError(f"t must be a finite time within float32's range, got {t!r}") from None
+    if not math.isfinite(t_hi):
+        raise RenderError(f"t must be a finite time within float32's range, got {t!r}")
+    return t_hi, struct.unpack("f", struct.pack("f", t - t_hi))[0]
 
 
 def _first_bad(name: str, rule: str, bad: torch.Tensor, values: torch.Tensor) -> str:
@@ -468,8 +474,9 @@ def _project_frame(p: RasterInputs, frame: _Frame, wrapped: dict):
                              flags, frame, wrapped, p.rows, lists)
     ends = torch.cumsum(outputs[-1], 0, dtype=torch.int64)  # [N] inclusive scan of tiles touched
     has_bg = p.background is not None
-    launch(project.frame_stats, whole_blocks(n), device=frame.device, args=[
-        wrapped["tiles_touched"], wrapped["opacities_t"], wrap(ends), n, wrapped["viewmat"], wrapped["K"],
+    threads = whole_blocks(-(-n // project.STATS_ROWS))
+    launch(project.frame_stats, threads, device=frame.device, args=[
+        wrapped["tiles_touched"], wrapped["opacities_t"], wrap(ends), n, threads, wrapped["viewmat"], wrapped["K"],
         wrap(p.background, wp.vec3) if has_bg else NO_ARRAY, int(has_bg), wrap(flags)])
     return outputs, ends, flags, lists
 

@@ -605,12 +605,18 @@ def check_camera(
         flags[FLAG_BACKGROUND] = wp.int64(1)
 
 
+# rows each thread of frame_stats counts, a launch apart: a sixteenth of the blocks one would need
+# with a row a thread, and so of the atomics they add to the same two counters (which serialise)
+STATS_ROWS = 16
+
+
 @wp.kernel
 def frame_stats(
     tiles_touched: wp.array(dtype=wp.int32),  # [N]
     opacities_t: wp.array(dtype=float),  # [N]
     ends: wp.array(dtype=wp.int64),  # [N] inclusive scan of tiles touched
     n: int,
+    threads: int,  # the launch's size: whole blocks, about N / STATS_ROWS, at least one block
     viewmats: wp.array(dtype=wp.mat44),  # [1]
     Ks: wp.array(dtype=wp.mat33),  # [1]
     background: wp.array(dtype=wp.vec3),  # [1], read when has_background
@@ -618,16 +624,16 @@ def frame_stats(
     flags: wp.array(dtype=wp.int64),  # [NUM_FLAGS] zeroed before projection; counts added, the rest set here
 ):
     # gathers what the host reads back in one transfer: the intersection count, the camera's flags
-    # and the visible and alive counts. Launched over N rounded up to whole blocks (at least one
-    # thread): every thread reaches the block sums, one per block adds them (no return before).
+    # and the visible and alive counts. Every thread reaches the block sums, one per block adds them
+    # (no return before).
     i = wp.tid()
     visible = int(0)
     alive = int(0)
-    if i < n:
-        if tiles_touched[i] != 0:
-            visible = 1
-        if opacities_t[i] >= ALPHA_MIN:
-            alive = 1
+    for row in range(i, n, threads):  # consecutive threads, consecutive rows: coalesced
+        if tiles_touched[row] != 0:
+            visible += 1
+        if opacities_t[row] >= ALPHA_MIN:
+            alive += 1
     block_visible = wp.tile_extract(wp.tile_sum(wp.tile(visible)), 0)
     block_alive = wp.tile_extract(wp.tile_sum(wp.tile(alive)), 0)
     if i % wp.block_dim() == 0:
