@@ -386,8 +386,9 @@ def test_an_unfinished_sequence_leaves_gradients_on():
 @pytest.fixture(params=["one_thread_blocks", "cooperative_blocks"])
 def batched_on_cpu(request, monkeypatch):
     """Composite with the batched kernel pair on the CPU, in blocks of one thread (Warp's CPU model:
-    each thread stages whole batches itself) or of 256 cooperative fibers (`enable_cpu_blocks`:
-    barriers, shared batches and block reductions as on a GPU, so a missing barrier shows)."""
+    each thread stages whole batches itself) or of cooperative fibers, 256 forward and 128 backward
+    (`enable_cpu_blocks`: barriers, shared batches and block reductions as on a GPU, so a missing
+    barrier shows)."""
     from tomgs.render import _Rasterize
 
     if request.param == "cooperative_blocks":
@@ -423,7 +424,9 @@ def covering_scene(seed: int, n: int, width: int, height: int, opacity: tuple[fl
 
 def assert_batched_matches(scene: dict) -> dict:
     """The batched pair against the float64 reference (values and gradients, the usual tolerances)
-    and against the per-pixel pair: the same arithmetic per pixel, so the same image to 1e-6."""
+    and against the per-pixel pair: the same arithmetic per pixel, so the same image to 1e-6, and the
+    same gradients to float32 sums taken in another order (the batched backward adds a thread's two
+    pixels before its atomics): 1e-4, ten times inside the oracle's tolerance."""
     from tomgs.render import _Rasterize
 
     meta = assert_matches_reference(scene, "cpu")
@@ -439,7 +442,7 @@ def assert_batched_matches(scene: dict) -> dict:
     grads = torch.autograd.grad((image * w).sum() + alpha.sum(), ins[:5])
     pp_grads = torch.autograd.grad((pp_image * w).sum() + pp_alpha.sum(), pp_ins[:5])
     for name, grad, pp_grad in zip(INPUT_NAMES, grads, pp_grads):
-        assert rel_l2(grad, pp_grad) <= 1e-5, (name, rel_l2(grad, pp_grad))
+        assert rel_l2(grad, pp_grad) <= 1e-4, (name, rel_l2(grad, pp_grad))
     return meta
 
 

@@ -405,13 +405,17 @@ class _Rasterize(torch.autograd.Function):
 
     @staticmethod
     def _kernels(device: torch.device) -> tuple:
-        """(forward kernel, backward kernel, block width) for a frame on `device`."""
+        """(forward, backward) for a frame on `device`, each (kernel, threads a tile, block width)."""
+        pixels = TILE_SIZE * TILE_SIZE
         if not (device.type == "cuda" if _Rasterize.batched is None else _Rasterize.batched):
-            return raster.raster_forward, raster.raster_backward, TILE_SIZE * TILE_SIZE
+            return (raster.raster_forward, pixels, pixels), (raster.raster_backward, pixels, pixels)
         # a CPU block is one thread unless Warp runs cooperative blocks (wp.config.enable_cpu_blocks);
-        # the width is passed as it will run, so each width gets its own recorded launch
-        block = TILE_SIZE * TILE_SIZE if device.type == "cuda" or wp.config.enable_cpu_blocks else 1
-        return raster_batched.raster_forward_batched, raster_batched.raster_backward_batched, block
+        # the width is passed as it will run, so each width gets its own recorded launch. The batched
+        # backward runs a thread per two pixels.
+        blocks = device.type == "cuda" or wp.config.enable_cpu_blocks
+        pairs = raster_batched.PAIR_THREADS
+        return ((raster_batched.raster_forward_batched, pixels, pixels if blocks else 1),
+                (raster_batched.raster_backward_batched, pairs, pairs if blocks else 1))
 
     @staticmethod
     def forward(ctx, means2d, conics, opacities_t, colors, ranges, ids, frame: _Frame, wrapped: dict, image: _Image):
@@ -426,12 +430,12 @@ class _Rasterize(torch.autograd.Function):
             ctx.tile_order = tile_order  # alive while the backward's launch reads it
         shared = [wrapped["ranges"], wrapped["ids"], wrapped["means2d"], wrapped["conics"], wrapped["opacities_t"],
                   wrapped["colors"], frame.width, frame.height, frame.tiles_x, order]
-        kernels = _Rasterize._kernels(means2d.device)
-        launch(kernels[0], frame.num_tiles * TILE_SIZE * TILE_SIZE, device=frame.device, block_dim=kernels[2],
+        forward_kernel, ctx.backward_kernel = _Rasterize._kernels(means2d.device)  # the backward: the pair's
+        kernel, per_tile, block = forward_kernel
+        launch(kernel, frame.num_tiles * per_tile, device=frame.device, block_dim=block,
                args=[*shared, image.color_d, *image.state])
         ctx.frame = frame
         ctx.descriptors = (shared, image.state)
-        ctx.kernels = kernels  # the backward of the pair that ran
         ctx.save_for_backward(means2d, conics, opacities_t, colors, ranges, ids, image.trans, image.end)
         ctx.set_materialize_grads(False)  # an unused image or alpha passes None, not a zero-filled tensor
         return image.color, image.trans
@@ -441,7 +445,7 @@ class _Rasterize(torch.autograd.Function):
         means2d, _, _, colors, _, _, trans, _ = ctx.saved_tensors
         frame = ctx.frame
         shared, state = ctx.descriptors
-        _, backward_kernel, block = ctx.kernels
+        kernel, per_tile, block = ctx.backward_kernel
         n = means2d.shape[0]
         # accumulated by atomics, so zeroed: the projection's three in one fill (read by its backward
         # only), the colours' alone, so that a leaf's .grad takes it without a copy
@@ -452,7 +456,7 @@ class _Rasterize(torch.autograd.Function):
         v_color = indexable(v_color, trans, frame.height, frame.width, 3)
         v_trans = indexable(v_trans, trans)
         with scope(means2d.device) as wp_device:
-            launch(backward_kernel, frame.num_tiles * TILE_SIZE * TILE_SIZE, device=wp_device, block_dim=block,
+            launch(kernel, frame.num_tiles * per_tile, device=wp_device, block_dim=block,
                    args=[*shared, *state, wrap(v_color, wp.vec3), wrap(v_trans, ndim=2),
                          wrap(v_means2d, wp.vec2), wrap(v_conics, wp.vec3), wrap(v_opacities_t),
                          wrap(v_colors, wp.vec3)])

@@ -9,17 +9,23 @@ with broadcast reads from shared memory. The per-pixel kernels instead load ever
 thread (through L1), which made them issue bound. Per pixel the arithmetic and its order are those
 of raster.py, so both pairs give the same image to rounding.
 
-Block width: 256 on CUDA; on the CPU Warp runs a block of width 1 (every thread alone: it stages
-the whole batch itself, which gives exactly the per-pixel result), or of 256 cooperative fibers
-with `wp.config.enable_cpu_blocks` (real block semantics: barriers and reductions, for tests).
-Launch 1D over num_tiles * 256 threads with block_dim 256 (or 1), so block b is tile b, or tile_order[b]
-when the caller orders the tiles (`raster.ordered`: on CUDA the longest lists first).
+The backward runs a thread per two pixels of a tile, one above the other (`paired_pixels`): a block of
+128, each warp a 16x4 patch, so the nine gradient terms of an entry are summed in the thread over its
+two pixels, then over the warp's lanes once for 64 pixels (the lane sums and the per-entry work shared
+by two pixels were most of its issued instructions; ncu, session 30).
+
+Block width: 256 (forward) and 128 (backward) on CUDA; on the CPU Warp runs a block of width 1 (every
+thread alone: it stages the whole batch itself, which gives exactly the per-pixel result), or of 256 /
+128 cooperative fibers with `wp.config.enable_cpu_blocks` (real block semantics: barriers and
+reductions, for tests). The forward launches 1D over num_tiles * 256 threads, the backward over
+num_tiles * 128, so block b is tile b, or tile_order[b] when the caller orders the tiles
+(`raster.ordered`: on CUDA the longest lists first).
 """
 
 import warp as wp
 
 from tomgs.kernels.lanes import lane_index, lanes_any, lanes_max, lanes_sum, lanes_sum_vec2, lanes_sum_vec3
-from tomgs.kernels.raster import (ALPHA_MAX, ALPHA_MIN, POWER_SKIP, T_MIN, TILE_PIXELS, gaussian_power,
+from tomgs.kernels.raster import (ALPHA_MAX, ALPHA_MIN, POWER_SKIP, T_MIN, TILE, TILE_PIXELS, gaussian_power,
                                   ordered, pixel_backward_state, pixel_of, unblend)
 
 # fast math as in raster.py (the same per-pixel arithmetic, issue bound on the GPU)
@@ -114,6 +120,35 @@ def raster_forward_batched(
         out_end[y, x] = last
 
 
+# the backward's block: a thread per two pixels of its tile, one above the other, so that a warp (a 16x4
+# patch) sums the nine gradient terms of an entry over 64 pixels with one set of lane sums
+PAIR_THREADS = wp.constant(TILE_PIXELS // 2)
+
+
+@wp.func
+def paired_pixels(tid: int, tiles_x: int, tile_order: wp.array(dtype=wp.int32)) -> wp.vec4i:
+    """(tile, x, y, y + 1): the pixels of thread `tid` of raster_backward_batched. Block b composites tile
+    tile_order[b] (b when `tile_order` is empty); its thread l takes column l % TILE, rows 2 (l // TILE)
+    and the one below."""
+    block = tid // PAIR_THREADS
+    local = tid - block * PAIR_THREADS
+    tile = block
+    if tile_order.shape[0] != 0:
+        tile = tile_order[block]
+    ty = tile // tiles_x
+    tx = tile - ty * tiles_x
+    y = ty * TILE + 2 * (local // TILE)
+    return wp.vec4i(tile, tx * TILE + local % TILE, y, y + 1)
+
+
+@wp.func
+def entry_alpha(record: wp.vec3, conic: wp.vec3, pixel: wp.vec2) -> wp.vec3:
+    """(alpha clamped, raw alpha o exp(-power), falloff exp(-power)) of a staged entry at `pixel`."""
+    falloff = wp.exp(-gaussian_power(wp.vec2(record[0], record[1]), conic, pixel))
+    raw_alpha = record[2] * falloff
+    return wp.vec3(wp.min(ALPHA_MAX, raw_alpha), raw_alpha, falloff)
+
+
 @wp.kernel
 def raster_backward_batched(
     ranges: wp.array2d(dtype=wp.int32),  # [tiles, 2]
@@ -135,18 +170,23 @@ def raster_backward_batched(
     v_opacities_t: wp.array(dtype=float),  # out [N], accumulated
     v_colors: wp.array(dtype=wp.vec3),  # out [N], accumulated
 ):
+    # Launched over num_tiles * PAIR_THREADS threads: a thread walks two pixels (`paired_pixels`), each
+    # with the arithmetic of raster.py's per-pixel backward, and adds their terms before the lane sums.
     # The block walks back from its largest `end` in batches, every thread through every batch (no
     # early return: barriers and the warp-lane sums before the atomics need all threads).
     tid = wp.tid()
-    tile_xy = pixel_of(ordered(tid, tile_order), tiles_x)
-    tile = tile_xy[0]
-    x = tile_xy[1]
-    y = tile_xy[2]
-    pixel = wp.vec2(float(x) + 0.5, float(y) + 0.5)
+    pixels = paired_pixels(tid, tiles_x, tile_order)
+    tile = pixels[0]
+    x = pixels[1]
+    pixel0 = wp.vec2(float(x) + 0.5, float(pixels[2]) + 0.5)
+    pixel1 = wp.vec2(float(x) + 0.5, float(pixels[3]) + 0.5)
     rank = tid % block_width()
     start = ranges[tile, 0]
-    end, final_trans, dc, dt_final = pixel_backward_state(out_trans, out_end, v_color, v_trans, x, y, width, height,
-                                                          start)
+    end0, trans0, dc0, dt_final0 = pixel_backward_state(out_trans, out_end, v_color, v_trans, x, pixels[2], width,
+                                                        height, start)
+    end1, trans1, dc1, dt_final1 = pixel_backward_state(out_trans, out_end, v_color, v_trans, x, pixels[3], width,
+                                                        height, start)
+    end = wp.max(end0, end1)
     block_end = wp.tile_extract(wp.tile_max(wp.tile(end)), 0)
     # two batches of records, used in turn: a thread staging batch b + 1 into one half has passed
     # the barrier of batch b's staging, which every thread reaches only after it has read batch
@@ -155,15 +195,15 @@ def raster_backward_batched(
     xy_opacity = wp.tile_empty(shape=(2, TILE_PIXELS), dtype=wp.vec3, storage="shared")
     conic_batch = wp.tile_empty(shape=(2, TILE_PIXELS), dtype=wp.vec3, storage="shared")
     color_batch = wp.tile_empty(shape=(2, TILE_PIXELS), dtype=wp.vec3, storage="shared")
-    trans = final_trans
-    behind = wp.vec3(0.0)  # colour composited behind the current Gaussian, already weighted
+    behind0 = wp.vec3(0.0)  # colour composited behind the current Gaussian, already weighted
+    behind1 = wp.vec3(0.0)
     lead = lane_index() == 0
     warp_end = lanes_max(end)  # no pixel of this warp composited an entry at or past it
     half = int(0)
     for batch_end in range(block_end, start, -TILE_PIXELS):
         count = wp.min(TILE_PIXELS, batch_end - start)
         # slot s holds list entry batch_end - 1 - s: the batch is stored back to front
-        for slot in range(rank, TILE_PIXELS, block_width()):
+        for slot in range(rank, TILE_PIXELS, block_width()):  # two passes on CUDA
             has = slot < count
             g, record, conic, c = list_record(gaussian_ids, means2d, conics, opacities_t, colors, batch_end - 1 - slot,
                                               has)
@@ -175,21 +215,29 @@ def raster_backward_batched(
         for j in range(wp.max(0, batch_end - warp_end), count):
             k = batch_end - 1 - j
             record = wp.tile_extract(xy_opacity, half, j)
-            center = wp.vec2(record[0], record[1])
             conic = wp.tile_extract(conic_batch, half, j)
-            falloff = wp.exp(-gaussian_power(center, conic, pixel))
-            raw_alpha = record[2] * falloff
-            alpha = wp.min(ALPHA_MAX, raw_alpha)
-            used = k < end and alpha >= ALPHA_MIN
+            a0 = entry_alpha(record, conic, pixel0)
+            a1 = entry_alpha(record, conic, pixel1)
+            used0 = k < end0 and a0[0] >= ALPHA_MIN
+            used1 = k < end1 and a1[0] >= ALPHA_MIN
             v_col = wp.vec3(0.0)
             v_opac = float(0.0)
             v_conic = wp.vec3(0.0)
             v_mean = wp.vec2(0.0)
-            if used:
-                trans, behind, v_col, v_opac, v_conic, v_mean = unblend(
-                    alpha, raw_alpha, falloff, trans, behind, wp.tile_extract(color_batch, half, j), dc, dt_final,
-                    center, conic, pixel)
-            if lanes_any(used):
+            if used0 or used1:
+                center = wp.vec2(record[0], record[1])
+                c = wp.tile_extract(color_batch, half, j)
+                if used0:
+                    trans0, behind0, v_col, v_opac, v_conic, v_mean = unblend(
+                        a0[0], a0[1], a0[2], trans0, behind0, c, dc0, dt_final0, center, conic, pixel0)
+                if used1:
+                    trans1, behind1, col1, opac1, conic1, mean1 = unblend(
+                        a1[0], a1[1], a1[2], trans1, behind1, c, dc1, dt_final1, center, conic, pixel1)
+                    v_col += col1
+                    v_opac += opac1
+                    v_conic += conic1
+                    v_mean += mean1
+            if lanes_any(used0 or used1):
                 v_col = lanes_sum_vec3(v_col)
                 v_opac = lanes_sum(v_opac)
                 v_conic = lanes_sum_vec3(v_conic)
