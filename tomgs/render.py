@@ -430,8 +430,8 @@ class _Rasterize(torch.autograd.Function):
             ctx.tile_order = tile_order  # alive while the backward's launch reads it
         shared = [wrapped["ranges"], wrapped["ids"], wrapped["means2d"], wrapped["conics"], wrapped["opacities_t"],
                   wrapped["colors"], frame.width, frame.height, frame.tiles_x, order]
-        forward_kernel, ctx.backward_kernel = _Rasterize._kernels(means2d.device)  # the backward: the pair's
-        kernel, per_tile, block = forward_kernel
+        forward_launch, ctx.backward_launch = _Rasterize._kernels(means2d.device)  # the backward: the pair's
+        kernel, per_tile, block = forward_launch
         launch(kernel, frame.num_tiles * per_tile, device=frame.device, block_dim=block,
                args=[*shared, image.color_d, *image.state])
         ctx.frame = frame
@@ -445,7 +445,7 @@ class _Rasterize(torch.autograd.Function):
         means2d, _, _, colors, _, _, trans, _ = ctx.saved_tensors
         frame = ctx.frame
         shared, state = ctx.descriptors
-        kernel, per_tile, block = ctx.backward_kernel
+        kernel, per_tile, block = ctx.backward_launch
         n = means2d.shape[0]
         # accumulated by atomics, so zeroed: the projection's three in one fill (read by its backward
         # only), the colours' alone, so that a leaf's .grad takes it without a copy

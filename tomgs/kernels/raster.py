@@ -28,24 +28,36 @@ POWER_SKIP = wp.constant(math.log(1.0 / constants.ALPHA_MIN) + 1.0e-3)
 
 
 @wp.func
+def tile_origin(tile: int, tiles_x: int) -> wp.vec2i:
+    """(x, y) of the top-left pixel of tile `tile` (tiles numbered row by row, tiles_x to a row)."""
+    ty = tile // tiles_x
+    return wp.vec2i((tile - ty * tiles_x) * TILE, ty * TILE)
+
+
+@wp.func
 def pixel_of(tid: int, tiles_x: int) -> wp.vec3i:
     """(tile, x, y) of the pixel handled by thread `tid`."""
     tile = tid // TILE_PIXELS
     local = tid - tile * TILE_PIXELS
-    ty = tile // tiles_x
-    tx = tile - ty * tiles_x
-    return wp.vec3i(tile, tx * TILE + local % TILE, ty * TILE + local // TILE)
+    origin = tile_origin(tile, tiles_x)
+    return wp.vec3i(tile, origin[0] + local % TILE, origin[1] + local // TILE)
+
+
+@wp.func
+def block_tile(block: int, tile_order: wp.array(dtype=wp.int32)) -> int:
+    """The tile block `block` composites: tile_order[block] (the longest lists first, so that no long
+    tile starts last and runs alone), or the block's own number when `tile_order` is empty."""
+    if tile_order.shape[0] == 0:
+        return block
+    return tile_order[block]
 
 
 @wp.func
 def ordered(tid: int, tile_order: wp.array(dtype=wp.int32)) -> int:
-    """Thread `tid` of a launch whose block b composites tile tile_order[b] (the longest lists first,
-    so that no long tile starts last and runs alone), as the thread of that tile: the index
-    `pixel_of` takes. An empty `tile_order` keeps block b on tile b."""
-    if tile_order.shape[0] == 0:
-        return tid
+    """Thread `tid` of a launch of a block per tile (`block_tile`), as the thread of its tile: the
+    index `pixel_of` takes."""
     block = tid // TILE_PIXELS
-    return tile_order[block] * TILE_PIXELS + tid - block * TILE_PIXELS
+    return block_tile(block, tile_order) * TILE_PIXELS + tid - block * TILE_PIXELS
 
 
 @wp.func

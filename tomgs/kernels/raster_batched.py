@@ -25,8 +25,8 @@ num_tiles * 128, so block b is tile b, or tile_order[b] when the caller orders t
 import warp as wp
 
 from tomgs.kernels.lanes import lane_index, lanes_any, lanes_max, lanes_sum, lanes_sum_vec2, lanes_sum_vec3
-from tomgs.kernels.raster import (ALPHA_MAX, ALPHA_MIN, POWER_SKIP, T_MIN, TILE, TILE_PIXELS, gaussian_power,
-                                  ordered, pixel_backward_state, pixel_of, unblend)
+from tomgs.kernels.raster import (ALPHA_MAX, ALPHA_MIN, POWER_SKIP, T_MIN, TILE, TILE_PIXELS, block_tile,
+                                  gaussian_power, ordered, pixel_backward_state, pixel_of, tile_origin, unblend)
 
 # fast math as in raster.py (the same per-pixel arithmetic, issue bound on the GPU)
 wp.set_module_options({"enable_backward": False, "fast_math": True})
@@ -132,13 +132,10 @@ def paired_pixels(tid: int, tiles_x: int, tile_order: wp.array(dtype=wp.int32)) 
     and the one below."""
     block = tid // PAIR_THREADS
     local = tid - block * PAIR_THREADS
-    tile = block
-    if tile_order.shape[0] != 0:
-        tile = tile_order[block]
-    ty = tile // tiles_x
-    tx = tile - ty * tiles_x
-    y = ty * TILE + 2 * (local // TILE)
-    return wp.vec4i(tile, tx * TILE + local % TILE, y, y + 1)
+    tile = block_tile(block, tile_order)
+    origin = tile_origin(tile, tiles_x)
+    y = origin[1] + 2 * (local // TILE)
+    return wp.vec4i(tile, origin[0] + local % TILE, y, y + 1)
 
 
 @wp.func
