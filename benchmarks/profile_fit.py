@@ -87,7 +87,9 @@ def main() -> None:
     sync()
     wall = (time.perf_counter() - start) / args.iters * 1e3
     if args.fps and args.scene is not None:
-        print(f"render_sequence: {render_fps(args.scene, device):.1f} fps over {T} frames ({args.raster} kernels)")
+        fps = render_fps(args.scene, device)
+        print(f"render: {fps['fps']:.1f} fps kept, {fps['fps_call']:.1f} in whole calls, over {T} frames "
+              f"({args.raster} kernels)")
     if device.type != "cuda":
         print(f"wall {wall:.2f} ms per iteration (no kernel profile on {device})")
         return

@@ -206,6 +206,23 @@ def test_the_keys_shrink_with_the_bound(device, fresh_bounds):
 
 
 @pytest.mark.parametrize("device", DEVICES)
+def test_keys_made_not_to_shrink_only_grow(device, fresh_bounds):
+    """shrink_keys False (a clip renderer's): the capacity of a frame far above the others is kept once
+    the bound has fallen, and grows past a larger frame; it captures at those two changes only."""
+    cloud, _, frames, _ = cloud_on(device)
+    still = {name: tensor.detach() for name, tensor in cloud.items()}
+    graph = FrameGraph(**still, width=45, height=37, shrink_keys=False)
+    fresh_bounds.remember(graph._frame, 5_000)  # far above the frames' ~1000
+    for _ in range(render._Bounds.FRAMES + 1):
+        image, _, counts = graph(*frames[0])
+        assert not counts.overflowed
+    assert graph.capacity > 5_000 and fresh_bounds.capacity(graph._frame) < 2_000 and graph.captures == 1
+    fresh_bounds.remember(graph._frame, 20_000)
+    graph(*frames[0])
+    assert graph.capacity > 20_000 and graph.captures == 2
+
+
+@pytest.mark.parametrize("device", DEVICES)
 def test_a_graph_goes_with_its_last_reference(device, fresh_bounds):
     """A FrameGraph (its CUDA graphs and their memory) is freed when the last reference to it goes, not
     at a later garbage collection: one that destroys a graph while another is being captured spoils
@@ -281,3 +298,59 @@ def test_a_graph_on_a_second_gpu_captures_and_renders_there(fresh_bounds):
         assert_close(image, want, "cuda:1")
         for name in NAMES:
             assert_close(cloud[name].grad, twin[name].grad, "cuda:1", gradient=True)
+
+
+def rows_of(n: int, share: float, seed: int) -> torch.Tensor:
+    """Ascending int64 rows, about `share` of n, as an alive index lists them."""
+    g = torch.Generator().manual_seed(seed)
+    return torch.nonzero(torch.rand(n, generator=g) < share)[:, 0]
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_frames_of_rows_render_as_rasterize_of_those_rows(device, fresh_bounds):
+    """A graph made with rows_capacity renders each call's rows as `rasterize(rows=)` does: fewer rows
+    than the last call (the buffer's tail then holds the last call's, which must not be drawn), and
+    more than it holds (it captures again with room for them)."""
+    cloud, _, frames, background = cloud_on(device)
+    cloud = {name: tensor.detach() for name, tensor in cloud.items()}
+    n = cloud["means"].shape[0]
+    calls = [(frames[0], rows_of(n, 0.5, 1)), (frames[1], rows_of(n, 0.2, 2)), (frames[2], rows_of(n, 0.9, 3)),
+             (frames[0], rows_of(n, 0.05, 4))]
+    graph = FrameGraph(**cloud, width=45, height=37, background=background, rows_capacity=len(calls[0][1]))
+    for (viewmat, K, t), rows in calls:
+        image, alpha, counts = graph(viewmat, K, t, rows=rows.to(device))
+        want, want_alpha, meta = tomgs.rasterize(**cloud, viewmat=viewmat, K=K, width=45, height=37, t=t,
+                                                 background=background, rows=rows.to(device))
+        assert not counts.overflowed
+        assert counts.read() == {k: meta[k] for k in COUNTS} and meta["n_intersections"] > 0
+        assert_close(image, want, device)
+        assert_close(alpha, want_alpha, device)
+    assert graph.rows_capacity == len(calls[2][1])
+    # every row, and a row of its own: both as rasterize gives them
+    for rows in (torch.arange(n), torch.tensor([7])):
+        image, _, _ = graph(*frames[1], rows=rows.to(device))
+        want, _, _ = tomgs.rasterize(**cloud, viewmat=frames[1][0], K=frames[1][1], width=45, height=37,
+                                     t=frames[1][2], background=background, rows=rows.to(device))
+        assert_close(image, want, device)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_rows_a_graph_cannot_render_are_refused(device, fresh_bounds):
+    cloud, _, frames, _ = cloud_on(device)
+    with pytest.raises(RenderError, match="renders only"):
+        FrameGraph(**cloud, width=45, height=37, rows_capacity=10)  # the cloud requires grad
+    cloud = {name: tensor.detach() for name, tensor in cloud.items()}
+    with pytest.raises(RenderError, match="rows_capacity to pass rows"):
+        FrameGraph(**cloud, width=45, height=37)(*frames[0], rows=torch.arange(5, device=device))
+    graph = FrameGraph(**cloud, width=45, height=37, rows_capacity=10)
+    with pytest.raises(RenderError, match="pass the rows"):
+        graph(*frames[0])
+    with pytest.raises(RenderError, match="rows must be an integer tensor"):
+        graph(*frames[0], rows=torch.ones(3, device=device))
+    with pytest.raises(RenderError, match=r"rows must index the 400 Gaussians .*: 1 of 2 do not.* \(400\)"):
+        graph(*frames[0], rows=torch.tensor([3, 400], device=device))[2].read()  # N = 400
+    image, _, counts = graph(*frames[0], rows=torch.tensor([3, 5], device=device))  # and it renders on
+    want, _, _ = tomgs.rasterize(**cloud, viewmat=frames[0][0], K=frames[0][1], width=45, height=37, t=frames[0][2],
+                                 rows=torch.tensor([3, 5], device=device))
+    assert counts.read()["n_alive"] <= 2
+    assert_close(image, want, device)

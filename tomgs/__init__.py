@@ -14,6 +14,8 @@ __version__ = "0.1.0"
 _EXPORTS = {
     "rasterize": "tomgs.render",
     "FrameGraph": "tomgs.captured",
+    "ClipRenderer": "tomgs.sequence",
+    "render_sequence": "tomgs.sequence",
     "RenderError": "tomgs.errors",
     "rasterize_reference": "tomgs.reference",
     "eval_sh": "tomgs.sh",

@@ -73,6 +73,11 @@ class AliveIndex:
         return sum(t.numel() * t.element_size() for t in (self.ids, self.b_first, self.b_last, self.times))
 
     @property
+    def most_rows(self) -> int:
+        """The rows of the longest bucket: the most a frame renders."""
+        return max((b - a for a, b in zip(self.offsets[:-1], self.offsets[1:])), default=0)
+
+    @property
     def num_buckets(self) -> int:
         return len(self.offsets) - 1
 

@@ -18,6 +18,11 @@ and the capacity of the tile keys (tomgs.render's bound of recent frames of this
 camera and the time, written into device memory the graph reads (`project.set_frame`). The kernels are
 `rasterize`'s: the same image and gradients (bit for bit on a CPU).
 
+With `rows_capacity`, frames render the rows each call names (`rasterize(rows=)`: tomgs.alive's index
+rows), copied into a buffer of that many the graph reads, past their count padding it culls; a call
+naming more captures again with room for them. Such a graph renders only: its cloud takes no gradients.
+With `shrink_keys` False the keys' capacity only grows (see `_fit_capacity`).
+
 One frame at a time: a frame's backward runs before the next frame is rendered (a frame whose image
 takes gradients and is still held raises RenderError at the next call). A frame's image, alpha and
 gradients lie in the graph's memory (an eager frame's memory, without copies), so the next call
@@ -33,12 +38,13 @@ from __future__ import annotations
 import contextlib
 import gc
 import weakref
+from dataclasses import replace
 
 import torch
 import warp as wp
 
 from tomgs.errors import RenderError
-from tomgs.inputs import prepare_inputs
+from tomgs.inputs import _check_rows, prepare_inputs
 from tomgs.kernels import project
 from tomgs import render
 from tomgs.render import FrameCounts, _check_scalars, _check_time, _Frame, issue_frame
@@ -64,12 +70,19 @@ class FrameGraph:
     See the module docstring for what is fixed and what is shared."""
 
     def __init__(self, means, quats, scales, opacities, colors, t_means, t_scales, width: int, height: int, *,
-                 background: torch.Tensor | None = None, near: float = 0.01, far: float = 1e10):
+                 background: torch.Tensor | None = None, near: float = 0.01, far: float = 1e10, rows_capacity: int = 0,
+                 shrink_keys: bool = True):
         self.cloud = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
                           t_means=t_means, t_scales=t_scales)
         _check_scalars(width, height, 0.0, near, far)
         device = means.device if isinstance(means, torch.Tensor) else torch.device("cpu")
         f32 = dict(device=device, dtype=torch.float32)
+        if rows_capacity and any(isinstance(x, torch.Tensor) and x.requires_grad for x in self.cloud.values()):
+            raise RenderError("a FrameGraph that renders rows (rows_capacity) renders only: pass the cloud detached")
+        # the rows a frame renders (read in place by its kernels) and their count, set with its camera; the
+        # buffer's tail keeps rows of [0, N) (zeros, or an earlier frame's), which the kernels never read
+        self._rows = torch.zeros(int(rows_capacity), device=device, dtype=torch.int32) if rows_capacity > 0 else None
+        self._row_count = torch.zeros(1 if rows_capacity > 0 else 0, device=device, dtype=torch.int32)
         # where each call writes its camera and time (set_frame) and the frame reads them; a camera
         # to check the cloud against until the first call's is written
         self._viewmat, self._K, self._times = torch.eye(4, **f32), torch.eye(3, **f32), torch.zeros(2, **f32)
@@ -77,18 +90,21 @@ class FrameGraph:
         # what `_prepare` passes besides the leaves (kept apart from self: a graph holding a function of
         # itself would be freed by the garbage collector, at any time, not when its last reference goes)
         self._scalars = dict(width=width, height=height, t=0.0, background=background, near=near, far=far,
-                             dtype=torch.float32, fused_sh=True)
+                             dtype=torch.float32, fused_sh=True, rows=self._rows)
         p = self._prepare()  # RenderError now for a cloud outside the contract's shapes and types
         self.width, self.height, self.device = p.width, p.height, device
         self.near, self.far = p.near, p.far
         with scope(device) as wp_device:
-            self._frame = _Frame(p.width, p.height, 0.0, 0.0, p.near, p.far, wp_device, times=wrap(self._times))
+            self._frame = _Frame(p.width, p.height, 0.0, 0.0, p.near, p.far, wp_device, times=wrap(self._times),
+                                 row_count=wrap(self._row_count))
         self._set_args = [wrap(self._viewmat, wp.mat44), wrap(self._K, wp.mat33), wrap(self._times)]
         self._params = [(name, tensor) for name, tensor in self.cloud.items() if tensor.requires_grad]
         self._param_tensors = tuple(tensor for _, tensor in self._params)
         self._storage = self._storage_of_cloud()  # what the frames read: checked at every call
         self._captured = device.type == "cuda"
         self.capacity = 0  # the tile keys a frame holds (0: none captured yet)
+        self.captures = 0  # how many times it has taken a new capacity of keys or rows (captured, on a GPU)
+        self._shrink_keys = shrink_keys
         self._graphs = None  # (forward, backward or None) once captured
         self._outputs = None  # (image, alpha, flags) of the captured forward, or of the last frame on a CPU
         # (storage, references to it while nothing else holds it) of the captured image and alpha
@@ -101,12 +117,19 @@ class FrameGraph:
 
     # ---------------------------------------------------------------------------------------------- a frame
 
-    def __call__(self, viewmat: torch.Tensor, K: torch.Tensor, t: float):
+    @property
+    def rows_capacity(self) -> int:
+        """The rows a frame may render without a new capture (0: frames render the whole cloud)."""
+        return 0 if self._rows is None else len(self._rows)
+
+    def __call__(self, viewmat: torch.Tensor, K: torch.Tensor, t: float, rows: torch.Tensor | None = None):
         """(image [H,W,3], alpha [H,W,1], counts) of the cloud seen by `viewmat` [4,4] and `K` [3,3] at
         time t, as `rasterize` gives them (differentiable in the cloud's tensors that require grad);
-        counts a tomgs.render.FrameCounts: read it (after the backward) before trusting the image."""
+        counts a tomgs.render.FrameCounts: read it (after the backward) before trusting the image.
+        `rows` (int [M], made with rows_capacity, and then required): render those Gaussians only."""
         t_hi, t_lo = _check_time(t)  # the size and planes were checked when it was made
         viewmat, K = self._camera(viewmat, "viewmat", (4, 4)), self._camera(K, "K", (3, 3))
+        count = self._take_rows(rows)
         storage = self._storage_of_cloud()
         if storage != self._storage:
             changed = ", ".join(name for name, now, then in zip(self.cloud, storage, self._storage) if now != then)
@@ -119,19 +142,36 @@ class FrameGraph:
         self._release_outputs()
         self._release_grads()
         with scope(self.device) as wp_device:
-            frame = [wrap(viewmat, wp.mat44), wrap(K, wp.mat33), t_hi, t_lo, *self._set_args]  # set_frame's
-            self._fit_capacity(wp_device, frame)
+            frame = [wrap(viewmat, wp.mat44), wrap(K, wp.mat33), t_hi, t_lo, *self._set_args, count,
+                     self._frame.row_count]  # set_frame's
+            self._fit_capacity(wp_device, frame, count)
             image, alpha = _Replayed.apply(self, wp_device, frame, *self._param_tensors)
         if image.grad_fn is not None:
             self._in_flight = weakref.ref(image.grad_fn)
         if self._captured:
             self._handed = (weakref.ref(image), weakref.ref(alpha))
-        counts = FrameCounts(self._outputs[2], self._p, self._frame, self.capacity)
+        p = self._p if self._rows is None else replace(self._p, rows=self._rows[:count])  # its errors name these
+        counts = FrameCounts(self._outputs[2], p, self._frame, self.capacity)
         return image, alpha, counts
 
     def _storage_of_cloud(self) -> list[tuple]:
         """(address, shape, dtype) of each cloud tensor: in-place updates keep them, `.data =` does not."""
         return [(tensor.data_ptr(), tensor.shape, tensor.dtype) for tensor in self.cloud.values()]
+
+    def _take_rows(self, rows) -> int:
+        """`rows` copied into the buffer the frames read (grown, and captured again, to hold them): their count."""
+        if self._rows is None:
+            if rows is not None:
+                raise RenderError("this FrameGraph renders the whole cloud: make it with rows_capacity to pass rows")
+            return 0
+        if rows is None:
+            raise RenderError("this FrameGraph renders rows (made with rows_capacity): pass the rows of each frame")
+        rows = _check_rows(rows, self.device)
+        if len(rows) > len(self._rows):  # the capture reads the old buffer: capture again for the new one
+            self._rows = self._scalars["rows"] = torch.zeros(len(rows), device=self.device, dtype=torch.int32)
+            self.capacity = 0
+        self._rows[:len(rows)].copy_(rows)
+        return len(rows)
 
     def _camera(self, value, name: str, shape: tuple) -> torch.Tensor:
         """A camera tensor as set_frame reads it: float32, contiguous, on the cloud's device."""
@@ -142,31 +182,37 @@ class FrameGraph:
             return value  # as a training loop passes it: `.to` and `.contiguous` would each cost host time
         return value.to(self.device, torch.float32).contiguous()
 
-    def _fit_capacity(self, wp_device: str, frame: list) -> None:
+    def _fit_capacity(self, wp_device: str, frame: list, count: int) -> None:
         """The keys' capacity follows the bound of recent frames of this size (tomgs.render): taken at
         the first frame (which waits for its count where no frame of this size has been counted),
         grown to the bound once a recent frame was read past it (any frame, not only the last: a
         caller may read a frame's counts after issuing the next; not when only the bound's headroom
         passed it: frames whose totals spread would be captured again at each new spread), shrunk
-        once it holds more than 1/16 above the bound (the padded sort costs what the capacity holds);
+        once it holds more than 1/16 above the bound (the padded sort costs what the capacity holds), unless
+        made with shrink_keys False (a clip played again and again: its frames' totals rise and fall
+        along it, and a capacity that followed them captured camel's 90 frames 9 times in 6 passes);
         captured again at each change (two eager frames and the capture: 7-12 ms on an H100 at
-        854x480). `frame`: set_frame's arguments, for the frames run here."""
+        854x480). `frame`: set_frame's arguments, for the frames run here; `count`: the frame's rows."""
         bound = render._bounds.capacity(self._frame)
-        if self.capacity and render._bounds.largest(self._frame) <= self.capacity <= bound + bound // 16:
+        if self.capacity and render._bounds.largest(self._frame) <= self.capacity and (
+                not self._shrink_keys or self.capacity <= bound + bound // 16):
             return
         launch(project.set_frame, 1, device=wp_device, args=frame)
         if not bound:  # a first frame of this size: counted (the bound learns it)
             with torch.no_grad():
-                issue_frame(self._prepare(), self._frame, 0, wait=True)
+                issue_frame(self._prepare(count), self._frame, 0, wait=True)
         self.capacity = render._bounds.capacity(self._frame)
+        self.captures += 1
         if self._captured:
             with torch.cuda.device(self.device):  # torch.cuda.graph captures on the current device
                 self._capture()
 
     # ------------------------------------------------------------------------------- capture and replay
 
-    def _prepare(self):
-        return prepare_inputs(**self._leaves, viewmat=self._viewmat, K=self._K, **self._scalars)
+    def _prepare(self, count: int | None = None):
+        """The frame's inputs; with `count`, of the buffer's first `count` rows only (the rest is padding)."""
+        scalars = self._scalars if count is None or self._rows is None else dict(self._scalars, rows=self._rows[:count])
+        return prepare_inputs(**self._leaves, viewmat=self._viewmat, K=self._K, **scalars)
 
     def _issue(self):
         """The frame from the camera and time in device memory, issued: (image, alpha, flags)."""

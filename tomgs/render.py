@@ -16,7 +16,6 @@ from dataclasses import dataclass, field
 import torch
 import warp as wp
 
-from tomgs import alive
 from tomgs.constants import TILE_SIZE
 from tomgs.inputs import RasterInputs, RenderError, prepare_inputs
 from tomgs.kernels import binning, lanes, project, raster, raster_batched
@@ -104,6 +103,9 @@ class _Frame:
     # a descriptor of (t_hi, t_lo) float32 [2] in device memory, read in place of the two above (a frame
     # replayed from a CUDA graph, tomgs.captured); NO_ARRAY: the scalars hold t
     times: object = field(default=NO_ARRAY, compare=False)
+    # a descriptor of int32 [1] in device memory: a frame rendering rows renders only the first this many
+    # of them, the rest being padding (a replayed frame's fixed buffer of rows); NO_ARRAY: all of them
+    row_count: object = field(default=NO_ARRAY, compare=False)
 
     @property
     def tiles_x(self) -> int:
@@ -215,7 +217,7 @@ class _Project(torch.autograd.Function):
             *inputs, frame.width, frame.height, frame.t_hi, frame.t_lo, frame.times, frame.near, frame.far,
             frame.tiles_x, frame.tiles_y, wrapped["means2d"], wrapped["conics"], wrapped["depths"], wrapped["radii"],
             wrapped["opacities_t"], wrapped["tiles_touched"], wrap(flags), rows_d, int(rows is not None),
-            means.shape[0], *work_d,
+            frame.row_count, means.shape[0], *work_d,
         ])
         if work_d[0] > 1:
             launch(project.project_listed, lists.slots, device=frame.device, args=[
@@ -738,86 +740,11 @@ def resolve_device(name: str | None = "auto") -> torch.device:
     return device
 
 
-def render_sequence(gaussians, cameras, indices=None, *, background=None, device=None, to_cpu: bool = True,
-                    pipelined: bool | None = None, alive_index: bool | None = None):
-    """Yield (frame k, image [H,W,3] float32 in [0,1], meta) for frames `indices` of `cameras`.
+def __getattr__(name: str):
+    """`render_sequence` lives in tomgs.sequence (it replays captured frames, whose module imports this
+    one); `from tomgs.render import render_sequence` still finds it."""
+    if name == "render_sequence":
+        from tomgs.sequence import render_sequence
 
-    `gaussians`: mapping with means, quats, scales, opacities, colors (RGB or SH), t_means,
-    t_scales; or a callable k -> such a mapping, a per-frame cloud (an edit over time, a simulated
-    shot). `cameras`: a `tomgs.Cameras`; frame k renders at t = cameras.times[k]. No gradients.
-    With `alive_index` (None: where it pays, tomgs.alive.pays_for_sequence: on a CPU, and on a GPU
-    for a few tens of frames of one cloud) only the Gaussians that may be alive at a frame's time
-    are rendered (tomgs.alive: an index over the frames; `rasterize(rows=)` reads them in place), so
-    a long clip pays per frame for what lives in it; without it projection culls the dead. `meta`
-    describes what was rendered, meta['rows'] names it (int [M] Gaussian indices; None: all).
-    Images come back on the CPU unless `to_cpu` is False.
-
-    `pipelined` (None: on a GPU): a frame does not wait for its counts (`render_frame(defer=True)`); they
-    are read after the next frame has been issued, so the device renders while the host prepares
-    (a callable `gaussians` is then called for frame k+1 before frame k is yielded). A frame that
-    needed more intersections than recent ones is rendered again, waiting, before it is yielded.
-    """
-    names = ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales")
-    order = list(range(len(cameras)) if indices is None else indices)
-
-    def prepared(g: dict, times: list):
-        """(inputs on the device, their alive index over `times`, the device)."""
-        dev = torch.device(device) if device is not None else g["means"].device
-        g = {name: g[name].detach().to(dev) for name in names}
-        use = alive.pays_for_sequence(dev, len(times)) if alive_index is None else alive_index
-        index = alive.index_of(g["opacities"], g["t_means"], g["t_scales"], times) if use else None
-        return g, index, dev
-
-    static = None if callable(gaussians) or not order else prepared(gaussians, [cameras.times[k] for k in order])
-    per_device = {}  # cameras and background on each device a frame lands on (one, in practice)
-
-    def frame_inputs(dev):
-        if dev not in per_device:
-            bg = None if background is None else torch.as_tensor(background, dtype=torch.float32, device=dev)
-            per_device[dev] = (cameras.viewmats(dev), cameras.Ks(dev), bg)
-        return per_device[dev]
-
-    @torch.no_grad()  # inside a helper: a no_grad block around `yield` would leak into the caller
-    def issue(position: int, k: int, wait: bool = False) -> tuple:
-        """Frame k queued: (k, image, meta, its FrameCounts or None when they are in meta, an event
-        after the image's copy to the host or None, position)."""
-        t = float(cameras.times[k])
-        g, index, dev = static or prepared(gaussians(k), [t])
-        rows = None if index is None else index.rows(position if static else 0)
-        viewmats, Ks, bg = frame_inputs(dev)
-        defer = not wait and (dev.type == "cuda" if pipelined is None else pipelined)
-        image, _, meta, counts = render_frame(**g, viewmat=viewmats[k], K=Ks[k], width=cameras.width,
-                                              height=cameras.height, t=t, background=bg, rows=rows, defer=defer)
-        meta["rows"] = rows
-        image = image.clamp(0.0, 1.0)
-        copied = None
-        if to_cpu and image.is_cuda and counts is not None:  # queued behind the frame; waited for in `finish`
-            image = image.to("cpu", non_blocking=True)
-            copied = torch.cuda.Event()
-            copied.record()
-        elif to_cpu:
-            image = image.cpu()
-        return k, image, meta, counts, copied, position
-
-    def finish(issued: tuple) -> tuple:
-        k, image, meta, counts, copied, position = issued
-        if counts is not None:
-            if counts.overflowed:
-                return finish(issue(position, k, wait=True))
-            meta.update(counts.read())
-        if copied is not None:
-            copied.synchronize()
-        return k, image, meta
-
-    pending = None  # a frame issued but not read: yielded once the next one is issued
-    for position, k in enumerate(order):
-        issued = issue(position, k)
-        if pending is not None:
-            yield finish(pending)
-            pending = None
-        if issued[3] is None:
-            yield finish(issued)
-        else:
-            pending = issued
-    if pending is not None:
-        yield finish(pending)
+        return render_sequence
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

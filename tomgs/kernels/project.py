@@ -237,6 +237,8 @@ def project_forward(
     flags: wp.array(dtype=wp.int64),  # [NUM_FLAGS] zeroed by the caller; set to 1 on a contract violation
     rows: wp.array(dtype=wp.int32),  # [M] with has_rows: the Gaussians projected (the outputs are [M])
     has_rows: int,
+    row_count: wp.array(dtype=wp.int32),  # [1] with rows: only rows[:row_count[0]] are the frame's, the rest
+    #                                       padding, culled (a replayed frame's, tomgs.captured); or empty
     n: int,  # N, the Gaussians the inputs hold
     inline_lanes: int,  # a warp holding this many alive lanes runs their long path (INLINE_LANES; 1 on a CPU)
     capacity: int,  # slots of each work list (work_capacity)
@@ -255,10 +257,13 @@ def project_forward(
     conics[j] = wp.vec3(0.0, 0.0, 0.0)
     valid = True
     if has_rows != 0:
-        i = rows[j]
-        if i < 0 or i >= n:
-            flags[FLAG_ROWS] = wp.int64(1)
-            valid = False
+        if row_count.shape[0] > 0 and j >= row_count[0]:
+            valid = False  # padding: projected as a culled Gaussian, never read
+        else:
+            i = rows[j]
+            if i < 0 or i >= n:
+                flags[FLAG_ROWS] = wp.int64(1)
+                valid = False
     keep = False
     opac = float(0.0)
     p = wp.vec3(0.0)
@@ -656,9 +661,13 @@ def set_frame(
     viewmats: wp.array(dtype=wp.mat44),  # out [1]: where a replayed frame reads its camera
     Ks: wp.array(dtype=wp.mat33),  # out [1]
     times: wp.array(dtype=float),  # out [2]: and its time (`frame_time`)
+    count: int,  # the rows of the frame, for a frame that renders rows
+    row_count: wp.array(dtype=wp.int32),  # out [1]: where it reads their count (project_forward); or empty
 ):
-    # one thread: a replayed frame's camera and time in one launch (tomgs.captured)
+    # one thread: a replayed frame's camera, time and row count in one launch (tomgs.captured)
     viewmats[0] = viewmat[0]
     Ks[0] = K[0]
     times[0] = t_hi
     times[1] = t_lo
+    if row_count.shape[0] > 0:
+        row_count[0] = count
