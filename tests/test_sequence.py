@@ -102,3 +102,16 @@ def test_render_sequence_indexes_and_replays_where_it_pays(device):
     for (k, image, meta), (k2, image2, meta2) in zip(fixed, per_frame):
         assert k == k2 and meta["n_alive"] == meta2["n_alive"]
         assert_same_image(image, image2, device)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_frames_outside_the_index_render_every_gaussian(device, fresh_bounds):
+    """A renderer indexed over some frames renders the others from every Gaussian (rows None), through
+    its captured frame or not, as rasterize does."""
+    gaussians, cams, viewmat, K = short_lived_clip(device)
+    renderer = ClipRenderer(gaussians, cams, indexed=range(0, 20), alive_index=True, replay=True)
+    for k, image, meta in renderer.frames([3, 30, 5, 39], to_cpu=False):
+        full, _, _ = tomgs.rasterize(**gaussians, viewmat=viewmat, K=K, width=40, height=30, t=float(cams.times[k]))
+        assert_same_image(image, full.clamp(0, 1), device)
+        assert (meta["rows"] is None) == (k >= 20)
+    assert renderer.index.n == 300 and len(renderer.index.bucket_of) == 20

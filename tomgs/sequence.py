@@ -56,7 +56,7 @@ def render_sequence(gaussians, cameras, indices=None, *, background=None, device
     if not callable(gaussians):
         if order:
             renderer = ClipRenderer(gaussians, cameras, background=background, device=device,
-                                    alive_index=alive_index)
+                                    alive_index=alive_index, indexed=order)
             yield from renderer.frames(order, to_cpu=to_cpu, pipelined=pipelined)
         return
     views = {}  # cameras and background on each device a frame lands on (one, in practice)
@@ -82,8 +82,9 @@ def render_sequence(gaussians, cameras, indices=None, *, background=None, device
 
 class ClipRenderer:
     """A fixed cloud's frames along a clip's cameras, as often as asked (`frames`), keeping what makes
-    them cheap between calls: its alive index over the clip's frames (tomgs.alive), built at the first
-    call of enough frames to pay for it, and on a GPU its frame captured (tomgs.captured.FrameGraph,
+    them cheap between calls: its alive index over the clip's frames (tomgs.alive; `indexed`: over those
+    frames only, the others then render every Gaussian), built at the first call of enough frames to pay
+    for it, and on a GPU its frame captured (tomgs.captured.FrameGraph,
     rendering each frame's index rows through a buffer as long as the longest), made at the pipelined
     call that takes the frames it has rendered to REPLAY_FRAMES (`replay` True: at the first call, on a
     CPU too, where the frames are issued from Python all the same; False: never).
@@ -96,13 +97,15 @@ class ClipRenderer:
     """
 
     def __init__(self, gaussians, cameras, *, background=None, device=None, alive_index: bool | None = None,
-                 replay: bool | None = None):
+                 replay: bool | None = None, indexed=None):
         dev = torch.device(device) if device is not None else gaussians["means"].device
         self.gaussians = {name: gaussians[name].detach().to(dev) for name in NAMES}
         self.cameras, self.device = cameras, dev
         self.viewmats, self.Ks, self.background = _views(cameras, background, dev)
         self._alive_index, self._replay = alive_index, replay
-        self.index: alive.AliveIndex | None = None  # over every frame of the clip, once built
+        self.index: alive.AliveIndex | None = None  # over the frames `indexed`, once built
+        self._indexed = list(range(len(cameras)) if indexed is None else indexed)
+        self._position = {k: position for position, k in enumerate(self._indexed)}  # a frame's in the index
         self.graph = None  # the captured frame (tomgs.captured.FrameGraph), once made
         self.rendered = 0  # frames asked of it so far, this call's included
 
@@ -120,8 +123,8 @@ class ClipRenderer:
         @torch.no_grad()  # inside a helper: a no_grad block around `yield` would leak into the caller
         def issue(position: int, k: int, wait: bool) -> _Issued:
             t = float(cams.times[k])
-            rows = None if index is None else index.rows(k)
-            if graph is not None and not wait:
+            rows = None if index is None or k not in self._position else index.rows(self._position[k])
+            if graph is not None and not wait and (rows is not None or not graph.rows_capacity):
                 image, _, counts = graph(self.viewmats[k], self.Ks[k], t, rows=rows if graph.rows_capacity else None)
                 meta = {"rows": rows}
             else:  # issued from Python (a frame rendered again, waiting for its counts, included)
@@ -139,7 +142,8 @@ class ClipRenderer:
             return None
         if self.index is None and (self._alive_index or alive.pays_for_sequence(self.device, frames)):
             g = self.gaussians
-            self.index = alive.index_of(g["opacities"], g["t_means"], g["t_scales"], self.cameras.times)
+            times = [float(self.cameras.times[k]) for k in self._indexed]
+            self.index = alive.index_of(g["opacities"], g["t_means"], g["t_scales"], times)
         return self.index
 
     def _graph_for(self, pipelined: bool, index: alive.AliveIndex | None):
