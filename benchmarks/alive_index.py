@@ -7,9 +7,10 @@ of a fixed camera over noise frames).
     python benchmarks/alive_index.py --device cuda --gaussians 4000000 --size 854x480
 
 Prints per mode the training step (ms, steps/s), the frame rate of rasterize over every Gaussian
-against render_sequence with and without the index, pipelined or not, the rows a frame renders against those alive, and the index's
-rebuilds and size. Densification is off: the loop itself is measured. The modes take turns and the
-quickest turn of each counts, so a shared machine's load hits both alike.
+against render_sequence's frames issued from Python or replayed (render_speed.py), the rows a frame
+renders against those alive, and the index's rebuilds and size. Densification is off: the loop itself
+is measured. The modes take turns and the quickest turn of each counts, so a shared machine's load
+hits both alike.
 """
 
 from __future__ import annotations
@@ -108,10 +109,10 @@ def main() -> None:
                        index_mb=round(index.nbytes / 2**20, 1), rebuilds=trainer.alive.rebuilds)
         out[mode] = row
     # rendering, all frames: rasterize over every Gaussian, each frame waiting for its counts, against
-    # render_sequence with and without the index, pipelined (frames do not wait) or not
+    # render_sequence's frames (the index's rows) issued from Python or replayed, per call or kept (render_speed)
     inputs = {k: v.detach() for k, v in cloud(args.gaussians, args.alive, T, device, by_time=args.by_time)
               .render_inputs().items()}
-    best = fastest_turns(render_modes(inputs, cams, device), args.repeats, device)
+    best = fastest_turns(render_modes(inputs, cams, device)[0], args.repeats, device)
     out["render_fps"] = {mode: round(T / seconds, 1) for mode, seconds in best.items()}
     print(json.dumps(out, indent=1))
 
