@@ -23,7 +23,8 @@ from unittest import mock
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_raster import camera, make_scene, parse_count, parse_size, t_values, temporal_scales  # noqa: E402
+from bench_raster import parse_count, parse_size, t_values  # noqa: E402
+from profile_raster import scene_step  # noqa: E402
 
 from tomgs import captured  # noqa: E402
 from tomgs.captured import FrameGraph  # noqa: E402
@@ -69,12 +70,9 @@ def frame_parts(size: str, n: int, variant: str, iters: int, host: bool) -> dict
     node was entered (`host_to_node`) and, in the forward, until FrameGraph's checks were done."""
     width, height = parse_size(size)
     dev = torch.device("cuda")
-    P = make_scene(n, 0, dev)
-    P["t_scales"] = (temporal_scales(P["opacities"], 0.1) if variant == "temporal"
-                     else torch.full((n,), 1e3, device=dev))
-    for v in P.values():
-        v.requires_grad_(True)
-    viewmat, K = camera(width, height, dev)
+    _, scene = scene_step(width, height, n, variant)  # bench_raster's scene, its inputs requiring grad
+    P = scene["P"]
+    viewmat, K = scene["camera"]
     gen = torch.Generator(device=dev).manual_seed(1)
     w_image = torch.rand(height, width, 3, device=dev, generator=gen)
     w_alpha = torch.rand(height, width, 1, device=dev, generator=gen)

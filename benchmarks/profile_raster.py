@@ -117,8 +117,8 @@ def add_tiles_option(ap: argparse.ArgumentParser) -> None:
 def scene_step(width: int, height: int, n: int, variant: str, t: float = 0.5):
     """(step, scene): one fwd+bwd of tomgs.rasterize at time t on bench_raster's random scene of n
     Gaussians (CUDA), its inputs requiring grad (gradients add up over steps), the loss a fixed random
-    weighting of the image plus alpha; step() returns the image. scene: the inputs `P` and `forward`,
-    () -> (image, loss), the step's forward alone."""
+    weighting of the image plus alpha; step() returns the image. scene: the inputs `P`, `forward`,
+    () -> (image, loss), the step's forward alone, and `camera`, (viewmat, K)."""
     dev = torch.device("cuda")
     P = make_scene(n, 0, dev)
     P["t_scales"] = (temporal_scales(P["opacities"], 0.1) if variant == "temporal"
@@ -138,7 +138,7 @@ def scene_step(width: int, height: int, n: int, variant: str, t: float = 0.5):
         loss.backward()
         return img.detach()
 
-    return step, dict(P=P, forward=forward)
+    return step, dict(P=P, forward=forward, camera=(viewmat, K))
 
 
 def main() -> None:

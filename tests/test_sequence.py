@@ -51,6 +51,7 @@ def test_a_clip_renderer_replays_what_rasterize_renders(device, fresh_bounds):
     renderer = ClipRenderer(gaussians, cams, background=(0.1, 0.2, 0.3), replay=True)
     frames = list(range(len(cams)))[::-1]
     background = torch.tensor([0.1, 0.2, 0.3], device=device)
+    made = []  # (index, graph) after each pass
     for _ in range(2):
         for k, image, meta in renderer.frames(frames, to_cpu=False):
             full, _, full_meta = tomgs.rasterize(**gaussians, viewmat=viewmat, K=K, width=40, height=30,
@@ -58,8 +59,9 @@ def test_a_clip_renderer_replays_what_rasterize_renders(device, fresh_bounds):
             assert_same_image(image, full.clamp(0, 1), device)
             assert {key: meta[key] for key in COUNTS} == {key: full_meta[key] for key in COUNTS}
             assert meta["rows"] is not None and len(meta["rows"]) < 300
-        index, graph = renderer.index, renderer.graph
-    assert renderer.index is index and renderer.graph is graph  # made once, kept
+        made.append((renderer.index, renderer.graph))
+    (index, graph), (index_after, graph_after) = made
+    assert index_after is index and graph_after is graph  # made once, kept
     assert 0 < graph.rows_capacity == index.most_rows < index.n
 
 
