@@ -12,7 +12,7 @@ import math
 import pytest
 import torch
 
-from tomgs.constants import ALPHA_MIN, RADIUS_SIGMAS, TILE_SIZE
+from tomgs.constants import ALPHA_MIN, DEPTH_SORT_BITS, RADIUS_SIGMAS, TILE_SIZE, sort_low_bit
 from tomgs.reference import bin_reference, tile_rects, tiles_touched_reference
 from tomgs.render import bin_stage, project_stage
 from scenes import SEED_BASE, devices, random_scene
@@ -265,11 +265,12 @@ def test_keys_stop_at_the_capacity_when_the_count_passes_int32():
     assert (keys[capacity:] == -7).all() and (ids[capacity:] == -7).all()
 
 
+@pytest.mark.parametrize("begin_bit", [0, 3])
 @pytest.mark.parametrize("count", [0, 1, 7, 5000])
-def test_sort_pairs_sorts_stably_on_tensors(count):
+def test_sort_pairs_sorts_stably_on_tensors(count, begin_bit):
     """tomgs.runtime.sort_pairs (Warp's native radix sort, called without building wp.arrays) on the
-    CPU: keys[:count] ascending in bits [0, end_bit), ties in their first order, values carried along;
-    storage past 2 * count untouched."""
+    CPU: keys[:count] ascending in bits [begin_bit, end_bit), ties in their first order, values carried
+    along; storage past 2 * count untouched."""
     from tomgs.runtime import scope, sort_pairs
 
     g = torch.Generator().manual_seed(SEED_BASE * 1000 + 731 + count)
@@ -279,11 +280,46 @@ def test_sort_pairs_sorts_stably_on_tensors(count):
     values = torch.full((2 * count + 5,), -3, dtype=torch.int32)
     keys[:count] = tiles << 32 | depths
     values[:count] = torch.arange(count, dtype=torch.int32)
-    expected_keys, order = torch.sort(keys[:count], stable=True)
+    order = torch.sort(keys[:count] >> begin_bit, stable=True)[1]
+    expected_keys = keys[:count][order]
     with scope(keys.device):
-        sort_pairs(keys, values, count, 32 + 9)
+        sort_pairs(keys, values, count, 32 + 9, begin_bit)
     assert torch.equal(keys[:count], expected_keys) and torch.equal(values[:count], order.int())
     assert (keys[2 * count:] == -3).all() and (values[2 * count:] == -3).all()
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("size", [(854, 480), (640, 360)])
+def test_depths_closer_than_the_sort_reads_are_drawn_in_gaussian_order(size, device):
+    """The sort reads a key's depth from bit `sort_low_bit` up (5 radix passes at 854x480, not 6):
+    Gaussians whose float32 depths differ only below it tie and keep Gaussian order, the others
+    keep depth order. Six Gaussians on one tile: 2 + 3, 2, 1 and 0 ulps (one run of equal high bits,
+    listed in reverse depth order), 1.9 and 3."""
+    width, height = size
+    depths = torch.tensor([2.0, 2.0, 2.0, 2.0, 1.9, 3.0]).view(torch.int32)
+    depths[:4] += torch.tensor([3, 2, 1, 0], dtype=torch.int32)
+    depths = depths.view(torch.float32)
+    n = len(depths)
+    means2d = torch.tensor([[8.0, 8.0]]).repeat(n, 1)
+    conics, radii = torch.tensor([[0.5, 0.0, 0.5]]).repeat(n, 1), torch.tensor([[2, 2]], dtype=torch.int32).repeat(n, 1)
+    opacities = torch.full((n,), 0.5)
+    inputs = (means2d, conics, opacities, radii, depths)
+    touched = tiles_touched_reference(*inputs[:4], width, height)
+    ours = bin_stage(*[x.to(device) for x in inputs], touched.int().to(device), width, height)
+    assert sort_low_bit(-(-width // TILE_SIZE) * -(-height // TILE_SIZE)) >= 2  # 3 ulps fall below it
+    assert ours["ids"].tolist() == [4, 0, 1, 2, 3, 5]
+    ref = bin_reference(*inputs, width, height)
+    assert torch.equal(ours["keys"].cpu(), ref["keys"]) and torch.equal(ours["ids"].long().cpu(), ref["ids"])
+
+
+@pytest.mark.parametrize("size, read", [((854, 480), 40), ((640, 360), 40), ((1920, 1080), 45), ((45, 37), 36),
+                                        ((16, 16), 32)])
+def test_the_sort_reads_whole_passes_and_enough_depth(size, read):
+    """Bits the tile sort reads: the tile's, and at least DEPTH_SORT_BITS of depth, in whole 8-bit passes
+    (or every bit of the key, where those passes would hold more)."""
+    tiles = -(-size[0] // TILE_SIZE) * -(-size[1] // TILE_SIZE)
+    low = sort_low_bit(tiles)
+    assert 32 + tiles.bit_length() - low == read and (read % 8 == 0 or low == 0) and 32 - low >= DEPTH_SORT_BITS
 
 
 def test_sort_pairs_refuses_too_little_storage():

@@ -229,6 +229,31 @@ def test_alpha_at_the_skip_threshold(batched, monkeypatch):
 
 
 @pytest.mark.parametrize("device", DEVICES)
+def test_depths_closer_than_the_sort_reads_draw_in_index_order(device, monkeypatch):
+    """Four opaque Gaussians stacked on the optical axis, float32 depths 3, 2, 1 and 0 ulps above a
+    multiple of 4 ulps (the camera at the origin, so depth is exactly the stored z): the sort reads no depth bits
+    that far down (tomgs.constants.sort_low_bit), so they are drawn in index order, the farthest first,
+    in the image and in the gradients as the reference draws them. Ordered by exact depth instead, the
+    reference's image differs: the test can tell."""
+    scene = random_scene(41, n=60, width=512, height=256)  # 512 tiles: the sort leaves out 2 bits of depth
+    view = scene["viewmat"]
+    scene["means"] = scene["means"] @ view[:3, :3].T + view[:3, 3]  # the same scene in camera space
+    scene["viewmat"] = torch.eye(4, dtype=torch.float64)
+    base = torch.tensor(2.5, dtype=torch.float32).view(torch.int32) + 8  # a run of 4 ulps equal in the read bits
+    stack = (base + torch.tensor([3, 2, 1, 0], dtype=torch.int32)).view(torch.float32).double()
+    scene["means"][:4] = torch.stack([torch.zeros(4), torch.zeros(4), stack], -1).double()
+    scene["scales"][:4], scene["opacities"][:4] = 0.3, 0.9
+    scene["colors"][:4] = torch.eye(4, 3, dtype=torch.float64) + torch.tensor([0.0, 0.0, 0.5]).double()
+    scene["t_means"][:4], scene["t_scales"][:4] = scene["t"], 10.0
+    assert_matches_reference(scene, device)
+
+    _, (image, _, _), _, _ = render_both(scene, device)
+    monkeypatch.setattr(tomgs.reference, "depth_order", lambda depths, width, height: depths)
+    _, (exact_image, _, _), _, _ = render_both(scene, device)
+    assert (exact_image - image).abs().max() > 0.1
+
+
+@pytest.mark.parametrize("device", DEVICES)
 def test_dead_gaussians_cost_no_tile_work(device):
     """A Gaussian whose temporal opacity is below 1/255 at t is culled in projection."""
     scene = random_scene(40, n=100)

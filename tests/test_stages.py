@@ -9,7 +9,7 @@ import math
 import pytest
 import torch
 
-from tomgs.constants import ALPHA_MIN, TILE_SIZE
+from tomgs.constants import ALPHA_MIN, TILE_SIZE, sort_low_bit
 from tomgs.reference import bin_reference, project_reference, tile_levels, tile_rects, tiles_touched_reference
 from tomgs.render import bin_stage, project_stage
 from scenes import SEED_BASE, devices, random_scene, rel_l2
@@ -275,7 +275,7 @@ def assert_binning_matches(means2d, conics, opacities, radii, depths, width, hei
     # the reference's list is what it says: (tile, depth, Gaussian) ascending, ranges cover it
     keys, ids = ref["keys"], ref["ids"]
     assert torch.equal(ref["tiles"], keys >> 32)
-    order = torch.stack([ref["tiles"], (keys & 0xFFFFFFFF), ids], -1).tolist()
+    order = torch.stack([ref["tiles"], (keys & 0xFFFFFFFF) >> sort_low_bit(tiles), ids], -1).tolist()
     assert order == sorted(order)
     assert int((ref["ranges"][:, 1] - ref["ranges"][:, 0]).sum()) == len(keys) == int(touched.sum())
     return ref

@@ -9,3 +9,18 @@ RADIUS_SIGMAS = 3.33  # bounding radius in standard deviations, shrunk further b
 FOV_CLAMP = 1.3  # the EWA Jacobian is evaluated at x/z clamped to 1.3 tan(half field of view)
 QUAT_EPS = 1e-12  # quaternions are divided by max(|q|, QUAT_EPS): a zero quaternion is the identity
 ONE_MINUS_ALPHA_FLOOR = 1e-6  # floor on (1 - alpha) when the backward divides transmittance back out
+# The tile-key sort reads a key's tile and only the high bits of its float32 depth: a radix sort makes a
+# pass per 8 bits, and at 854x480 (11 bits of tile) the whole depth took 6 passes where 29 bits of it (sign,
+# exponent, 20 of mantissa) take 5. Depths within ~2^-20 relative tie (about the projection's own float32
+# rounding of a depth), and tied Gaussians are drawn in index order, the reference's order too. 21 bits
+# (4 passes) sorted camel's frames 33% quicker but cost small CPU fits of a flat static clip 3.6 dB (44.6
+# -> 41.0; 23 and 25 bits: -0.7 and -1.3; 29: none): benchmarks/RASTER_NOTES.md, session 32.
+DEPTH_SORT_BITS = 29
+
+
+def sort_low_bit(num_tiles: int) -> int:
+    """The lowest bit of a tile key `tile << 32 | float32 depth bits` that the sort reads, for a frame
+    of `num_tiles` tiles: at least DEPTH_SORT_BITS of depth, rounded up to whole 8-bit passes."""
+    key_bits = 32 + num_tiles.bit_length()
+    passes = -(-(num_tiles.bit_length() + DEPTH_SORT_BITS) // 8)
+    return max(0, key_bits - 8 * passes)

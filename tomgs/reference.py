@@ -2,12 +2,13 @@
 
     project_reference   stage 1 alone, per Gaussian, with the projection kernel's outputs
     bin_reference       stage 2 alone: the sorted (tile, depth) intersection list and tile ranges
+    depth_order         what a tile's Gaussians are drawn in the order of
     rasterize_reference the whole renderer, dense
 
 Same projection (EWA with 0.3 px dilation, clamped Jacobian, opacity-aware radius), same culls
 (near/far, non-finite, temporal opacity < 1/255, off screen), same binning (the tiles of the box
 centre +- radius clamped to the image that the Gaussian's alpha >= 1/255 ellipse reaches, keys
-ordered by tile, then float32 depth, then Gaussian),
+ordered by tile, then the high bits of float32 depth that the sort reads, then Gaussian),
 same compositing (alpha clamp 0.99, skip alpha < 1/255, stop before T <= 1e-4), but every pixel
 meets every visible Gaussian and autograd provides the gradients. Run them in float64 on small
 scenes; the dense renderer's memory is O(pixels x N).
@@ -19,7 +20,7 @@ import dataclasses
 
 import torch
 
-from tomgs.constants import ALPHA_MAX, ALPHA_MIN, EPS2D, FOV_CLAMP, RADIUS_SIGMAS, T_MIN, TILE_SIZE
+from tomgs.constants import ALPHA_MAX, ALPHA_MIN, EPS2D, FOV_CLAMP, RADIUS_SIGMAS, T_MIN, TILE_SIZE, sort_low_bit
 from tomgs.geometry import quat_to_rotmat
 from tomgs.inputs import RasterInputs, prepare_inputs
 from tomgs.temporal import opacity_at
@@ -195,19 +196,29 @@ def project_reference(
                 extent=extent)
 
 
+def depth_order(depths: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """int64 [N]: what a tile's list orders its Gaussians by, for their depths [N] (> 0 where visible)
+    in a width x height frame: the bits of float32 depth (a positive float's bits order as it does)
+    from `sort_low_bit` up. Gaussians equal in it are drawn in Gaussian order."""
+    tiles = -(-int(width) // TILE_SIZE) * -(-int(height) // TILE_SIZE)
+    return depths.detach().to(torch.float32).view(torch.int32).long() >> sort_low_bit(tiles)
+
+
 def bin_reference(means2d: torch.Tensor, conics: torch.Tensor, opacities_t: torch.Tensor, radii: torch.Tensor,
                   depths: torch.Tensor, width: int, height: int) -> dict[str, torch.Tensor]:
     """Stage 2 alone, with `tomgs.render.bin_stage`'s outputs: every (tile, Gaussian) pair of
     `ellipse_tiles` (the tiles of the box means2d +- radii [N,2] that the ellipse of conics [N,3] at
     opacities_t [N] reaches) as keys [M] int64 `tile << 32 | bits of float32 depth` (depths [N] > 0 where
-    visible), sorted by tile, then depth, then Gaussian; ids [M] int64 the Gaussian of each; tiles [M]
-    int64; ranges [tiles, 2] int64 each tile's [start, end) in them, (0, 0) for a tile nobody touches."""
+    visible), sorted by tile, then `depth_order`, then Gaussian; ids [M] int64 the Gaussian of each;
+    tiles [M] int64; ranges [tiles, 2] int64 each tile's [start, end) in them, (0, 0) for a tile nobody
+    touches."""
     tiles_x, tiles_y = -(-int(width) // TILE_SIZE), -(-int(height) // TILE_SIZE)
     ids, tiles = ellipse_tiles(means2d, conics, opacities_t, radii, width, height)
     depth_bits = depths.detach().to(torch.float32).view(torch.int32).long()  # a positive float's bits order as it
     keys = (tiles << 32) | depth_bits[ids]
-    keys, order = torch.sort(keys, stable=True)  # equal keys keep Gaussian order, as the radix sort does
-    ids, tiles = ids[order], tiles[order]
+    # keys equal in the bits the sort reads (tile, depth_order) keep Gaussian order, as the radix sort does
+    order = torch.sort(keys >> sort_low_bit(tiles_x * tiles_y), stable=True)[1]
+    keys, ids, tiles = keys[order], ids[order], tiles[order]
     per_tile = torch.bincount(tiles, minlength=tiles_x * tiles_y)
     end = torch.cumsum(per_tile, 0)
     ranges = torch.stack([end - per_tile, end], -1) * (per_tile > 0)[:, None]
@@ -224,7 +235,7 @@ def rasterize_reference(
     full, radii, valid, extent = _visible(p)
     # differentiate only the visible subset: culled Gaussians get exactly zero gradient, never NaN
     idx = torch.nonzero(valid).squeeze(-1)
-    idx = idx[torch.argsort(full["depth"][idx], stable=True)]
+    idx = idx[torch.argsort(depth_order(full["depth"][idx], p.width, p.height), stable=True)]
     sub = _subset(p, idx)
     proj = _project(sub)
 
@@ -254,5 +265,5 @@ def rasterize_reference(
     return image, alpha_out, meta
 
 
-__all__ = ["rasterize_reference", "project_reference", "bin_reference", "tile_rects", "tile_levels", "ellipse_tiles",
-           "tiles_touched_reference", "quat_to_rotmat"]
+__all__ = ["rasterize_reference", "project_reference", "bin_reference", "depth_order", "tile_rects", "tile_levels",
+           "ellipse_tiles", "tiles_touched_reference", "quat_to_rotmat"]

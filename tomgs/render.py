@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import torch
 import warp as wp
 
-from tomgs.constants import TILE_SIZE
+from tomgs.constants import TILE_SIZE, sort_low_bit
 from tomgs.inputs import RasterInputs, RenderError, prepare_inputs
 from tomgs.kernels import binning, lanes, project, raster, raster_batched
 from tomgs.runtime import NO_ARRAY, indexable, launch, scope, sort_pairs, whole_blocks, wrap, wrap_part
@@ -124,6 +124,11 @@ class _Frame:
         """The bits of a tile key the sort reads: 32 of depth, and the tile's, wide enough that a
         padding key (`padding_key`) is past every tile."""
         return 32 + self.num_tiles.bit_length()
+
+    @property
+    def sort_low_bit(self) -> int:
+        """The lowest key bit the sort reads: the depth's lower bits are left out (constants.DEPTH_SORT_BITS)."""
+        return sort_low_bit(self.num_tiles)
 
     @property
     def padding_key(self) -> int:
@@ -375,7 +380,7 @@ def _bin_padded(wrapped: dict, n: int, ends: torch.Tensor, frame: _Frame, writte
 def _sort_and_range(wrapped: dict, written: tuple[torch.Tensor, torch.Tensor], count: int, frame: _Frame):
     """Sort the first `count` pairs of `written` (keys, ids) and fill `wrapped`'s ranges from them."""
     keys, ids = written
-    sort_pairs(keys, ids, count, frame.key_bits)
+    sort_pairs(keys, ids, count, frame.key_bits, frame.sort_low_bit)
     launch(binning.tile_ranges, count, device=frame.device,
            args=[wrapped["keys"], count, frame.num_tiles, wrapped["ranges"]])
     return ids, keys

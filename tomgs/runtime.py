@@ -14,7 +14,7 @@
     launch(kernel, dim, args, device, block_dim=256)
                                      a recorded launch per (kernel, device, block size), re-armed
     whole_blocks(n)                  the launch size, in whole blocks of 256, of n threads of work
-    sort_pairs(keys, values, count, end_bit)
+    sort_pairs(keys, values, count, end_bit, begin_bit)
                                      Warp's radix sort of int64 keys and int32 values, on tensors
 
 Used by tomgs.render (the rasterizer), tomgs.metrics (SSIM), tomgs.train.optim (SeenAdam) and
@@ -326,8 +326,8 @@ def whole_blocks(n: int) -> int:
     return max(1, -(-n // 256)) * 256
 
 
-def sort_pairs(keys: torch.Tensor, values: torch.Tensor, count: int, end_bit: int) -> None:
-    """Sort keys[:count] (int64) by their bits [0, end_bit), stably, and values[:count] (int32) with
+def sort_pairs(keys: torch.Tensor, values: torch.Tensor, count: int, end_bit: int, begin_bit: int = 0) -> None:
+    """Sort keys[:count] (int64) by their bits [begin_bit, end_bit), stably, and values[:count] (int32) with
     them, in place, on the keys' device (a GPU: torch's current stream there).
     Both are contiguous and hold at least 2 * count elements: [count, 2 * count) is the sort's scratch.
 
@@ -347,7 +347,7 @@ def sort_pairs(keys: torch.Tensor, values: torch.Tensor, count: int, end_bit: in
     if count == 0:
         return
     core = _warp_context.runtime.core
-    args = (keys.data_ptr(), values.data_ptr(), count, 0, end_bit, values.element_size())
+    args = (keys.data_ptr(), values.data_ptr(), count, begin_bit, end_bit, values.element_size())
     if keys.device.type == "cpu":
         core.wp_radix_sort_pairs_int64_host(*args)
         return

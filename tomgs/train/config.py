@@ -70,12 +70,18 @@ class TrainConfig:
     lr_scales: float = 5e-3
     lr_quats: float = 1e-3
     lr_t_means: float = 1e-3
-    lr_t_scales: float = 1e-2
+    # the temporal windows' width (log sigma) at twice 3DGS-style rates: with starts of one frame (below)
+    # the windows of what stays in view must open fast; camel's first minute (H100, first_minute.py,
+    # RESULTS.md session 32) 34.6 -> 34.8-35.0 dB at 60 s with it (4e-2: 34.7, 8e-2: 34.1)
+    lr_t_scales: float = 2e-2
     ssim_weight: float = 0.2  # loss = (1 - w) L1 + w (1 - SSIM)
     # initialisation: points unprojected from every frame, alive around that frame's time; None:
     # by device, see `points_per_frame` and AUTO_POINTS_PER_FRAME
     init_points_per_frame: int | None = None
-    init_t_scale_frames: float = 2.0  # sigma of per-frame points, in frames
+    # sigma of per-frame points, in frames. Narrower starts leave fewer Gaussians alive at a frame: camel's
+    # first minute at 2 / 1 / 0.7 / 0.5 / 0.35 frames 34.4 / 34.6 / 34.85 / 34.5 / 34.05 dB at 60 s, 153 /
+    # 178 / 209 / 215 / 254 steps/s (H100, first_minute.py, RESULTS.md session 32)
+    init_t_scale_frames: float = 1.0
     # logging
     log_interval: int = 50  # iterations between CSV rows
     # seconds between full-clip PSNR measurements (further apart where one costs more than 10% of
