@@ -275,7 +275,7 @@ def assert_binning_matches(means2d, conics, opacities, radii, depths, width, hei
     # the reference's list is what it says: (tile, depth, Gaussian) ascending, ranges cover it
     keys, ids = ref["keys"], ref["ids"]
     assert torch.equal(ref["tiles"], keys >> 32)
-    order = torch.stack([ref["tiles"], (keys & 0xFFFFFFFF) >> sort_low_bit(tiles), ids], -1).tolist()
+    order = torch.stack([ref["tiles"], (keys & 0xFFFFFFFF) >> sort_low_bit(width, height), ids], -1).tolist()
     assert order == sorted(order)
     assert int((ref["ranges"][:, 1] - ref["ranges"][:, 0]).sum()) == len(keys) == int(touched.sum())
     return ref

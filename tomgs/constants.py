@@ -18,9 +18,10 @@ ONE_MINUS_ALPHA_FLOOR = 1e-6  # floor on (1 - alpha) when the backward divides t
 DEPTH_SORT_BITS = 29
 
 
-def sort_low_bit(num_tiles: int) -> int:
+def sort_low_bit(width: int, height: int) -> int:
     """The lowest bit of a tile key `tile << 32 | float32 depth bits` that the sort reads, for a frame
-    of `num_tiles` tiles: at least DEPTH_SORT_BITS of depth, rounded up to whole 8-bit passes."""
-    key_bits = 32 + num_tiles.bit_length()
-    passes = -(-(num_tiles.bit_length() + DEPTH_SORT_BITS) // 8)
+    of width x height pixels: at least DEPTH_SORT_BITS of depth, rounded up to whole 8-bit passes."""
+    tile_bits = (-(-int(width) // TILE_SIZE) * -(-int(height) // TILE_SIZE)).bit_length()
+    key_bits = 32 + tile_bits
+    passes = -(-(tile_bits + DEPTH_SORT_BITS) // 8)
     return max(0, key_bits - 8 * passes)

@@ -200,8 +200,7 @@ def depth_order(depths: torch.Tensor, width: int, height: int) -> torch.Tensor:
     """int64 [N]: what a tile's list orders its Gaussians by, for their depths [N] (> 0 where visible)
     in a width x height frame: the bits of float32 depth (a positive float's bits order as it does)
     from `sort_low_bit` up. Gaussians equal in it are drawn in Gaussian order."""
-    tiles = -(-int(width) // TILE_SIZE) * -(-int(height) // TILE_SIZE)
-    return depths.detach().to(torch.float32).view(torch.int32).long() >> sort_low_bit(tiles)
+    return depths.detach().to(torch.float32).view(torch.int32).long() >> sort_low_bit(width, height)
 
 
 def bin_reference(means2d: torch.Tensor, conics: torch.Tensor, opacities_t: torch.Tensor, radii: torch.Tensor,
@@ -217,7 +216,7 @@ def bin_reference(means2d: torch.Tensor, conics: torch.Tensor, opacities_t: torc
     depth_bits = depths.detach().to(torch.float32).view(torch.int32).long()  # a positive float's bits order as it
     keys = (tiles << 32) | depth_bits[ids]
     # keys equal in the bits the sort reads (tile, depth_order) keep Gaussian order, as the radix sort does
-    order = torch.sort(keys >> sort_low_bit(tiles_x * tiles_y), stable=True)[1]
+    order = torch.sort(keys >> sort_low_bit(width, height), stable=True)[1]
     keys, ids, tiles = keys[order], ids[order], tiles[order]
     per_tile = torch.bincount(tiles, minlength=tiles_x * tiles_y)
     end = torch.cumsum(per_tile, 0)

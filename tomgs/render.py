@@ -128,7 +128,7 @@ class _Frame:
     @property
     def sort_low_bit(self) -> int:
         """The lowest key bit the sort reads: the depth's lower bits are left out (constants.DEPTH_SORT_BITS)."""
-        return sort_low_bit(self.num_tiles)
+        return sort_low_bit(self.width, self.height)
 
     @property
     def padding_key(self) -> int:

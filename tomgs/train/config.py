@@ -70,7 +70,7 @@ class TrainConfig:
     lr_scales: float = 5e-3
     lr_quats: float = 1e-3
     lr_t_means: float = 1e-3
-    # the temporal windows' width (log sigma) at twice 3DGS-style rates: with starts of one frame (below)
+    # the temporal windows' width (log sigma), at twice the rate of sessions 1-31: with starts of one frame (below)
     # the windows of what stays in view must open fast; camel's first minute (H100, first_minute.py,
     # RESULTS.md session 32) 34.6 -> 34.8-35.0 dB at 60 s with it (4e-2: 34.7, 8e-2: 34.1)
     lr_t_scales: float = 2e-2
