@@ -126,6 +126,9 @@ def craft(kind: str, checkpoint: Path, marker: Path) -> None:
     elif kind == "a log row of another layout":
         genuine["history"].append({"iteration": 26, "evil": 1})
         torch.save(genuine, checkpoint)
+    elif kind == "a pending measurement of no frame":
+        genuine["sampler"]["pending"] = [[10 ** 6, 30.0]]
+        torch.save(genuine, checkpoint)
     elif kind == "unknown setting":
         config = genuine["config"] if isinstance(genuine["config"], dict) else vars(genuine["config"])
         genuine["config"] = dict(config, evil=1)
@@ -136,7 +139,8 @@ def craft(kind: str, checkpoint: Path, marker: Path) -> None:
 
 BAD_CHECKPOINTS = ["payload only", "payload added to a genuine checkpoint", "payload in torch's legacy format",
                    "payload as a plain pickle", "garbage", "truncated", "empty", "plain data of another shape",
-                   "rows that disagree", "a log row of another layout", "unknown setting"]
+                   "rows that disagree", "a log row of another layout", "a pending measurement of no frame",
+                   "unknown setting"]
 
 
 @pytest.mark.parametrize("kind", BAD_CHECKPOINTS)

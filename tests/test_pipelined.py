@@ -171,7 +171,8 @@ def test_training_steps_that_do_not_wait_train_what_waiting_ones_do(sparse_adam,
 
 def test_a_pipelined_trainer_hands_its_psnrs_to_the_sampler_a_flush_late():
     """Every SAMPLER_LAG steps the PSNRs go to the host without waiting; the sampler hears them at the
-    next flush, and everything (a CSV row, a checkpoint) before it reads the sampler."""
+    next flush. A checkpoint carries what it has not heard, and hands it nothing (that would change its
+    next draws: a seeded run would not repeat)."""
     from test_train import CPU, small_config, synthetic_clip
     from tomgs.train import Trainer
     from tomgs.train.trainer import SAMPLER_LAG
@@ -191,9 +192,10 @@ def test_a_pipelined_trainer_hands_its_psnrs_to_the_sampler_a_flush_late():
             measured.append(len(updates))
         assert measured[SAMPLER_LAG - 1] == (SAMPLER_LAG if not pipelined else 0)
         assert measured[2 * SAMPLER_LAG - 1] == (2 * SAMPLER_LAG if not pipelined else SAMPLER_LAG)
-        trainer.state_dict()  # a checkpoint hears every step so far
-        assert len(updates) == 2 * SAMPLER_LAG + 3
-        heard[pipelined] = updates
+        before = list(updates)
+        pending = trainer.state_dict()["sampler"]["pending"]
+        assert updates == before and len(updates) + len(pending) == 2 * SAMPLER_LAG + 3
+        heard[pipelined] = updates + [tuple(p) for p in pending]
     assert heard[True] == heard[False]  # the same PSNRs, in the same order
 
 

@@ -10,7 +10,7 @@ import torch
 
 from tomgs.constants import ALPHA_MIN
 from tomgs.temporal import (alive_at, alive_between, alive_radius, alive_window, clip_time_to_frames,
-                            frames_to_clip_time, opacity_at, peak_opacity)
+                            frames_to_clip_time, opacity_at, peak_opacity, peak_opacity_at)
 
 
 def by_hand(a: float, m: float, sigma: float, t: float) -> float:
@@ -141,6 +141,24 @@ def test_alive_between_is_alive_at_the_best_time():
         both = alive_between(at, mt, st, 0.2, 0.6)
         per_time = torch.stack([alive_at(at, mt, st, t) for t in np.linspace(0.2, 0.6, 401).tolist()]).any(0)
         assert bool((both | ~per_time).all())  # alive at a sampled time: alive in the interval
+
+
+@pytest.mark.parametrize("frames", [1, 2, 7, 90])
+def test_the_peak_at_frame_times_is_the_largest_over_them(frames):
+    """peak_opacity_at against every frame's opacity (numpy float64, torch float32 and float64), on
+    windows over many decades: narrow ones between frames peak at none of them."""
+    a, m, sigma = random_windows(3000, seed=frames)
+    times = np.sort(np.random.default_rng(frames).uniform(0, 1, frames)) if frames == 7 else \
+        np.arange(frames) / max(frames - 1, 1)
+    every = np.stack([opacity_at(a, m, sigma, t) for t in times]).max(0)
+    np.testing.assert_array_equal(peak_opacity_at(a, m, sigma, times), every)
+    for dtype in (torch.float32, torch.float64):
+        at, mt, st, tt = (torch.from_numpy(x).to(dtype) for x in (a, m, sigma, times))
+        want = torch.stack([opacity_at(at, mt, st, t) for t in tt]).amax(0)
+        assert torch.equal(peak_opacity_at(at, mt, st, tt), want)
+    if frames > 1:  # a window between two frames, alive inside the clip but at no frame
+        between = peak_opacity_at(np.array([1.0]), np.array([times[0] / 2 + times[1] / 2]), np.array([1e-3]), times)
+        assert between[0] < ALPHA_MIN <= peak_opacity(1.0, times[0] / 2 + times[1] / 2, 1e-3, 0.0, 1.0)
 
 
 def test_float32_alive_lies_in_the_slack_window():

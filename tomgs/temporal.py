@@ -56,6 +56,18 @@ def peak_opacity(opacities, t_means, t_scales, t0, t1):
     return opacity_at(opacities, t_means, t_scales, _clamp(xp, t_means, t0, t1))
 
 
+def peak_opacity_at(opacities, t_means, t_scales, times):
+    """[N]: the largest o(t) over the clip times `times` ([T], ascending, as the Gaussians' type: a
+    tensor on their device or an array): o at the time on either side of the temporal mean, since o
+    falls away from it. A Gaussian that peaks between frames may be alive at none of them."""
+    xp = _xp(opacities, t_means, t_scales, times)
+    last = len(times) - 1
+    after = _clamp(xp, xp.searchsorted(times, t_means), 0, last)
+    before = _clamp(xp, after - 1, 0, last)
+    return xp.maximum(opacity_at(opacities, t_means, t_scales, times[before]),
+                      opacity_at(opacities, t_means, t_scales, times[after]))
+
+
 def alive_between(opacities, t_means, t_scales, t0, t1, alpha_min: float = ALPHA_MIN):
     """bool [N]: alive (o(t) >= alpha_min) for some t in [t0, t1] (t0 <= t1); alive_between(t, t)
     is alive_at(t) exactly, as both evaluate the one formula at the same time."""

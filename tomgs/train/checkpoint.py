@@ -13,7 +13,8 @@ After loading, its layout is checked (`check_state`) before a tensor of it is us
     frames            [V, H, W]: the training views and their size
     params            {name: float tensor [N, ...]} (tomgs.model.PARAM_NAMES), sh_degree
     optimizer         the optimiser's state_dict (Adam's layout, moments [N, ...])
-    sampler           {psnr: float64 [V], generator: uint8 tensor}
+    sampler           {psnr: float64 [V], generator: uint8 tensor, pending: [[frame, PSNR], ...] the steps'
+                      measurements it has not heard yet (absent in checkpoints before it: none)}
     densifier         {grad_sum: [N], seen: [N], capped: bool, generator: uint8 tensor, changed_at: int}
     history, notes    the CSV rows (dicts of numbers and "") and the fit's notes (str); rows of a
                       checkpoint written before clip_frames was logged get it on reading (their clip
@@ -257,6 +258,11 @@ def check_state(state, path="<checkpoint>", ours: bool = False) -> None:
     if not torch.is_tensor(sampler.get("psnr")) or tuple(sampler["psnr"].shape) != (frames[0],) \
             or not torch.is_tensor(sampler.get("generator")):
         fail("sampler state does not match the frames")
+    pending = sampler.get("pending", [])
+    if not isinstance(pending, list) or not all(
+            isinstance(p, list) and len(p) == 2 and type(p[0]) is int and 0 <= p[0] < frames[0]
+            and type(p[1]) is float for p in pending):
+        fail("sampler's pending measurements are not [frame, PSNR] pairs of its frames")
     densifier = state["densifier"]
     for key in ("grad_sum", "seen"):
         if not torch.is_tensor(densifier.get(key)) or tuple(densifier[key].shape) != (n,):

@@ -12,11 +12,15 @@ import warp as wp
 from tomgs.constants import ALPHA_MIN
 from tomgs.geometry import quat_to_rotmat
 from tomgs.model import PARAM_NAMES, GaussianModel, stored_opacities, stored_scales
+from tomgs.temporal import peak_opacity_at
 
 
 class Densifier:
-    def __init__(self, config, extent: float, num_gaussians: int, device, seed: int = 0):
+    def __init__(self, config, extent: float, num_gaussians: int, device, seed: int = 0, times=None):
+        """`times`: the clip times of the training frames ([T]; None: any time in [0, 1]), at which a
+        Gaussian must be alive somewhere to be kept."""
         self.config = config
+        self.times = None if times is None else torch.as_tensor(sorted(times), dtype=torch.float32, device=device)
         self.extent = extent
         self.threshold = config.threshold(torch.device(device).type)
         self.generator = torch.Generator(device=device).manual_seed(seed + 1)
@@ -67,7 +71,9 @@ class Densifier:
         counted from 1) and `progress` (by iterations or by the wall-clock budget, whichever is
         further): densify every `densify_interval` steps inside [densify_start_fraction,
         densify_stop_fraction) until the cap, else prune every 10 intervals; reset opacities every
-        `opacity_reset_interval` steps while densifying."""
+        `opacity_reset_interval` steps while densifying. A prune inside the window that frees rows under
+        a reached cap lets densification go on into them: Gaussians the optimiser has faded out at
+        every frame (windows shrunk between frames) give their room to those with high gradients."""
         c = self.config
         if self.collecting(progress):
             self.observe(meta, visible)
@@ -75,7 +81,8 @@ class Densifier:
             self.step(model, optimizer)
             self.changed_at = iteration
         elif iteration % (10 * c.densify_interval) == 0:
-            self.prune(model, optimizer)
+            if self.prune(model, optimizer) and progress < c.densify_stop_fraction:
+                self.capped = False
             self.reset_stats(len(model), visible.device)
             self.changed_at = iteration
         if c.opacity_reset_interval and iteration % c.opacity_reset_interval == 0 \
@@ -117,7 +124,8 @@ class Densifier:
         return dict(cloned=int(clone.sum()), split=int(split.sum()), pruned=pruned, total=len(model))
 
     def prune(self, model: GaussianModel, optimizer) -> int:
-        """Remove Gaussians that are transparent, or dead over the whole clip [0, 1]."""
+        """Remove Gaussians that are transparent, or dead at every training frame (with `times`; else
+        over the whole clip [0, 1]). Returns how many went."""
         return self.remove(model, optimizer, self._prunable(model))
 
     def remove(self, model: GaussianModel, optimizer, rows: torch.Tensor) -> int:
@@ -132,7 +140,9 @@ class Densifier:
     def _prunable(self, model: GaussianModel) -> torch.Tensor:
         remove = model.opacities < self.config.prune_opacity
         if self.config.temporal:
-            remove |= model.peak_opacity(0.0, 1.0) < ALPHA_MIN  # its largest opacity inside the clip
+            peak = model.peak_opacity(0.0, 1.0) if self.times is None else \
+                peak_opacity_at(model.opacities, model.t_means, model.t_scales, self.times)
+            remove |= peak < ALPHA_MIN
         return remove
 
     def _split(self, params, scales: torch.Tensor, mask: torch.Tensor) -> dict[str, torch.Tensor]:

@@ -141,7 +141,7 @@ class Trainer:
             self.model, self.extent = initial[0].to(device), float(initial[1])
         self.optimizer = self._optimizer()
         self.sampler = FrameSampler(self.num_frames, config.sampling, config.psnr_momentum, config.seed)
-        self.densifier = Densifier(self.config, self.extent, len(self.model), device, config.seed)
+        self.densifier = Densifier(self.config, self.extent, len(self.model), device, config.seed, self.times)
         # which Gaussians each frame renders (rebuilt, not saved: checkpoints leave it out)
         use_index = pays_on(device) if config.alive_index is None else bool(config.alive_index)
         self.alive = TrainingIndex(self.times, dense=not self.sparse_adam, lookahead=device.type == "cuda") \
@@ -541,8 +541,9 @@ class Trainer:
                          list(self.notes))
 
     def _row(self, now: float, clip: tuple[float, int] | None) -> dict:
-        """The CSV row at `now` seconds; clip: (clip PSNR, the frames it covers) or None."""
-        self.flush_measurements()
+        """The CSV row at `now` seconds; clip: (clip PSNR, the frames it covers) or None. Its train PSNR
+        is what the sampler has heard: handing it the measurements still on their way would change what
+        it draws next at moments set by the clock, and a seeded run would no longer repeat."""
         seen = self.sampler.psnr[self.sampler.psnr > 0]
         return dict(iteration=self.iteration, wall_s=round(now, 3),
                     train_psnr=round(float(seen.mean()), 3) if len(seen) else "",
@@ -553,8 +554,9 @@ class Trainer:
     # -- checkpoints ---------------------------------------------------------------------------
 
     def state_dict(self) -> dict:
-        """The trainer's state as tensors and plain data (tomgs/train/checkpoint.py's layout)."""
-        self.flush_measurements()
+        """The trainer's state as tensors and plain data (tomgs/train/checkpoint.py's layout). The
+        measurements the sampler has not heard yet go with it as they are (handing them over now would
+        change the draws that follow, as `_row` says)."""
         # tensors stay where they live: torch.save copies one storage at a time to the file, where a
         # whole-model host copy made the checkpoint the training phase's host peak (7.4M Gaussians,
         # 1080p x 900 on the H100: +0.96 GiB during training); read_checkpoint maps them to the CPU
@@ -565,9 +567,23 @@ class Trainer:
             frames=[int(self.num_frames), int(self.height), int(self.width)],
             params={k: v.detach() for k, v in self.model.parameters_by_name().items()},
             sh_degree=int(self.model.sh_degree), optimizer=self.optimizer.state_dict(),
-            sampler=self.sampler.state_dict(), densifier=densifier, history=[dict(r) for r in self.history],
+            sampler=dict(self.sampler.state_dict(), pending=self._pending()), densifier=densifier,
+            history=[dict(r) for r in self.history],
             notes=[str(n) for n in self.notes], clip=dict(self.clip),
         )
+
+    def _pending(self) -> list[list]:
+        """[[frame, PSNR], ...]: the measurements not yet handed to the sampler, in the order it hears them."""
+        pending = []
+        if self._in_flight is not None:
+            frames, values, copied = self._in_flight
+            if copied is not None:
+                copied.synchronize()
+            pending += [[k, v] for k, v in zip(frames, values.tolist())]
+        if self._measured:
+            values = torch.stack([v for _, v in self._measured]).tolist()
+            pending += [[k, v] for (k, _), v in zip(self._measured, values)]
+        return pending
 
     def save_checkpoint(self, path: Path) -> None:
         """Write the state to `path` (tomgs.train.checkpoint.write_checkpoint: an exclusively created
@@ -605,6 +621,9 @@ class Trainer:
         for group, settings in zip(self.optimizer.param_groups, own):
             group.update(settings)
         self.sampler.load_state_dict(state["sampler"])
+        self._in_flight = None
+        self._measured = [(int(k), torch.tensor(float(v), device=self.device))
+                          for k, v in state["sampler"].get("pending", [])]  # checkpoints before it: none
         densifier = dict(state["densifier"])
         densifier["grad_sum"] = densifier["grad_sum"].to(self.device)
         densifier["seen"] = densifier["seen"].to(self.device)
