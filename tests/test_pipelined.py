@@ -199,6 +199,36 @@ def test_a_pipelined_trainer_hands_its_psnrs_to_the_sampler_a_flush_late():
     assert heard[True] == heard[False]  # the same PSNRs, in the same order
 
 
+def test_a_pipelined_trainer_resumes_with_its_flushes_on_the_same_steps(tmp_path):
+    """A checkpoint written between flushes, the older PSNRs on their way to the sampler: resumed, they
+    arrive at the step they would have, and the run goes on as if never stopped."""
+    from test_train import CPU, small_config, synthetic_clip
+    from tomgs.train import Trainer
+    from tomgs.train.trainer import SAMPLER_LAG
+
+    images, cams, points, colors = synthetic_clip(3, 32, 18)
+
+    def trainer():
+        made = Trainer(images, cams, points, colors, small_config(100), CPU)
+        made.pipelined = True
+        return made
+
+    straight, first = trainer(), trainer()
+    for _ in range(2 * SAMPLER_LAG + 5):
+        straight.step()
+        first.step()
+    state = first.state_dict()
+    assert first._in_flight is not None and len(state["sampler"]["pending"]) == SAMPLER_LAG + 5
+    resumed = trainer()
+    resumed.load_checkpoint(state)
+    for _ in range(2 * SAMPLER_LAG + 3):
+        straight.step()
+        resumed.step()
+        assert torch.equal(straight.sampler.psnr, resumed.sampler.psnr)
+    for name, value in straight.model.parameters_by_name().items():
+        assert torch.equal(value, resumed.model.parameters_by_name()[name]), name
+
+
 @pytest.mark.parametrize("device", DEVICES)
 def test_a_frame_without_gaussians_does_not_wait_either(device, fresh_bounds):
     _, gaussians, camera = scene_on(device)

@@ -351,11 +351,11 @@ def test_gaussians_dead_at_every_training_frame_are_pruned():
     assert Densifier(preset("quick", temporal=False), 1.0, 6, CPU, times=times).prune(model, optimizer) == 1
 
 
-@pytest.mark.parametrize("progress, resumes", [(0.3, True), (0.8, False)])
-def test_room_freed_under_the_cap_is_densified_again_inside_the_window(progress, resumes):
+@pytest.mark.parametrize("progress, cap, resumes", [(0.3, 6, True), (0.8, 6, False), (0.3, 2, False)])
+def test_room_freed_under_the_cap_is_densified_again_inside_the_window(progress, cap, resumes):
     """A reached cap stops densification; a prune inside the densification window that frees rows lets
-    it go on into them, up to the cap again; after the window it stays stopped."""
-    config = preset("quick", max_gaussians=6, densify_interval=10, densify_start_fraction=0.1,
+    it go on into them, up to the cap again; after the window, or still at the cap, it stays stopped."""
+    config = preset("quick", max_gaussians=cap, densify_interval=10, densify_start_fraction=0.1,
                     densify_stop_fraction=0.75, percent_dense=1.0)
     model, optimizer = _between_frames_model()
     densifier = Densifier(config, 1.0, 6, CPU, times=[0.0, 0.25, 0.5, 0.75, 1.0])
@@ -406,7 +406,7 @@ def test_seeded_run_repeats_and_resume_matches(tmp_path):
     checkpoint = tmp_path / "run.ckpt"
     with pytest.raises(KeyboardInterrupt):
         run_clip(100, interrupt_at=50, checkpoint=checkpoint)
-    assert read_checkpoint(checkpoint)["sampler"]["pending"]  # 50 steps: two short of a flush
+    assert read_checkpoint(checkpoint)["sampler"]["pending"]  # 50 steps: two past a flush
     resumed = run_clip(100, checkpoint=checkpoint, resume_from=checkpoint)
     assert resumed.iterations == 100
     for name, value in straight.model.parameters_by_name().items():

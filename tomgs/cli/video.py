@@ -135,7 +135,8 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
     last = {}
 
     def row_text(row):
-        return (f"PSNR {row['train_psnr']} dB, {row['gaussians']:,} Gaussians, "
+        psnr = f"{row['train_psnr']} dB" if row["train_psnr"] != "" else "-"  # none heard yet: the first steps
+        return (f"PSNR {psnr}, {row['gaussians']:,} Gaussians, "
                 f"{row['iteration'] / max(row['wall_s'], 1e-9):.1f} it/s")
 
     def on_row(row):

@@ -81,7 +81,8 @@ class Densifier:
             self.step(model, optimizer)
             self.changed_at = iteration
         elif iteration % (10 * c.densify_interval) == 0:
-            if self.prune(model, optimizer) and progress < c.densify_stop_fraction:
+            if self.prune(model, optimizer) and progress < c.densify_stop_fraction \
+                    and len(model) < c.max_gaussians:
                 self.capped = False
             self.reset_stats(len(model), visible.device)
             self.changed_at = iteration

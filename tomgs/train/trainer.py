@@ -508,6 +508,8 @@ class Trainer:
                         seconds = time.perf_counter() - began
                         clip, self.eval_frame_seconds = (float(np.mean(values)), len(values)), seconds / len(values)
                         next_eval = now + max(c.eval_interval_s, seconds / EVAL_OVERHEAD)
+                    if last:
+                        self.flush_measurements()  # no draw follows: the last row has every step's PSNR
                     row = self._row(now, clip)
                     self.history.append(row)
                     if log_csv is not None:
@@ -585,6 +587,16 @@ class Trainer:
             pending += [[k, v] for (k, _), v in zip(self._measured, values)]
         return pending
 
+    def _restore_pending(self, pending: list) -> None:
+        """Put `_pending`'s measurements back where they were: a pipelined trainer's older ones on their
+        way to the sampler (heard at the next flush), the last iteration % SAMPLER_LAG steps' waiting
+        for it, so the flushes keep their steps."""
+        waiting = min(self.iteration % SAMPLER_LAG, len(pending)) if self.pipelined else len(pending)
+        sent, kept = pending[:len(pending) - waiting], pending[len(pending) - waiting:]
+        self._in_flight = ([int(k) for k, _ in sent], torch.tensor([float(v) for _, v in sent]), None) \
+            if sent else None
+        self._measured = [(int(k), torch.tensor(float(v), device=self.device)) for k, v in kept]
+
     def save_checkpoint(self, path: Path) -> None:
         """Write the state to `path` (tomgs.train.checkpoint.write_checkpoint: an exclusively created
         temporary, fsync, rename; the previous checkpoint stays until the new one is complete)."""
@@ -621,14 +633,12 @@ class Trainer:
         for group, settings in zip(self.optimizer.param_groups, own):
             group.update(settings)
         self.sampler.load_state_dict(state["sampler"])
-        self._in_flight = None
-        self._measured = [(int(k), torch.tensor(float(v), device=self.device))
-                          for k, v in state["sampler"].get("pending", [])]  # checkpoints before it: none
         densifier = dict(state["densifier"])
         densifier["grad_sum"] = densifier["grad_sum"].to(self.device)
         densifier["seen"] = densifier["seen"].to(self.device)
         self.densifier.load_state_dict(densifier)
         self.iteration, self.elapsed = state["iteration"], float(state["elapsed"])
+        self._restore_pending(state["sampler"].get("pending", []))  # checkpoints before it: none
         self.history, self.notes = list(state["history"]), list(state["notes"])
         self.densifier.extent = self.extent
         self.clip = dict(state["clip"])
