@@ -196,11 +196,17 @@ def project_reference(
                 extent=extent)
 
 
+def _depth_bits(depths: torch.Tensor) -> torch.Tensor:
+    """int64 [N]: the bits of float32 depths [N], the low half of a tile key (a positive float's bits
+    order as it does)."""
+    return depths.detach().to(torch.float32).view(torch.int32).long()
+
+
 def depth_order(depths: torch.Tensor, width: int, height: int) -> torch.Tensor:
     """int64 [N]: what a tile's list orders its Gaussians by, for their depths [N] (> 0 where visible)
-    in a width x height frame: the bits of float32 depth (a positive float's bits order as it does)
-    from `sort_low_bit` up. Gaussians equal in it are drawn in Gaussian order."""
-    return depths.detach().to(torch.float32).view(torch.int32).long() >> sort_low_bit(width, height)
+    in a width x height frame: `_depth_bits` from `sort_low_bit` up. Gaussians equal in it are drawn
+    in Gaussian order."""
+    return _depth_bits(depths) >> sort_low_bit(width, height)
 
 
 def bin_reference(means2d: torch.Tensor, conics: torch.Tensor, opacities_t: torch.Tensor, radii: torch.Tensor,
@@ -213,8 +219,7 @@ def bin_reference(means2d: torch.Tensor, conics: torch.Tensor, opacities_t: torc
     touches."""
     tiles_x, tiles_y = -(-int(width) // TILE_SIZE), -(-int(height) // TILE_SIZE)
     ids, tiles = ellipse_tiles(means2d, conics, opacities_t, radii, width, height)
-    depth_bits = depths.detach().to(torch.float32).view(torch.int32).long()  # a positive float's bits order as it
-    keys = (tiles << 32) | depth_bits[ids]
+    keys = (tiles << 32) | _depth_bits(depths)[ids]
     # keys equal in the bits the sort reads (tile, depth_order) keep Gaussian order, as the radix sort does
     order = torch.sort(keys >> sort_low_bit(width, height), stable=True)[1]
     keys, ids, tiles = keys[order], ids[order], tiles[order]
