@@ -5,6 +5,7 @@ uninterrupted one does."""
 from __future__ import annotations
 
 import copy
+import math
 import subprocess
 import sys
 
@@ -431,6 +432,68 @@ def test_tracked_points_start_alive_over_the_frames_that_saw_them():
     unknown = Trainer(images, cams, points, colors, small_config(10), CPU).model
     assert torch.allclose(unknown.t_means.detach()[:len(points)], torch.tensor(0.5))
     assert torch.allclose(unknown.t_scales.detach()[:len(points)], torch.tensor(1.0))
+
+
+def _tilted_plane_clip(frames=10, width=64, height=48, count=300):
+    """A camera sliding sideways over the plane z = 4 + x / 2, and `count` tracked points on it."""
+    from tomgs.cameras import Cameras
+
+    rng = np.random.default_rng(0)
+    images = rng.integers(0, 255, (frames, height, width, 3), dtype=np.uint8)
+    c2w = np.tile(np.eye(4), (frames, 1, 1))
+    c2w[:, 0, 3] = np.linspace(0, 0.5, frames)
+    K = np.array([[60.0, 0, width / 2], [0, 60.0, height / 2], [0, 0, 1]])
+    cams = Cameras(c2w, K, width, height, np.linspace(0, 1, frames), np.arange(frames))
+    xy = rng.uniform(-2, 2, (count, 2))
+    return images, cams, np.c_[xy, 4 + xy[:, 0] / 2], np.full((count, 3), 0.5, np.float32)
+
+
+def test_per_frame_points_start_on_the_surface_the_tracked_points_lie_on():
+    """init_depth "tracks": each frame's points start at the depth its tracked points give where they
+    are (on a tilted plane, within the 10% jitter: median |N(0, 0.1)| is 0.067), sized by that depth;
+    "median" puts them at the frame's median depth; a frame that sees too few points falls back to it."""
+    images, cams, points, colors = _tilted_plane_clip()
+    config = small_config(10).replace(init_points_per_frame=500, max_gaussians=100_000)
+
+    def depth_error(model):
+        m = model.means.detach().double().numpy()[len(points):]
+        plane = 4 + m[:, 0] / 2
+        return np.abs(m[:, 2] - plane) / plane
+
+    tracks = Trainer(images, cams, points, colors, config, CPU).model
+    median = Trainer(images, cams, points, colors, config.replace(init_depth="median"), CPU).model
+    assert np.median(depth_error(tracks)) < 0.08 < 0.12 < np.median(depth_error(median))
+    assert np.percentile(depth_error(tracks), 90) < 0.2 < np.percentile(depth_error(median), 90)
+    # sized by their own depth: one sample's share of the image, sqrt(64 * 48 / 500) px at fx 60
+    depths = tracks.means.detach().double().numpy()[len(points):, 2]
+    sizes = tracks.scales.detach().double().numpy()[len(points):, 0]
+    assert np.allclose(sizes, depths * math.sqrt(64 * 48 / 500) / 60, rtol=1e-5)
+    assert np.ptp(median.scales.detach().numpy()[len(points):, 0]) == 0  # one size for all
+
+    spans = np.tile([0, 9], (len(points), 1))
+    spans[:, 0] = 5  # frames 0-4 see no tracked point: their median depth, as before
+    seen_late = Trainer(images, cams, points, colors, config, CPU, point_frames=spans).model
+    first = seen_late.means.detach().double().numpy()[len(points):len(points) + 5 * 500]
+    as_median = median.means.detach().double().numpy()[len(points):len(points) + 5 * 500]
+    assert np.allclose(first, as_median, rtol=1e-6)
+    later = seen_late.means.detach().double().numpy()[len(points) + 5 * 500:]
+    assert np.allclose(later, tracks.means.detach().double().numpy()[len(points) + 5 * 500:], rtol=1e-6)
+
+    with pytest.raises(ValueError, match="init_depth must be one of tracks, median"):
+        config.replace(init_depth="sparse")
+
+
+def test_a_depth_grid_samples_a_linear_function_exactly():
+    from tomgs.train.trainer import sample_grid
+
+    gh, gw, width, height = 7, 11, 100.0, 60.0
+    ys, xs = torch.meshgrid(torch.linspace(0, height, gh, dtype=torch.float64),
+                            torch.linspace(0, width, gw, dtype=torch.float64), indexing="ij")
+    grid = 0.3 * xs - 0.7 * ys + 2
+    u = torch.tensor([0.0, 0.5, 37.2, 99.9, 100.0, 120.0, -3.0], dtype=torch.float64)
+    v = torch.tensor([0.0, 59.5, 12.8, 0.1, 60.0, 70.0, -1.0], dtype=torch.float64)
+    expected = 0.3 * u.clamp(0, width) - 0.7 * v.clamp(0, height) + 2  # clamped to the image
+    assert torch.allclose(sample_grid(grid, u, v, int(width), int(height)), expected, atol=1e-12)
 
 
 def test_initial_cloud_is_built_a_frame_at_a_time_not_on_the_host():

@@ -23,6 +23,7 @@ AUTO_POINTS_PER_FRAME = {"cuda": (16000, 48000, 5_000_000), "cpu": (2000, 2000, 
 # 1.7 dB (H100, benchmarks/first_minute.py, RESULTS.md). A CPU fit runs hundreds of steps, where
 # every added Gaussian slows each one: 3DGS's 2e-4.
 AUTO_GRAD_THRESHOLD = {"cuda": 1e-4, "cpu": 2e-4}
+INIT_DEPTHS = ("tracks", "median")  # TrainConfig.init_depth
 
 
 @dataclass
@@ -82,6 +83,10 @@ class TrainConfig:
     # first minute at 2 / 1 / 0.7 / 0.5 / 0.35 frames 34.4 / 34.6 / 34.85 / 34.5 / 34.05 dB at 60 s, 153 /
     # 178 / 209 / 215 / 254 steps/s (H100, first_minute.py, RESULTS.md session 32)
     init_t_scale_frames: float = 1.0
+    # depth of the per-frame points: "tracks", interpolated from the tracked points each frame sees (Trainer's
+    # log-depth grid), so a static surface's points from every frame start on it; "median", the frame's median
+    # depth of them everywhere (sessions 1-33, an ablation)
+    init_depth: str = "tracks"
     # logging
     log_interval: int = 50  # iterations between CSV rows
     # seconds between full-clip PSNR measurements (further apart where one costs more than 10% of
@@ -96,6 +101,10 @@ class TrainConfig:
     # used alone stops its training after this long
     max_seconds: float = 0.0
     seed: int = 0
+
+    def __post_init__(self):
+        if self.init_depth not in INIT_DEPTHS:
+            raise ValueError(f"init_depth must be one of {', '.join(INIT_DEPTHS)}, not {self.init_depth!r}")
 
     def points_per_frame(self, pixels: int, frames: int, device_type: str = "cpu") -> int:
         """Initial Gaussians per frame of `pixels` pixels in a clip of `frames` frames, trained on a

@@ -68,6 +68,13 @@ MIN_EVAL_FRAMES = 8
 # a backward: camel's 1-minute scene on the H100, 0.5 s for 90 frames, ~5.6 ms a frame against ~2)
 COMPACT_SHARE = 3.0
 RENDER_SHARE = 0.5  # a forward render's time over a training step's (CPU, the bundled clip: 0.11 / 0.22 s)
+# the initial per-frame points' depth (config.init_depth "tracks"): a grid of about this many nodes a frame,
+# each the mean log depth of its nearest tracked points (tracks are sparse: camel's 937 for 854x480 frames);
+# a frame with fewer in view takes its median depth
+DEPTH_GRID_NODES = 2048
+DEPTH_NEIGHBOURS = 4
+MIN_DEPTH_POINTS = 3
+DEPTH_GRID_CHUNK = 1 << 22  # node-point pairs of the frames computed at once (their [c,G,P,2] float32: 32 MB)
 STATIC_T_SCALE = 1e3  # temporal sigma of every Gaussian of a static fit (clip time: alive throughout)
 
 
@@ -174,8 +181,9 @@ class Trainer:
         wide = int(round(self.wide_fraction * per_frame))  # the first `wide` of each frame's points (random)
         tracked_means, tracked_sigma = self._tracked_windows(len(points), frame_sigma)
         # sizes: tracked points from their neighbours (few), per-frame points from one sample's
-        # share of the image (many: a neighbour search over them would be quadratic)
-        pixel_size = max(float(np.median(depth)) / float(fx) * math.sqrt(self.width * self.height / per_frame), 1e-6)
+        # share of the image at their depth (many: a neighbour search over them would be quadratic)
+        sample_pixels = math.sqrt(self.width * self.height / per_frame) / float(fx)
+        pixel_size = max(float(np.median(depth)) * sample_pixels, 1e-6)
         # float32 arrays on the training device, filled a frame at a time: the host holds one frame's
         # points, never the whole cloud (7.2M points, ~1.8 GB with their SH, for 900 frames on a GPU)
         P, total = len(points), len(points) + self.num_frames * per_frame
@@ -189,10 +197,18 @@ class Trainer:
             t_means[:P] = torch.as_tensor(tracked_means, dtype=torch.float32)
             start_t_scales[:P] = torch.as_tensor(tracked_sigma, dtype=torch.float32)
             sizes[:P] = nearest_neighbour_distance(torch.as_tensor(points, dtype=torch.float32)).to(self.device)
+        if c.init_depth == "tracks":
+            grids, known = self._log_depth_grids(points, w2c)
+        else:
+            grids, known = None, torch.zeros(self.num_frames, dtype=torch.bool)
         n = P
         for k in range(self.num_frames):
             u, v = self._initial_pixels(k, per_frame, g)
-            z = depth[k] * torch.exp(0.1 * torch.randn(len(u), generator=g, dtype=torch.float64))
+            if known[k]:
+                z = torch.exp(sample_grid(grids[k], u, v, self.width, self.height))
+            else:
+                z = torch.full_like(u, depth[k])
+            z = z * torch.exp(0.1 * torch.randn(len(u), generator=g, dtype=torch.float64))
             cam = torch.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], -1).numpy()
             c2w = self.cameras.c2w[k]
             m = len(u)
@@ -200,6 +216,8 @@ class Trainer:
             pix = self.frames[k, v.long().clamp(max=self.height - 1).to(self.store),
                               u.long().clamp(max=self.width - 1).to(self.store)]
             all_colors[n:n + m] = pix.float().to(self.device) / 255.0
+            if known[k]:
+                sizes[n:n + m] = (z * sample_pixels).clamp_min(1e-6).float().to(self.device)
             early = torch.arange(m, device=self.device) < wide
             t_means[n:n + m] = torch.where(early, 0.5, float(np.float32(self.times[k])))
             start_t_scales[n:n + m] = torch.where(early, 1.0, float(np.float32(frame_sigma)))
@@ -239,6 +257,52 @@ class Trainer:
         pixel = torch.multinomial(allowed, n, replacement=True, generator=g)
         jitter = torch.rand(2, n, generator=g, dtype=torch.float64)
         return (pixel % self.width).double() + jitter[0], (pixel // self.width).double() + jitter[1]
+
+    def _log_depth_grids(self, points: np.ndarray, w2c: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """Each frame's log depth at grid nodes spread evenly over the image (corners included, about
+        DEPTH_GRID_NODES): (float64 [T, gh, gw], bool [T] whether frame k's grid is known), on the host. A
+        node's value is the inverse-squared-distance mean of the log depths of the DEPTH_NEIGHBOURS nearest
+        tracked points seen in the frame (`point_frames`; without it, every point in front of the camera) as
+        they project into the image; a frame with fewer than MIN_DEPTH_POINTS there has none. The frames go
+        a chunk at a time through the training device, which copies the grids back once. points: float64
+        [P,3] world; w2c: [T,4,4]."""
+        T = self.num_frames
+        cell = math.sqrt(self.width * self.height / DEPTH_GRID_NODES)
+        gw, gh = math.ceil(self.width / cell) + 1, math.ceil(self.height / cell) + 1
+        grids, known = torch.zeros(T, gh * gw, dtype=torch.float64), torch.zeros(T, dtype=torch.bool)
+        if len(points) == 0:
+            return grids.reshape(T, gh, gw), known
+        dev = self.device
+        ys, xs = torch.meshgrid(torch.linspace(0, self.height, gh, device=dev),
+                                torch.linspace(0, self.width, gw, device=dev), indexing="ij")
+        nodes = torch.stack([xs.flatten(), ys.flatten()], -1)  # [G,2] pixels
+        world = torch.as_tensor(points, dtype=torch.float64, device=dev)
+        w2c = torch.as_tensor(w2c, dtype=torch.float64, device=dev)
+        K = torch.as_tensor(self.cameras.K, dtype=torch.float64, device=dev)
+        size = torch.tensor([self.width, self.height], dtype=torch.float64, device=dev)
+        frames = torch.arange(T, device=dev)
+        if self.point_frames is not None and len(self.point_frames) == len(points):
+            spans = torch.as_tensor(self.point_frames, device=dev)
+            seen = (spans[:, 0] <= frames[:, None]) & (frames[:, None] <= spans[:, 1])  # [T,P]
+        else:
+            seen = torch.ones(T, len(points), dtype=torch.bool, device=dev)
+        near = min(DEPTH_NEIGHBOURS, len(points))
+        out = torch.empty(T, gh * gw, dtype=torch.float64, device=dev)
+        chunk = max(1, DEPTH_GRID_CHUNK // (len(nodes) * len(points)))
+        for a in range(0, T, chunk):
+            b = min(a + chunk, T)
+            cam = torch.einsum("tij,pj->tpi", w2c[a:b, :3, :3], world) + w2c[a:b, None, :3, 3]  # [c,P,3]
+            z = cam[..., 2]
+            uv = cam[..., :2] / z.clamp_min(1e-12)[..., None] * K.diagonal()[:2] + K[:2, 2]
+            ok = seen[a:b] & (z > 1e-6) & ((uv >= 0) & (uv <= size)).all(-1)
+            d2 = ((nodes[None, :, None, :] - uv[:, None].float()) ** 2).sum(-1)  # [c,G,P]
+            d2, nearest = d2.masked_fill(~ok[:, None], float("inf")).topk(near, dim=-1, largest=False)
+            weights = 1.0 / (d2.double() + cell * cell)  # 0 for points not seen; a node on a point takes
+            log_z = z.clamp_min(1e-12).log()[:, None].expand(-1, len(nodes), -1)  # mostly, not only, its depth
+            out[a:b] = (weights * log_z.gather(-1, nearest)).sum(-1) / weights.sum(-1).clamp_min(1e-300)
+            known[a:b] = (ok.sum(-1) >= MIN_DEPTH_POINTS).cpu()
+        grids.copy_(out)
+        return grids.reshape(T, gh, gw), known
 
     @staticmethod
     def _median_depth(points: np.ndarray, w2c: np.ndarray) -> np.ndarray:
@@ -673,6 +737,19 @@ def _as_uint8(values, shape, name: str, device) -> torch.Tensor:
 def spread(total: int, count: int) -> np.ndarray:
     """int [count]: `count` of `total` frames evenly spaced, the first and last among them (count >= 1)."""
     return np.unique(np.linspace(0, total - 1, count).round().astype(np.int64))
+
+
+def sample_grid(grid: torch.Tensor, u: torch.Tensor, v: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """Bilinear samples [n] of `grid` [gh, gw], whose nodes span the image (node (0, 0) at pixel (0, 0),
+    (gh-1, gw-1) at (width, height)), at pixel positions u, v [n] (clamped to the image)."""
+    gh, gw = grid.shape
+    x = (u * ((gw - 1) / width)).clamp(0, gw - 1)
+    y = (v * ((gh - 1) / height)).clamp(0, gh - 1)
+    x0, y0 = x.floor().long().clamp(max=gw - 2), y.floor().long().clamp(max=gh - 2)
+    a, b = (x - x0).to(grid.dtype), (y - y0).to(grid.dtype)
+    top = grid[y0, x0] * (1 - a) + grid[y0, x0 + 1] * a
+    bottom = grid[y0 + 1, x0] * (1 - a) + grid[y0 + 1, x0 + 1] * a
+    return top * (1 - b) + bottom * b
 
 
 def log_memory_mb(device: torch.device) -> float:
