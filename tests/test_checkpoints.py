@@ -291,7 +291,8 @@ def test_a_failed_save_keeps_the_last_good_checkpoint_and_leaves_no_temporary(tm
 
 
 def scheduled_saves(monkeypatch, iterations: int, save_seconds: float = 0.0) -> list[tuple[int, float]]:
-    """(iteration, clock) of every checkpoint of a run whose steps take one (fake) second each."""
+    """(iteration, clock) of every checkpoint of a run whose steps take one (fake) second each, and whose
+    checkpoints keep training waiting `save_seconds`."""
     clock = [0.0]
     saves = []
 
@@ -307,7 +308,7 @@ def scheduled_saves(monkeypatch, iterations: int, save_seconds: float = 0.0) -> 
     trainer.config = preset("quick", iterations=iterations, log_interval=25, eval_interval_s=1e9)
     monkeypatch.setattr(time, "perf_counter", lambda: clock[0])
     monkeypatch.setattr(Trainer, "step", step)
-    monkeypatch.setattr(Trainer, "save_checkpoint", save)
+    monkeypatch.setattr(Trainer, "_checkpoint_in_background", save)  # the periodic checkpoints
     monkeypatch.setattr(Trainer, "clip_psnr",
                         lambda self, tick=None, frames=None: [20.0] * len(range(self.num_frames) if frames is None
                                                                           else frames))

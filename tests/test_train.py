@@ -8,6 +8,7 @@ import copy
 import math
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -381,13 +382,15 @@ def test_densification_follows_run_progress_not_iteration_counts(iteration, prog
     assert Densifier(config, 1.0, 1, CPU).due(iteration, progress) is due
 
 
-def run_clip(iterations, interrupt_at=None, checkpoint=None, resume_from=None, **config):
+def run_clip(iterations, interrupt_at=None, checkpoint=None, resume_from=None, on_row=None, **config):
     images, cams, points, colors = synthetic_clip(3, 32, 18)
     trainer = Trainer(images, cams, points, colors, small_config(iterations, **config), CPU)
     if resume_from is not None:
         trainer.load_checkpoint(resume_from)
 
     def progress(row):
+        if on_row is not None:
+            on_row(row)
         if row["iteration"] == interrupt_at:
             raise KeyboardInterrupt
 
@@ -413,6 +416,66 @@ def test_seeded_run_repeats_and_resume_matches(tmp_path):
     for name, value in straight.model.parameters_by_name().items():
         assert torch.equal(value, resumed.model.parameters_by_name()[name]), name
     assert [r["iteration"] for r in resumed.history] == [r["iteration"] for r in straight.history]
+
+
+def background_writes(monkeypatch, kept: dict, seconds: float = 0.0, error: Exception | None = None):
+    """Checkpoints every step, written by the thread after `seconds` (training runs on meanwhile and changes
+    its own tensors), or failing with `error`; a copy of each written there is kept by iteration in `kept`."""
+    import tomgs.train.checkpoint as checkpoints
+    import tomgs.train.trainer as trainer
+
+    write = checkpoints.write_checkpoint
+
+    def slow(path, state):
+        time.sleep(seconds)
+        if error is not None:
+            raise error
+        written = write(path, state)
+        kept[state["iteration"]] = read_checkpoint(written)
+        return written
+
+    monkeypatch.setattr(checkpoints, "write_checkpoint", slow)
+    monkeypatch.setattr(trainer, "CHECKPOINT_OVERHEAD", 1e12)  # no spacing by the wait: one every step
+
+
+def test_a_checkpoint_written_while_training_goes_on_holds_its_own_step(tmp_path, monkeypatch):
+    """The periodic checkpoints are written by a thread while the next steps change the parameters and
+    the optimiser's moments in place: each must hold the step it was taken at, exactly as a checkpoint
+    written at that step with training stopped (the interrupt's)."""
+    kept = {}
+    background_writes(monkeypatch, kept, seconds=0.02)
+    run_clip(60, checkpoint=tmp_path / "every.ckpt", checkpoint_interval_s=0.0)
+    assert sorted(kept) == list(range(1, 61))
+    with pytest.raises(KeyboardInterrupt):
+        run_clip(60, interrupt_at=30, checkpoint=tmp_path / "stopped.ckpt", log_interval=1)
+    stopped = read_checkpoint(tmp_path / "stopped.ckpt")
+    for name, value in stopped["params"].items():
+        assert torch.equal(value, kept[30]["params"][name]), name
+    moments = list(zip(stopped["optimizer"]["state"].values(), kept[30]["optimizer"]["state"].values()))
+    assert moments and all(torch.equal(a[k], b[k]) for a, b in moments for k in a), "optimiser moments differ"
+    assert torch.equal(stopped["densifier"]["grad_sum"], kept[30]["densifier"]["grad_sum"])
+    assert not torch.equal(kept[30]["params"]["means"], kept[31]["params"]["means"])  # the next step moved them
+
+
+def test_an_interrupt_waits_for_the_checkpoint_being_written(tmp_path, monkeypatch):
+    """SIGINT's checkpoint is written after the one in progress: a slow earlier write must not land last."""
+    kept = {}
+    background_writes(monkeypatch, kept, seconds=0.1)
+    checkpoint = tmp_path / "run.ckpt"
+    with pytest.raises(KeyboardInterrupt):
+        run_clip(60, interrupt_at=30, checkpoint=checkpoint, checkpoint_interval_s=0.0, log_interval=1)
+    assert max(kept) == 29
+    assert read_checkpoint(checkpoint)["iteration"] == 30
+
+
+def test_a_checkpoint_that_cannot_be_written_stops_the_run(tmp_path, monkeypatch):
+    """A write that fails on the thread (a full disk) is raised in the training thread, and the run stops."""
+    background_writes(monkeypatch, {}, error=OSError(28, "No space left on device"))
+    steps = []
+    with pytest.raises(OSError, match="No space left"):
+        run_clip(30, checkpoint=tmp_path / "run.ckpt", checkpoint_interval_s=0.0, log_interval=1,
+                 on_row=steps.append)
+    assert len(steps) <= 2  # raised at the next checkpoint, one step after the failed one
 
 
 def test_tracked_points_start_alive_over_the_frames_that_saw_them():

@@ -138,6 +138,74 @@ def write_checkpoint(path, state: dict) -> Path:
     return Path(path)
 
 
+class CheckpointWriter:
+    """Writes a fit's periodic checkpoints on a thread of its own, one at a time, so training goes on
+    while a state goes to the host and the disk (a 5M-Gaussian state took 1.5-1.8 s on the H100, 5% of
+    a GPU fit at one every 30 s). `submit(path, state)` first waits for the write before it; the
+    state's tensors must be the writer's alone (`own_copies`), since training changes its own in place.
+    `wait()` returns once nothing is being written and raises the first error a write met (a full
+    disk); `done` is the last checkpoint written completely (None before one). As a context manager
+    it waits on leaving."""
+
+    def __init__(self):
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
+        self.done: Path | None = None
+
+    def submit(self, path, state: dict) -> None:
+        self.wait()
+
+        def write():
+            try:
+                self.done = write_checkpoint(path, state)
+            except BaseException as e:  # handed to the training thread by wait()
+                self._error = e
+
+        self._thread = threading.Thread(target=write, name="tomgs-checkpoint", daemon=True)
+        self._thread.start()
+
+    def wait(self) -> None:
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+        if self._error is not None:
+            error, self._error = self._error, None
+            raise error
+
+    def __enter__(self) -> "CheckpointWriter":
+        return self
+
+    def __exit__(self, kind, error, trace) -> None:
+        """Wait for the write in progress; a write's error is raised unless another is on its way."""
+        if kind is None:
+            self.wait()
+        elif self._thread is not None:
+            self._thread.join()
+            self._thread = None
+
+
+def own_copies(value):
+    """`value` (a checkpoint state) with every tensor below it cloned where it lives: the writer's own."""
+    if isinstance(value, torch.Tensor):
+        return value.detach().clone()
+    if isinstance(value, dict):
+        return {k: own_copies(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(own_copies(v) for v in value)
+    return value
+
+
+def state_bytes(value) -> int:
+    """Bytes of the tensors below `value`."""
+    if isinstance(value, torch.Tensor):
+        return value.numel() * value.element_size()
+    if isinstance(value, dict):
+        return sum(state_bytes(v) for v in value.values())
+    if isinstance(value, (list, tuple)):
+        return sum(state_bytes(v) for v in value)
+    return 0
+
+
 def _check_plain(value, where: str, path) -> None:
     """Only tensors and plain data below `value` (a numpy scalar would make the file unreadable with
     weights_only)."""
@@ -302,5 +370,5 @@ def config_to_dict(config) -> dict:
             for k, v in dataclasses.asdict(config).items()}
 
 
-__all__ = ["FitInterrupted", "StopSignals", "check_same_settings", "check_state", "config_from", "config_to_dict", "read_checkpoint",
-           "write_checkpoint"]
+__all__ = ["CheckpointWriter", "FitInterrupted", "StopSignals", "check_same_settings", "check_state", "config_from", "config_to_dict", "read_checkpoint",
+           "own_copies", "state_bytes", "write_checkpoint"]

@@ -12,8 +12,9 @@ memory), and at the end a PNG of PSNR against wall-clock time; the CSV is rewrit
 each row.
 
 Durability (tomgs/train/checkpoint.py): a checkpoint every `checkpoint_interval_s` seconds of
-training (30 s), spaced further when a save is slow so that saving costs at most
-CHECKPOINT_OVERHEAD of the run, and one when SIGINT or SIGTERM arrives: the signal is read at the
+training (30 s), copied where the state lives at a step boundary and written by a thread while
+training goes on (CheckpointWriter; spaced further when the wait for it is long, so that it costs
+at most CHECKPOINT_OVERHEAD of the run), and one when SIGINT or SIGTERM arrives: the signal is read at the
 next step boundary (never inside a densification, where the parameters and the optimiser disagree),
 that step is saved and FitInterrupted raised. A crash (kill -9, power loss) loses at most the
 interval (or 20 saves' time) of training; `resume=True` continues from the checkpoint, and a seeded
@@ -41,9 +42,9 @@ from tomgs.render import blend_weights, render_frame
 from tomgs.temporal import frames_to_clip_time
 from tomgs.errors import InputError
 from tomgs.outputs import write_text
-from tomgs.train.checkpoint import (FORMAT, LOG_FIELDS, START_OVER, VERSION, FitInterrupted, StopSignals,
-                                    check_same_settings, config_from, config_to_dict, read_checkpoint,
-                                    write_checkpoint)
+from tomgs.train.checkpoint import (FORMAT, LOG_FIELDS, START_OVER, VERSION, CheckpointWriter, FitInterrupted,
+                                    StopSignals, check_same_settings, config_from, config_to_dict, own_copies,
+                                    read_checkpoint, state_bytes, write_checkpoint)
 from tomgs.train.config import TrainConfig
 from tomgs.train.densify import Densifier
 from tomgs.train.optim import make_adam, uses_seen_adam
@@ -539,11 +540,13 @@ class Trainer:
             """Save the step just finished (a step boundary) and raise FitInterrupted."""
             if checkpoint is None:
                 raise FitInterrupted(None, signum)
+            writer.wait()
             self.elapsed = time.perf_counter() - start
             self.save_checkpoint(checkpoint)
             raise FitInterrupted(checkpoint, signum, self.iteration)
 
-        with StopSignals(checkpoint=lambda: saved) as stop:
+        # the periodic checkpoints are written while training goes on; leaving the block waits for the last
+        with CheckpointWriter() as writer, StopSignals(checkpoint=lambda: writer.done or saved) as stop:
             while self.iteration < c.iterations:
                 before = time.perf_counter() - start
                 self.progress = max(self.iteration / c.iterations, before / limit if limit > 0 else 0.0)
@@ -589,9 +592,8 @@ class Trainer:
                     self.elapsed = time.perf_counter() - start
                     tick(self.iteration, self.elapsed, "saving a checkpoint")
                     began = time.perf_counter()
-                    self.save_checkpoint(checkpoint)
-                    saved = Path(checkpoint)
-                    cost = time.perf_counter() - began
+                    self._checkpoint_in_background(checkpoint, writer)
+                    cost = time.perf_counter() - began  # what training waited for
                     next_ckpt = time.perf_counter() - start + max(c.checkpoint_interval_s, cost / CHECKPOINT_OVERHEAD)
                 if out_of_time:
                     self.notes.append(f"training stopped after {self.iteration} iterations at its {limit:.0f} s "
@@ -660,6 +662,19 @@ class Trainer:
         self._in_flight = ([int(k) for k, _ in sent], torch.tensor([float(v) for _, v in sent]), None) \
             if sent else None
         self._measured = [(int(k), torch.tensor(float(v), device=self.device)) for k, v in kept]
+
+    def _checkpoint_in_background(self, path: Path, writer: CheckpointWriter) -> None:
+        """Hand `writer` a copy of the state (made where the tensors live, at this step boundary), or
+        write it here when the device lacks the room for that copy."""
+        writer.wait()
+        state = self.state_dict()
+        if self.device.type == "cuda":
+            free, _ = torch.cuda.mem_get_info(self.device)
+            free += torch.cuda.memory_reserved(self.device) - torch.cuda.memory_allocated(self.device)
+            if state_bytes(state) > free / 2:
+                writer.done = write_checkpoint(path, state)
+                return
+        writer.submit(path, own_copies(state))
 
     def save_checkpoint(self, path: Path) -> None:
         """Write the state to `path` (tomgs.train.checkpoint.write_checkpoint: an exclusively created
