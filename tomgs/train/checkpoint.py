@@ -370,5 +370,5 @@ def config_to_dict(config) -> dict:
             for k, v in dataclasses.asdict(config).items()}
 
 
-__all__ = ["CheckpointWriter", "FitInterrupted", "StopSignals", "check_same_settings", "check_state", "config_from", "config_to_dict", "read_checkpoint",
-           "own_copies", "state_bytes", "write_checkpoint"]
+__all__ = ["CheckpointWriter", "FitInterrupted", "StopSignals", "check_same_settings", "check_state",
+           "config_from", "config_to_dict", "read_checkpoint", "own_copies", "state_bytes", "write_checkpoint"]
