@@ -497,16 +497,21 @@ def test_tracked_points_start_alive_over_the_frames_that_saw_them():
     assert torch.allclose(unknown.t_scales.detach()[:len(points)], torch.tensor(1.0))
 
 
-def _tilted_plane_clip(frames=10, width=64, height=48, count=300):
-    """A camera sliding sideways over the plane z = 4 + x / 2, and `count` tracked points on it."""
+def sliding_camera_clip(frames: int, width: int, height: int, slide: float, rng):
+    """Random frames, and cameras (fx 60) sliding `slide` along x over the clip."""
     from tomgs.cameras import Cameras
 
-    rng = np.random.default_rng(0)
     images = rng.integers(0, 255, (frames, height, width, 3), dtype=np.uint8)
     c2w = np.tile(np.eye(4), (frames, 1, 1))
-    c2w[:, 0, 3] = np.linspace(0, 0.5, frames)
+    c2w[:, 0, 3] = np.linspace(0, slide, frames)
     K = np.array([[60.0, 0, width / 2], [0, 60.0, height / 2], [0, 0, 1]])
-    cams = Cameras(c2w, K, width, height, np.linspace(0, 1, frames), np.arange(frames))
+    return images, Cameras(c2w, K, width, height, np.linspace(0, 1, frames), np.arange(frames))
+
+
+def _tilted_plane_clip(frames=10, width=64, height=48, count=300):
+    """A camera sliding sideways over the plane z = 4 + x / 2, and `count` tracked points on it."""
+    rng = np.random.default_rng(0)
+    images, cams = sliding_camera_clip(frames, width, height, 0.5, rng)
     xy = rng.uniform(-2, 2, (count, 2))
     return images, cams, np.c_[xy, 4 + xy[:, 0] / 2], np.full((count, 3), 0.5, np.float32)
 
@@ -567,13 +572,7 @@ def test_initial_cloud_is_built_a_frame_at_a_time_not_on_the_host():
 
     frames, width, height, per_frame = 60, 64, 48, 1000
     rng = np.random.default_rng(0)
-    images = rng.integers(0, 255, (frames, height, width, 3), dtype=np.uint8)
-    c2w = np.tile(np.eye(4), (frames, 1, 1))
-    c2w[:, 0, 3] = np.linspace(0, 1, frames)
-    from tomgs.cameras import Cameras
-
-    K = np.array([[60.0, 0, width / 2], [0, 60.0, height / 2], [0, 0, 1]])
-    cams = Cameras(c2w, K, width, height, np.linspace(0, 1, frames), np.arange(frames))
+    images, cams = sliding_camera_clip(frames, width, height, 1.0, rng)
     points = rng.normal(size=(200, 3)) + [0, 0, 4]
     config = small_config(10).replace(init_points_per_frame=per_frame, max_gaussians=10 * frames * per_frame)
     trainer = Trainer(images, cams, points, np.full((200, 3), 0.5, np.float32), config, CPU)

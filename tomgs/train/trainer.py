@@ -674,7 +674,11 @@ class Trainer:
             if state_bytes(state) > free / 2:
                 writer.done = write_checkpoint(path, state)
                 return
-        writer.submit(path, own_copies(state))
+        copies, ready = own_copies(state), None
+        if self.device.type == "cuda":
+            ready = torch.cuda.Event()
+            ready.record(torch.cuda.current_stream(self.device))
+        writer.submit(path, copies, ready)
 
     def save_checkpoint(self, path: Path) -> None:
         """Write the state to `path` (tomgs.train.checkpoint.write_checkpoint: an exclusively created
