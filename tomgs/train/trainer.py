@@ -14,8 +14,8 @@ each row.
 Durability (tomgs/train/checkpoint.py): a checkpoint every `checkpoint_interval_s` seconds of
 training (30 s), copied where the state lives at a step boundary and written by a thread while
 training goes on (CheckpointWriter; spaced further when the wait for it is long, so that it costs
-at most CHECKPOINT_OVERHEAD of the run), and one when SIGINT or SIGTERM arrives: the signal is read at the
-next step boundary (never inside a densification, where the parameters and the optimiser disagree),
+at most CHECKPOINT_OVERHEAD of the run), and one when SIGINT or SIGTERM arrives: the signal is read
+at the next step boundary (never inside a densification, where the parameters and the optimiser disagree),
 that step is saved and FitInterrupted raised. A crash (kill -9, power loss) loses at most the
 interval (or 20 saves' time) of training; `resume=True` continues from the checkpoint, and a seeded
 CPU run repeats exactly.
@@ -270,9 +270,8 @@ class Trainer:
         T = self.num_frames
         cell = math.sqrt(self.width * self.height / DEPTH_GRID_NODES)
         gw, gh = math.ceil(self.width / cell) + 1, math.ceil(self.height / cell) + 1
-        grids, known = torch.zeros(T, gh * gw, dtype=torch.float64), torch.zeros(T, dtype=torch.bool)
         if len(points) == 0:
-            return grids.reshape(T, gh, gw), known
+            return torch.zeros(T, gh, gw, dtype=torch.float64), torch.zeros(T, dtype=torch.bool)
         dev = self.device
         ys, xs = torch.meshgrid(torch.linspace(0, self.height, gh, device=dev),
                                 torch.linspace(0, self.width, gw, device=dev), indexing="ij")
@@ -288,7 +287,8 @@ class Trainer:
         else:
             seen = torch.ones(T, len(points), dtype=torch.bool, device=dev)
         near = min(DEPTH_NEIGHBOURS, len(points))
-        out = torch.empty(T, gh * gw, dtype=torch.float64, device=dev)
+        grids = torch.empty(T, gh * gw, dtype=torch.float64, device=dev)
+        known = torch.empty(T, dtype=torch.bool, device=dev)
         chunk = max(1, DEPTH_GRID_CHUNK // (len(nodes) * len(points)))
         for a in range(0, T, chunk):
             b = min(a + chunk, T)
@@ -298,12 +298,12 @@ class Trainer:
             ok = seen[a:b] & (z > 1e-6) & ((uv >= 0) & (uv <= size)).all(-1)
             d2 = ((nodes[None, :, None, :] - uv[:, None].float()) ** 2).sum(-1)  # [c,G,P]
             d2, nearest = d2.masked_fill(~ok[:, None], float("inf")).topk(near, dim=-1, largest=False)
-            weights = 1.0 / (d2.double() + cell * cell)  # 0 for points not seen; a node on a point takes
-            log_z = z.clamp_min(1e-12).log()[:, None].expand(-1, len(nodes), -1)  # mostly, not only, its depth
-            out[a:b] = (weights * log_z.gather(-1, nearest)).sum(-1) / weights.sum(-1).clamp_min(1e-300)
-            known[a:b] = (ok.sum(-1) >= MIN_DEPTH_POINTS).cpu()
-        grids.copy_(out)
-        return grids.reshape(T, gh, gw), known
+            # 0 for the points not seen; the cell's square keeps a node on a point from taking only its depth
+            weights = 1.0 / (d2.double() + cell * cell)
+            log_z = z.clamp_min(1e-12).log()[:, None].expand(-1, len(nodes), -1)
+            grids[a:b] = (weights * log_z.gather(-1, nearest)).sum(-1) / weights.sum(-1).clamp_min(1e-300)
+            known[a:b] = ok.sum(-1) >= MIN_DEPTH_POINTS
+        return grids.reshape(T, gh, gw).cpu(), known.cpu()
 
     @staticmethod
     def _median_depth(points: np.ndarray, w2c: np.ndarray) -> np.ndarray:
