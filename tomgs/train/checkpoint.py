@@ -168,11 +168,11 @@ class CheckpointWriter:
         self._thread = threading.Thread(target=write, name="tomgs-checkpoint", daemon=True)
         self._thread.start()
 
-    def wait(self) -> None:
+    def wait(self, raise_error: bool = True) -> None:
         if self._thread is not None:
             self._thread.join()
             self._thread = None
-        if self._error is not None:
+        if self._error is not None and raise_error:
             error, self._error = self._error, None
             raise error
 
@@ -181,11 +181,7 @@ class CheckpointWriter:
 
     def __exit__(self, kind, error, trace) -> None:
         """Wait for the write in progress; a write's error is raised unless another is on its way."""
-        if kind is None:
-            self.wait()
-        elif self._thread is not None:
-            self._thread.join()
-            self._thread = None
+        self.wait(raise_error=kind is None)
 
 
 def own_copies(value):
