@@ -133,6 +133,9 @@ def craft(kind: str, checkpoint: Path, marker: Path) -> None:
         config = genuine["config"] if isinstance(genuine["config"], dict) else vars(genuine["config"])
         genuine["config"] = dict(config, evil=1)
         torch.save(genuine, checkpoint)
+    elif kind == "a setting of no allowed value":
+        genuine["config"] = dict(genuine["config"], init_depth="evil")
+        torch.save(genuine, checkpoint)
     else:
         raise AssertionError(kind)
 
@@ -140,7 +143,7 @@ def craft(kind: str, checkpoint: Path, marker: Path) -> None:
 BAD_CHECKPOINTS = ["payload only", "payload added to a genuine checkpoint", "payload in torch's legacy format",
                    "payload as a plain pickle", "garbage", "truncated", "empty", "plain data of another shape",
                    "rows that disagree", "a log row of another layout", "a pending measurement of no frame",
-                   "unknown setting"]
+                   "unknown setting", "a setting of no allowed value"]
 
 
 @pytest.mark.parametrize("kind", BAD_CHECKPOINTS)

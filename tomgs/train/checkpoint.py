@@ -351,7 +351,10 @@ def config_from(values: dict, path="<checkpoint>"):
     for name, value in values.items():
         if not isinstance(value, (int, float, str, bool, type(None))):
             raise _bad(path, f"setting {name} of type {type(value).__name__}")
-    return TrainConfig(**values)
+    try:
+        return TrainConfig(**values)
+    except ValueError as e:  # a value TrainConfig refuses (init_depth)
+        raise _bad(path, str(e)) from None
 
 
 def check_same_settings(saved: dict, config, where) -> None:
