@@ -478,6 +478,30 @@ def test_a_checkpoint_that_cannot_be_written_stops_the_run(tmp_path, monkeypatch
     assert len(steps) <= 2  # raised at the next checkpoint, one step after the failed one
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_a_background_checkpoint_copies_what_the_training_stream_had_queued_cuda(tmp_path):
+    """The writer's copies to the host run on a stream of their own: they must wait for the clones queued on
+    the training's stream before the event (kept busy here, so a copy that did not wait reads them unwritten),
+    and training's own tensors, changed in place right after, must not reach the file."""
+    from tomgs.train.checkpoint import CheckpointWriter, own_copies
+
+    images, cams, points, colors = synthetic_clip(2, 24, 14)
+    trainer = Trainer(images, cams, points, colors, small_config(10), torch.device("cuda"))
+    want = {name: p.detach().cpu() for name, p in trainer.model.parameters_by_name().items()}
+    state = trainer.state_dict()
+    torch.cuda._sleep(400_000_000)  # the training stream busy for ~0.2 s before the clones run
+    copies, ready = own_copies(state), torch.cuda.Event()
+    ready.record()
+    with CheckpointWriter() as writer:
+        writer.submit(tmp_path / "run.ckpt", copies, ready)
+        with torch.no_grad():
+            for p in trainer.model.parameters_by_name().values():
+                p.add_(1.0)
+    written = read_checkpoint(tmp_path / "run.ckpt")
+    for name, value in want.items():
+        assert torch.equal(written["params"][name], value), name
+
+
 def test_tracked_points_start_alive_over_the_frames_that_saw_them():
     images, cams, points, colors = synthetic_clip(9, 32, 18)
     spans = np.zeros((len(points), 2), dtype=np.int64)
@@ -518,7 +542,8 @@ def _tilted_plane_clip(frames=10, width=64, height=48, count=300):
 
 def test_per_frame_points_start_on_the_surface_the_tracked_points_lie_on():
     """init_depth "tracks": each frame's points start at the depth its tracked points give where they
-    are (on a tilted plane, within the 10% jitter: median |N(0, 0.1)| is 0.067), sized by that depth;
+    are (on a tilted plane, within the 10% jitter: median |N(0, 0.1)| is 0.067; without it, closer), sized by
+    that depth;
     "median" puts them at the frame's median depth; a frame that sees too few points falls back to it."""
     images, cams, points, colors = _tilted_plane_clip()
     config = small_config(10).replace(init_points_per_frame=500, max_gaussians=100_000)
@@ -547,8 +572,15 @@ def test_per_frame_points_start_on_the_surface_the_tracked_points_lie_on():
     later = seen_late.means.detach().double().numpy()[len(points) + 5 * 500:]
     assert np.allclose(later, tracks.means.detach().double().numpy()[len(points) + 5 * 500:], rtol=1e-6)
 
+    # without the jitter, what is left is the grid's interpolation error (0.006 here)
+    exact = Trainer(images, cams, points, colors, config.replace(init_depth_jitter=0.0), CPU).model
+    assert np.median(depth_error(exact)) < 0.015
+
     with pytest.raises(ValueError, match="init_depth must be one of tracks, median"):
         config.replace(init_depth="sparse")
+    for bad in (-0.1, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="init_depth_jitter must be between 0 and 1"):
+            config.replace(init_depth_jitter=bad)
 
 
 def test_a_depth_grid_samples_a_linear_function_exactly():

@@ -153,15 +153,21 @@ class CheckpointWriter:
         self.done: Path | None = None
 
     def submit(self, path, state: dict, ready=None) -> None:
-        """Write `state` to `path` on the thread, once `ready` (a CUDA event recorded after the copies were
-        queued, or None) has passed: the thread's copies to the host need not share the training's stream."""
+        """Write `state` to `path` on the thread. `ready`: None, or a CUDA event recorded after the
+        state's copies were queued; the thread's copies to the host then run on a stream of their own
+        that waits for it, where on the training's stream every kernel queued behind them waited too
+        (a 5M-Gaussian camel fit: the clip PSNR beside the write 0.8 s instead of 0.15)."""
         self.wait()
 
         def write():
             try:
-                if ready is not None:
-                    ready.synchronize()
-                self.done = write_checkpoint(path, state)
+                if ready is None:
+                    self.done = write_checkpoint(path, state)
+                    return
+                side = torch.cuda.Stream(ready.device)
+                side.wait_event(ready)
+                with torch.cuda.stream(side):  # the thread's own current stream: training's is untouched
+                    self.done = write_checkpoint(path, state)
             except BaseException as e:  # handed to the training thread by wait()
                 self._error = e
 

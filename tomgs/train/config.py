@@ -87,6 +87,9 @@ class TrainConfig:
     # log-depth grid), so a static surface's points from every frame start on it; "median", the frame's median
     # depth of them everywhere (sessions 1-33, an ablation)
     init_depth: str = "tracks"
+    # sigma of the per-frame points' log-depth noise (a point's depth times exp(sigma * N(0, 1))): the spread
+    # covers the depth's error, the median rule's most of all
+    init_depth_jitter: float = 0.1
     # logging
     log_interval: int = 50  # iterations between CSV rows
     # seconds between full-clip PSNR measurements (further apart where one costs more than 10% of
@@ -105,6 +108,8 @@ class TrainConfig:
     def __post_init__(self):
         if self.init_depth not in INIT_DEPTHS:
             raise ValueError(f"init_depth must be one of {', '.join(INIT_DEPTHS)}, not {self.init_depth!r}")
+        if not 0 <= self.init_depth_jitter <= 1:  # NaN fails too; exp(N(0, 1)) past 1 spans e^2 around the depth
+            raise ValueError(f"init_depth_jitter must be between 0 and 1, not {self.init_depth_jitter!r}")
 
     def points_per_frame(self, pixels: int, frames: int, device_type: str = "cpu") -> int:
         """Initial Gaussians per frame of `pixels` pixels in a clip of `frames` frames, trained on a

@@ -209,7 +209,7 @@ class Trainer:
                 z = torch.exp(sample_grid(grids[k], u, v, self.width, self.height))
             else:
                 z = torch.full_like(u, depth[k])
-            z = z * torch.exp(0.1 * torch.randn(len(u), generator=g, dtype=torch.float64))
+            z = z * torch.exp(c.init_depth_jitter * torch.randn(len(u), generator=g, dtype=torch.float64))
             cam = torch.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], -1).numpy()
             c2w = self.cameras.c2w[k]
             m = len(u)
