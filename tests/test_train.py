@@ -502,6 +502,25 @@ def test_a_background_checkpoint_copies_what_the_training_stream_had_queued_cuda
         assert torch.equal(written["params"][name], value), name
 
 
+def test_the_clip_psnr_renders_again_a_frame_that_overflowed_its_keys(monkeypatch):
+    """clip_psnr issues its frames without waiting for their counts; a frame that needed more intersections
+    than the bound its size had (the Gaussians grew since it was counted) is rendered again, waiting, so its
+    PSNR is the full frame's."""
+    images, cams, points, colors = synthetic_clip(4, 48, 27)
+    trainer = Trainer(images, cams, points, colors, small_config(10), CPU)
+    trainer.clip_psnr()  # counts every frame of this size: the next ones need not wait
+    with torch.no_grad():
+        trainer.model.log_scales += 1.5  # 4.5 times as wide: many more tiles each
+    waited = []
+    render = Trainer.render
+    monkeypatch.setattr(Trainer, "render", lambda self, k, defer=False, **kw: (
+        waited.append(k) if not defer else None, render(self, k, defer=defer, **kw))[1])
+    got = trainer.clip_psnr()
+    assert waited, "no frame overflowed: the case does not test the second render"
+    want = [float(trainer._psnr(k, render(trainer, k)[0])) for k in range(trainer.num_frames)]
+    assert np.allclose(got, want, rtol=0, atol=1e-4), (got, want)
+
+
 def test_tracked_points_start_alive_over_the_frames_that_saw_them():
     images, cams, points, colors = synthetic_clip(9, 32, 18)
     spans = np.zeros((len(points), 2), dtype=np.int64)
