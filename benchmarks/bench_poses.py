@@ -60,7 +60,7 @@ def real_clips(args):
         masks = None if args.no_masks or not (seq / "masks").is_dir() else seq / "masks"
         video = read_video(seq / "images", frames=args.frames, max_side=args.max_side, masks=masks)
         t0 = time.perf_counter()
-        cams, pts, _, rep = estimate_cameras(video, focal=args.focal)
+        cams, pts, _, rep = estimate_cameras(video, focal=args.focal, device=args.device)
         dt = time.perf_counter() - t0
         per100 = dt / len(video) * 100
         errs.append((rep.reproj_px, rep.reproj_all_px))
