@@ -503,20 +503,36 @@ def test_a_background_checkpoint_copies_what_the_training_stream_had_queued_cuda
 
 
 def test_the_clip_psnr_renders_again_a_frame_that_overflowed_its_keys(monkeypatch):
-    """clip_psnr issues its frames without waiting for their counts; a frame that needed more intersections
-    than the bound its size had (the Gaussians grew since it was counted) is rendered again, waiting, so its
-    PSNR is the full frame's."""
-    images, cams, points, colors = synthetic_clip(4, 48, 27)
+    """clip_psnr issues its frames without waiting for their counts, reading each EVAL_AHEAD frames later; a
+    frame that needed more intersections than the bound its size had (the Gaussians grew since it was counted)
+    is rendered again, waiting, so its PSNR is the full frame's."""
+    from tomgs.train.trainer import EVAL_AHEAD
+
+    images, cams, points, colors = synthetic_clip(EVAL_AHEAD + 3, 48, 27)
     trainer = Trainer(images, cams, points, colors, small_config(10), CPU)
     trainer.clip_psnr()  # counts every frame of this size: the next ones need not wait
     with torch.no_grad():
         trainer.model.log_scales += 1.5  # 4.5 times as wide: many more tiles each
-    waited = []
+    waited, issued, unread = [], [], []
     render = Trainer.render
-    monkeypatch.setattr(Trainer, "render", lambda self, k, defer=False, **kw: (
-        waited.append(k) if not defer else None, render(self, k, defer=defer, **kw))[1])
+
+    def spy(self, k, defer=False, **kw):
+        if not defer:
+            waited.append(k)
+        unread.append(sum(counts.known() is None for counts in issued))  # frames in flight before this one
+        image, alpha, meta = render(self, k, defer=defer, **kw)
+        if meta["counts"] is not None:
+            issued.append(meta["counts"])
+        return image, alpha, meta
+
+    monkeypatch.setattr(Trainer, "render", spy)
+    activations = []
+    render_inputs = trainer.model.render_inputs
+    monkeypatch.setattr(trainer.model, "render_inputs", lambda: (activations.append(1), render_inputs())[1])
     got = trainer.clip_psnr()
     assert waited, "no frame overflowed: the case does not test the second render"
+    # read that many frames behind, the activated parameters made once: what is in flight stays bounded
+    assert max(unread) == EVAL_AHEAD and len(activations) == 1
     want = [float(trainer._psnr(k, render(trainer, k)[0])) for k in range(trainer.num_frames)]
     assert np.allclose(got, want, rtol=0, atol=1e-4), (got, want)
 

@@ -28,6 +28,7 @@ import io
 import math
 import signal
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -69,6 +70,10 @@ MIN_EVAL_FRAMES = 8
 # a backward: camel's 1-minute scene on the H100, 0.5 s for 90 frames, ~5.6 ms a frame against ~2)
 COMPACT_SHARE = 3.0
 RENDER_SHARE = 0.5  # a forward render's time over a training step's (CPU, the bundled clip: 0.11 / 0.22 s)
+# a clip PSNR reads a frame's counts this many frames after issuing it: late enough that the read does not
+# wait, and few, since each frame in flight holds its inputs until then (all 90 of camel's, each with its own
+# activated parameters, raised a 5M-Gaussian fit's peak GPU memory from 2.9 to 16.2 GB)
+EVAL_AHEAD = 4
 # the initial per-frame points' depth (config.init_depth "tracks"): a grid of about this many nodes a frame,
 # each the mean log depth of its nearest tracked points (tracks are sparse: camel's 937 for 854x480 frames);
 # a frame with fewer in view takes its median depth
@@ -383,12 +388,14 @@ class Trainer:
         mse = (image - target).square().sum() / (3 * self._weight(k).sum().clamp_min(1e-12))
         return -10.0 * torch.log10(mse)
 
-    def render(self, k: int, defer: bool = False, **kw):
+    def render(self, k: int, defer: bool = False, inputs: dict | None = None, **kw):
         """Frame k at its time: (image, alpha, meta) as `rasterize` gives them for the Gaussians that
         may be alive then (tomgs.alive), meta['rows'] naming them (int [M]; None: all N). With
-        `defer`, meta['counts'] is the frame's FrameCounts when it did not wait for them (else None)."""
+        `defer`, meta['counts'] is the frame's FrameCounts when it did not wait for them (else None).
+        `inputs`: the model's `render_inputs()` when the caller renders several frames of one state."""
         rows = None if self.alive is None else self.alive.rows(k, self.model, self.optimizer, self.iteration)
-        image, alpha, meta, counts = render_frame(**self.model.render_inputs(), viewmat=self.viewmats[k],
+        inputs = self.model.render_inputs() if inputs is None else inputs
+        image, alpha, meta, counts = render_frame(**inputs, viewmat=self.viewmats[k],
                                                   K=self.K, width=self.width, height=self.height, t=self.times[k],
                                                   rows=rows, defer=defer, **kw)
         meta["rows"], meta["counts"] = rows, counts
@@ -466,20 +473,26 @@ class Trainer:
         bad = [k for k in frames if not 0 <= k < self.num_frames]
         if bad:
             raise ValueError(f"clip_psnr: frame {bad[0]} is not one of the clip's {self.num_frames}")
-        out, counts = [], []
+        out, in_flight = [], deque()
+
+        def settle(i: int, k: int, counts) -> None:  # a frame that overflowed its keys renders again, waiting
+            if counts is not None and counts.overflowed:
+                out[i] = self._psnr(k, self.render(k, inputs=inputs)[0])
+
         with torch.no_grad():
-            # frames issued without waiting for their counts (the host queues the next while the device
-            # renders: 90 camel frames at 5M Gaussians took 0.2-0.3 s waiting on each); one that overflowed
-            # its keys is rendered again, waiting, once all are queued
+            inputs = self.model.render_inputs()  # the activated parameters once, shared by every frame
+            # frames issued without waiting for their counts, read EVAL_AHEAD frames later (the host queues
+            # the next while the device renders: 90 camel frames at 5M Gaussians took 0.2-0.3 s waiting on each)
             for i, k in enumerate(frames):
-                image, _, meta = self.render(k, defer=True)
+                image, _, meta = self.render(k, defer=True, inputs=inputs)
                 out.append(self._psnr(k, image))
-                counts.append(meta["counts"])
+                in_flight.append((i, k, meta["counts"]))
+                if len(in_flight) > EVAL_AHEAD:
+                    settle(*in_flight.popleft())
                 if tick is not None:
                     tick(f"clip PSNR {i + 1}/{len(frames)}" + ("" if len(frames) == self.num_frames else " frames"))
-            for i, (k, frame_counts) in enumerate(zip(frames, counts)):
-                if frame_counts is not None and frame_counts.overflowed:
-                    out[i] = self._psnr(k, self.render(k)[0])
+            while in_flight:
+                settle(*in_flight.popleft())
         return torch.stack(out).tolist() if out else []
 
     def compact(self, tick=None) -> int:
