@@ -13,6 +13,7 @@ in all: a long call's, or those of a `ClipRenderer` the caller keeps and renders
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 from typing import Callable, Iterator
 
@@ -62,7 +63,7 @@ def render_sequence(gaussians, cameras, indices=None, *, background=None, device
     views = {}  # cameras and background on each device a frame lands on (one, in practice)
 
     @torch.no_grad()  # inside a helper: a no_grad block around `yield` would leak into the caller
-    def issue(position: int, k: int, wait: bool) -> _Issued:
+    def issue(position: int, k: int, wait: bool) -> IssuedFrame:
         g = gaussians(k)
         dev = torch.device(device) if device is not None else g["means"].device
         g = {name: g[name].detach().to(dev) for name in NAMES}
@@ -75,9 +76,9 @@ def render_sequence(gaussians, cameras, indices=None, *, background=None, device
         defer = not wait and (dev.type == "cuda" if pipelined is None else pipelined)
         image, _, meta, counts = render_frame(**g, viewmat=viewmats[k], K=Ks[k], width=cameras.width,
                                               height=cameras.height, t=t, background=bg, rows=rows, defer=defer)
-        return _Issued.of(position, k, image, _sequence_meta(meta, rows), counts, to_cpu)
+        return IssuedFrame.of(position, k, image, _sequence_meta(meta, rows), counts, to_cpu)
 
-    yield from _run(order, issue)
+    yield from issue_in_order(order, issue)
 
 
 class ClipRenderer:
@@ -121,7 +122,7 @@ class ClipRenderer:
         g, cams = self.gaussians, self.cameras
 
         @torch.no_grad()  # inside a helper: a no_grad block around `yield` would leak into the caller
-        def issue(position: int, k: int, wait: bool) -> _Issued:
+        def issue(position: int, k: int, wait: bool) -> IssuedFrame:
             t = float(cams.times[k])
             rows = None if index is None or k not in self._position else index.rows(self._position[k])
             if graph is not None and not wait and (rows is not None or not graph.rows_capacity):
@@ -132,9 +133,9 @@ class ClipRenderer:
                                                       height=cams.height, t=t, background=self.background,
                                                       rows=rows, defer=pipelined and not wait)
                 meta = _sequence_meta(meta, rows)
-            return _Issued.of(position, k, image, meta, counts, to_cpu)
+            return IssuedFrame.of(position, k, image, meta, counts, to_cpu)
 
-        return _run(order, issue)
+        return issue_in_order(order, issue)
 
     def _index_for(self, frames: int) -> alive.AliveIndex | None:
         """The index this call renders from (built now where it pays), or None: every Gaussian."""
@@ -165,18 +166,18 @@ class ClipRenderer:
 # ------------------------------------------------------------------------------------------ frame by frame
 
 @dataclass
-class _Issued:
+class IssuedFrame:
     """A frame queued on its device: what `_finish` needs to hand it over."""
 
     position: int
     k: int
-    image: torch.Tensor  # clamped to [0, 1]; on the CPU once `copied` has passed, where asked
+    image: torch.Tensor  # `of` clamps it to [0, 1]; on the CPU once `copied` has passed, where asked
     meta: dict
     counts: FrameCounts | None  # None: the counts are in meta already
     copied: object  # a torch.cuda.Event after the image's copy to the host, or None
 
     @staticmethod
-    def of(position: int, k: int, image: torch.Tensor, meta: dict, counts, to_cpu: bool) -> _Issued:
+    def of(position: int, k: int, image: torch.Tensor, meta: dict, counts, to_cpu: bool) -> IssuedFrame:
         image = image.clamp(0.0, 1.0)
         copied = None
         if to_cpu and image.is_cuda and counts is not None:  # queued behind the frame; waited for in `_finish`
@@ -185,27 +186,24 @@ class _Issued:
             copied.record()
         elif to_cpu:
             image = image.cpu()
-        return _Issued(position, k, image, meta, counts, copied)
+        return IssuedFrame(position, k, image, meta, counts, copied)
 
 
-def _run(order: list, issue: Callable[[int, int, bool], _Issued]) -> Iterator[tuple]:
-    """(k, image, meta) of frames `order`, issued by issue(position, k, wait); a frame whose counts are
-    pending is yielded once the next frame has been issued (the device renders while the host waits)."""
-    pending = None
+def issue_in_order(order: list, issue: Callable[[int, int, bool], IssuedFrame], ahead: int = 1) -> Iterator[tuple]:
+    """(k, image, meta) of frames `order`, issued by issue(position, k, wait) without waiting; a frame whose
+    counts are pending is yielded once `ahead` more frames have been issued (the device renders while the
+    host waits), and one that overflowed its keys is issued again, waiting. Each frame in flight holds what
+    it was issued with until then: `ahead` bounds that."""
+    pending = deque()
     for position, k in enumerate(order):
-        issued = issue(position, k, False)
-        if pending is not None:
-            yield _finish(pending, issue)
-            pending = None
-        if issued.counts is None:
-            yield _finish(issued, issue)
-        else:
-            pending = issued
-    if pending is not None:
-        yield _finish(pending, issue)
+        pending.append(issue(position, k, False))
+        while len(pending) > ahead or (pending and pending[0].counts is None):
+            yield _finish(pending.popleft(), issue)
+    while pending:
+        yield _finish(pending.popleft(), issue)
 
 
-def _finish(issued: _Issued, issue: Callable[[int, int, bool], _Issued]) -> tuple:
+def _finish(issued: IssuedFrame, issue: Callable[[int, int, bool], IssuedFrame]) -> tuple:
     if issued.counts is not None:
         if issued.counts.overflowed:  # it lacked intersections: rendered again, waiting for its counts
             return _finish(issue(issued.position, issued.k, True), issue)

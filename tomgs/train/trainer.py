@@ -28,7 +28,6 @@ import io
 import math
 import signal
 import time
-from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -40,6 +39,7 @@ from tomgs.cameras import Cameras
 from tomgs.metrics import l1_dssim_and_psnr, psnr, ssim_map
 from tomgs.model import GaussianModel, nearest_neighbour_distance
 from tomgs.render import blend_weights, render_frame
+from tomgs.sequence import IssuedFrame, issue_in_order
 from tomgs.temporal import frames_to_clip_time
 from tomgs.errors import InputError
 from tomgs.outputs import write_text
@@ -473,26 +473,20 @@ class Trainer:
         bad = [k for k in frames if not 0 <= k < self.num_frames]
         if bad:
             raise ValueError(f"clip_psnr: frame {bad[0]} is not one of the clip's {self.num_frames}")
-        out, in_flight = [], deque()
-
-        def settle(i: int, k: int, counts) -> None:  # a frame that overflowed its keys renders again, waiting
-            if counts is not None and counts.overflowed:
-                out[i] = self._psnr(k, self.render(k, inputs=inputs)[0])
-
+        out = []
         with torch.no_grad():
             inputs = self.model.render_inputs()  # the activated parameters once, shared by every frame
+
+            def issue(position: int, k: int, wait: bool) -> IssuedFrame:
+                image, _, meta = self.render(k, defer=not wait, inputs=inputs)
+                return IssuedFrame(position, k, image, meta, meta["counts"], None)
+
             # frames issued without waiting for their counts, read EVAL_AHEAD frames later (the host queues
             # the next while the device renders: 90 camel frames at 5M Gaussians took 0.2-0.3 s waiting on each)
-            for i, k in enumerate(frames):
-                image, _, meta = self.render(k, defer=True, inputs=inputs)
+            for i, (k, image, _) in enumerate(issue_in_order(frames, issue, EVAL_AHEAD)):
                 out.append(self._psnr(k, image))
-                in_flight.append((i, k, meta["counts"]))
-                if len(in_flight) > EVAL_AHEAD:
-                    settle(*in_flight.popleft())
                 if tick is not None:
                     tick(f"clip PSNR {i + 1}/{len(frames)}" + ("" if len(frames) == self.num_frames else " frames"))
-            while in_flight:
-                settle(*in_flight.popleft())
         return torch.stack(out).tolist() if out else []
 
     def compact(self, tick=None) -> int:
