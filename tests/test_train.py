@@ -9,6 +9,7 @@ import math
 import subprocess
 import sys
 import time
+import weakref
 
 import numpy as np
 import pytest
@@ -513,16 +514,18 @@ def test_the_clip_psnr_renders_again_a_frame_that_overflowed_its_keys(monkeypatc
     trainer.clip_psnr()  # counts every frame of this size: the next ones need not wait
     with torch.no_grad():
         trainer.model.log_scales += 1.5  # 4.5 times as wide: many more tiles each
-    waited, issued, unread = [], [], []
+    waited, issued, unread, buffers, held = [], [], [], [], []
     render = Trainer.render
 
     def spy(self, k, defer=False, **kw):
         if not defer:
             waited.append(k)
         unread.append(sum(counts.known() is None for counts in issued))  # frames in flight before this one
+        held.append(sum(ref() is not None for ref in buffers))  # earlier frames' rasterizer buffers still held
         image, alpha, meta = render(self, k, defer=defer, **kw)
         if meta["counts"] is not None:
             issued.append(meta["counts"])
+        buffers.append(weakref.ref(meta["means2d"]))
         return image, alpha, meta
 
     monkeypatch.setattr(Trainer, "render", spy)
@@ -533,6 +536,7 @@ def test_the_clip_psnr_renders_again_a_frame_that_overflowed_its_keys(monkeypatc
     assert waited, "no frame overflowed: the case does not test the second render"
     # read that many frames behind, the activated parameters made once: what is in flight stays bounded
     assert max(unread) == EVAL_AHEAD and len(activations) == 1
+    assert max(held) == 0, held  # a frame in flight keeps its image and counts, not the rasterizer's buffers
     want = [float(trainer._psnr(k, render(trainer, k)[0])) for k in range(trainer.num_frames)]
     assert np.allclose(got, want, rtol=0, atol=1e-4), (got, want)
 
