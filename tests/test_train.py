@@ -480,12 +480,20 @@ def test_a_checkpoint_that_cannot_be_written_stops_the_run(tmp_path, monkeypatch
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
-def test_a_background_checkpoint_copies_what_the_training_stream_had_queued_cuda(tmp_path):
+@pytest.mark.parametrize("pinned_max", [None, 1])
+def test_a_background_checkpoint_copies_what_the_training_stream_had_queued_cuda(tmp_path, monkeypatch, pinned_max):
     """The writer's copies to the host run on a stream of their own: they must wait for the clones queued on
     the training's stream before the event (kept busy here, so a copy that did not wait reads them unwritten),
-    and training's own tensors, changed in place right after, must not reach the file."""
+    and training's own tensors, changed in place right after, must not reach the file. They go through pinned
+    memory, unless a storage is larger than PINNED_STORAGE_MAX (1 byte: every one)."""
+    import tomgs.train.checkpoint as checkpoint
     from tomgs.train.checkpoint import CheckpointWriter, own_copies
 
+    if pinned_max is not None:
+        monkeypatch.setattr(checkpoint, "PINNED_STORAGE_MAX", pinned_max)
+    pinned, empty = [], torch.empty
+    monkeypatch.setattr(torch, "empty", lambda *a, **k: (pinned.append(1) if k.get("pin_memory") else None,
+                                                         empty(*a, **k))[1])
     images, cams, points, colors = synthetic_clip(2, 24, 14)
     trainer = Trainer(images, cams, points, colors, small_config(10), torch.device("cuda"))
     want = {name: p.detach().cpu() for name, p in trainer.model.parameters_by_name().items()}
@@ -501,6 +509,8 @@ def test_a_background_checkpoint_copies_what_the_training_stream_had_queued_cuda
     written = read_checkpoint(tmp_path / "run.ckpt")
     for name, value in want.items():
         assert torch.equal(written["params"][name], value), name
+    device_storages = {t.untyped_storage().data_ptr() for t in checkpoint._tensors(copies) if t.is_cuda}
+    assert len(pinned) == (len(device_storages) if pinned_max is None else 0)
 
 
 def test_the_clip_psnr_renders_again_a_frame_that_overflowed_its_keys(monkeypatch):

@@ -30,6 +30,7 @@ complete one.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import re
@@ -138,6 +139,29 @@ def write_checkpoint(path, state: dict) -> Path:
     return Path(path)
 
 
+# torch.save copies a device's storages to the host one at a time. Into pageable memory the driver
+# stages each copy on the CPU, and the training thread's launches waited meanwhile (5M Gaussians on
+# the H100: 0.66-0.91 s of training lost per checkpoint); into pinned memory it is the copy engine's
+# (0.02-0.2 s; 0.44 s the first time, which pins the blocks). torch keeps those blocks for reuse, as
+# large as the largest storage: above this (SH colours of many Gaussians) the copies stay pageable
+# rather than hold that much host memory for the rest of the process.
+PINNED_STORAGE_MAX = 256 << 20
+
+
+def _pinned_copies(state: dict):
+    """A context in which torch.save copies `state`'s device storages to the host through pinned
+    memory, when every storage is within PINNED_STORAGE_MAX: torch's own switch where it has one.
+    The switch is the process's: a fit's torch.save calls are the writer's, one at a time."""
+    try:
+        from torch.utils.serialization import config
+    except ImportError:
+        return contextlib.nullcontext()
+    largest = max((t.untyped_storage().nbytes() for t in _tensors(state) if t.is_cuda), default=0)
+    if not hasattr(config.save, "use_pinned_memory_for_d2h") or not 0 < largest <= PINNED_STORAGE_MAX:
+        return contextlib.nullcontext()
+    return config.patch({"save.use_pinned_memory_for_d2h": True})
+
+
 class CheckpointWriter:
     """Writes a fit's periodic checkpoints on a thread of its own, one at a time, so training goes on
     while a state goes to the host and the disk (a 5M-Gaussian state took 1.3-2.1 s on the H100, 5% of
@@ -166,7 +190,8 @@ class CheckpointWriter:
                     return
                 side = torch.cuda.Stream(ready.device)
                 side.wait_event(ready)
-                with torch.cuda.stream(side):  # the thread's own current stream: training's is untouched
+                # the thread's own current stream (training's is untouched), its copies to pinned memory
+                with torch.cuda.stream(side), _pinned_copies(state):
                     self.done = write_checkpoint(path, state)
             except BaseException as e:  # handed to the training thread by wait()
                 self._error = e
@@ -203,13 +228,19 @@ def own_copies(value):
 
 def state_bytes(value) -> int:
     """Bytes of the tensors below `value`."""
+    return sum(t.numel() * t.element_size() for t in _tensors(value))
+
+
+def _tensors(value):
+    """Every tensor below `value` (a checkpoint state)."""
     if isinstance(value, torch.Tensor):
-        return value.numel() * value.element_size()
-    if isinstance(value, dict):
-        return sum(state_bytes(v) for v in value.values())
-    if isinstance(value, (list, tuple)):
-        return sum(state_bytes(v) for v in value)
-    return 0
+        yield value
+    elif isinstance(value, dict):
+        for v in value.values():
+            yield from _tensors(v)
+    elif isinstance(value, (list, tuple)):
+        for v in value:
+            yield from _tensors(v)
 
 
 def _check_plain(value, where: str, path) -> None:
