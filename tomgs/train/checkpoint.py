@@ -134,7 +134,7 @@ def write_checkpoint(path, state: dict) -> Path:
     that is torn or holds anything read_checkpoint would refuse."""
     check_state(state, path, ours=True)
     _check_plain(state, "state", path)
-    with atomic_file(path, durable=True) as tmp, open(tmp, "wb") as f:
+    with atomic_file(path, durable=True) as tmp, open(tmp, "wb") as f, _pinned_copies(state):
         torch.save(state, f)
     return Path(path)
 
@@ -151,7 +151,7 @@ PINNED_STORAGE_MAX = 256 << 20
 def _pinned_copies(state: dict):
     """A context in which torch.save copies `state`'s device storages to the host through pinned
     memory, when every storage is within PINNED_STORAGE_MAX: torch's own switch where it has one.
-    The switch is the process's: a fit's torch.save calls are the writer's, one at a time."""
+    The switch is the process's: a fit's torch.save calls are its checkpoints', one at a time."""
     try:
         from torch.utils.serialization import config
     except ImportError:
@@ -190,8 +190,7 @@ class CheckpointWriter:
                     return
                 side = torch.cuda.Stream(ready.device)
                 side.wait_event(ready)
-                # the thread's own current stream (training's is untouched), its copies to pinned memory
-                with torch.cuda.stream(side), _pinned_copies(state):
+                with torch.cuda.stream(side):  # the thread's own current stream: training's is untouched
                     self.done = write_checkpoint(path, state)
             except BaseException as e:  # handed to the training thread by wait()
                 self._error = e

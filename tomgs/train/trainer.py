@@ -71,8 +71,8 @@ MIN_EVAL_FRAMES = 8
 COMPACT_SHARE = 3.0
 RENDER_SHARE = 0.5  # a forward render's time over a training step's (CPU, the bundled clip: 0.11 / 0.22 s)
 # a clip PSNR reads a frame's counts this many frames after issuing it: late enough that the read does not
-# wait, and few, since each frame in flight holds its inputs until then (all 90 of camel's, each with its own
-# activated parameters, raised a 5M-Gaussian fit's peak GPU memory from 2.9 to 16.2 GB)
+# wait, and few, since each frame in flight holds its image until then (all 90 of camel's in flight, each with
+# its own activated parameters and buffers, raised a 5M-Gaussian fit's peak GPU memory from 2.9 to 16.2 GB)
 EVAL_AHEAD = 4
 # the initial per-frame points' depth (config.init_depth "tracks"): a grid of about this many nodes a frame,
 # each the mean log depth of its nearest tracked points (tracks are sparse: camel's 937 for 854x480 frames);
