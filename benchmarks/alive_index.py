@@ -1,4 +1,4 @@
-"""What the alive index (tomgs.alive, issue 15) saves: a training step and a rendered frame with and
+"""What the alive index (tomgs.render.alive, issue 15) saves: a training step and a rendered frame with and
 without it, on a DAVIS-like synthetic cloud where a chosen share of the Gaussians is alive at each
 frame (each Gaussian alive over that share of the clip, centres uniform in time, scattered in front
 of a fixed camera over noise frames).

@@ -117,7 +117,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "does not wait for its counts, read after the backward (a frame past its keys' bound fails "
                         "the run)")
     p.add_argument("--tomgs-graph", action="store_true",
-                   help="time tomgs replayed from CUDA graphs (tomgs.captured.FrameGraph, one per scene, captured at "
+                   help="time tomgs replayed from CUDA graphs (tomgs.render.captured.FrameGraph, one per scene, captured at "
                         "its first frame): camera and time written per call, counts read after the backward")
     p.add_argument("--kernel-options", default=None, metavar="SPEC",
                    help="time tomgs with Warp launch options changed per kernel, as benchmarks/kernel_options.py "
@@ -218,10 +218,10 @@ def deferred(fn):
 
 
 def graphed():
-    """tomgs.captured.FrameGraph behind rasterize's signature, as `deferred` returns: the graph of the
+    """tomgs.render.captured.FrameGraph behind rasterize's signature, as `deferred` returns: the graph of the
     latest cloud and size (captured at its first frame; a new scene replaces it, so an old scene's
     tensors are not kept), meta['counts'] each frame's FrameCounts."""
-    from tomgs.captured import FrameGraph
+    from tomgs.render.captured import FrameGraph
 
     held = {}
 
@@ -705,7 +705,7 @@ def run_case(args, fns, width, height, n, variant, device, clock, pool, deadline
 def reference_diff(P, viewmat, K, width, height, t, tomgs_out) -> dict:
     """Tiny mode without gsplat: compare with the float64 torch reference, if it is there."""
     try:
-        from tomgs.reference import rasterize_reference
+        from tomgs.render.reference import rasterize_reference
     except Exception as e:  # noqa: BLE001
         return dict(vs="reference", error=f"reference unavailable: {e}")
     with torch.no_grad():
@@ -888,7 +888,7 @@ def main(argv=None) -> int:
             fns["tomgs"] = (graphed() if args.tomgs_graph else deferred(load_tomgs("tomgs.render:render_frame"))
                             if args.tomgs_defer else load_tomgs(args.tomgs_impl))
             if args.tomgs_graph:
-                results["notes"].append("tomgs timed replayed from CUDA graphs (tomgs.captured.FrameGraph, captured "
+                results["notes"].append("tomgs timed replayed from CUDA graphs (tomgs.render.captured.FrameGraph, captured "
                                         "at a scene's first frame, warm-up): camera and time written per call, the "
                                         "counts read after the backward")
             elif args.tomgs_defer:

@@ -32,7 +32,7 @@ import sys
 import torch
 
 import tomgs
-from tomgs.render import resolve_device
+from tomgs.runtime import resolve_device
 
 NAMES = ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales", "viewmat", "K", "background")
 SHORT = dict(means="mean", quats="quat", scales="scale", opacities="opac", colors="color", t_means="t_mean",
@@ -73,7 +73,7 @@ def needle(length: float, quat: torch.Tensor, offset=(0.21, -0.13)) -> dict:
 
 def condition_number(scene: dict) -> float:
     """Condition number of the 2D covariance (float64, the reference's formulas)."""
-    from tomgs.reference import quat_to_rotmat
+    from tomgs.render.reference import quat_to_rotmat
     p = scene["viewmat"][:3, :3] @ scene["means"][0] + scene["viewmat"][:3, 3]
     fx, fy = scene["K"][0, 0], scene["K"][1, 1]
     J = torch.tensor([[fx / p[2], 0.0, -fx * p[0] / p[2] ** 2], [0.0, fy / p[2], -fy * p[1] / p[2] ** 2]],

@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import tomgs  # noqa: E402
 from tomgs.io import read_video  # noqa: E402
 from tomgs.metrics import LPIPS, evaluate  # noqa: E402
-from tomgs.sequence import ClipRenderer, render_sequence  # noqa: E402
+from tomgs.render.sequence import ClipRenderer, render_sequence  # noqa: E402
 from tomgs.train import fit, output_paths, preset  # noqa: E402
 
 # The paper's figures (../shared/data/README.md): Table 2 at 480p for camel, cows and kite-surf, with

@@ -17,8 +17,8 @@ import torch
 
 import tomgs
 from tomgs import constants
-from tomgs import render
-from tomgs.render import rasterize
+from tomgs.render import frame as render
+from tomgs.render.frame import rasterize
 
 
 def frames(inputs: dict, cams, device: torch.device) -> list[torch.Tensor]:

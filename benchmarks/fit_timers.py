@@ -23,10 +23,9 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import tomgs.io.scene as scene_mod
 import tomgs.train.checkpoint as ck
-import tomgs.train.fit  # noqa: F401 (the package exports a function of that name: the module is below)
+import tomgs.train.pipeline as fit_mod
 import tomgs.train.trainer as tr
 
-fit_mod = sys.modules["tomgs.train.fit"]
 MODES = ("time", "nowrite", "cloneonly", "none", "pinned")
 mode = os.environ.get("PROBE", "time")
 if mode not in MODES:

@@ -26,8 +26,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_raster import parse_count, parse_size, t_values  # noqa: E402
 from profile_raster import scene_step  # noqa: E402
 
-from tomgs import captured  # noqa: E402
-from tomgs.captured import FrameGraph  # noqa: E402
+from tomgs.render import captured  # noqa: E402
+from tomgs.render.captured import FrameGraph  # noqa: E402
 
 # what FrameGraph does on the host in a replayed frame: (owner, attribute) timed by --host; those a tomgs
 # lacks are left out (before session 30 a call checked its time with _check_scalars: A/B runs time both)

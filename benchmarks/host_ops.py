@@ -10,7 +10,7 @@ host spends issuing a frame. Per iteration it reports
   arrays built (wp.from_torch, ~20 us each on a GPU machine's CPU);
 - host wall time: forward and backward, median of --iters (no profiler attached);
 - what the forward issues AFTER its one host sync (the intersection count, read by
-  tomgs.render._read_flags): torch ops, launches and host wall time from the sync to the forward's
+  tomgs.render.frame._read_flags): torch ops, launches and host wall time from the sync to the forward's
   end. On a GPU all of it is on the critical path: the device idles until it is issued;
 - Python time per stage: cProfile's cumulative time of tomgs' stage functions.
 
@@ -40,14 +40,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_raster import camera, make_scene, parse_count, parse_size, temporal_scales  # noqa: E402
 
 import tomgs  # noqa: E402
-from tomgs import render, runtime  # noqa: E402
+from tomgs import runtime  # noqa: E402
+from tomgs.render import frame as render  # noqa: E402
 
 # the functions whose cumulative Python time makes a stage (file suffix, function name)
 STAGES = [
-    ("render.py", "rasterize"), ("render.py", "_check_scalars"), ("inputs.py", "prepare_inputs"),
-    ("render.py", "_project_frame"), ("render.py", "forward"), ("render.py", "_write_keys"), ("render.py", "_bin"),
-    ("render.py", "backward"), ("runtime.py", "__call__"), ("runtime.py", "wrap"), ("runtime.py", "indexable"),
-    ("runtime.py", "scope"), ("runtime.py", "sort_pairs"), ("render.py", "_kernels"),
+    ("render/frame.py", "rasterize"), ("render/frame.py", "_check_scalars"), ("inputs.py", "prepare_inputs"),
+    ("render/frame.py", "_project_frame"), ("render/frame.py", "forward"), ("render/frame.py", "_write_keys"), ("render/frame.py", "_bin"),
+    ("render/frame.py", "backward"), ("runtime.py", "__call__"), ("runtime.py", "wrap"), ("runtime.py", "indexable"),
+    ("runtime.py", "scope"), ("runtime.py", "sort_pairs"), ("render/frame.py", "_kernels"),
 ]
 
 
@@ -59,7 +60,7 @@ PHASES = ("before the sync", "after the sync", "backward")
 class Phases:
     """Counts Warp launches per phase of a frame (PHASES) by patching tomgs.runtime.Launches, wp.launch,
     the radix sort (tomgs.render.sort_pairs) and wp.from_torch, and marks the forward's host sync by patching
-    tomgs.render._read_flags: from its return to `forward_done` the phase is "after the sync", and
+    tomgs.render.frame._read_flags: from its return to `forward_done` the phase is "after the sync", and
     with `ranges` set that stretch is a profiler range (AFTER_SYNC) that `top_level_ops` splits on."""
 
     def __init__(self):

@@ -42,7 +42,7 @@ from tests.test_export import (  # noqa: E402
     resaved_like_splat_transform,
     stride_summing_parse,
 )
-from tomgs.export import pick_moment, static_moment  # noqa: E402
+from tomgs.edit.export import pick_moment, static_moment  # noqa: E402
 from tomgs.io.scene import load_scene, save_scene  # noqa: E402
 from tomgs.io.splats import RDF_TO_RUB, write_static  # noqa: E402
 from tomgs.temporal import frozen_at  # noqa: E402
@@ -201,8 +201,8 @@ def run(scene_path: Path, frame: int, npm: Path | None, work: Path) -> dict:
 def supersplat_round_trip(scene_path: Path, scene, npm, work: Path, k: int) -> dict:
     """The native scene re-saved (by splat-transform when there, else as it writes), loaded with
     --cameras, rendered at frame k against the original: max pixel difference."""
-    from tomgs.export import write_cameras
-    from tomgs.render import render_sequence
+    from tomgs.edit.export import write_cameras
+    from tomgs.render.sequence import render_sequence
 
     resaved = work / "resaved.ply"
     if npm is not None:

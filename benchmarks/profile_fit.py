@@ -29,7 +29,7 @@ from profile_raster import TILE_ORDERS, add_tiles_option, host_profile, kernel_t
 import tomgs
 from tomgs.cameras import Cameras, intrinsics
 from tomgs.io import read_video
-from tomgs.render import _Rasterize
+from tomgs.render.frame import _Rasterize
 from tomgs.train import Trainer, preset
 
 
@@ -42,7 +42,7 @@ def main() -> None:
     ap.add_argument("--device", default="cuda", help="cuda (the profile), or cpu for a dry run of the script")
     ap.add_argument("--host", action="store_true", help="also print the Python functions that cost host time")
     ap.add_argument("--alive-index", choices=["auto", "on", "off"], default="auto",
-                    help="train from the alive index's rows (auto: where it pays, tomgs.alive.pays_on); for A/B")
+                    help="train from the alive index's rows (auto: where it pays, tomgs.render.alive.pays_on); for A/B")
     ap.add_argument("--host-parts", action="store_true",
                     help="also print a step's host time by part (the frame's issue, the backward, Adam, ...)")
     ap.add_argument("--raster", choices=["auto", "batched", "per-pixel"], default="auto",

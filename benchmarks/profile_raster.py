@@ -18,7 +18,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_raster import camera, make_scene, parse_count, parse_size, temporal_scales  # noqa: E402
 
 import tomgs  # noqa: E402
-from tomgs.render import _Rasterize  # noqa: E402
+from tomgs.render.frame import _Rasterize  # noqa: E402
 
 
 # a kernel's name as reported: long enough to tell cub's sort kernels apart (their first 80 characters
@@ -105,7 +105,7 @@ def host_profile(step, iters: int, top: int = 25) -> None:
     pstats.Stats(profiler).sort_stats("tottime").print_stats(top)
 
 
-# --tiles: which tile each raster block takes (tomgs.render._Rasterize.ordered_tiles), for A/B timings
+# --tiles: which tile each raster block takes (tomgs.render.frame._Rasterize.ordered_tiles), for A/B timings
 TILE_ORDERS = {"auto": None, "longest-first": True, "in-order": False}
 
 

@@ -22,9 +22,9 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import tomgs  # noqa: E402
-from tomgs import alive  # noqa: E402
-from tomgs.render import rasterize  # noqa: E402
-from tomgs.sequence import ClipRenderer, render_sequence  # noqa: E402
+from tomgs.render import alive  # noqa: E402
+from tomgs.render.frame import rasterize  # noqa: E402
+from tomgs.render.sequence import ClipRenderer, render_sequence  # noqa: E402
 
 
 def render_modes(inputs: dict, cams, device: torch.device) -> tuple[dict, ClipRenderer]:
@@ -36,7 +36,7 @@ def render_modes(inputs: dict, cams, device: torch.device) -> tuple[dict, ClipRe
       of the alive index, issued from Python) / as it is (the index's rows through a captured frame),
       each call building its index (and capture);
     - kept eager / kept: the same from a ClipRenderer kept across calls (index made once, in the
-      untimed turn, and the capture made at the third turn, tomgs.sequence.REPLAY_FRAMES, where the
+      untimed turn, and the capture made at the third turn, tomgs.render.sequence.REPLAY_FRAMES, where the
       clip has fewer than 64 frames): what the frames alone cost;
     the kept renderer that replays)."""
     frames = list(range(len(cams)))

@@ -4,7 +4,7 @@
     python benchmarks/shards.py --tiny --out bench_out/shards_tiny             # CPU smoke: 2 CPU processes
 
 The clip: --clip (a video or a frame folder), or `tomgs demo --frames F --size WxH` made once in --work.
-Every case is one fit (tomgs.train.fit, as `tomgs fit ... --budget B` runs it) in its own process, with
+Every case is one fit (tomgs.train.pipeline, as `tomgs fit ... --budget B` runs it) in its own process, with
 the same --budget (the whole command's wall time: reading, poses, training, merge and saving) and, on
 a GPU, 100,000 iterations, so that every fit ends at its budget:
 
@@ -59,7 +59,7 @@ def make_clip(work: Path, frames: int, size: str, device: str) -> Path:
 
 def cases(args, count: int) -> list[dict]:
     """The case specs: name, the fit's arguments, and the GPU(s) it runs on."""
-    from tomgs.train.shards import plan_stretches
+    from tomgs.train.multigpu.shards import plan_stretches
 
     n = args.gpus
     out = []
@@ -130,14 +130,14 @@ def run_case(spec_path: Path) -> None:
     """One case, in this process: the fit (its own budget), then every frame of its scene measured."""
     spec = json.loads(spec_path.read_text())
     if spec["gpus"]:  # as `tomgs fit --gpus N` does: the ranks import while this process does
-        from tomgs import rank_pool
+        from tomgs.train.multigpu import pool as rank_pool
 
         rank_pool.start(spec["gpus"])
     import numpy as np
     import torch
 
     from tomgs.train import fit, preset
-    from tomgs.train.fit import process_started
+    from tomgs.train.pipeline import process_started
 
     started = process_started()
     folder = Path(spec["folder"])
@@ -151,7 +151,7 @@ def run_case(spec_path: Path) -> None:
                   overwrite=True, started=started)
     scene = folder / "scene.ply"
     if spec["gpus"]:
-        from tomgs.train.ranks import fit_shards
+        from tomgs.train.multigpu.rank import fit_shards
 
         extra = {k: spec[key] for k, key in (("refine_fraction", "refine"), ("overlap", "overlap"),
                                              ("carry_adam", "carry_adam")) if key in spec}
@@ -215,7 +215,7 @@ def evaluate(scene_path: Path, clip: str, device: str) -> tuple[list[float], flo
     from tomgs.io.scene import load_scene
     from tomgs.io.video import read_video_for
     from tomgs.metrics import psnr
-    from tomgs.render import rasterize
+    from tomgs.render.frame import rasterize
 
     began = time.perf_counter()
     dev = torch.device("cuda:0" if device == "cuda" else "cpu")
@@ -237,7 +237,7 @@ def summarize(work: Path, out: Path, args, count: int) -> dict:
     """Every case in WORK: the boundary split, the table, the goal's verdict."""
     import numpy as np
 
-    from tomgs.train.shards import plan_stretches
+    from tomgs.train.multigpu.shards import plan_stretches
 
     stretches = plan_stretches(count, args.gpus)
     bounds = [s.own_lo for s in stretches[1:]]

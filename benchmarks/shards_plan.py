@@ -131,7 +131,7 @@ def main() -> None:
     a("--shared-fraction", type=float, default=0.3,
       help="of the union, the Gaussians alive in more than one stretch once there are --shared-ranks or more")
     a("--shared-ranks", type=int, default=2)
-    a("--refine-share", type=float, default=0.15, help="of the training time (tomgs.train.shards.REFINE_FRACTION)")
+    a("--refine-share", type=float, default=0.15, help="of the training time (tomgs.train.multigpu.shards.REFINE_FRACTION)")
     a("--refine-value", type=float, default=0.8, help="a refinement step's worth in training steps")
     a("--union-render-factor", type=float, default=1.3, help="a refinement step's time over a phase-1 step's")
     a("--db-per-doubling", type=float, default=0.8, help="the one-GPU curve's slope: dB per doubling of steps")

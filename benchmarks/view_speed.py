@@ -7,7 +7,7 @@ Starts the viewer as `tomgs view` does (no browser needed) and reports
   handed to viser, the moment a browser that connects gets its first picture;
 - scrubbing: every frame of the clip shown once in a shuffled order (seeded), as a slider dragged
   back and forth asks for them: per update the time to build the payload (alive Gaussians, baked
-  opacity, covariances, colours: tomgs.view.ViewScene.frame) and to pack and queue it for the
+  opacity, covariances, colours: tomgs.viewer.server.ViewScene.frame) and to pack and queue it for the
   clients (viser's set_gaussians), their sum as updates per second, and the splats per update.
 The browser's own sorting and drawing are not included: they run on the viewer's machine.
 Prints a summary and writes the numbers as JSON.
@@ -26,7 +26,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from tomgs.view import open_viewer  # noqa: E402
+from tomgs.viewer.server import open_viewer  # noqa: E402
 
 
 def main() -> None:

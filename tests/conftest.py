@@ -36,7 +36,7 @@ def blender() -> str:
 def fresh_bounds(monkeypatch):
     """A process's bounds of its own (tomgs.render's keys bound), so a test sets them without reaching
     other tests."""
-    from tomgs import render
+    from tomgs.render import frame as render
 
     bounds = render._Bounds()
     monkeypatch.setattr(render, "_bounds", bounds)

@@ -1,4 +1,4 @@
-"""tomgs.alive: the index of the Gaussians that may be alive at each frame. It lists a superset of
+"""tomgs.render.alive: the index of the Gaussians that may be alive at each frame. It lists a superset of
 what projection finds alive, for any window; its memory stays within its bound; a frame's work
 follows its alive count; training with it takes the steps training without it takes; render_sequence
 renders with it what a render of every Gaussian gives."""
@@ -10,10 +10,11 @@ import pytest
 import torch
 
 from tests.test_train import small_config, synthetic_clip
-from tomgs import alive
+from tomgs.render import alive
 from tomgs.constants import ALPHA_MIN
 from tomgs.model import GaussianModel
-from tomgs.render import project_stage, rasterize, render_sequence
+from tomgs.render.frame import project_stage, rasterize
+from tomgs.render.sequence import render_sequence
 from tomgs.temporal import alive_radius
 from tomgs.train import Trainer
 from tomgs.train.optim import SeenAdam
@@ -371,10 +372,10 @@ def test_the_bound_kernel_keeps_the_torch_formula(dense, spikes, headroom):
 
 
 def test_the_index_is_used_where_it_pays():
-    """On a CPU a trainer indexes by default; on a GPU it renders every Gaussian (tomgs.alive.pays_on:
+    """On a CPU a trainer indexes by default; on a GPU it renders every Gaussian (tomgs.render.alive.pays_on:
     on the H100 the gathers cost more than projection's culling), unless asked either way. A
     sequence of one cloud's frames is indexed on a GPU from SEQUENCE_FRAMES frames."""
-    from tomgs.alive import pays_on
+    from tomgs.render.alive import pays_on
 
     assert pays_on(torch.device("cpu")) and pays_on("cpu")
     assert not pays_on(torch.device("cuda")) and not pays_on("cuda:1")

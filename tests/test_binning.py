@@ -1,6 +1,6 @@
 """Ellipse binning: a Gaussian's keys are the tiles of its box that its alpha >= 1/255 ellipse reaches.
 
-The key list against the torch reference (tomgs.reference.ellipse_tiles, a dense minimum of the
+The key list against the torch reference (tomgs.render.reference.ellipse_tiles, a dense minimum of the
 quadratic over every tile of the box) on awkward ellipses; a thin diagonal Gaussian's list shrinks to
 about its ellipse's tiles; and no tile holding a pixel that the raster draws (alpha >= 1/255) is
 ever dropped, checked pixel by pixel."""
@@ -13,8 +13,8 @@ import pytest
 import torch
 
 from tomgs.constants import ALPHA_MIN, DEPTH_SORT_BITS, RADIUS_SIGMAS, TILE_SIZE, sort_low_bit
-from tomgs.reference import bin_reference, tile_rects, tiles_touched_reference
-from tomgs.render import bin_stage, project_stage
+from tomgs.render.reference import bin_reference, tile_rects, tiles_touched_reference
+from tomgs.render.frame import bin_stage, project_stage
 from scenes import SEED_BASE, devices, random_scene
 from test_stages import camera_points, float32_values
 
@@ -192,7 +192,7 @@ def write_keys(inputs, touched: torch.Tensor, width: int, height: int, capacity:
     `size` slots filled with `sentinel`: (keys, ids). `inline_lanes` 33: every warp lists its visible
     Gaussians, which write_tile_keys_listed writes."""
     from tomgs.kernels import binning
-    from tomgs.render import _Frame, _WorkLists, _pass_args
+    from tomgs.render.frame import _Frame, _WorkLists, _pass_args
     from tomgs.runtime import launch, scope, wrap
     import warp as wp
 
@@ -217,7 +217,7 @@ def write_keys(inputs, touched: torch.Tensor, width: int, height: int, capacity:
 def test_a_pass_of_the_work_lists_serves_one_launch():
     """A pass's counters are zeroed once: the pass runs listed the first time its arguments are taken,
     and inline after (a frame's keys written again past their bound append to no used list)."""
-    from tomgs.render import _WorkLists, _pass_args
+    from tomgs.render.frame import _WorkLists, _pass_args
 
     lists = _WorkLists(100, 2, 33, torch.device("cpu"))
     first = _pass_args(lists, 1)

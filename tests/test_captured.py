@@ -1,4 +1,4 @@
-"""tomgs.captured.FrameGraph: frames replayed from CUDA graphs (issued from Python on a CPU) render and
+"""tomgs.render.captured.FrameGraph: frames replayed from CUDA graphs (issued from Python on a CPU) render and
 differentiate what `rasterize` does, one frame at a time, and never hand out memory a later frame
 overwrites without saying so."""
 
@@ -12,9 +12,9 @@ import pytest
 import torch
 
 import tomgs
-from tomgs import render
-from tomgs.captured import FrameGraph
-from tomgs.inputs import RenderError
+from tomgs.render import frame as render
+from tomgs.render.captured import FrameGraph
+from tomgs.render.inputs import RenderError
 from scenes import devices, random_scene
 
 DEVICES = devices()

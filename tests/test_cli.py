@@ -86,7 +86,7 @@ def test_outputs_get_default_permissions(tmp_path):
     """Atomic writes go through private temporary names; the published output must not stay private."""
     import os
 
-    from tomgs.plots import line_plot_png
+    from tomgs.io.plots import line_plot_png
 
     umask = os.umask(0)
     os.umask(umask)

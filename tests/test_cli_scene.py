@@ -16,7 +16,7 @@ from tomgs.cameras import Cameras, intrinsics, look_at
 from tomgs.cli import main
 from tomgs.io.scene import save_scene
 from tomgs.model import GaussianModel
-from tomgs.render import render_sequence
+from tomgs.render.sequence import render_sequence
 
 W, H, T = 64, 36, 6
 

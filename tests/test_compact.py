@@ -8,7 +8,7 @@ import pytest
 import torch
 
 import tomgs
-from tomgs.render import blend_weights
+from tomgs.render.frame import blend_weights
 from scenes import devices, random_scene
 
 GEOMETRY = ("means", "quats", "scales", "opacities", "t_means", "t_scales")

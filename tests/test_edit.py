@@ -19,7 +19,7 @@ from tomgs.geometry import covariances, signed_volumes
 from tomgs.io import InputError
 from tomgs.io.scene import Scene
 from tomgs.io.tets import FACES, load_sequence, load_tets, save_sequence, save_tets, to_blender
-from tomgs.render import render_sequence
+from tomgs.render.sequence import render_sequence
 
 
 def random_gaussians(n: int, seed: int = 0):

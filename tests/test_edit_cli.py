@@ -14,7 +14,7 @@ from scenes import object_scene
 from tomgs.cli import main
 from tomgs.io.scene import load_scene, save_scene
 from tomgs.io.tets import load_tets, save_sequence, to_blender
-from tomgs.render import render_sequence
+from tomgs.render.sequence import render_sequence
 
 BALL = "sphere:0,0,2.5,0.9"
 

@@ -239,7 +239,7 @@ def test_layers_join_the_moment_in_front(tmp_path):
     renders from the base camera as `tomgs render --layer` composites them."""
     import cv2
 
-    from tomgs.layers import plane_cameras
+    from tomgs.render.layers import plane_cameras
 
     model, cams = demo_model(sh_degree=0)
     bg = save_scene(tmp_path / "bg.ply", model, cams)

@@ -197,7 +197,7 @@ def _needle_scene(length: float, direction: torch.Tensor, roll: float = 0.7) -> 
 
 def _condition_number(scene: dict) -> float:
     """Condition number of the needle's 2D covariance (float64)."""
-    from tomgs.reference import quat_to_rotmat
+    from tomgs.render.reference import quat_to_rotmat
     p = scene["means"][0]
     J = torch.tensor([[60.0 / p[2], 0.0, -60.0 * p[0] / p[2] ** 2], [0.0, 60.0 / p[2], -60.0 * p[1] / p[2] ** 2]],
                      dtype=torch.float64)

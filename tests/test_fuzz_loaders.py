@@ -472,7 +472,7 @@ def _masks_folder(path, c):
 def _frame_ranges(path, c):
     """A --frames spec (the file's text) at both users of it: a video and a scene's frame numbers."""
     from tomgs.io import read_video
-    from tomgs.jobs import select_frames
+    from tomgs.render.jobs import select_frames
 
     spec = path.read_bytes().decode("latin-1")
     positions = select_frames(c.scene_cameras, spec)

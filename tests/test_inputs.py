@@ -133,7 +133,7 @@ def test_render_frames_does_not_allocate_by_the_largest_frame_number(tmp_path):
     scene = small_scene(tmp_path / "s.ply", frame_indices=(0, 2**31 - 1))
     out = limited(f"""
         from tomgs.io.scene import load_scene
-        from tomgs.jobs import select_frames
+        from tomgs.render.jobs import select_frames
         cams = load_scene({str(scene)!r}).cameras
         print(select_frames(cams, "2147483647").tolist(), select_frames(cams, "0:2147483647").tolist(),
               select_frames(cams, "1000:").tolist(), select_frames(cams, "::2147483647").tolist())

@@ -15,10 +15,11 @@ from click.testing import CliRunner
 from tomgs.cli import main
 from tomgs.io import Video
 from tomgs.io.scene import load_scene, save_scene
-from tomgs.layers import render_layers
+from tomgs.render.layers import render_layers
 from tomgs.metrics import psnr
 from tomgs.model import GaussianModel
-from tomgs.render import rasterize, render_sequence
+from tomgs.render.frame import rasterize
+from tomgs.render.sequence import render_sequence
 from tomgs.train import fit, preset
 
 T, H, W = 8, 32, 48

@@ -299,7 +299,7 @@ def _tiny_scene(n_points: int = 300, frames: int = 4, width: int = 48, height: i
 
 
 def _render_all(model, cams) -> np.ndarray:
-    from tomgs.render import render_sequence
+    from tomgs.render.sequence import render_sequence
 
     return np.stack([img.numpy() for _, img, _ in render_sequence(model.render_inputs(), cams, device="cpu")])
 

@@ -77,7 +77,7 @@ def test_frames_weights_and_alpha_targets_stay_uint8(long_clip):
     """The trainer and the background layer hold the clip as uint8, never as float32 copies."""
     from tomgs.cameras import Cameras, intrinsics
     from tomgs.io import read_video
-    from tomgs.layers import background_inputs
+    from tomgs.render.layers import background_inputs
     from tomgs.train import Trainer, preset
 
     clip = read_video(long_clip, frames="0:6")
@@ -201,7 +201,7 @@ def test_a_long_clip_has_a_clip_psnr_early_over_evenly_spaced_frames(monkeypatch
 
     from tomgs.cameras import Cameras, intrinsics
     from tomgs.train import Trainer
-    from tomgs.train.fit import _plot
+    from tomgs.train.pipeline import _plot
 
     from test_train import small_config
 

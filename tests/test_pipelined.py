@@ -10,9 +10,9 @@ import pytest
 import torch
 
 import tomgs
-from tomgs import render
+from tomgs.render import frame as render
 from tomgs.cameras import Cameras
-from tomgs.inputs import RenderError
+from tomgs.render.inputs import RenderError
 from scenes import devices, random_scene
 
 DEVICES = devices()

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from tomgs.plots import COLORS, MARGIN_BOTTOM, MARGIN_LEFT, MARGIN_RIGHT, MARGIN_TOP, histogram_png, \
+from tomgs.io.plots import COLORS, MARGIN_BOTTOM, MARGIN_LEFT, MARGIN_RIGHT, MARGIN_TOP, histogram_png, \
     line_plot_png, nice_ticks
 
 

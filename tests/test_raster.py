@@ -204,7 +204,7 @@ def test_alpha_at_the_skip_threshold(batched, monkeypatch):
     alpha lies just above 1/255 are composited, those just below are not, as in the float64
     reference. The kernels skip an entry past POWER_SKIP without its exp; a threshold below
     ln(255), by 1e-3 or more, would drop pixels of the first ring."""
-    from tomgs.render import _Rasterize
+    from tomgs.render.frame import _Rasterize
 
     monkeypatch.setattr(_Rasterize, "batched", batched)
     one = dict(means=torch.tensor([[0.0123, 0.0071, 2.0]], dtype=torch.float64),
@@ -248,7 +248,7 @@ def test_depths_closer_than_the_sort_reads_draw_in_index_order(device, monkeypat
     assert_matches_reference(scene, device)
 
     _, (image, _, _), _, _ = render_both(scene, device)
-    monkeypatch.setattr(tomgs.reference, "depth_order", lambda depths, width, height: depths)
+    monkeypatch.setattr(tomgs.render.reference, "depth_order", lambda depths, width, height: depths)
     _, (exact_image, _, _), _, _ = render_both(scene, device)
     assert (exact_image - image).abs().max() > 0.1
 
@@ -283,7 +283,7 @@ def test_long_paths_inline_or_listed_give_the_same(device, with_rows, monkeypatc
     kernels may contract multiply-adds differently), the gradients to the oracle's 1e-3: the raster
     backward adds by atomics in no fixed order, which moved a per-Gaussian gradient by 1.4e-4 of itself
     between two runs and the camera gradient, a sum over every Gaussian, by 1e-2 of a small entry."""
-    from tomgs import render
+    from tomgs.render import frame as render
 
     scene = random_scene(70, n=400)
     scene["t_scales"] = scene["t_scales"] * 0.2  # most dead at t
@@ -359,9 +359,9 @@ def test_sequences_gather_only_what_is_alive_and_render_the_same(device):
     """render_sequence renders each few frames from the Gaussians alive around their times (on a GPU
     too: a sequence of SEQUENCE_FRAMES or more): the images equal a render of every Gaussian, and a
     Gaussian alive only at one frame is kept."""
-    from tomgs import alive
+    from tomgs.render import alive
     from tomgs.cameras import Cameras
-    from tomgs.render import render_sequence
+    from tomgs.render.sequence import render_sequence
 
     scene = random_scene(11, n=300, width=40, height=30)
     count = alive.SEQUENCE_FRAMES + 8
@@ -393,7 +393,7 @@ def test_an_unfinished_sequence_leaves_gradients_on():
     """render_sequence renders without gradients, but a caller that stops early (or between frames)
     must find autograd as it left it."""
     from tomgs.cameras import Cameras
-    from tomgs.render import render_sequence
+    from tomgs.render.sequence import render_sequence
 
     scene = random_scene(5, n=40, width=16, height=12)
     gaussians = {k: scene[k].float() for k in ("means", "quats", "scales", "opacities", "colors")}
@@ -414,7 +414,7 @@ def batched_on_cpu(request, monkeypatch):
     each thread stages whole batches itself) or of cooperative fibers, 256 forward and 128 backward
     (`enable_cpu_blocks`: barriers, shared batches and block reductions as on a GPU, so a missing
     barrier shows)."""
-    from tomgs.render import _Rasterize
+    from tomgs.render.frame import _Rasterize
 
     if request.param == "cooperative_blocks":
         import warp as wp
@@ -452,7 +452,7 @@ def assert_batched_matches(scene: dict) -> dict:
     and against the per-pixel pair: the same arithmetic per pixel, so the same image to 1e-6, and the
     same gradients to float32 sums taken in another order (the batched backward adds a thread's two
     pixels before its atomics): 1e-4, ten times inside the oracle's tolerance."""
-    from tomgs.render import _Rasterize
+    from tomgs.render.frame import _Rasterize
 
     meta = assert_matches_reference(scene, "cpu")
     (image, alpha, _), _, ins, _ = render_both(scene, "cpu")
@@ -557,7 +557,7 @@ def test_tiles_taken_longest_first_give_the_same_frame(batched, monkeypatch):
     """Blocks that take the tiles in order of list length (the CUDA default) composite the same
     image as blocks in tile order, with either kernel pair, and the same gradients to float32
     rounding (the tiles add into each Gaussian's sums in another order)."""
-    from tomgs.render import _Rasterize
+    from tomgs.render.frame import _Rasterize
 
     monkeypatch.setattr(_Rasterize, "batched", batched)
     scene = random_scene(31, n=150, width=70, height=41)  # 5x3 tiles, lists of many lengths
@@ -585,7 +585,8 @@ def test_frame_counts_come_with_the_sync(cooperative, monkeypatch):
     the CPU (block sums as on a GPU)."""
     import warp as wp
 
-    from tomgs import render, runtime
+    from tomgs import runtime
+    from tomgs.render import frame as render
 
     if cooperative:  # fresh recorded launches, so that every kernel runs in blocks of 256 fibers
         monkeypatch.setattr(render, "launch", runtime.Launches())
@@ -604,9 +605,9 @@ def test_frame_counts_come_with_the_sync(cooperative, monkeypatch):
 
 @pytest.fixture
 def write_capacities(monkeypatch):
-    """Fresh bounds (tomgs.render._bounds) for the test, and the list of the capacities that
+    """Fresh bounds (tomgs.render.frame._bounds) for the test, and the list of the capacities that
     rasterize's calls of render._write_keys ask for, in order."""
-    from tomgs import render
+    from tomgs.render import frame as render
 
     monkeypatch.setattr(render, "_bounds", render._Bounds())
     asked = []
@@ -623,7 +624,7 @@ def write_capacities(monkeypatch):
 def test_the_kept_bound_follows_how_much_the_totals_move():
     """Frames that repeat keep almost no headroom (memory: 24 bytes a slot); frames whose totals
     move keep twice their spread, at most an eighth; the bound holds the last 16 frames' largest."""
-    from tomgs.render import MAX_INTERSECTIONS, _Bounds, _Frame
+    from tomgs.render.frame import MAX_INTERSECTIONS, _Bounds, _Frame
 
     frame = _Frame(64, 48, 0.0, 0.0, 0.01, 1e10, "cpu")
     other = _Frame(48, 64, 0.0, 0.0, 0.01, 1e10, "cpu")
@@ -660,7 +661,7 @@ def test_frames_past_the_kept_bound_write_their_keys_again(write_capacities, dev
     same frame rendered again within the bound (keys written once, before the sync). With every warp
     listing its Gaussians (inline_lanes 33), the keys written again run inline: binning's lists have
     served the first write."""
-    from tomgs import render
+    from tomgs.render import frame as render
 
     monkeypatch.setattr(render, "inline_lanes", inline_lanes)
     width, height = 96, 80

@@ -49,7 +49,7 @@ def test_render_sequence_whose_first_frames_are_empty():
     run_fresh("""
         import numpy as np, torch
         from tomgs.cameras import Cameras, intrinsics
-        from tomgs.render import render_sequence
+        from tomgs.render.sequence import render_sequence
         n = 20
         g = torch.Generator().manual_seed(0)
         gaussians = dict(means=torch.cat([torch.rand(n, 2, generator=g) - 0.5, 2 + torch.rand(n, 1, generator=g)], 1),

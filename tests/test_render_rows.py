@@ -9,8 +9,8 @@ import pytest
 import torch
 
 import tomgs
-from tomgs.inputs import RenderError
-from tomgs.render import render_frame
+from tomgs.render.inputs import RenderError
+from tomgs.render.frame import render_frame
 from scenes import devices, random_scene
 
 DEVICES = devices()

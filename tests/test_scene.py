@@ -14,9 +14,9 @@ from tests.scenes import clip_parts, inria_load_ply, patch_clip
 from tomgs.cameras import Cameras, intrinsics, look_at
 from tomgs.io import InputError
 from tomgs.io.scene import TRAILER_MAGIC, load_scene, save_scene
-from tomgs.jobs import render_defaults, select_frames
+from tomgs.render.jobs import render_defaults, select_frames
 from tomgs.model import PARAM_NAMES, GaussianModel
-from tomgs.summary import alive_per_frame, format_summary, log_histogram, summarize
+from tomgs.io.summary import alive_per_frame, format_summary, log_histogram, summarize
 
 # written out by hand from INRIA's GaussianModel.construct_list_of_attributes, not from tomgs
 INRIA_DEGREE_3 = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
@@ -327,7 +327,7 @@ def test_render_defaults_come_from_info_when_valid():
 
 
 def test_alive_per_frame_matches_the_renderer():
-    from tomgs.render import render_sequence
+    from tomgs.render.sequence import render_sequence
 
     model, cams = random_model(200, 0, 0, seed=3), Cameras.create(
         np.tile(np.eye(4), (4, 1, 1)), intrinsics(40.0, 32, 18), 32, 18)

@@ -1,4 +1,4 @@
-"""tomgs.sequence: a ClipRenderer replaying its captured frame over its alive index's rows renders what
+"""tomgs.render.sequence: a ClipRenderer replaying its captured frame over its alive index's rows renders what
 render_sequence renders frame by frame, keeps its index and capture between calls, and renders a
 frame that overflowed its keys again."""
 
@@ -9,11 +9,11 @@ import pytest
 import torch
 
 import tomgs
-from tomgs import alive
+from tomgs.render import alive
 from tomgs.cameras import Cameras
 from tomgs.constants import ALPHA_MIN
-from tomgs.render import render_frame
-from tomgs.sequence import SEQUENCE_FRAMES, ClipRenderer, render_sequence
+from tomgs.render.frame import render_frame
+from tomgs.render.sequence import SEQUENCE_FRAMES, ClipRenderer, render_sequence
 from scenes import devices, random_scene
 
 DEVICES = devices()
@@ -69,7 +69,7 @@ def test_a_clip_renderer_replays_what_rasterize_renders(device, fresh_bounds):
 def test_a_frame_past_its_keys_is_rendered_again(device, fresh_bounds, monkeypatch):
     """The bound of this size set far below the clip's frames (~1700 intersections): the replayed frame
     lacks some, and comes out as rasterize's all the same, rendered again waiting for its counts."""
-    from tomgs import sequence
+    from tomgs.render import sequence
 
     gaussians, cams, viewmat, K = short_lived_clip(device, n=3000)
     renderer = ClipRenderer(gaussians, cams, replay=True)
@@ -85,7 +85,7 @@ def test_a_frame_past_its_keys_is_rendered_again(device, fresh_bounds, monkeypat
 
 def _frame_of(renderer: ClipRenderer):
     """A _Frame of the renderer's size (whose bound its frames share)."""
-    from tomgs.render import _Frame
+    from tomgs.render.frame import _Frame
     from tomgs.runtime import scope
 
     with scope(renderer.device) as wp_device:

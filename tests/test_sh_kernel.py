@@ -1,5 +1,5 @@
-"""The fused SH colour kernel (tomgs.kernels.sh via tomgs.sh.fused_sh_to_colors) against the float64
-torch oracle (tomgs.sh.sh_to_colors), which is itself checked by finite differences.
+"""The fused SH colour kernel (tomgs.kernels.sh via tomgs.render.sh.fused_sh_to_colors) against the float64
+torch oracle (tomgs.render.sh.sh_to_colors), which is itself checked by finite differences.
 
 Errors are measured against the size of what each output sums, so a float32 result is judged by
 what float32 can do on that row, not by a value that happens to cancel to ~0:
@@ -19,7 +19,7 @@ import pytest
 import torch
 
 import tomgs
-from tomgs.sh import DIR_EPS, eval_sh, fused_sh_to_colors, sh_to_colors
+from tomgs.render.sh import DIR_EPS, eval_sh, fused_sh_to_colors, sh_to_colors
 from scenes import INPUT_NAMES, SEED_BASE, devices, look_at, random_scene, rel_l2
 
 DEVICES = devices()
@@ -161,7 +161,7 @@ def test_gaussians_at_and_near_the_camera_centre(degree, device):
     sh = torch.randn(len(dists), (degree + 1) ** 2, 3, generator=g, dtype=torch.float64)
     check_against_oracle(sh, means, viewmat, device, seed=degree)
     colors = fused_sh_to_colors(sh[:1].to(device), means[:1].to(device), viewmat.to(device)).cpu()
-    dc = torch.clamp_min(tomgs.sh._C0 * _f32(sh[0, 0]) + 0.5, 0.0)
+    dc = torch.clamp_min(tomgs.render.sh._C0 * _f32(sh[0, 0]) + 0.5, 0.0)
     assert torch.allclose(colors[0].double(), dc, rtol=1e-6, atol=1e-7)
 
 
@@ -207,7 +207,7 @@ def test_clamp_passes_gradient_only_above_zero_and_keeps_nan(device):
     colors.sum().backward()
     passed = (ins[0].grad[:, 0] != 0).cpu()
     assert passed.sum() == 9  # torch.clamp_min's mask, on the value before the clamp: NaN and below 0 get nothing
-    assert torch.equal(passed, tomgs.sh._C0 * sh[:, 0].float() + 0.5 >= 0)
+    assert torch.equal(passed, tomgs.render.sh._C0 * sh[:, 0].float() + 0.5 >= 0)
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -241,10 +241,10 @@ def test_the_oracle_against_finite_differences(degree):
 def test_rasterize_with_sh_is_the_torch_path_rendered(degree, dtype, device, monkeypatch):
     """rasterize evaluates SH with the kernel now; the image and every gradient equal what it gave
     when prepare_inputs evaluated sh_to_colors in torch, in the inputs' dtype (RGB handed in)."""
-    import tomgs.inputs
+    import tomgs.render.inputs
 
     calls = []
-    monkeypatch.setattr(tomgs.inputs, "fused_sh_to_colors", lambda *a: calls.append(1) or fused_sh_to_colors(*a))
+    monkeypatch.setattr(tomgs.render.inputs, "fused_sh_to_colors", lambda *a: calls.append(1) or fused_sh_to_colors(*a))
     scene = random_scene(80 + degree, n=80, sh_degree=degree, dtype=dtype)
     size = dict(width=scene["width"], height=scene["height"], t=scene["t"])
     w = torch.rand(scene["height"], scene["width"], 3, generator=_generator(81)) - 0.3

@@ -1,4 +1,4 @@
-"""Temporal shards (tomgs.train.shards, tomgs.train.ranks): the plan of stretches, the exact map of a
+"""Temporal shards (tomgs.train.multigpu.shards, tomgs.train.multigpu.rank): the plan of stretches, the exact map of a
 stretch's time to the clip's, the merged curve; bad inputs refused before any work; and two gloo
 processes on a tiny clip: one ordinary scene whose boundary frames are as good as the others, a
 killed rank that stops the run and leaves every checkpoint, and a resume that continues both."""
@@ -24,10 +24,10 @@ from click.testing import CliRunner
 from test_train import small_config, synthetic_clip
 from tomgs.errors import InputError
 from tomgs.model import GaussianModel
-from tomgs.render import rasterize
+from tomgs.render.frame import rasterize
 from tomgs.train import fit
-from tomgs.train.ranks import check_shard_outputs
-from tomgs.train.shards import (Stretch, boundary_psnr, local_cameras, merged_history, own_cut, owned_rows, pack,
+from tomgs.train.multigpu.rank import check_shard_outputs
+from tomgs.train.multigpu.shards import (Stretch, boundary_psnr, local_cameras, merged_history, own_cut, owned_rows, pack,
                                 plan_stretches, rank_paths, reach, stretch_points, unpack)
 
 TESTS = Path(__file__).parent
@@ -134,7 +134,7 @@ def test_tracked_points_go_to_the_stretches_that_saw_them():
 
 
 def row(iteration, wall, train, clip="", gaussians=10, memory=100.0, frames=""):
-    from tomgs.train.shards import log_row
+    from tomgs.train.multigpu.shards import log_row
 
     return log_row(iteration=iteration, wall_s=wall, train_psnr=train, clip_psnr=clip, gaussians=gaussians,
                    memory_mb=memory, clip_frames=frames)
@@ -236,7 +236,7 @@ def _refine_rank(rank: int, store: str, folder: str) -> None:
     import torch.distributed as dist
 
     from tomgs.train.optim import adam_estimates
-    from tomgs.train.shards import assemble, gather_union, halo, model_of, refine, refine_optimizer
+    from tomgs.train.multigpu.shards import assemble, gather_union, halo, model_of, refine, refine_optimizer
 
     dist.init_process_group("gloo", init_method=store, rank=rank, world_size=2)
     torch.set_num_threads(1)
@@ -560,10 +560,10 @@ def test_a_budgeted_run_ends_at_its_budget_and_says_where_the_time_went(clip, tm
 
 @pytest.mark.slow  # two processes, each importing torch and Warp
 def test_ranks_started_before_the_imports_run_the_fit_and_a_pool_not_taken_leaves(clip, tmp_path):
-    """`tomgs fit --gpus N` starts its ranks first thing (tomgs.rank_pool), so that their imports run
+    """`tomgs fit --gpus N` starts its ranks first thing (tomgs.train.multigpu.pool), so that their imports run
     beside the parent's: the fit hands them its job instead of spawning; a pool nobody takes, or one
     of another size, is sent away and its processes end."""
-    from tomgs import rank_pool
+    from tomgs.train.multigpu import pool as rank_pool
 
     frames, cams, _ = clip
     out = tmp_path / "scene.ply"

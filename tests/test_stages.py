@@ -1,4 +1,4 @@
-"""Each rasterizer stage alone against its pure-torch reference (tomgs.reference), on fresh random
+"""Each rasterizer stage alone against its pure-torch reference (tomgs.render.reference), on fresh random
 inputs with the extremes mixed in: projection (values and gradients) and binning (the sorted
 intersection list and the tile ranges). tests/test_raster.py checks the stages end to end."""
 
@@ -10,8 +10,8 @@ import pytest
 import torch
 
 from tomgs.constants import ALPHA_MIN, TILE_SIZE, sort_low_bit
-from tomgs.reference import bin_reference, project_reference, tile_levels, tile_rects, tiles_touched_reference
-from tomgs.render import bin_stage, project_stage
+from tomgs.render.reference import bin_reference, project_reference, tile_levels, tile_rects, tiles_touched_reference
+from tomgs.render.frame import bin_stage, project_stage
 from scenes import SEED_BASE, devices, random_scene, rel_l2
 
 DEVICES = devices()

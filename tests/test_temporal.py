@@ -182,7 +182,7 @@ def test_numpy_window_matches_torch():
 
 def test_the_warp_kernel_keeps_the_same_formula():
     """The projection kernel's o_i(t) (its own Warp copy) against this module in float32."""
-    from tomgs.render import rasterize
+    from tomgs.render.frame import rasterize
 
     g = torch.Generator().manual_seed(5)
     n = 3000

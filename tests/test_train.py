@@ -17,7 +17,7 @@ import torch
 
 from tomgs.demo import demo_scene
 from tomgs.model import GaussianModel
-from tomgs.render import render_sequence
+from tomgs.render.sequence import render_sequence
 from tomgs.train import Trainer, preset
 from tomgs.train.checkpoint import read_checkpoint
 from tomgs.train.densify import Densifier

@@ -25,14 +25,14 @@ from tomgs.demo import demo_scene
 from tomgs.edit.selection import parse_selector
 from tomgs.geometry import covariances, rotmat_to_quat
 from tomgs.io.scene import Scene, load_scene, save_scene
-from tomgs.layers import NEAR, plane_cameras, render_layers
+from tomgs.render.layers import NEAR, plane_cameras, render_layers
 from tomgs.model import GaussianModel, rgb_to_sh_dc, stored_opacities, stored_scales, stored_t_scales
-from tomgs.render import rasterize
+from tomgs.render.frame import rasterize
 from tomgs.temporal import frozen_at, opacity_at
 
 pytest.importorskip("viser", reason='the viewer is the optional extra [view]: pip install "tomgs[view]"')
 
-from tomgs import view  # noqa: E402  (after the skip: importing it needs no viser, using it does)
+from tomgs.viewer import server as view  # noqa: E402  (after the skip: importing it needs no viser, using it does)
 
 BACKGROUND = (0.05, 0.05, 0.08)
 

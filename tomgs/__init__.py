@@ -13,12 +13,12 @@ __version__ = "0.1.0"
 # public name -> owning module (one module owns each concept; see DESIGN.md)
 _EXPORTS = {
     "rasterize": "tomgs.render",
-    "FrameGraph": "tomgs.captured",
-    "ClipRenderer": "tomgs.sequence",
-    "render_sequence": "tomgs.sequence",
+    "FrameGraph": "tomgs.render.captured",
+    "ClipRenderer": "tomgs.render.sequence",
+    "render_sequence": "tomgs.render.sequence",
     "RenderError": "tomgs.errors",
-    "rasterize_reference": "tomgs.reference",
-    "eval_sh": "tomgs.sh",
+    "rasterize_reference": "tomgs.render.reference",
+    "eval_sh": "tomgs.render.sh",
     "InputError": "tomgs.errors",
     "Video": "tomgs.io",
     "read_video": "tomgs.io",

@@ -26,3 +26,10 @@ def sort_low_bit(width: int, height: int) -> int:
     key_bits = 32 + tile_bits
     passes = -(-(tile_bits + DEPTH_SORT_BITS) // 8)
     return max(0, key_bits - 8 * passes)
+
+
+MAX_SIDE = 16384
+"""The largest image side in pixels, for width and height read from files. Nothing in a cameras
+file or a scene header bounds these numbers, and renders allocate width x height x 3 floats (a
+65536 side asks for 51 GB): 16384 (16K) is above what video codecs encode (H.264 and HEVC levels
+stop at 8192) and what GPUs take as a texture side, and one float RGB frame of it is 3.2 GB."""

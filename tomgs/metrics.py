@@ -382,7 +382,7 @@ def evaluate(model, cameras, frames, indices=None, lpips: LPIPS | None = None, d
     `indices`: the frames to evaluate (default all); `lpips`: an LPIPS instance to add that metric;
     `device`: where to render and measure (default: where the model lives). Raises ValueError on
     mismatched sizes, counts or indices."""
-    from tomgs.sequence import render_sequence
+    from tomgs.render.sequence import render_sequence
 
     clip = getattr(frames, "frames", frames)
     if isinstance(clip, torch.Tensor):

@@ -21,7 +21,7 @@ import torch
 
 from tomgs import temporal
 from tomgs.constants import ALPHA_MIN
-from tomgs.sh import _C0, sh_degree_of
+from tomgs.render.sh import _C0, sh_degree_of
 
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest", "t_means", "log_t_scales")
 RENDER_INPUTS = ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales")  # `render_inputs` keys
@@ -160,7 +160,7 @@ class GaussianModel(torch.nn.Module):
 
     def render_inputs(self) -> dict[str, torch.Tensor]:
         """Keyword arguments of `tomgs.rasterize` for these Gaussians (camera and time excluded); a
-        frame of some of them passes their indices as `rows` (tomgs.alive), which the kernels read
+        frame of some of them passes their indices as `rows` (tomgs.render.alive), which the kernels read
         in place, so nothing is gathered and autograd needs no scatter."""
         return dict(means=self.means, quats=self.quats, scales=self.scales, opacities=self.opacities,
                     colors=self.sh(), t_means=self.t_means, t_scales=self.t_scales)  # RENDER_INPUTS

@@ -48,10 +48,27 @@ import warp._src.context as _warp_context  # private: only for sort_pairs (see t
 
 from tomgs.errors import RenderError
 
-__all__ = ["init_warp", "warp_device", "scope", "torch_stream", "wrap", "wrap_rows", "wrap_flat", "NO_ARRAY",
+__all__ = ["resolve_device", "init_warp", "warp_device", "scope", "torch_stream", "wrap", "wrap_rows", "wrap_flat", "NO_ARRAY",
            "indexable", "launch", "Launches", "whole_blocks", "ArrayDescriptor", "sort_pairs"]
 
 _warp_ready = False
+
+
+def resolve_device(name: str | None = "auto") -> torch.device:
+    """'auto' (CUDA when available, else CPU), 'cpu', 'cuda' or 'cuda:N'; raises RenderError otherwise."""
+    name = "auto" if name is None else str(name)
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise RenderError(f"unknown device {name!r}: use auto, cpu, cuda or cuda:N") from None
+    if device.type not in ("cpu", "cuda"):
+        raise RenderError(f"device {name!r} is not supported: use auto, cpu, cuda or cuda:N")
+    if device.type == "cuda" and (not torch.cuda.is_available()
+                                  or (device.index or 0) >= torch.cuda.device_count()):
+        raise RenderError(f"device {name!r} is not available on this machine: use cpu (or auto)")
+    return device
 
 
 def init_warp() -> None:

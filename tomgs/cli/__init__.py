@@ -1,8 +1,8 @@
 """The `tomgs` command line: a thin click layer that parses, calls the library, and prints.
 
-This module holds the group, the shared options and the one error decorator; the commands live
-by room: `video` (poses, fit, eval), `scenes` (demo, example, render, info) and `editing` (edit,
-tets, simulate).
+This module holds the group, the shared options and the one error decorator; each command lives in
+the module named after it: poses, fit, eval, render, info, export, edit, tets, simulate, view, and
+demo (with `example`).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import click
 
 from tomgs import __version__
 from tomgs.errors import InputError, RenderError
-from tomgs.jobs import parse_floats, run_render
+from tomgs.render.jobs import parse_floats, run_render
 
 
 class UsageError(click.ClickException):
@@ -204,7 +204,7 @@ def phase_bars(min_interval: float = 0.25):
 
 
 def render_planned(scene, gaussians, plan, fps, layers=()) -> None:
-    """Run a planned render (tomgs.jobs) with a progress bar and print its report."""
+    """Run a planned render (tomgs.render.jobs) with a progress bar and print its report."""
     with progress_bar(len(plan.positions), "render") as progress:
         report = run_render(plan, scene, gaussians, fps, layers, progress=progress)
     click.echo(report.summary())
@@ -244,7 +244,8 @@ def _verbosity_options(group: click.Group) -> None:
 _verbosity_options(main)
 
 
-# the commands, by room: each module adds its commands to `main`
-from tomgs.cli import editing, scenes, video, view  # noqa: E402,F401  (registers the commands)
+# the commands, one module each: importing a module adds its command to `main`
+from tomgs.cli import (  # noqa: E402,F401  (registers the commands)
+    demo, edit, eval, export, fit, info, poses, render, simulate, tets, view)
 
 _verbosity_options(main)

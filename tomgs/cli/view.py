@@ -1,4 +1,4 @@
-"""`tomgs view`: a scene in the browser (tomgs.view; needs the optional extra `[view]`)."""
+"""`tomgs view`: a scene in the browser (tomgs.viewer.server; needs the optional extra `[view]`)."""
 
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ def view(scene, layer_paths, host, port, device):
       tomgs view scene.ply                     # then open the printed URL
       tomgs view bg.ply --layer fg.ply --port 8081
     """
-    from tomgs.view import open_viewer
+    from tomgs.viewer.server import open_viewer
 
     viewer = open_viewer(scene, layer_paths, host=host, port=port, device=device, echo=click.echo)
     click.echo(f"tomgs view: {viewer.url}  (Ctrl-C stops)")

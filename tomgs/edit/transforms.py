@@ -176,7 +176,7 @@ def load_keyframes(path, cameras) -> Keyframes:
            '"rotate": [0, 90, 0], "scale": 1.0}]}')
     if not path.is_file():
         raise InputError(f"keyframes file {path} does not exist: {fix}")
-    from tomgs.cameras import load_json
+    from tomgs.io.cameras import load_json
 
     data = load_json(path, fix)
     try:

@@ -1,6 +1,6 @@
 """Static 3DGS files for other tools: the INRIA PLY, antimatter15's `.splat` and Niantic's `.spz`.
 
-Each writer takes one `StaticGaussians` (what `tomgs.export.static_moment` makes of a moment of a
+Each writer takes one `StaticGaussians` (what `tomgs.edit.export.static_moment` makes of a moment of a
 clip) and writes atomically. The layouts, as the readers expect them (REFERENCES.md, "Files"):
 
     .ply    one `vertex` element of float32: x y z nx ny nz f_dc_0..2 f_rest_* (channel-major)
@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from tomgs.outputs import atomic_file
-from tomgs.sh import _C0, sh_degree_of
+from tomgs.render.sh import _C0, sh_degree_of
 
 FORMATS = (".ply", ".splat", ".spz")
 FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")  # StaticGaussians' arrays

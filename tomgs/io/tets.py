@@ -221,7 +221,7 @@ def read_npz(path, check, names, fix: str, required=()) -> dict:
     import zipfile
     import zlib
 
-    from tomgs.cameras import npy_header
+    from tomgs.io.cameras import npy_header
 
     path = Path(path)
     if not path.is_file():

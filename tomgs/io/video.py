@@ -141,7 +141,7 @@ def image_size(path: Path) -> tuple[int, int, str, int] | None:
 def _check_image(path: Path) -> None:
     """InputError when the image's header declares a size beyond MAX_SIDE, or (PNG) more pixels than
     its bytes can hold, before the decoder allocates it."""
-    from tomgs.cameras import MAX_SIDE
+    from tomgs.constants import MAX_SIDE
 
     found = image_size(path)
     if found is None:
@@ -241,7 +241,7 @@ def read_video(path, frames=None, max_side: int | None = None, masks=None, progr
     how many frames the decoder produced.
     Raises `InputError` for a missing path, an unreadable or corrupt video, zero frames, a bad
     range, or masks of another count or size; for a video whose header declares frames larger than
-    tomgs.cameras.MAX_SIDE, whose frames change size, or whose frames are all one flat colour (what
+    tomgs.constants.MAX_SIDE, whose frames change size, or whose frames are all one flat colour (what
     random bytes decode to); for images whose header declares more than MAX_SIDE a side; for
     selected frames that would take more than half of this machine's memory.
     """
@@ -342,7 +342,7 @@ def _read_video_file(path: Path, sel: slice, spec, max_side, report):
 
     import av
 
-    from tomgs.cameras import MAX_SIDE
+    from tomgs.constants import MAX_SIDE
 
     fix = "re-encode it (e.g. ffmpeg -i in.mov -c:v libx264 out.mp4) or extract its frames to a folder"
     try:

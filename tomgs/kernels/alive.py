@@ -1,11 +1,11 @@
-"""The alive index's bound on a Gaussian under training (tomgs/alive.py says why and how): the clip
+"""The alive index's bound on a Gaussian under training (tomgs/render/alive.py says why and how): the clip
 times its temporal window can reach before the index looks at it again, and whether that reaches a
 frame outside the buckets listing it.
 
 One thread per Gaussian, in float64: the row's temporal parameters and their Adam moments -> how far
-Adam can move each (tomgs.alive.adam_reach), the widest window that allows (the model's activations,
+Adam can move each (tomgs.render.alive.adam_reach), the widest window that allows (the model's activations,
 tomgs.temporal's alive window with the index's slack). A copy of those formulas, as kernels cannot
-call torch; tests hold it to tomgs.alive.reach_reference. A training step's check is one launch
+call torch; tests hold it to tomgs.render.alive.reach_reference. A training step's check is one launch
 instead of some forty torch calls.
 """
 
@@ -21,7 +21,7 @@ INF = wp.constant(wp.float64(float("inf")))
 @wp.func
 def adam_move(p: float, m: float, v: float, has_moments: int, scale: wp.float64, q: wp.float64,
               root_c: wp.float64, spikes: int, dense: int, headroom: wp.float64) -> wp.float64:
-    # tomgs.alive.adam_reach: r = |m| / sqrt(v); s spikes r <- q r + sqrt(c); dense Adam then coasts
+    # tomgs.render.alive.adam_reach: r = |m| / sqrt(v); s spikes r <- q r + sqrt(c); dense Adam then coasts
     # q r / (1 - q); scale = F lr (1 + 1e-3) (0: the parameter does not move, whatever r is)
     if scale == wp.float64(0.0):
         return headroom + wp.float64(1.0e-5) * (wp.float64(1.0) + wp.abs(wp.float64(p)))

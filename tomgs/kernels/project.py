@@ -17,7 +17,7 @@ finite or has fx, fy <= 0): flagged in `flags` for the caller to refuse, never s
 Time: t arrives as two float32s, t_hi + t_lo (t_hi = t rounded), and t - m is formed as
 (t_hi - m) + t_lo, exact to float32 rounding of the difference, so temporal scales far below
 float32's resolution of t itself (6e-8 near t = 0.5) are honoured. A frame replayed from a CUDA
-graph (tomgs.captured) cannot change scalar arguments: its (t_hi, t_lo) are read from `times` [2]
+graph (tomgs.render.captured) cannot change scalar arguments: its (t_hi, t_lo) are read from `times` [2]
 in device memory instead, written per frame by `set_frame` (`times` empty: the scalars hold t).
 """
 
@@ -238,7 +238,7 @@ def project_forward(
     rows: wp.array(dtype=wp.int32),  # [M] with has_rows: the Gaussians projected (the outputs are [M])
     has_rows: int,
     row_count: wp.array(dtype=wp.int32),  # [1] with rows: only rows[:row_count[0]] are the frame's, the rest
-    #                                       padding, culled (a replayed frame's, tomgs.captured); or empty
+    #                                       padding, culled (a replayed frame's, tomgs.render.captured); or empty
     n: int,  # N, the Gaussians the inputs hold
     inline_lanes: int,  # a warp holding this many alive lanes runs their long path (INLINE_LANES; 1 on a CPU)
     capacity: int,  # slots of each work list (work_capacity)
@@ -664,7 +664,7 @@ def set_frame(
     count: int,  # the rows of the frame, for a frame that renders rows
     row_count: wp.array(dtype=wp.int32),  # out [1]: where it reads their count (project_forward); or empty
 ):
-    # one thread: a replayed frame's camera, time and row count in one launch (tomgs.captured)
+    # one thread: a replayed frame's camera, time and row count in one launch (tomgs.render.captured)
     viewmats[0] = viewmat[0]
     Ks[0] = K[0]
     times[0] = t_hi

@@ -1,10 +1,10 @@
 """Spherical-harmonics colour in one pass per Gaussian, and its hand-written backward.
 
-    colors = max(eval_sh(sh, normalize(mean - camera centre)) + 0.5, 0)      (tomgs.sh.sh_to_colors)
+    colors = max(eval_sh(sh, normalize(mean - camera centre)) + 0.5, 0)      (tomgs.render.sh.sh_to_colors)
 
 One thread per Gaussian reads its K x 3 coefficients, its mean and the camera once; the torch
 formula it replaces runs ~40 elementwise kernels forward and more backward. The basis, its
-constants and the direction's rules are tomgs.sh's (the oracle): a mean component that is not
+constants and the direction's rules are tomgs.render.sh's (the oracle): a mean component that is not
 finite counts as 0 (and gets no gradient); the direction is (mean - centre) / max(|mean - centre|,
 DIR_EPS), as torch's normalize, so a Gaussian at the camera centre sees direction 0 (its colour is
 the DC term) and its mean's gradient is the direction's divided by DIR_EPS. The clamp passes the
@@ -37,7 +37,7 @@ DIR_EPS = wp.constant(basis.DIR_EPS)
 
 @wp.func
 def finite_or_zero(v: wp.vec3) -> wp.vec3:
-    # per component, as tomgs.sh.sh_to_colors: a culled Gaussian's NaN must not reach the camera's gradient
+    # per component, as tomgs.render.sh.sh_to_colors: a culled Gaussian's NaN must not reach the camera's gradient
     out = v
     for j in range(3):
         if not wp.isfinite(v[j]):
@@ -66,7 +66,7 @@ def norm_of(d: wp.vec3) -> float:
 
 @wp.func
 def sh_raw(sh: wp.array2d(dtype=wp.vec3), i: int, degree: int, d: wp.vec3) -> wp.vec3:
-    # eval_sh(sh[i], d): same terms as tomgs.sh.eval_sh
+    # eval_sh(sh[i], d): same terms as tomgs.render.sh.eval_sh
     out = C0 * sh[i, 0]
     if degree > 0:
         x = d[0]

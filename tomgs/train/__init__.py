@@ -1,9 +1,32 @@
-"""Training: the TOM-GS trainer, frame sampler, densification, presets, and `fit`."""
+"""Training: the TOM-GS trainer, frame sampler, densification, presets, and `fit`.
 
-from tomgs.train.checkpoint import FitInterrupted, read_checkpoint
-from tomgs.train.config import PRESETS, TrainConfig, preset
-from tomgs.train.fit import check_outputs, fit, output_paths
-from tomgs.train.trainer import FitResult, Trainer
+    pipeline    `fit`: a clip in, a scene file out (one process; dispatches to multigpu for shards)
+    trainer     the training loop (Trainer, FitResult)
+    config      TrainConfig and its presets; plan: the budget's plan of a fit
+    densify     the densification strategy; optim: Adam; sampler: which frame trains next
+    checkpoint  checkpoints, stop signals, resume; warm: the kernels' warm-up beside the poses
+    multigpu/   the sharded fit over several GPUs (pool, rank, shards)
 
-__all__ = ["PRESETS", "FitInterrupted", "FitResult", "TrainConfig", "Trainer", "check_outputs", "fit", "output_paths",
-           "preset", "read_checkpoint"]
+Public names are resolved lazily, as in `tomgs`: importing the package (and so
+tomgs.train.multigpu.pool) loads no torch.
+"""
+
+from __future__ import annotations
+
+from tomgs._lazy import lazy_exports
+
+_EXPORTS = {
+    "FitInterrupted": "tomgs.train.checkpoint",
+    "read_checkpoint": "tomgs.train.checkpoint",
+    "PRESETS": "tomgs.train.config",
+    "TrainConfig": "tomgs.train.config",
+    "preset": "tomgs.train.config",
+    "check_outputs": "tomgs.train.pipeline",
+    "fit": "tomgs.train.pipeline",
+    "output_paths": "tomgs.train.pipeline",
+    "FitResult": "tomgs.train.trainer",
+    "Trainer": "tomgs.train.trainer",
+}
+
+__all__ = list(_EXPORTS)
+__getattr__, __dir__ = lazy_exports(__name__, globals(), _EXPORTS)

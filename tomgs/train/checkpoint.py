@@ -19,7 +19,7 @@ After loading, its layout is checked (`check_state`) before a tensor of it is us
     history, notes    the CSV rows (dicts of numbers and "") and the fit's notes (str); rows of a
                       checkpoint written before clip_frames was logged get it on reading (their clip
                       PSNRs covered every frame)
-    clip              what identifies the clip for `fit(resume=True)` (tomgs.train.fit fills it)
+    clip              what identifies the clip for `fit(resume=True)` (tomgs.train.pipeline fills it)
 
 Signals: `StopSignals` turns SIGINT and SIGTERM into a request that the training loop reads at a
 step boundary, where the parameters, the optimiser and the densifier agree; the loop saves and

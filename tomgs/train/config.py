@@ -58,9 +58,9 @@ class TrainConfig:
     # hundreds, where that momentum acts as extra steps (the bundled clip in 4 min: 29.57 dense,
     # 29.09 sparse; camel's background layer in 3 min: 22.44 dense, 21.99 sparse)
     sparse_adam: bool | None = None
-    # each step renders only the Gaussians that may be alive at its frame (tomgs.alive: same images
+    # each step renders only the Gaussians that may be alive at its frame (tomgs.render.alive: same images
     # and gradients, work following the ~15% alive instead of all); False renders all (ablation,
-    # tests); None: where it pays (tomgs.alive.pays_on: on a CPU, not on a GPU)
+    # tests); None: where it pays (tomgs.render.alive.pays_on: on a CPU, not on a GPU)
     alive_index: bool | None = None
     # learning rates (3DGS; means scaled by the scene extent and decayed exponentially)
     lr_means: float = 1.6e-4

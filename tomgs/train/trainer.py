@@ -1,6 +1,6 @@
 """The TOM-GS trainer: sample a frame, render it at its time, 0.8 L1 + 0.2 D-SSIM, Adam, densify.
 
-Layers (tomgs.layers) use four hooks and nothing else: per-pixel loss `weights` (the background
+Layers (tomgs.render.layers) use four hooks and nothing else: per-pixel loss `weights` (the background
 layer ignores the masked object), `wide_fraction` (some of the background's Gaussians start alive
 over the whole clip, so they fill the object's place in the frames where it covers them),
 `alpha_targets` (the foreground layer is transparent outside its mask) and an `initial` model (the
@@ -34,12 +34,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tomgs.alive import TrainingIndex, pays_on
+from tomgs.render.alive import TrainingIndex, pays_on
 from tomgs.cameras import Cameras
 from tomgs.metrics import l1_dssim_and_psnr, psnr, ssim_map
 from tomgs.model import GaussianModel, nearest_neighbour_distance
-from tomgs.render import blend_weights, render_frame
-from tomgs.sequence import IssuedFrame, issue_in_order
+from tomgs.render.frame import blend_weights, render_frame
+from tomgs.render.sequence import IssuedFrame, issue_in_order
 from tomgs.temporal import frames_to_clip_time
 from tomgs.errors import InputError
 from tomgs.outputs import write_text
@@ -93,7 +93,7 @@ class FitResult:
     seconds: float
     history: list[dict] = field(default_factory=list)  # the CSV rows
     notes: list[str] = field(default_factory=list)  # what was left out or assumed
-    # filled by tomgs.train.fit: the plan, wall seconds per phase and in all, peak memory (MiB)
+    # filled by tomgs.train.pipeline: the plan, wall seconds per phase and in all, peak memory (MiB)
     plan: object = None
     phase_seconds: dict = field(default_factory=dict)
     wall_seconds: float = 0.0
@@ -166,7 +166,7 @@ class Trainer:
         self.progress = 0.0  # fraction of the run done: iterations or wall-clock budget, whichever is further
         self.elapsed = 0.0  # wall seconds of earlier sessions of a resumed run
         self.history: list[dict] = []
-        self.clip: dict = {}  # what identifies the clip, saved with checkpoints (tomgs.train.fit fills it)
+        self.clip: dict = {}  # what identifies the clip, saved with checkpoints (tomgs.train.pipeline fills it)
         self._measured: list[tuple[int, torch.Tensor]] = []  # (frame, PSNR) not yet given to the sampler
         self._in_flight = None  # (frames, PSNRs on their way to the host, the event after their copy)
         self.eval_frame_seconds = 0.0  # seconds a frame of the last clip PSNR took
@@ -390,7 +390,7 @@ class Trainer:
 
     def render(self, k: int, defer: bool = False, inputs: dict | None = None, **kw):
         """Frame k at its time: (image, alpha, meta) as `rasterize` gives them for the Gaussians that
-        may be alive then (tomgs.alive), meta['rows'] naming them (int [M]; None: all N). With
+        may be alive then (tomgs.render.alive), meta['rows'] naming them (int [M]; None: all N). With
         `defer`, meta['counts'] is the frame's FrameCounts when it did not wait for them (else None).
         `inputs`: the model's `render_inputs()` when the caller renders several frames of one state."""
         rows = None if self.alive is None else self.alive.rows(k, self.model, self.optimizer, self.iteration)

@@ -5,7 +5,7 @@ start, its kernels loaded onto the device (compiled, on the first run of a machi
 cuDNN handles, the caching allocator's first blocks. On a GPU that is seconds (the H100: a DAVIS
 fit's first 50 steps took 8.6 s against 0.35 s for the next 50). `WarmUp` runs a throwaway Trainer
 on a tiny made-up clip in a thread meanwhile; the fit joins it before its own Trainer. Used by
-`tomgs.train.fit` (one GPU) and by every rank of `tomgs.train.ranks`.
+`tomgs.train.pipeline` (one GPU) and by every rank of `tomgs.train.multigpu.rank`.
 
 It was made for poses on the CPU, when the GPU idled through them; the tracker now runs on the GPU
 too, beside it. What made the two contend was torch.optim.Optimizer's first add_param_group, which
@@ -40,7 +40,7 @@ def warm_up(config, device: torch.device) -> None:
     and a fit seeds torch again before its own Trainer. A failure is reported and left to the real
     steps to show."""
     from tomgs.cameras import Cameras
-    from tomgs.train.shards import frame_psnr
+    from tomgs.train.multigpu.shards import frame_psnr
     from tomgs.train.trainer import Trainer
 
     try:

@@ -17,7 +17,7 @@ import torch
 import warp as wp
 
 from tomgs.constants import TILE_SIZE, sort_low_bit
-from tomgs.inputs import RasterInputs, RenderError, prepare_inputs
+from tomgs.render.inputs import RasterInputs, RenderError, prepare_inputs
 from tomgs.kernels import binning, lanes, project, raster, raster_batched
 from tomgs.runtime import NO_ARRAY, indexable, launch, scope, sort_pairs, whole_blocks, wrap, wrap_part
 
@@ -101,7 +101,7 @@ class _Frame:
     far: float
     device: str  # the Warp device its launches go to ("cpu", "cuda:N"), inside a runtime.scope
     # a descriptor of (t_hi, t_lo) float32 [2] in device memory, read in place of the two above (a frame
-    # replayed from a CUDA graph, tomgs.captured); NO_ARRAY: the scalars hold t
+    # replayed from a CUDA graph, tomgs.render.captured); NO_ARRAY: the scalars hold t
     times: object = field(default=NO_ARRAY, compare=False)
     # a descriptor of int32 [1] in device memory: a frame rendering rows renders only the first this many
     # of them, the rest being padding (a replayed frame's fixed buffer of rows); NO_ARRAY: all of them
@@ -561,7 +561,7 @@ def rasterize(
     background: torch.Tensor | None = None,  # [3]
     near: float = 0.01,
     far: float = 1e10,
-    rows: torch.Tensor | None = None,  # int [M]: render these Gaussians only (tomgs.alive)
+    rows: torch.Tensor | None = None,  # int [M]: render these Gaussians only (tomgs.render.alive)
 ):
     """Render the Gaussians at time t: (image [H,W,3], alpha [H,W,1], meta).
 
@@ -686,7 +686,7 @@ def project_stage(
     Gaussian `means2d` [N,2], `conics` [N,3], `depths` [N], `radii` [N,2] int32, `opacities_t` [N],
     `tiles_touched` [N] int32; a culled Gaussian has zero means2d, conics, radii and tiles touched
     (depths and opacities_t are written for all). means2d, conics and opacities_t are differentiable;
-    a culled Gaussian gets zero gradient. See tomgs.reference.project_reference."""
+    a culled Gaussian gets zero gradient. See tomgs.render.reference.project_reference."""
     t_hi, t_lo = _check_scalars(width, height, t, near, far)
     zeros = torch.zeros_like(means) if isinstance(means, torch.Tensor) else means  # projection reads no colour
     p = prepare_inputs(means, quats, scales, opacities, zeros, t_means, t_scales, viewmat, K, width, height, t,
@@ -710,7 +710,7 @@ def bin_stage(
 ) -> dict[str, torch.Tensor]:
     """Stage 2 alone, as `rasterize` runs it, for tests and tools: `keys` [M] int64 `tile << 32 | float32
     depth bits` sorted, `ids` [M] int32 the Gaussian of each, `ranges` [tiles, 2] int32 each tile's
-    [start, end) in them ((0, 0) for an empty tile). See tomgs.reference.bin_reference."""
+    [start, end) in them ((0, 0) for an empty tile). See tomgs.render.reference.bin_reference."""
     _check_scalars(width, height, 0.0, 0.01, 1e10)
     ends = torch.cumsum(tiles_touched, 0, dtype=torch.int64)
     total = int(ends[-1]) if ends.numel() else 0
@@ -728,28 +728,11 @@ def bin_stage(
     return dict(keys=keys, ids=ids, ranges=ranges)
 
 
-def resolve_device(name: str | None = "auto") -> torch.device:
-    """'auto' (CUDA when available, else CPU), 'cpu', 'cuda' or 'cuda:N'; raises RenderError otherwise."""
-    name = "auto" if name is None else str(name)
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        device = torch.device(name)
-    except RuntimeError:
-        raise RenderError(f"unknown device {name!r}: use auto, cpu, cuda or cuda:N") from None
-    if device.type not in ("cpu", "cuda"):
-        raise RenderError(f"device {name!r} is not supported: use auto, cpu, cuda or cuda:N")
-    if device.type == "cuda" and (not torch.cuda.is_available()
-                                  or (device.index or 0) >= torch.cuda.device_count()):
-        raise RenderError(f"device {name!r} is not available on this machine: use cpu (or auto)")
-    return device
-
-
 def __getattr__(name: str):
-    """`render_sequence` lives in tomgs.sequence (it replays captured frames, whose module imports this
+    """`render_sequence` lives in tomgs.render.sequence (it replays captured frames, whose module imports this
     one); `from tomgs.render import render_sequence` still finds it."""
     if name == "render_sequence":
-        from tomgs.sequence import render_sequence
+        from tomgs.render.sequence import render_sequence
 
         return render_sequence
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

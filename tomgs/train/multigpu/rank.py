@@ -1,9 +1,9 @@
-"""The processes of a sharded fit (tomgs.train.shards): how they start, what each does, how they stop.
+"""The processes of a sharded fit (tomgs.train.multigpu.shards): how they start, what each does, how they stop.
 
 Start: `fit(..., gpus=N)` (the CLI's --gpus N) checks the inputs and every output, hands the plan to
 `on_plan`, and spawns N processes on this host (spawn, not fork: CUDA and Warp start clean in each),
 one per GPU (cuda:0 .. cuda:N-1; NCCL between them) or, with device cpu, N CPU processes (gloo). The
-CLI starts them before its own imports (tomgs.rank_pool) and the fit hands them their job instead.
+CLI starts them before its own imports (tomgs.train.multigpu.pool) and the fit hands them their job instead.
 Under torchrun (RANK, WORLD_SIZE and LOCAL_RANK in the environment, WORLD_SIZE > 1) every process
 torchrun started is one rank and `fit` runs that rank: `torchrun --nnodes 2 --nproc_per_node 8 ...
 -m tomgs.cli fit ...` fits on two hosts (each host's ranks write their checkpoints and CSVs on that
@@ -14,7 +14,7 @@ takes them from a checkpoint) and broadcasts them, the others meanwhile read the
 up (tomgs.train.warm, in a thread); every rank
 checks its checkpoint on resume, and all refuse together when one refuses (before anything is
 written); phase 1 (its Trainer); the merge, the joint refinement and the measurement of its frames
-(tomgs.train.shards), the refinement ending by what follows it as measured (Rank.merge); rank 0
+(tomgs.train.multigpu.shards), the refinement ending by what follows it as measured (Rank.merge); rank 0
 writes the scene, the merged CSV and plot; every rank removes its checkpoint and, spawned, leaves
 by os._exit. Each process records its phases (Timeline; FitResult.timeline).
 
@@ -52,10 +52,11 @@ import numpy as np
 import torch
 
 from tomgs.errors import InputError
-from tomgs import rank_pool
+from tomgs.train.multigpu import pool as rank_pool
 from tomgs.train.checkpoint import START_OVER, FitInterrupted, StopSignals, read_checkpoint
 from tomgs.train.warm import WarmUp
-from tomgs.train.shards import REFINE_FRACTION, default_overlap, plan_stretches, rank_paths
+from tomgs.train.multigpu.shards import REFINE_FRACTION, default_overlap, plan_stretches, rank_paths
+from tomgs.train import pipeline, trainer  # noqa: F401  (what a rank runs: imported while a pooled rank waits)
 
 GROUP_TIMEOUT = timedelta(hours=1)  # a collective waits this long (rank 0's poses on a long clip come first)
 STOP_GRACE_S = 120.0  # after SIGTERM, a rank's time to save before SIGKILL
@@ -127,8 +128,8 @@ class Timeline:
 
 
 def process_start_epoch() -> float:
-    """time.time() at which this process started (tomgs.train.fit.process_started: Linux's /proc)."""
-    from tomgs.train.fit import process_started
+    """time.time() at which this process started (tomgs.train.pipeline.process_started: Linux's /proc)."""
+    from tomgs.train.pipeline import process_started
 
     return time.time() - (time.perf_counter() - process_started())
 
@@ -168,7 +169,7 @@ class Job:
     config: object  # TrainConfig
     world: int
     device_type: str  # "cuda" or "cpu"
-    options: dict  # what a checkpoint records of the options (tomgs.train.fit)
+    options: dict  # what a checkpoint records of the options (tomgs.train.pipeline)
     masks: object = None
     frames: object = None
     max_side: int | None = None
@@ -191,12 +192,12 @@ def fit_shards(video, output, config, *, gpus=None, masks=None, frames=None, max
                focal=None, device=None, resume=False, overwrite=False, progress=None, pose_progress=None,
                layer=None, mask_dilation=2, phases=None, on_plan=None, auto_budget=True, started=None,
                overlap: int | None = None, refine_fraction: float = REFINE_FRACTION, carry_adam: bool = True):
-    """`tomgs.train.fit` in temporal shards (this module's docstring): the same arguments, with `gpus`
+    """`tomgs.train.pipeline` in temporal shards (this module's docstring): the same arguments, with `gpus`
     ranks (None: torchrun's WORLD_SIZE), `overlap` frames into each neighbour (None: default) and
     `refine_fraction` of the training time for the joint refinement (0: none, the union as merged);
     `carry_adam=False` starts the refinement from a fresh Adam instead of each Gaussian's phase-1
     state (a comparison: docs/multi-gpu.md)."""
-    from tomgs.train.fit import _poses_key
+    from tomgs.train.pipeline import _poses_key
 
     entered = time.time()
     # as a one-GPU fit: the budget counts from the call unless told (the CLI: from the process's start)
@@ -284,7 +285,7 @@ def _device_type(device, world: int, env) -> str:
 
 
 def check_shard_outputs(output, world: int, resume: bool, overwrite: bool, tidy: bool = False) -> dict:
-    """The outputs of a sharded fit (tomgs.train.fit.output_paths plus each rank's checkpoint and CSV)
+    """The outputs of a sharded fit (tomgs.train.pipeline.output_paths plus each rank's checkpoint and CSV)
     once every one can be written, else InputError saying how to proceed. Resume expects the ranks'
     checkpoints (at least one) and refuses those of another number of ranks, or a one-GPU fit's
     checkpoint; without resume, any checkpoint is refused unless `overwrite`. `tidy`: remove, with
@@ -293,7 +294,7 @@ def check_shard_outputs(output, world: int, resume: bool, overwrite: bool, tidy:
     import re
 
     from tomgs.outputs import check_file_output, remove_stale_temporaries
-    from tomgs.train.fit import output_paths
+    from tomgs.train.pipeline import output_paths
 
     paths = output_paths(output)
     if paths["scene"].suffix.lower() != ".ply":
@@ -402,7 +403,7 @@ def _spawn_and_watch(job: Job, paths: dict, progress, phases, pose_progress, tim
     import multiprocessing as mp
     from multiprocessing.connection import wait
 
-    pool = rank_pool.take(job.world)  # ranks the caller started before its imports (tomgs.rank_pool)
+    pool = rank_pool.take(job.world)  # ranks the caller started before its imports (tomgs.train.multigpu.pool)
     if pool is None:
         ctx = mp.get_context("spawn")
         pipes = [ctx.Pipe(duplex=False) for _ in range(job.world)]
@@ -566,7 +567,7 @@ def _verdict(job: Job, paths: dict, procs, outcome, died, first_fault, signals) 
 
 def spawned(rank: int, job: Job, conn, imported: float | None = None) -> None:
     """A spawned rank: run it, and report how it ended to the parent (`conn`). A rank of a
-    tomgs.rank_pool passes `imported`: time.time() when its imports were done and it began waiting
+    tomgs.train.multigpu.pool passes `imported`: time.time() when its imports were done and it began waiting
     for the job."""
     received = time.time()
     if imported is None:  # spawned with its job: this is its first line, after its imports
@@ -661,14 +662,14 @@ def run_rank(job: Job, rank: int, local_rank: int, report, entered: float | None
     """What rank `rank` of `job` does (this module's docstring). `report(kind, payload)` hears
     ('started', {...}), ('phase', (name, done, total, text)), ('poses', (done, total)) and ('row', row)
     as they happen. `entered`: time.time() when the process's imports were done (its start-up ends
-    there); `waited`: (from, to), a rank of a tomgs.rank_pool's wait for its job. Returns its summary (rank 0's describes the run); "own_timeline" is its phases (Timeline)."""
+    there); `waited`: (from, to), a rank of a tomgs.train.multigpu.pool's wait for its job. Returns its summary (rank 0's describes the run); "own_timeline" is its phases (Timeline)."""
     import torch.distributed as dist
 
     timeline = Timeline(job.start_time)
     entered = time.time() if entered is None else entered
     # /proc's process start has a clock tick's resolution (10 ms): a rank spawned just after the command
     # started can read as started before it, which no phase of the command can
-    # a pool's rank (tomgs.rank_pool) may have started before a fit() call's clock: its phases begin at it
+    # a pool's rank (tomgs.train.multigpu.pool) may have started before a fit() call's clock: its phases begin at it
     entered = max(entered, job.start_time)
     timeline.add("start-up", max(job.start_time, min(process_start_epoch(), entered)), entered)
     if waited is not None:
@@ -696,7 +697,7 @@ class Rank:
     `phase1` (its Trainer), `merge` (the union and its joint refinement), `finish` (the outputs)."""
 
     def __init__(self, job: Job, rank: int, device: torch.device, control, report, timeline: Timeline | None = None):
-        from tomgs.train.fit import output_paths
+        from tomgs.train.pipeline import output_paths
 
         self.job, self.rank, self.device, self.control, self.report = job, rank, device, control, report
         self.timeline = timeline or Timeline(job.start_time)
@@ -716,7 +717,7 @@ class Rank:
     # -- bookkeeping ---------------------------------------------------------------------------
 
     def lap(self, name: str) -> None:
-        from tomgs.train.fit import peak_memory
+        from tomgs.train.pipeline import peak_memory
 
         now = time.perf_counter()
         self.seconds[name] = self.seconds.get(name, 0.0) + now - self._mark
@@ -742,7 +743,7 @@ class Rank:
         import torch.distributed as dist
 
         from tomgs.cameras import Cameras
-        from tomgs.train.fit import _check_options
+        from tomgs.train.pipeline import _check_options
 
         job, rank = self.job, self.rank
         self.report("started", dict(rank=rank, pid=os.getpid(), device=str(self.device)))
@@ -801,7 +802,7 @@ class Rank:
             self.frames, self.identity = self._own_frames(clip, early)
             clip = None  # rank 0: the rest of the clip goes now
             if saved is not None and not errors:
-                from tomgs.train.fit import _check_clip
+                from tomgs.train.pipeline import _check_clip
 
                 _check_clip(saved["clip"], self.identity, job.options, self.paths["checkpoint"])
         except InputError as e:
@@ -818,7 +819,7 @@ class Rank:
 
     def _own_frames(self, clip, early):
         """(uint8 [F,H,W,3] of the stretch, what identifies them for a checkpoint)."""
-        from tomgs.train.fit import _clip_identity
+        from tomgs.train.pipeline import _clip_identity
 
         s, numbers = self.stretch, self.cameras.frame_indices[self.stretch.lo:self.stretch.hi]
         if clip is not None:
@@ -836,7 +837,7 @@ class Rank:
     def phase1(self) -> None:
         """An ordinary Trainer on the stretch, in the stretch's own time, to the end of phase 1 (or
         its iterations), with its checkpoints and log beside the output."""
-        from tomgs.train.shards import local_cameras, stretch_points
+        from tomgs.train.multigpu.shards import local_cameras, stretch_points
         from tomgs.train.trainer import Trainer, write_csv
 
         job, stretch, payload, frames = self.job, self.stretch, self.payload, self.frames
@@ -878,7 +879,7 @@ class Rank:
         # a resume trains on as a one-GPU resume does: to its iterations, or for this command's budget
         end = payload["times"]["phase1_end"]
         limit = 0.0 if end is None else trainer.elapsed + max(end - time.time(), 1.0)
-        from tomgs.train.fit import _train_ticks
+        from tomgs.train.pipeline import _train_ticks
 
         trainer.run(checkpoint=self.paths["checkpoint"], log_csv=self.paths["csv"],
                     progress=lambda row: self.report("row", row), time_limit=limit,
@@ -901,7 +902,7 @@ class Rank:
         measured here (`_after_refinement`): the measurement of the rank's frames (timed before the
         refinement), the gather (timed on the union's), rank 0's scene written and read back (timed
         on a sample of the union), and EXIT_S for the processes' ends."""
-        from tomgs.train.shards import assemble, frame_psnr, gather_union, halo, model_of, refine
+        from tomgs.train.multigpu.shards import assemble, frame_psnr, gather_union, halo, model_of, refine
         from tomgs.train.trainer import write_csv
 
         job, stretch, device, alone, timeline = self.job, self.stretch, self.device, self.alone, self.timeline
@@ -978,7 +979,7 @@ class Rank:
         """Rank 0 writes the scene, the merged log and plot; then every rank removes its checkpoint."""
         import torch.distributed as dist
 
-        from tomgs.train.fit import peak_memory
+        from tomgs.train.pipeline import peak_memory
 
         alone, refined, stretch = self.alone, self.refined, self.stretch
         steps, seconds = (refined.steps, refined.seconds) if refined is not None else (0, 0.0)
@@ -1028,8 +1029,8 @@ def _time_scene_io(union: torch.Tensor, sh: tuple, cameras, scene: Path, history
     (SAMPLE_IO_SHARE of them, at least MIN_SAMPLE_IO) written beside the scene and removed; the
     per-Gaussian time scaled to the whole union (so the sample's fixed costs count several times)."""
     from tomgs.io.scene import load_scene, save_scene
-    from tomgs.train.fit import _plot as plot
-    from tomgs.train.shards import model_of
+    from tomgs.train.pipeline import _plot as plot
+    from tomgs.train.multigpu.shards import model_of
 
     n = len(union)
     if n == 0:
@@ -1054,8 +1055,8 @@ def _time_scene_io(union: torch.Tensor, sh: tuple, cameras, scene: Path, history
 def _write_outputs(job, everyone, stretches, cameras, payload, final, refine_rows, outputs, config, extent) -> dict:
     """Rank 0: the scene, the merged CSV and plot; the run's summary."""
     from tomgs.io.scene import save_scene
-    from tomgs.train.fit import _plot as plot
-    from tomgs.train.shards import boundary_psnr, log_row, merged_history
+    from tomgs.train.pipeline import _plot as plot
+    from tomgs.train.multigpu.shards import boundary_psnr, log_row, merged_history
     from tomgs.train.trainer import write_csv
 
     frame_psnr = [p for rank in everyone for p in rank["frame_psnr"]]
@@ -1110,8 +1111,8 @@ def _write_outputs(job, everyone, stretches, cameras, payload, final, refine_row
 
 
 def _identity_of(video) -> dict:
-    """tomgs.train.fit._clip_identity of frames read without masks (a rank's stretch)."""
-    from tomgs.train.fit import _clip_identity
+    """tomgs.train.pipeline._clip_identity of frames read without masks (a rank's stretch)."""
+    from tomgs.train.pipeline import _clip_identity
 
     return _clip_identity(SimpleNamespace(indices=video.indices, frames=video.frames, masks=None))
 
@@ -1122,7 +1123,7 @@ def _shared_setup(job: Job, device, saved, phase, report, timeline: Timeline | N
     from tomgs.cameras import Cameras
     from tomgs.io import Video, read_video
     from tomgs.poses import estimate_cameras
-    from tomgs.train.fit import _fps
+    from tomgs.train.pipeline import _fps
     from tomgs.train.plan import render_seconds, SAVE_COST
 
     timeline = timeline or Timeline(job.start_time)

@@ -1,4 +1,4 @@
-"""`tomgs poses`, `tomgs fit` and `tomgs eval`: the commands that read a video."""
+"""`tomgs fit`: a clip in, a scene file out (one process, or shards over several GPUs)."""
 
 from __future__ import annotations
 
@@ -16,50 +16,6 @@ from tomgs.cli import (
     user_errors,
     write_json,
 )
-
-
-@main.command()
-@click.argument("video", type=click.Path(path_type=str))
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=str),
-              help="cameras JSON to write (schema in tomgs.cameras)")
-@click.option("--method", default="auto", show_default=True,
-              help="auto, identity, a cameras .json / AnyCam c2w .npy / COLMAP text folder, or an .onnx model")
-@clip_options
-@json_option("the pose report")
-@overwrite_option
-@user_errors
-def poses(video, output, masks, frames, method, focal, max_side, json_out, overwrite):
-    """Estimate per-frame cameras of VIDEO (a video file or a folder of frames).
-
-    \b
-    Examples:
-      tomgs poses clip.mp4 -o cameras.json
-      tomgs poses frames/ -o cameras.json --masks masks/ --frames 0:80 --max-side 854
-      tomgs poses clip.mp4 -o cameras.json --method colmap_model/      # convert known cameras
-      tomgs fit clip.mp4 -o scene.ply --poses cameras.json
-    """
-    from tomgs.io import read_video
-    from tomgs.outputs import check_file_output
-    from tomgs.poses import estimate_cameras
-
-    check_file_output(output, overwrite, what="cameras file")
-    to_stdout = check_json(json_out, overwrite)
-    with phase_bars() as bars:
-        clip = read_video(video, frames=frames, max_side=max_side, masks=masks,
-                          progress=lambda done, total: bars("read", done, total))
-        bars("poses", 0, 1)
-        cams, _, _, report = estimate_cameras(clip, method=method, focal=focal,
-                                              progress=lambda done, total: bars("poses", done, total))
-        bars("poses", 1, 1)
-    cams.save(output)
-    for note in report.notes:
-        say(f"  note: {note}")
-    if not to_stdout:
-        click.echo(f"{output}: {report.summary()}")
-    write_json(json_out, dict(output=str(output), summary=report.summary(), method=report.method, mode=report.mode,
-                               frames=report.frames, focal=report.focal, focal_estimated=report.focal_estimated,
-                               reprojection_px=report.reproj_px, points=report.points, seconds=report.seconds,
-                               notes=list(report.notes)))
 
 
 @main.command()
@@ -113,15 +69,15 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
       tomgs fit long.mp4 -o scene.ply --gpus 2          # two GPUs, one stretch of the clip each
       torchrun --nproc_per_node 8 -m tomgs.cli fit long.mp4 -o scene.ply
     """
-    from tomgs import rank_pool
+    from tomgs.train.multigpu import pool as rank_pool
 
-    if gpus is not None:  # the ranks import while this process does (tomgs.rank_pool)
+    if gpus is not None:  # the ranks import while this process does (tomgs.train.multigpu.pool)
         rank_pool.start(gpus)
     from tomgs.train import FitInterrupted, output_paths
     from tomgs.train import fit as fit_scene
     from tomgs.train import preset as make_config
-    from tomgs.train.fit import phase_text, process_started
-    from tomgs.train.ranks import ShardFailed, is_leader
+    from tomgs.train.pipeline import phase_text, process_started
+    from tomgs.train.multigpu.rank import ShardFailed, is_leader
 
     started = process_started()
     overrides = dict(iterations=iterations, max_gaussians=max_gaussians, max_seconds=max_seconds, sampling=sampling,
@@ -184,45 +140,3 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
                                peak_host_mb_by_phase=result.peak_host_mb_by_phase,
                                clip_psnr=result.clip_psnr, csv=str(paths["csv"]), plot=str(paths["plot"]),
                                notes=list(result.notes), shards=getattr(result, "shards", None)))
-
-
-@main.command("eval")
-@click.argument("scene", type=click.Path(path_type=str))
-@click.argument("video", type=click.Path(path_type=str))
-@click.option("--lpips", "lpips_weights", type=click.Path(path_type=str), default=None,
-              help="LPIPS AlexNet weights (.npz); default $TOMGS_LPIPS_WEIGHTS, else LPIPS is left out")
-@click.option("--json", "json_out", type=click.Path(path_type=str), default=None,
-              help="also write per-frame and mean metrics as JSON to this file ('-' for stdout)")
-@device_option
-@overwrite_option
-@user_errors
-def evaluate_command(scene, video, lpips_weights, json_out, device, overwrite):
-    """Compare SCENE, rendered at every frame it was fitted on, with VIDEO: PSNR and SSIM per frame
-    and on average, as the peers compute them (float renders, 11x11 Gaussian SSIM); LPIPS when its
-    weights are given.
-
-    \b
-    Examples:
-      tomgs eval scene.ply clip.mp4
-      tomgs eval scene.ply frames/ --lpips alexnet-lpips-v0.1.npz --json metrics.json
-      tomgs eval scene.ply clip.mp4 --json - | jq .mean     # JSON alone on stdout
-    """
-
-    from tomgs.io.scene import load_scene
-    from tomgs.io.video import read_video_for
-    from tomgs.metrics import LPIPS, default_lpips_weights, evaluate
-    from tomgs.render import resolve_device
-
-    to_stdout = check_json(json_out, overwrite)
-    dev = resolve_device(device)
-    loaded = load_scene(scene, device=dev)
-    frames = read_video_for(video, loaded.cameras)
-    weights = lpips_weights or default_lpips_weights()
-    lpips = LPIPS(weights, device=dev) if weights else None
-    report = evaluate(loaded.model, loaded.cameras, frames, lpips=lpips, device=dev)
-    for k, p, s in zip(report.frames, report.psnr, report.ssim):  # on stderr when stdout carries the JSON
-        click.echo(f"  frame {int(loaded.cameras.frame_indices[k]):5d}: PSNR {p:6.2f} dB  SSIM {s:.4f}",
-                   err=to_stdout)
-    click.echo(f"{scene}: {report.summary()}" + ("" if lpips else " (LPIPS left out: no weights given)"),
-               err=to_stdout)
-    write_json(json_out, report.to_dict())  # a perfect frame's PSNR is inf: null

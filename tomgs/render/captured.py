@@ -18,7 +18,7 @@ and the capacity of the tile keys (tomgs.render's bound of recent frames of this
 camera and the time, written into device memory the graph reads (`project.set_frame`). The kernels are
 `rasterize`'s: the same image and gradients (bit for bit on a CPU).
 
-With `rows_capacity`, frames render the rows each call names (`rasterize(rows=)`: tomgs.alive's index
+With `rows_capacity`, frames render the rows each call names (`rasterize(rows=)`: tomgs.render.alive's index
 rows), copied into a buffer of that many the graph reads, past their count padding it culls; a call
 naming more captures again with room for them. Such a graph renders only: its cloud takes no gradients.
 With `shrink_keys` False the keys' capacity only grows (see `_fit_capacity`).
@@ -44,10 +44,10 @@ import torch
 import warp as wp
 
 from tomgs.errors import RenderError
-from tomgs.inputs import _check_rows, prepare_inputs
+from tomgs.render.inputs import _check_rows, prepare_inputs
 from tomgs.kernels import project
-from tomgs import render
-from tomgs.render import FrameCounts, _check_scalars, _check_time, _Frame, issue_frame
+from tomgs.render import frame as render
+from tomgs.render.frame import FrameCounts, _check_scalars, _check_time, _Frame, issue_frame
 from tomgs.runtime import launch, scope, torch_stream, warp_device, wrap
 
 

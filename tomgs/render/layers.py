@@ -224,8 +224,8 @@ def render_layers(gaussians, cameras: Cameras, positions=None, layers=(), *, bac
     k, colour premultiplied by alpha, then image = colour + (1 - alpha) * image. Without layers,
     exactly `render_sequence`. meta: the base frame's, with `n_alive` summed over the layers."""
     from tomgs.model import RENDER_INPUTS
-    from tomgs.render import rasterize
-    from tomgs.sequence import render_sequence
+    from tomgs.render.frame import rasterize
+    from tomgs.render.sequence import render_sequence
 
     check_layers(cameras, [cams for _, cams in layers])
     base = render_sequence(gaussians, cameras, positions, background=background, device=device)

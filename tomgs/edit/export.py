@@ -10,7 +10,7 @@ A static viewer shows every Gaussian at its base opacity, all frames at once; `s
 the Gaussians alive at that time (tomgs.temporal.frozen_at) with their opacity at that time,
 a exp(-((t - m) / sigma)^2 / 2), stored as its logit. It computes in float64 from the stored
 parameters, so positions, rotations, log scales and SH are the scene's bit for bit. Layers
-(`fit --layer foreground`) join the moment in the base's world as tomgs.layers.place_layer puts them.
+(`fit --layer foreground`) join the moment in the base's world as tomgs.render.layers.place_layer puts them.
 """
 
 from __future__ import annotations
@@ -95,11 +95,11 @@ def join(parts: list[StaticGaussians]) -> StaticGaussians:
 
 def moment_with_layers(scene, moment: Moment, layers=(), sh_degree: int | None = None) -> StaticGaussians:
     """The base scene's Gaussians at `moment`, then each layer's (a Scene fitted on the same frames,
-    tomgs.layers.check_layers) alive at that frame, moved into the base's world in front of what is
-    behind it (tomgs.layers.place_layer), so the base camera at that frame sees what `tomgs render
+    tomgs.render.layers.check_layers) alive at that frame, moved into the base's world in front of what is
+    behind it (tomgs.render.layers.place_layer), so the base camera at that frame sees what `tomgs render
     --layer` composites."""
     from tomgs.edit.transforms import transform_gaussians
-    from tomgs.layers import check_layers, place_layer
+    from tomgs.render.layers import check_layers, place_layer
 
     check_layers(scene.cameras, [layer.cameras for layer in layers])
     base = static_moment(scene.model, moment.time, sh_degree)

@@ -70,8 +70,8 @@ def plan_render(output, cameras, frames=None, device="auto", background=None, ov
     against `cameras` (the scene called `name`) like a `render --layer` layer."""
     from tomgs.io.scene import load_scene
     from tomgs.io.writer import check_output
-    from tomgs.layers import check_layers
-    from tomgs.render import resolve_device
+    from tomgs.render.layers import check_layers
+    from tomgs.runtime import resolve_device
 
     check_output(output, overwrite)
     rgb = None if background is None else tuple(float(v) for v in background)
@@ -115,7 +115,7 @@ def render_frames(output, gaussians, cams, positions, background, device, fps: f
     count the Gaussians each frame used. `gaussians` and each layer's: the rasterizer's inputs, or
     a callable frame -> inputs (`tomgs.render.render_sequence`)."""
     from tomgs.io import write_frames
-    from tomgs.layers import render_layers
+    from tomgs.render.layers import render_layers
 
     positions = list(positions)
     alive, fixed, varying = [], [], []  # Gaussians: in the fixed clouds; per frame in each per-frame one

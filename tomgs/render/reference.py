@@ -22,7 +22,7 @@ import torch
 
 from tomgs.constants import ALPHA_MAX, ALPHA_MIN, EPS2D, FOV_CLAMP, RADIUS_SIGMAS, T_MIN, TILE_SIZE, sort_low_bit
 from tomgs.geometry import quat_to_rotmat
-from tomgs.inputs import RasterInputs, prepare_inputs
+from tomgs.render.inputs import RasterInputs, prepare_inputs
 from tomgs.temporal import opacity_at
 
 _PER_GAUSSIAN = ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales")
@@ -176,7 +176,7 @@ def project_reference(
     means, quats, scales, opacities, t_means, t_scales, viewmat, K, width, height, t, *,
     near=0.01, far=1e10, dtype=torch.float64,
 ) -> dict[str, torch.Tensor]:
-    """Stage 1 alone, per Gaussian, with `tomgs.render.project_stage`'s outputs and conventions, in
+    """Stage 1 alone, per Gaussian, with `tomgs.render.frame.project_stage`'s outputs and conventions, in
     `dtype`: means2d [N,2], conics [N,3], depths [N], radii [N,2] int64, opacities_t [N], tiles_touched
     [N] int64, plus extent [N,2] (the radii before rounding up: a test can tell a tie). A culled
     Gaussian has zero means2d, conics, radii and tiles touched and gets zero gradient; depths and
@@ -211,7 +211,7 @@ def depth_order(depths: torch.Tensor, width: int, height: int) -> torch.Tensor:
 
 def bin_reference(means2d: torch.Tensor, conics: torch.Tensor, opacities_t: torch.Tensor, radii: torch.Tensor,
                   depths: torch.Tensor, width: int, height: int) -> dict[str, torch.Tensor]:
-    """Stage 2 alone, with `tomgs.render.bin_stage`'s outputs: every (tile, Gaussian) pair of
+    """Stage 2 alone, with `tomgs.render.frame.bin_stage`'s outputs: every (tile, Gaussian) pair of
     `ellipse_tiles` (the tiles of the box means2d +- radii [N,2] that the ellipse of conics [N,3] at
     opacities_t [N] reaches) as keys [M] int64 `tile << 32 | bits of float32 depth` (depths [N] > 0 where
     visible), sorted by tile, then `depth_order`, then Gaussian; ids [M] int64 the Gaussian of each;

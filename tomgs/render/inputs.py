@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import torch
 
 from tomgs.errors import RenderError
-from tomgs.sh import fused_sh_to_colors, sh_degree_of, sh_to_colors
+from tomgs.render.sh import fused_sh_to_colors, sh_degree_of, sh_to_colors
 
 
 @dataclass
@@ -55,7 +55,7 @@ def prepare_inputs(
 ) -> RasterInputs:
     """Check shapes, devices and scalars; evaluate SH into RGB; cast to `dtype` (None keeps means').
 
-    SH is evaluated by tomgs.sh.sh_to_colors in the inputs' dtype (the reference: the torch oracle),
+    SH is evaluated by tomgs.render.sh.sh_to_colors in the inputs' dtype (the reference: the torch oracle),
     or with `fused_sh` by its Warp kernel in float32 (the renderer), which alone takes `rows` (the
     Gaussians rendered: colours are then [M,3])."""
     tensors = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,

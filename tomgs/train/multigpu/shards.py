@@ -6,7 +6,7 @@ so Gaussians fitted for different stretches of a clip live side by side in one s
     tomgs fit clip.mp4 -o scene.ply --gpus 2                               # N processes on this host
     torchrun --nproc_per_node 2 -m tomgs.cli fit clip.mp4 -o scene.ply     # the same under torchrun
 
-A run (docs/multi-gpu.md; the processes and their faults: tomgs.train.ranks):
+A run (docs/multi-gpu.md; the processes and their faults: tomgs.train.multigpu.rank):
 
 1. Rank 0 reads the clip and estimates the cameras once (a resume takes them from a checkpoint) and
    broadcasts them; every other rank then reads its own stretch (`plan_stretches`: equal runs of
@@ -455,7 +455,7 @@ def refine(model: GaussianModel, part: Halo, frames: torch.Tensor, cameras, conf
     import torch.distributed as dist
 
     from tomgs.metrics import psnr, ssim
-    from tomgs.render import render_frame
+    from tomgs.render.frame import render_frame
     from tomgs.train.checkpoint import StopSignals
     from tomgs.train.optim import uses_seen_adam
     from tomgs.train.sampler import MAX_PSNR, FrameSampler
@@ -546,7 +546,7 @@ def refine(model: GaussianModel, part: Halo, frames: torch.Tensor, cameras, conf
 def frame_psnr(model: GaussianModel, frames: torch.Tensor, cameras, device, tick=None) -> list[float]:
     """PSNR [F] of each frame (uint8 [F,H,W,3]) rendered at its camera and time (clip time)."""
     from tomgs.metrics import psnr
-    from tomgs.render import rasterize
+    from tomgs.render.frame import rasterize
 
     viewmats = cameras.viewmats(device)
     K = torch.as_tensor(cameras.K, dtype=torch.float32, device=device)

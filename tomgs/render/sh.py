@@ -107,7 +107,7 @@ class _FusedColors(torch.autograd.Function):
     # sh [N,K,3], means [N,3], viewmat [4,4]: float32, contiguous; rows None or int32 [M] contiguous
     @staticmethod
     def forward(ctx, sh, means, viewmat, rows):
-        import warp as wp  # here, not at the top: importing tomgs.sh loads no Warp
+        import warp as wp  # here, not at the top: importing tomgs.render.sh loads no Warp
 
         from tomgs.kernels import sh as kernels
         from tomgs.runtime import NO_ARRAY, launch, scope, wrap

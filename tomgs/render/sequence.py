@@ -3,8 +3,8 @@
 
 A fixed cloud's frame on a GPU costs the host more than its kernels take on a light clip (~20 torch
 ops and ~10 launches issued from Python, ~1 ms a frame): a `ClipRenderer` renders each frame from its
-alive index's rows (tomgs.alive: the Gaussians that may be alive then) through one captured frame
-(tomgs.captured.FrameGraph), so the host only writes the camera, the time and the rows and replays.
+alive index's rows (tomgs.render.alive: the Gaussians that may be alive then) through one captured frame
+(tomgs.render.captured.FrameGraph), so the host only writes the camera, the time and the rows and replays.
 The index costs ~7 ms to build and pays from SEQUENCE_FRAMES frames of a call; the capture costs
 ~10 ms and saves what the host adds to a frame (0.13 ms on a light fitted clip, 0.02 ms on a heavy
 one, whose frames the kernels pace), so a renderer captures once it has rendered REPLAY_FRAMES frames
@@ -19,12 +19,12 @@ from typing import Callable, Iterator
 
 import torch
 
-from tomgs import alive
-from tomgs.render import FrameCounts, render_frame
+from tomgs.render import alive
+from tomgs.render.frame import FrameCounts, render_frame
 
 NAMES = ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales")
 COUNT_KEYS = ("n_visible", "n_alive", "n_intersections")
-# frames of a call from which the alive index pays for its build (tomgs.alive.pays_for_sequence)
+# frames of a call from which the alive index pays for its build (tomgs.render.alive.pays_for_sequence)
 SEQUENCE_FRAMES = alive.SEQUENCE_FRAMES
 # frames a renderer renders, over all its calls, from which it captures its frame. Measured on the H100
 # (benchmarks/render_speed.py, 1-minute fits, session 31): a capture made within a call of kite-surf's 50
@@ -43,7 +43,7 @@ def render_sequence(gaussians, cameras, indices=None, *, background=None, device
     shot). `cameras`: a `tomgs.Cameras`; frame k renders at t = cameras.times[k]. No gradients.
     A fixed cloud renders through a `ClipRenderer` made for this call (see there: its alive index,
     and on a GPU its captured frame, from REPLAY_FRAMES frames); keep one yourself to render a clip
-    more than once. With `alive_index` (None: where it pays, tomgs.alive.pays_for_sequence) only the
+    more than once. With `alive_index` (None: where it pays, tomgs.render.alive.pays_for_sequence) only the
     Gaussians that may be alive at a frame's time are rendered. `meta`: the frame's counts
     (n_visible, n_alive, n_intersections) and meta['rows'], the Gaussians rendered (int [M]; None:
     all). Images come back on the CPU unless `to_cpu` is False.
@@ -83,9 +83,9 @@ def render_sequence(gaussians, cameras, indices=None, *, background=None, device
 
 class ClipRenderer:
     """A fixed cloud's frames along a clip's cameras, as often as asked (`frames`), keeping what makes
-    them cheap between calls: its alive index over the clip's frames (tomgs.alive; `indexed`: over those
+    them cheap between calls: its alive index over the clip's frames (tomgs.render.alive; `indexed`: over those
     frames only, the others then render every Gaussian), built at the first call of enough frames to pay
-    for it, and on a GPU its frame captured (tomgs.captured.FrameGraph,
+    for it, and on a GPU its frame captured (tomgs.render.captured.FrameGraph,
     rendering each frame's index rows through a buffer as long as the longest), made at the pipelined
     call that takes the frames it has rendered to REPLAY_FRAMES (`replay` True: at the first call, on a
     CPU too, where the frames are issued from Python all the same; False: never).
@@ -107,7 +107,7 @@ class ClipRenderer:
         self.index: alive.AliveIndex | None = None  # over the frames `indexed`, once built
         self._indexed = list(range(len(cameras)) if indexed is None else indexed)
         self._position = {k: position for position, k in enumerate(self._indexed)}  # a frame's in the index
-        self.graph = None  # the captured frame (tomgs.captured.FrameGraph), once made
+        self.graph = None  # the captured frame (tomgs.render.captured.FrameGraph), once made
         self.rendered = 0  # frames asked of it so far, this call's included
 
     def frames(self, indices=None, *, to_cpu: bool = True, pipelined: bool | None = None) -> Iterator[tuple]:
@@ -155,7 +155,7 @@ class ClipRenderer:
                 self.device.type == "cuda" and pipelined and self.rendered >= REPLAY_FRAMES)
             if not wanted:
                 return None
-            from tomgs.captured import FrameGraph  # it imports tomgs.render, as this module does
+            from tomgs.render.captured import FrameGraph  # it imports tomgs.render, as this module does
 
             rows = 0 if index is None or index.most_rows >= index.n else index.most_rows
             self.graph = FrameGraph(**self.gaussians, width=self.cameras.width, height=self.cameras.height,

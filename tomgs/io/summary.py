@@ -124,8 +124,8 @@ def format_summary(s: dict, width: int = 40) -> str:
 
 
 def plot_temporal_scales(scene: Scene, path) -> Path:
-    """PNG histogram of the temporal sigmas in frames (log axis), written atomically (tomgs.plots)."""
-    from tomgs.plots import histogram_png
+    """PNG histogram of the temporal sigmas in frames (log axis), written atomically (tomgs.io.plots)."""
+    from tomgs.io.plots import histogram_png
 
     path = check_png_path(path)
     sigma = temporal_scales_in_frames(scene.model, scene.cameras)

@@ -3,7 +3,7 @@
 Built on viser (the optional extra `[view]`: its web client ships in the wheel, nothing is downloaded
 at run time). The path is client-side splatting: for frame k the server sends the Gaussians alive at
 the frame's time with their opacity at that time baked in (`tomgs.temporal.frozen_at`), as centres,
-covariances (`tomgs.geometry.covariances`), RGB (`tomgs.sh`, seen from the clip's camera at frame k)
+covariances (`tomgs.geometry.covariances`), RGB (`tomgs.render.sh`, seen from the clip's camera at frame k)
 and opacities, and the browser sorts and draws them (viser's WebGL splats). Why this path: it needs
 no GPU on the server, so the viewer runs on a CPU-only machine; the orbit camera moves at the
 browser's frame rate with no round trip to the server; and a frame costs the server only its alive
@@ -17,7 +17,7 @@ camera k sees it: into the layer camera's axes, K_base^-1 K_layer (the same pixe
 intrinsics; identity when both have the same K), scaled by s about the camera centre (a camera sees
 the same image of a cloud scaled about its own centre), then out through the base camera. s puts the
 layer in front of everything before it, as compositing does, and is chosen per frame
-(`tomgs.layers.place_layer`, which `tomgs export --layer` uses too).
+(`tomgs.render.layers.place_layer`, which `tomgs export --layer` uses too).
 
 Selections are `tomgs edit --select` texts (tomgs.edit.selection): the viewer writes the text of the
 box or sphere placed in it and selects with that text, so the viewer and the command line agree.
@@ -41,8 +41,8 @@ import torch
 from tomgs.cameras import Cameras
 from tomgs.errors import InputError
 from tomgs.geometry import covariances, rotmat_to_quat
-from tomgs.layers import NEAR, place_layer
-from tomgs.sh import sh_to_colors
+from tomgs.render.layers import NEAR, place_layer
+from tomgs.render.sh import sh_to_colors
 from tomgs.temporal import frozen_at
 
 INSTALL_HINT = 'pip install "tomgs[view]"'
@@ -137,7 +137,7 @@ class ViewScene:
     @torch.no_grad()
     def frame(self, k: int) -> list[Splats]:
         """The splats of position k: the base's, then each layer's placed in the base's world in front of
-        what comes before it (tomgs.layers.place_layer)."""
+        what comes before it (tomgs.render.layers.place_layer)."""
         out = [_splats(self._alive(0, k))]
         for i, layer in enumerate(self.layers, start=1):
             g = self._alive(i, k)
@@ -227,7 +227,7 @@ class Viewer:
     def __init__(self, view: ViewScene, scene_name: str, host: str = "127.0.0.1", port: int = 8080,
                  layer_names=(), echo=print):
         viser = require_viser()
-        from tomgs.jobs import render_defaults
+        from tomgs.render.jobs import render_defaults
 
         self.view, self.scene_name, self.echo = view, scene_name, echo
         cams = view.cameras
@@ -515,8 +515,8 @@ def open_viewer(scene_path, layer_paths=(), *, host: str = "127.0.0.1", port: in
     host:port (0: any free port; a busy port: the next free one). InputError for bad input."""
     require_viser()
     from tomgs.io.scene import load_scene
-    from tomgs.layers import check_layers
-    from tomgs.render import resolve_device
+    from tomgs.render.layers import check_layers
+    from tomgs.runtime import resolve_device
 
     if not 0 <= int(port) <= 65535:
         raise InputError(f"--port must be 0..65535 (0: any free port), got {port}")

@@ -92,7 +92,7 @@ def fit(video, output, config: TrainConfig | None = None, *, masks=None, frames=
     existing outputs (and start over from an interrupted fit's checkpoint); without it they are
     refused before any work. layer: None (the whole frame), "background" (the pixels outside the
     masks, dilated by `mask_dilation` pixels) or "foreground" (the masked object on a plane, no
-    poses); see tomgs.layers. SIGINT / SIGTERM raise FitInterrupted (a KeyboardInterrupt) after
+    poses); see tomgs.render.layers. SIGINT / SIGTERM raise FitInterrupted (a KeyboardInterrupt) after
     saving the step reached.
 
     Before any frame is decoded the fit plans (tomgs.train.plan): `config.max_seconds` is the whole
@@ -104,11 +104,11 @@ def fit(video, output, config: TrainConfig | None = None, *, masks=None, frames=
     each CSV row and `pose_progress(done, total)` the poses (default: through `phases`).
 
     gpus: N > 1 fits the clip in N temporal stretches, one process (GPU) each, merged into one scene
-    (tomgs.train.shards; per-rank checkpoints and CSVs beside the output); under torchrun, the ranks
+    (tomgs.train.multigpu.shards; per-rank checkpoints and CSVs beside the output); under torchrun, the ranks
     torchrun started. None or 1: this process alone.
     """
-    from tomgs.render import resolve_device
-    from tomgs.train.ranks import fit_shards, wants_shards
+    from tomgs.runtime import resolve_device
+    from tomgs.train.multigpu.rank import fit_shards, wants_shards
 
     if wants_shards(gpus):
         return fit_shards(video, output, config, gpus=gpus, masks=masks, frames=frames, max_side=max_side, poses=poses,
@@ -413,12 +413,12 @@ def _fps(clip) -> float:
 
 
 def _layer_inputs(clip, layer, config, mask_dilation, masks_path, device):
-    """tomgs.layers.LayerInputs for `layer`; for None, the whole clip with estimated cameras."""
+    """tomgs.render.layers.LayerInputs for `layer`; for None, the whole clip with estimated cameras."""
     if layer is None:
-        from tomgs.layers import LayerInputs
+        from tomgs.render.layers import LayerInputs
 
         return LayerInputs(clip.frames, None, {})
-    from tomgs.layers import background_inputs, foreground_inputs
+    from tomgs.render.layers import background_inputs, foreground_inputs
 
     if layer == "background":
         return background_inputs(clip, mask_dilation, masks_path)
@@ -428,7 +428,7 @@ def _layer_inputs(clip, layer, config, mask_dilation, masks_path, device):
 
 
 def _plot(path: Path, history: list[dict]) -> None:
-    from tomgs.plots import line_plot_png
+    from tomgs.io.plots import line_plot_png
 
     train = [(r["wall_s"], r["train_psnr"]) for r in history if r["train_psnr"] != ""]
     clip = [r for r in history if r["clip_psnr"] != ""]

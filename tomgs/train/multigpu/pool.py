@@ -1,11 +1,11 @@
 """A sharded fit's rank processes, started before the parent's own imports.
 
 A spawned rank begins with Python's and torch's imports (~3 s on the GPU hosts), and so does the
-parent before it can check the inputs and plan the run: spawned only then (tomgs.train.ranks), every
+parent before it can check the inputs and plan the run: spawned only then (tomgs.train.multigpu.rank), every
 rank's start-up came after the parent's, ~3 s of the budget that no rank trained in. A command that
 knows it fits in shards (the CLI's `fit --gpus N`) calls `start(N)` first thing: its ranks import
-tomgs.train.ranks while the parent imports and plans, then wait for their Job. The parent's
-`take(N)` (tomgs.train.ranks, when it would spawn) hands them over; a pool nobody takes (the parent
+tomgs.train.multigpu.rank while the parent imports and plans, then wait for their Job. The parent's
+`take(N)` (tomgs.train.multigpu.rank, when it would spawn) hands them over; a pool nobody takes (the parent
 refused its inputs, or failed) is sent away when the parent exits, and a rank whose parent dies
 gets SIGTERM (Linux). This module imports nothing heavy: it runs before torch is imported.
 """
@@ -24,7 +24,7 @@ from dataclasses import dataclass
 class Pool:
     """N waiting ranks: `procs` (multiprocessing Processes), `jobs` (the parent's ends of the pipes each
     waits on: send it (rank, job), or None to send it away) and `reports` (the parent's ends of the pipes
-    it reports on once it runs, as a rank spawned by tomgs.train.ranks does)."""
+    it reports on once it runs, as a rank spawned by tomgs.train.multigpu.rank does)."""
 
     procs: list
     jobs: list

@@ -1,0 +1,95 @@
+"""`tomgs edit`: move, rotate, scale, duplicate or remove a selection, optionally keyframed."""
+
+from __future__ import annotations
+
+import click
+
+from tomgs.cli import (
+    OUTPUT_HELP,
+    OVER_HELP,
+    SELECT_HELP,
+    UsageError,
+    is_scene_path,
+    main,
+    parse_background,
+    parse_numbers,
+    render_options,
+    render_planned,
+    user_errors,
+)
+from tomgs.render.jobs import plan_render
+
+
+@main.command()
+@click.argument("scene", type=click.Path(path_type=str))
+@click.option("-o", "--output", required=True, type=click.Path(path_type=str),
+              help="the edited scene (.ply), or a video / PNG folder to render the edit to")
+@click.option("--select", "selectors", multiple=True, help=SELECT_HELP)
+@click.option("--translate", default=None, help="move the selection by dx,dy,dz")
+@click.option("--rotate", default=None, help="rotate the selection by rx,ry,rz degrees (about x, then y, then z)")
+@click.option("--scale", default=None, help="scale the selection by s or sx,sy,sz")
+@click.option("--centre", default=None, help="x,y,z that --rotate and --scale turn about; default: the "
+              "selection's bounding-box centre")
+@click.option("--duplicate", default=None, help="keep the selection and add a copy offset by dx,dy,dz (moved "
+              "by --translate/--rotate/--scale or --keyframes too)")
+@click.option("--remove", is_flag=True, help="delete the selection")
+@click.option("--keyframes", type=click.Path(path_type=str), default=None,
+              help="JSON of keyframed transforms over time (README \"Editing\"); -o is then a video or folder")
+@click.option("--render", "render_out", type=click.Path(path_type=str), default=None,
+              help="also render the edited scene here (" + OUTPUT_HELP + ")")
+@click.option("--over", type=click.Path(path_type=str), default=None, help="when rendering: " + OVER_HELP)
+@render_options
+@user_errors
+def edit(scene, output, selectors, translate, rotate, scale, centre, duplicate, remove, keyframes, render_out, over,
+         frames, device, background, fps, overwrite):
+    """Edit the Gaussians of SCENE that --select picks: move, rotate, scale, duplicate or remove
+    them, or move them over time with --keyframes. Edits move each Gaussian's tetrahedron and
+    rebuild the Gaussian from it; timing, opacity and colour are kept.
+
+    \b
+    Examples:
+      tomgs edit scene.ply -o moved.ply --select box:-1,-1,2,1,1,4 --translate 0.5,0,0
+      tomgs edit scene.ply -o two.ply --select sphere:0,0,3,0.5 --duplicate 1,0,0 --render two.mp4
+      tomgs edit scene.ply -o clean.ply --select mask:camel_masks/ --remove
+      tomgs edit scene.ply -o spin.mp4 --select sphere:0,0,3,0.5 --keyframes spin.json
+      tomgs edit fg.ply -o big.ply --scale 1.3 --render big.mp4 --over bg.ply
+    """
+    from tomgs.edit.transforms import edit_scene, keyframed_clouds, load_keyframes
+    from tomgs.io.scene import load_scene, save_scene
+    from tomgs.outputs import check_file_output
+
+    move = dict(translate=parse_numbers(translate, "--translate"), rotate=parse_numbers(rotate, "--rotate"),
+                scale=parse_numbers(scale, "--scale", (1, 3)), centre=parse_numbers(centre, "--centre"),
+                duplicate=parse_numbers(duplicate, "--duplicate"))
+    if move["scale"] is not None and min(move["scale"]) <= 0:
+        raise UsageError(f"--scale must be positive, got {scale!r}")
+    rigid = any(move[k] is not None for k in ("translate", "rotate", "scale"))
+    if keyframes and (rigid or remove):
+        raise UsageError("--keyframes gives the motion: leave out --translate, --rotate, --scale and --remove")
+    if not (rigid or remove or keyframes or move["duplicate"]):
+        raise UsageError("nothing to do: give --translate, --rotate, --scale, --duplicate, --remove or --keyframes")
+    if is_scene_path(output) == bool(keyframes):
+        raise UsageError(f"-o {output}: " + ("a time-varying edit (--keyframes) is rendered: give a video or a "
+                                             "folder, not a .ply" if keyframes else
+                                             "use a .ply to write the edited scene, or --keyframes to render"))
+    if render_out and not is_scene_path(output):
+        raise UsageError("--render goes with a .ply output; -o already renders")
+    if over and not (render_out or keyframes):
+        raise UsageError("--over is what the render goes over: give --render (or --keyframes with a video -o)")
+    if not keyframes:
+        check_file_output(output, overwrite, what="edited scene")
+    loaded = load_scene(scene)
+    video = output if keyframes else render_out
+    plan = plan_render(video, loaded.cameras, frames, device, parse_background(background), overwrite, over=over,
+                       name=scene) if video else None
+    keys = load_keyframes(keyframes, loaded.cameras) if keyframes else None
+    edited, rows = edit_scene(loaded, selectors, remove=remove, **move)
+    if keys is not None:
+        render_planned(edited, keyframed_clouds(edited.model, edited.cameras, rows, keys), plan, fps)
+        return
+    save_scene(output, edited.model, edited.cameras, edited.info)
+    what = "removed" if remove else ("duplicated" if move["duplicate"] else "edited")
+    click.echo(f"{output}: {edited.info['edits'][-1]['selected']:,} Gaussians {what}; {len(edited.model):,} "
+               f"Gaussians, {len(edited.cameras)} frames")
+    if plan is not None:
+        render_planned(edited, edited.model.render_inputs(), plan, fps)
