@@ -121,7 +121,7 @@ def _waiting(jobs, reports) -> None:
     """A waiting rank: import what a rank runs, then run the (rank, job) the parent sends (None, or the
     parent gone: leave without a word)."""
     leave_terminal()  # before the parent's Ctrl-C can reach an import half done
-    from tomgs.train import ranks
+    from tomgs.train.multigpu import rank as ranks
 
     imported = time.time()
     try:
