@@ -1,42 +1,40 @@
-"""What the alive index (tomgs.render.alive, issue 15) saves: a training step and a rendered frame with and
-without it, on a DAVIS-like synthetic cloud where a chosen share of the Gaussians is alive at each
-frame (each Gaussian alive over that share of the clip, centres uniform in time, scattered in front
-of a fixed camera over noise frames).
+"""What the alive index (`tomgs.render.alive`) saves: a training step and a rendered clip with and without it, on
+a DAVIS-like synthetic cloud where a chosen share of the Gaussians is alive at each frame (each Gaussian
+alive over that share of the clip, centres uniform in time, scattered in front of a fixed camera over
+noise frames).
 
-    python benchmarks/alive_index.py --device cpu --gaussians 200000 --size 160x90
-    python benchmarks/alive_index.py --device cuda --gaussians 4000000 --size 854x480
+    python -m benchmarks.alive_index --device cpu --gaussians 100000 --size 160x90
+    python -m benchmarks.alive_index --device cuda --gaussians 4000000 --size 854x480
+    python -m benchmarks.alive_index --smoke       # 2,000 Gaussians, 8 frames at 32x18 on the CPU
 
-Prints per mode the training step (ms, steps/s), the frame rate of rasterize over every Gaussian
-against render_sequence's frames issued from Python or replayed (render_speed.py), the rows a frame
-renders against those alive, and the index's rebuilds and size. Densification is off: the loop itself
-is measured. The modes take turns and the quickest turn of each counts, so a shared machine's load
-hits both alike.
+Reports per mode the training step (ms, steps/s), the frame rate of rasterize over every Gaussian
+against render_sequence's modes (as render_speed.py times them), the rows a frame renders against
+those alive, and the index's rebuilds and size. Densification is off: the loop itself is measured.
+The modes take turns and the quickest turn of each counts, so a shared machine's load hits both alike.
+Writes alive_index.md / .json.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import sys
-import time
-from pathlib import Path
 
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from render_speed import fastest_turns, render_modes  # noqa: E402
+import tomgs
+from tomgs.cameras import intrinsics
+from tomgs.train import Trainer, preset
 
-from tomgs.cameras import Cameras, intrinsics  # noqa: E402
-from tomgs.model import GaussianModel  # noqa: E402
-from tomgs.train import Trainer, preset  # noqa: E402
+if __package__:
+    from .common import environment, fastest, markdown_table, output_folder, parse_size, render_modes, \
+        write_report
+else:  # run as a file: Python puts this folder first on sys.path
+    from common import environment, fastest, markdown_table, output_folder, parse_size, render_modes, write_report
 
 
-def cloud(n: int, share: float, frames: int, device: torch.device, seed: int = 0,
-          by_time: bool = False) -> GaussianModel:
-    """n Gaussians 2-6 units in front of the camera, each alive over `share` of the clip; `by_time`:
-    stored in the order of their centres in time (a frame's alive rows then lie close together)."""
+def cloud(n: int, share: float, device: torch.device, seed: int = 0) -> tomgs.GaussianModel:
+    """n Gaussians 2-6 units in front of the camera, each alive over `share` of the clip."""
     g = torch.Generator().manual_seed(seed)
     depth = 2 + 4 * torch.rand(n, generator=g)
     xy = (torch.rand(n, 2, generator=g) - 0.5) * depth[:, None] * 1.2
@@ -45,15 +43,12 @@ def cloud(n: int, share: float, frames: int, device: torch.device, seed: int = 0
     sigma = share / 2 / math.sqrt(2 * math.log(255 * a))  # alive window: share of the clip
     t_means = torch.rand(n, generator=g) * (1 + share) - share / 2
     colors = torch.rand(n, 3, generator=g)
-    if by_time:
-        order = t_means.argsort()
-        depth, points, t_means, colors = depth[order], points[order], t_means[order], colors[order]
-    model = GaussianModel.from_points(points, colors, t_means, sigma, max_sh_degree=0,
-                                      opacity=a, sizes=depth * 2.0 / math.sqrt(n))
+    model = tomgs.GaussianModel.from_points(points, colors, t_means, sigma, max_sh_degree=0, opacity=a,
+                                            sizes=depth * 2.0 / math.sqrt(n))
     return model.to(device)
 
 
-def main() -> None:
+def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cuda")
     ap.add_argument("--gaussians", type=int, default=200_000)
@@ -61,44 +56,54 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--size", default="160x90", help="WxH")
     ap.add_argument("--steps", type=int, default=10, help="steps per timed turn")
-    ap.add_argument("--by-time", action="store_true", help="the cloud stored in the order of its centres in time")
     ap.add_argument("--repeats", type=int, default=3, help="turns per mode (the quickest counts)")
     ap.add_argument("--sparse-adam", choices=("auto", "on", "off"), default="auto")
     ap.add_argument("--threads", type=int, default=1, help="torch's CPU threads (a shared machine: 1, or every "
                     "small op waits ~8 ms for a busy core)")
-    args = ap.parse_args()
+    ap.add_argument("--out", default=None, help="default bench_out/alive_index")
+    ap.add_argument("--smoke", action="store_true", help="2,000 Gaussians, 8 frames at 32x18 on the CPU, one turn")
+    args = ap.parse_args(argv)
+    if args.smoke:
+        args.device, args.gaussians, args.frames, args.size, args.steps, args.repeats = "cpu", 2000, 8, "32x18", 2, 1
+    out = output_folder(args.out, args.smoke, "alive_index")
     device = torch.device(args.device)
+    threads = torch.get_num_threads()
     torch.set_num_threads(args.threads)
-    width, height = (int(v) for v in args.size.lower().split("x"))
+    try:
+        result = measure(args, argv, out, device)
+    finally:
+        torch.set_num_threads(threads)  # a caller in this process keeps its own
+    return result
+
+
+def measure(args, argv, out, device: torch.device) -> dict:
+    """The measurement of `main` (`argv` its arguments), with torch's CPU threads set."""
+    width, height = parse_size(args.size)
     T = args.frames
-    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
-    rng = np.random.default_rng(0)
-    frames = rng.integers(0, 256, (T, height, width, 3), dtype=np.uint8)
-    cams = Cameras.create(np.repeat(np.eye(4)[None], T, 0), intrinsics(1.2 * max(width, height), width, height),
-                          width, height)
+    frames = np.random.default_rng(0).integers(0, 256, (T, height, width, 3), dtype=np.uint8)
+    cams = tomgs.Cameras.create(np.repeat(np.eye(4)[None], T, 0), intrinsics(1.2 * max(width, height), width, height),
+                                width, height)
     sparse = None if args.sparse_adam == "auto" else args.sparse_adam == "on"
-    out = dict(device=str(device), gaussians=args.gaussians, alive_share=args.alive, frames=T, size=[width, height],
-               by_time=args.by_time)
+    result = dict(gaussians=args.gaussians, alive_share=args.alive, frames=T, size=[width, height])
     trainers = {}
     for use in (False, True):
         config = preset("default", iterations=10**6, densify_start_fraction=2.0, log_interval=10**9,
                         eval_interval_s=1e9, sparse_adam=sparse, alive_index=use)
         trainer = Trainer(frames, cams, np.zeros((0, 3)), np.zeros((0, 3), np.float32), config, device,
-                          initial=(cloud(args.gaussians, args.alive, T, device, by_time=args.by_time), 4.0))
+                          initial=(cloud(args.gaussians, args.alive, device), 4.0))
         for _ in range(3):  # kernels loaded, the index built
             trainer.step()
         trainers["index" if use else "all"] = trainer
-    best = {mode: math.inf for mode in trainers}
-    for _ in range(args.repeats):  # the modes take turns, the quickest turn counts (a shared machine)
-        for mode, trainer in trainers.items():
-            sync()
-            start = time.perf_counter()
+
+    def steps_of(trainer):
+        def go():
             for _ in range(args.steps):
                 trainer.step()
-            sync()
-            best[mode] = min(best[mode], (time.perf_counter() - start) / args.steps)
+        return go
+
+    best = fastest({mode: steps_of(trainer) for mode, trainer in trainers.items()}, args.repeats, device)
     for mode, trainer in trainers.items():
-        row = dict(step_ms=round(best[mode] * 1e3, 2), steps_per_s=round(1 / best[mode], 2))
+        row = dict(step_ms=round(best[mode] / args.steps * 1e3, 2), steps_per_s=round(args.steps / best[mode], 2))
         if mode == "index":
             index = trainer.alive.index
             rendered = [len(trainer.model) if index.rows(k) is None else len(index.rows(k)) for k in range(T)]
@@ -107,14 +112,22 @@ def main() -> None:
                        alive_share_measured=round(float(np.mean(alive)) / len(trainer.model), 4),
                        buckets=index.num_buckets, entries_per_gaussian=round(index.entries / len(trainer.model), 2),
                        index_mb=round(index.nbytes / 2**20, 1), rebuilds=trainer.alive.rebuilds)
-        out[mode] = row
-    # rendering, all frames: rasterize over every Gaussian, each frame waiting for its counts, against
-    # render_sequence's frames (the index's rows) issued from Python or replayed, per call or kept (render_speed)
-    inputs = {k: v.detach() for k, v in cloud(args.gaussians, args.alive, T, device, by_time=args.by_time)
-              .render_inputs().items()}
-    best = fastest_turns(render_modes(inputs, cams, device)[0], args.repeats, device)
-    out["render_fps"] = {mode: round(T / seconds, 1) for mode, seconds in best.items()}
-    print(json.dumps(out, indent=1))
+        result[mode] = row
+    # rendering every frame: rasterize over every Gaussian against render_sequence's modes (render_speed.py)
+    inputs = {k: v.detach() for k, v in cloud(args.gaussians, args.alive, device).render_inputs().items()}
+    with torch.no_grad():
+        seconds = fastest(render_modes(inputs, cams, device)[0], args.repeats, device)
+    result["render_fps"] = {mode: round(T / s, 1) for mode, s in seconds.items()}
+    body = (f"{args.gaussians:,} Gaussians each alive over {args.alive:.0%} of {T} frames at {width}x{height}; "
+            f"the index lists {result['index']['rows_share']:.1%} of the rows a frame "
+            f"({result['index']['alive_share_measured']:.1%} alive)\n\n"
+            + markdown_table(["training step", "ms", "steps/s"],
+                             [[mode, result[mode]["step_ms"], result[mode]["steps_per_s"]] for mode in trainers])
+            + "\n\nframes per second:\n\n"
+            + markdown_table(list(result["render_fps"]), [list(result["render_fps"].values())]))
+    write_report(out, "alive_index", "alive_index: what the alive index saves",
+                 environment(device, "alive_index", argv), body, result)
+    return result
 
 
 if __name__ == "__main__":

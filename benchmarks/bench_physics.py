@@ -1,7 +1,10 @@
-"""Time `tomgs.edit.physics.simulate` on a tetrahedralised box: first call (compile + colouring)
-and a warm call, per device.
+"""How fast the soft-body solver (`tomgs.edit.physics.simulate`) runs a tetrahedralised box, and whether
+it keeps its volume: the first call (kernels loaded, the tets coloured) and a warm call, per device.
 
-    PYTHONPATH=. python benchmarks/bench_physics.py --cells 20 --devices cpu,cuda
+    python -m benchmarks.bench_physics --cells 12 --frames 80 --preset spin --devices cpu,cuda
+    python -m benchmarks.bench_physics --smoke     # a 3-cell box, 5 frames, on the CPU
+
+Writes bench_physics.md / .json.
 """
 
 from __future__ import annotations
@@ -11,25 +14,40 @@ import time
 
 from tomgs.edit.physics import SimConfig, body_extent, box_tets, simulate_with_stats
 
+if __package__:
+    from .common import environment, markdown_table, output_folder, write_report
+else:  # run as a file: Python puts this folder first on sys.path
+    from common import environment, markdown_table, output_folder, write_report
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+
+def main(argv=None) -> list[dict]:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--cells", type=int, default=12, help="cells per side; 6 tets per cell")
     parser.add_argument("--frames", type=int, default=80)
     parser.add_argument("--devices", default="cpu", help="comma-separated Warp devices, e.g. cpu,cuda")
     parser.add_argument("--preset", default="spin", choices=("spin", "drop"))
-    args = parser.parse_args()
+    parser.add_argument("--out", default=None, help="default bench_out/bench_physics")
+    parser.add_argument("--smoke", action="store_true", help="3 cells a side, 5 frames, on the CPU")
+    args = parser.parse_args(argv)
+    if args.smoke:
+        args.cells, args.frames, args.devices = 3, 5, "cpu"
+    out = output_folder(args.out, args.smoke, "bench_physics")
     vertices, tets = box_tets((args.cells,) * 3)
     config = getattr(SimConfig, args.preset)(body_extent(vertices), frames=args.frames)
-    print(f"{len(vertices)} vertices, {len(tets)} tets, {args.frames} frames x {config.substeps} substeps")
+    rows = []
     for device in args.devices.split(","):
-        for run in ("first", "warm"):
+        for call in ("first", "warm"):
             start = time.perf_counter()
             result = simulate_with_stats(vertices, tets, config, device=device)
             seconds = time.perf_counter() - start
-            print(f"{device:>6} {run:>5}: {seconds:7.2f} s  {args.frames / seconds:7.1f} frames/s  "
-                  f"min V/V0 {result.min_volume_ratio:.3f}  inverted frames {len(result.inverted_frames)}  "
-                  f"final speed {result.final_speed:.3f}")
+            rows.append(dict(device=device, call=call, seconds=seconds, frames_per_s=args.frames / seconds,
+                             min_volume_ratio=result.min_volume_ratio, inverted_frames=len(result.inverted_frames),
+                             final_speed=result.final_speed))
+    body = (f"{args.preset}: {len(vertices)} vertices, {len(tets)} tets, {args.frames} frames x {config.substeps} "
+            "substeps\n\n" + markdown_table(list(rows[0]), [list(r.values()) for r in rows]))
+    write_report(out, "bench_physics", "bench_physics: the soft-body solver", environment("cpu", "bench_physics", argv),
+                 body, rows)
+    return rows
 
 
 if __name__ == "__main__":

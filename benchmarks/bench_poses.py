@@ -4,7 +4,8 @@ Real clips: for each sequence folder (<seq>/images/*.jpg, optional <seq>/masks/*
 the median reprojection error of background track observations after the final bundle
 adjustment, the estimated focal length, and the wall time, also scaled to seconds per 100 frames.
 
-    python benchmarks/bench_poses.py [DATA ...] [--max-side 854] [--no-masks] [--focal F]
+    python -m benchmarks.bench_poses [DATA ...] [--max-side 854] [--no-masks] [--focal F]
+    python -m benchmarks.bench_poses --smoke     # a 6-frame DAVIS-layout clip and a tiny synthetic orbit, CPU
 
 DATA defaults to ../shared/data/davis (every sequence in it); a path may also be one sequence.
 
@@ -13,12 +14,12 @@ its peak host memory is its own; frames are rendered as the tracker reads them (
 time is subtracted) unless --hold, which renders them all first into one uint8 array as
 read_video gives them. Reports time, peak host memory (RSS, and above what the process held
 before the tracker started), peak GPU memory, trajectory error (fraction of the path, after a
-similarity alignment), rotation error (degrees) and focal error, and writes them as JSON.
+similarity alignment), rotation error (degrees) and focal error.
 
-    python benchmarks/bench_poses.py --synthetic orbit:300:1920x1080 orbit:900:1920x1080 \\
-        orbit:300:1080x1920 --device cuda --json poses_bench.json
+    python -m benchmarks.bench_poses --synthetic orbit:300:1920x1080 orbit:900:1920x1080 \\
+        orbit:300:1080x1920 --device cuda --out <out>
 
-A case is PATH:FRAMES:WxH with PATH orbit or pan (the camera path).
+A case is PATH:FRAMES:WxH with PATH orbit or pan (the camera path). Writes bench_poses.md / .json.
 """
 
 from __future__ import annotations
@@ -26,7 +27,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import resource
 import subprocess
 import sys
@@ -35,10 +35,12 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from tomgs import estimate_cameras, read_video
 
-from tomgs.io import read_video  # noqa: E402
-from tomgs.poses import estimate_cameras  # noqa: E402
+if __package__:
+    from .common import ROOT, environment, markdown_table, output_folder, smoke_clip_folder, write_report
+else:  # run as a file (the synthetic cases are): Python puts this folder first on sys.path
+    from common import ROOT, environment, markdown_table, output_folder, smoke_clip_folder, write_report
 
 
 def sequences(paths):
@@ -49,29 +51,32 @@ def sequences(paths):
             yield from sorted(q for q in p.iterdir() if (q / "images").is_dir())
 
 
-def real_clips(args):
-    print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
-          f"masks: {'flow residuals' if args.no_masks else 'given'}, max side {args.max_side}")
-    print("| sequence | frames | size | mode | focal px | reproj median px (kept) | reproj median px (all) "
-          "| rejected | points | s | s / 100 frames |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
-    errs, rates = [], []
+def real_clips(args) -> tuple[str, list[dict]]:
+    """(the markdown table, its rows) of the tracker on every sequence of args.data."""
+    rows = []
     for seq in sequences(args.data):
         masks = None if args.no_masks or not (seq / "masks").is_dir() else seq / "masks"
         video = read_video(seq / "images", frames=args.frames, max_side=args.max_side, masks=masks)
         t0 = time.perf_counter()
         cams, pts, _, rep = estimate_cameras(video, focal=args.focal, device=args.device)
         dt = time.perf_counter() - t0
-        per100 = dt / len(video) * 100
-        errs.append((rep.reproj_px, rep.reproj_all_px))
-        rates.append(per100)
         T, H, W = video.frames.shape[:3]
-        print(f"| {seq.name} | {T} | {W}x{H} | {rep.mode} | {rep.focal:.0f} | {rep.reproj_px:.3f} | "
-              f"{rep.reproj_all_px:.3f} | {100 * rep.rejected:.1f}% | {len(pts)} | {dt:.1f} | {per100:.1f} |", flush=True)
-        if os.environ.get("BENCH_VERBOSE"):
-            print("   ", rep.notes, {k: round(v, 2) for k, v in rep.timings.items()}, flush=True)
-    e = np.array(errs)
-    print(f"| **median** | | | | | {np.median(e[:, 0]):.3f} | {np.median(e[:, 1]):.3f} | | | | {np.median(rates):.1f} |")
+        rows.append(dict(sequence=seq.name, frames=T, size=f"{W}x{H}", mode=rep.mode, focal_px=round(rep.focal),
+                         reproj_px=rep.reproj_px, reproj_all_px=rep.reproj_all_px,
+                         rejected=f"{100 * rep.rejected:.1f}%",
+                         points=len(pts), seconds=dt, s_per_100_frames=dt / T * 100, notes=rep.notes,
+                         timings={k: round(v, 2) for k, v in rep.timings.items()}))
+        print(rows[-1], flush=True)
+    head = ["sequence", "frames", "size", "mode", "focal_px", "reproj_px", "reproj_all_px", "rejected", "points",
+            "seconds", "s_per_100_frames"]
+    median = ["**median**", *[None] * 4, float(np.median([r["reproj_px"] for r in rows])),
+              float(np.median([r["reproj_all_px"] for r in rows])), None, None, None,
+              float(np.median([r["s_per_100_frames"] for r in rows]))]
+    text = (f"{os.cpu_count()} CPUs, masks: {'flow residuals' if args.no_masks else 'given'}, max side "
+            f"{args.max_side}; reprojection error: median over the background tracks' observations kept by the "
+            "final bundle adjustment (all: every observation of those tracks)\n\n"
+            + markdown_table(head, [[r[h] for h in head] for r in rows] + [median]))
+    return text, rows
 
 
 def rss_gb() -> float:
@@ -121,33 +126,31 @@ def one_case(case: str, args) -> dict:
                 notes=rep.notes)
 
 
-def synthetic(args):
-    print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, device {args.device or 'auto'}, "
-          f"masks: {'flow residuals' if args.no_masks else 'given'}, frames {'held' if args.hold else 'streamed'}")
-    print("| case | s | peak RSS GB (before) | GPU GB | trajectory % path | rotation deg | focal % | keyframes "
-          "| longest silence s |")
-    print("|---|---|---|---|---|---|---|---|---|")
+def synthetic(args) -> tuple[str, list[dict]]:
+    """(the markdown table, its rows) of the tracker on each synthetic case, each in its own process."""
     results = []
     for case in args.synthetic:
-        cmd = [sys.executable, __file__, "--one-case", case] + [a for a in sys.argv[1:] if a not in args.synthetic
-                                                                and a != "--synthetic"]
+        cmd = [sys.executable, __file__, "--one-case", case, "--max-side", str(args.max_side)]
+        cmd += [flag for flag, on in (("--no-masks", args.no_masks), ("--hold", args.hold)) if on]
+        cmd += [item for flag, value in (("--focal", args.focal), ("--device", args.device)) if value is not None
+                for item in (flag, str(value))]
         out = subprocess.run(cmd, capture_output=True, text=True)
         if out.returncode != 0:
-            print(f"| {case} | failed: {out.stderr.strip().splitlines()[-1:]} |", flush=True)
-            continue
-        r = json.loads(out.stdout.strip().splitlines()[-1])
-        results.append(r)
-        gpu = "-" if r["peak_gpu_gb"] is None else f"{r['peak_gpu_gb']:.2f}"
-        print(f"| {case} | {r['seconds']:.1f} | {r['peak_rss_gb']:.2f} ({r['rss_before_gb']:.2f}) | {gpu} | "
-              f"{100 * r['trajectory_err']:.2f} | {r['rotation_err_deg']:.2f} | {100 * r['focal_err']:.1f} | "
-              f"{r['keyframes']} | {r['longest_silence_s']:.1f} |", flush=True)
-    if args.json:
-        Path(args.json).write_text(json.dumps(results, indent=1))
+            raise SystemExit(f"{case} failed:\n{out.stderr[-3000:]}")
+        results.append(json.loads(out.stdout.strip().splitlines()[-1]))
+        print(results[-1], flush=True)
+    head = ["case", "seconds", "peak_rss_gb", "rss_before_gb", "peak_gpu_gb", "trajectory_err", "rotation_err_deg",
+            "focal_err", "keyframes", "longest_silence_s"]
+    text = (f"device {args.device or 'auto'}, masks: {'flow residuals' if args.no_masks else 'given'}, frames "
+            f"{'held' if args.hold else 'streamed'} (their rendering time left out); trajectory error as a share "
+            "of the path after a similarity alignment\n\n"
+            + markdown_table(head, [[r[h] for h in head] for r in results]))
+    return text, results
 
 
-def main():
+def main(argv=None) -> list[dict]:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("data", nargs="*", default=[str(Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "davis")])
+    ap.add_argument("data", nargs="*", default=[str(ROOT / ".." / "shared" / "data" / "davis")])
     ap.add_argument("--max-side", type=int, default=854)
     ap.add_argument("--no-masks", action="store_true", help="find moving content by flow residuals instead")
     ap.add_argument("--focal", type=float, default=None)
@@ -156,15 +159,27 @@ def main():
                     help="synthetic cases instead of DATA, e.g. orbit:900:1920x1080 orbit:300:1080x1920")
     ap.add_argument("--device", default=None, help="cuda or cpu for the tracker's heavy parts (default: cuda if seen)")
     ap.add_argument("--hold", action="store_true", help="synthetic: hold all frames in memory as uint8 first")
-    ap.add_argument("--json", default=None, help="synthetic: write the figures here")
+    ap.add_argument("--out", default=None, help="default bench_out/bench_poses")
+    ap.add_argument("--smoke", action="store_true",
+                    help="a 6-frame DAVIS-layout clip of the demo scene, then a 10-frame synthetic orbit at 64x36 "
+                         "(focal given), on the CPU")
     ap.add_argument("--one-case", default=None, help=argparse.SUPPRESS)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     if args.one_case:
         print(json.dumps(one_case(args.one_case, args)))
-    elif args.synthetic:
-        synthetic(args)
+        return []
+    out = output_folder(args.out, args.smoke, "bench_poses")
+    env = environment(args.device or "cpu", "bench_poses", argv)
+    if args.smoke:
+        args.device, args.data = "cpu", [str(smoke_clip_folder(out / "clips", "smoke"))]
+        text, rows = real_clips(args)
+        args.synthetic, args.focal = ["orbit:10:64x36"], 0.9 * 64  # the synthetic clip's focal: no focal search
+        synthetic_text, synthetic_rows = synthetic(args)
+        text, rows = f"{text}\n\n{synthetic_text}", rows + synthetic_rows
     else:
-        real_clips(args)
+        text, rows = synthetic(args) if args.synthetic else real_clips(args)
+    write_report(out, "bench_poses", "bench_poses: the built-in tracker", env, text, rows)
+    return rows
 
 
 if __name__ == "__main__":

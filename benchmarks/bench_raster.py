@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Time tomgs.rasterize against gsplat 1.5.3 in one process on one GPU (issue 2, "Must show").
+"""Time tomgs.rasterize against gsplat 1.5.3 in one process on one GPU: forward, backward and memory.
 
 What it measures, per case (image size x N x variant), for each library, in the same run:
   fwd ms        forward with requires_grad inputs (the training path), CUDA events, median
@@ -12,12 +12,13 @@ What it measures, per case (image size x N x variant), for each library, in the 
 and the ratios tomgs / gsplat. Host wall-clock times (with device syncs) are kept in the JSON as a
 cross-check: a wall time far above the event time means host overhead or work on another stream.
 
-The random scene (REFERENCES.md, "Speed anchors"): camera at the origin looking down +z (OpenCV),
-fx = fy = 0.9 W, cx = W/2, cy = H/2 (horizontal FOV 2 atan(1/1.8) = 58.1 deg, vertical 34.7 deg at
-16:9). Means: z ~ U(3, 5) (around z = 4), x = z tan_x u, y = z tan_y v with u, v ~ U(-1, 1), where
-tan_x = 0.5 / 0.9 and tan_y = tan_x * 9 / 16: every centre lies inside the 16:9 frustum, and the scene
-depends only on N and the seed (the same scene at 854x480 and 1920x1080). scales ~ U(0.002, 0.02) per
-axis, quaternions (w,x,y,z) normalised Gaussian draws, opacity a ~ U(0, 1), RGB ~ U(0, 1).
+The random scene (REFERENCES.md, "Speed anchors"; benchmarks.common.random_scene): camera at the origin
+looking down +z (OpenCV), fx = fy = 0.9 W, cx = W/2, cy = H/2 (horizontal FOV 2 atan(1/1.8) = 58.1 deg,
+vertical 34.7 deg at 16:9). Means: z ~ U(3, 5) (around z = 4), x = z tan_x u, y = z tan_y v with
+u, v ~ U(-1, 1), where tan_x = 0.5 / 0.9 and tan_y = tan_x * 9 / 16: every centre lies inside the 16:9
+frustum, and the scene depends only on N and the seed (the same scene at 854x480 and 1920x1080).
+scales ~ U(0.002, 0.02) per axis, quaternions (w,x,y,z) normalised Gaussian draws, opacity a ~ U(0, 1),
+RGB ~ U(0, 1).
 
 Variants:
   static    t_means ~ U(0,1), t_scales = 1e3, t = 0.5: o(t) = a (1 - O(1e-7)), every Gaussian alive;
@@ -37,22 +38,20 @@ gsplat call: rasterization(..., viewmats[None], Ks[None], W, H, near_plane=0.01,
 packed=False) with its defaults radius_clip=0.0, eps2d=0.3, rasterize_mode="classic", sh_degree=None
 (colours are post-activation RGB), backgrounds=None.
 
-Usage (see benchmarks/RASTER_NOTES.md for the GPU session recipe):
+Usage (`python -m benchmarks.bench_raster` runs the same; the history: docs/notes/rasterizer.md):
+  python benchmarks/bench_raster.py --sizes 854x480,1920x1080 --tomgs-graph
   python benchmarks/bench_raster.py --sizes 854x480 --n 1M,5M --variants static,temporal
-  python benchmarks/bench_raster.py --device cpu --tiny          # smoke test, tomgs only
+  python benchmarks/bench_raster.py --smoke     # --device cpu --tiny, tomgs against the float64 reference
 """
 
 from __future__ import annotations
 
 import argparse
 import ctypes
-import datetime as _dt
 import gc
 import json
 import os
-import platform
 import statistics
-import subprocess
 import sys
 import time
 import traceback
@@ -60,11 +59,14 @@ from pathlib import Path
 
 import torch
 
+if __package__:
+    from .common import FOCAL_RATIO, STATIC_T_SCALE, TAN_X, TAN_Y, camera, environment, kernel_times, \
+        output_folder, parse_count, parse_size, random_scene, temporal_scales
+else:  # run as a file (python benchmarks/bench_raster.py): Python puts this folder first on sys.path
+    from common import FOCAL_RATIO, STATIC_T_SCALE, TAN_X, TAN_Y, camera, environment, kernel_times, \
+        output_folder, parse_count, parse_size, random_scene, temporal_scales
+
 T0 = time.perf_counter()
-FOCAL_RATIO = 0.9  # fx = fy = FOCAL_RATIO * W
-TAN_X = 0.5 / FOCAL_RATIO
-TAN_Y = TAN_X * 9.0 / 16.0
-STATIC_T_SCALE = 1e3
 LIBS = ("tomgs", "gsplat")
 
 
@@ -73,21 +75,6 @@ def log(msg: str) -> None:
 
 
 # ----------------------------------------------------------------------------- arguments
-
-
-def parse_count(s: str) -> int:
-    s = s.strip().lower()
-    mult = 1
-    if s.endswith("k"):
-        mult, s = 1_000, s[:-1]
-    elif s.endswith("m"):
-        mult, s = 1_000_000, s[:-1]
-    return int(round(float(s) * mult))
-
-
-def parse_size(s: str) -> tuple[int, int]:
-    w, h = s.lower().split("x")
-    return int(w), int(h)
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -117,18 +104,21 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "does not wait for its counts, read after the backward (a frame past its keys' bound fails "
                         "the run)")
     p.add_argument("--tomgs-graph", action="store_true",
-                   help="time tomgs replayed from CUDA graphs (tomgs.render.captured.FrameGraph, one per scene, captured at "
+                   help="time tomgs replayed from CUDA graphs (tomgs.FrameGraph, one per scene, captured at "
                         "its first frame): camera and time written per call, counts read after the backward")
-    p.add_argument("--kernel-options", default=None, metavar="SPEC",
-                   help="time tomgs with Warp launch options changed per kernel, as benchmarks/kernel_options.py "
-                        "takes them (kernel:option=value[+...]): an option's gain in the ratios before it is adopted")
     p.add_argument("--no-sanity", action="store_true", help="skip the tomgs vs gsplat image comparison")
     p.add_argument("--stages", action="store_true",
                    help="also profile each library's fwd+bwd (torch profiler, CUDA only) and report GPU time by stage "
                         "beside the time the GPU idles waiting for the host: where a ratio above 0.9 goes")
-    p.add_argument("--out", default=os.environ.get("OUT") or "bench_out",
-                   help="output folder for JSON + markdown (default $OUT, else bench_out/)")
+    p.add_argument("--out", default=os.environ.get("OUT") or None,
+                   help="output folder for JSON + markdown (default $OUT, else bench_out/; a temporary folder "
+                        "with --smoke)")
+    p.add_argument("--smoke", action="store_true", help="--device cpu --tiny, tomgs only, the tables in a temporary "
+                   "folder unless --out: seconds on a CPU")
     a = p.parse_args(argv)
+    if a.smoke:
+        a.device, a.tiny, a.libs = "cpu", True, "tomgs"
+    a.out = str(output_folder(a.out if a.out or a.smoke else "bench_out", a.smoke, "bench_raster"))
     if a.tiny:
         if a.sizes == p.get_default("sizes"):
             a.sizes = "64x48"
@@ -158,39 +148,6 @@ def parse_args(argv=None) -> argparse.Namespace:
 # ----------------------------------------------------------------------------- scene
 
 
-def make_scene(n: int, seed: int, device: torch.device) -> dict[str, torch.Tensor]:
-    """The random scene; drawn on the CPU with a seeded generator, so it is the same on every device."""
-    g = torch.Generator().manual_seed(seed)
-    u = lambda *shape: torch.rand(*shape, generator=g, dtype=torch.float32)  # noqa: E731
-    z = 3.0 + 2.0 * u(n)
-    x = z * TAN_X * (2.0 * u(n) - 1.0)
-    y = z * TAN_Y * (2.0 * u(n) - 1.0)
-    means = torch.stack([x, y, z], -1)
-    scales = 0.002 + 0.018 * u(n, 3)
-    quats = torch.randn(n, 4, generator=g, dtype=torch.float32)
-    quats = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    opacities = u(n)
-    colors = u(n, 3)
-    t_means = u(n)
-    scene = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
-                 t_means=t_means)
-    return {k: v.to(device) for k, v in scene.items()}
-
-
-def temporal_scales(opacities: torch.Tensor, alive_frac: float) -> torch.Tensor:
-    """sigma such that a * exp(-d^2 / (2 sigma^2)) >= 1/255 exactly for |d| <= alive_frac / 2."""
-    log_ratio = torch.log(255.0 * opacities.double()).clamp_min(1e-6)
-    return ((0.5 * alive_frac) / torch.sqrt(2.0 * log_ratio)).float()
-
-
-def camera(width: int, height: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
-    viewmat = torch.eye(4, dtype=torch.float32, device=device)
-    f = FOCAL_RATIO * width
-    K = torch.tensor([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]],
-                     dtype=torch.float32, device=device)
-    return viewmat, K
-
-
 def t_values(variant: str, n_t: int) -> list[float]:
     if variant == "static":
         return [0.5]
@@ -218,10 +175,10 @@ def deferred(fn):
 
 
 def graphed():
-    """tomgs.render.captured.FrameGraph behind rasterize's signature, as `deferred` returns: the graph of the
+    """tomgs.FrameGraph behind rasterize's signature, as `deferred` returns: the graph of the
     latest cloud and size (captured at its first frame; a new scene replaces it, so an old scene's
     tensors are not kept), meta['counts'] each frame's FrameCounts."""
-    from tomgs.render.captured import FrameGraph
+    from tomgs import FrameGraph
 
     held = {}
 
@@ -257,7 +214,7 @@ def load_gsplat(device: torch.device):
 
     ver = getattr(gsplat, "__version__", "?")
     if ver != "1.5.3":
-        log(f"WARNING: gsplat {ver} imported, the issue asks for 1.5.3")
+        log(f"WARNING: gsplat {ver} imported; the figures are against 1.5.3")
     if device.type == "cuda":
         t = time.perf_counter()
         from gsplat.cuda._backend import _C
@@ -519,8 +476,6 @@ def stage_profile(run: Runner, P, params, ts, Wimg, Walpha, clock: Clock, iters:
     """GPU ms per synced fwd+loss+bwd by stage (torch profiler, mean over `ts` and `iters`), the kernels
     by name, and the events' f+b time in the same calls: f+b minus the kernels is the time the GPU
     waited for the host."""
-    from profile_raster import kernel_times
-
     fb = []
 
     def step():
@@ -546,7 +501,7 @@ def run_case(args, fns, width, height, n, variant, device, clock, pool, deadline
         torch.cuda.empty_cache()
         case["torch_allocated_at_start_gb"] = gb(torch.cuda.memory_allocated())
 
-    scene = make_scene(n, args.seed, device)
+    scene = random_scene(n, args.seed, device)
     if variant == "static":
         scene["t_scales"] = torch.full_like(scene["opacities"], STATIC_T_SCALE)
     else:
@@ -704,10 +659,8 @@ def run_case(args, fns, width, height, n, variant, device, clock, pool, deadline
 
 def reference_diff(P, viewmat, K, width, height, t, tomgs_out) -> dict:
     """Tiny mode without gsplat: compare with the float64 torch reference, if it is there."""
-    try:
-        from tomgs.render.reference import rasterize_reference
-    except Exception as e:  # noqa: BLE001
-        return dict(vs="reference", error=f"reference unavailable: {e}")
+    from tomgs import rasterize_reference
+
     with torch.no_grad():
         img, alpha, _ = rasterize_reference(P["means"], P["quats"], P["scales"], P["opacities"], P["colors"],
                                             P["t_means"], P["t_scales"], viewmat, K, width, height, t,
@@ -731,6 +684,8 @@ def markdown(results: dict) -> str:
     lines = [
         f"### bench_raster: {env.get('gpu', env['device'])}, torch {env['torch']}, warp {env.get('warp')}, "
         f"gsplat {env.get('gsplat')}, commit {env.get('commit')}",
+        "",
+        f"command: `{env['command']}`",
         "",
         f"Times in ms ({'CUDA events' if env['device'].startswith('cuda') else 'perf_counter'}, median over "
         "repeats; temporal = mean over t of per-t medians). "
@@ -814,31 +769,14 @@ def markdown(results: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def environment(device: torch.device) -> dict:
-    env = dict(device=str(device), torch=torch.__version__, python=platform.python_version(),
-               date_utc=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"), host=platform.node())
-    try:
-        import warp
-
-        env["warp"] = warp.__version__
-    except Exception as e:  # noqa: BLE001
-        env["warp"] = f"unavailable: {e}"
+def run_environment(device: torch.device, argv) -> dict:
+    """common.environment plus what a GPU run of this script needs to be compared with another."""
+    env = environment(device, "bench_raster", argv)
     if device.type == "cuda":
-        env["gpu"] = torch.cuda.get_device_name(device)
         env["cuda_runtime"] = torch.version.cuda
         env["gpu_mem_gb"] = torch.cuda.get_device_properties(device).total_memory / 1e9
     env["env_vars"] = {k: os.environ[k] for k in ("WARP_CACHE_PATH", "TORCH_EXTENSIONS_DIR", "MAX_JOBS",
                                                   "TORCH_CUDA_ARCH_LIST", "PYTHONPATH") if k in os.environ}
-    try:
-        here = Path(__file__).resolve().parent
-        env["commit"] = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=here, capture_output=True,
-                                       text=True, timeout=10).stdout.strip() or None
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
-                               capture_output=True, text=True, timeout=10).stdout.strip()
-        if dirty and env["commit"]:
-            env["commit"] += "+dirty"
-    except Exception:  # noqa: BLE001
-        env["commit"] = None
     return env
 
 
@@ -867,7 +805,7 @@ def main(argv=None) -> int:
         return 2
     device = torch.device("cuda", torch.cuda.current_device()) if args.device == "cuda" else torch.device("cpu")
     clock = Clock(device)
-    env = environment(device)
+    env = run_environment(device, argv)
     results = dict(env=env, args={k: v for k, v in vars(args).items() if not k.endswith("_list")},
                    scene=dict(focal_ratio=FOCAL_RATIO, tan_x=TAN_X, tan_y=TAN_Y, z_range=[3.0, 5.0],
                               scale_range=[0.002, 0.02], static_t_scale=STATIC_T_SCALE,
@@ -876,19 +814,13 @@ def main(argv=None) -> int:
     log(f"bench_raster on {env.get('gpu', device)}; torch {env['torch']}, warp {env['warp']}, "
         f"commit {env.get('commit')}; budget {args.budget_s:.0f}s")
 
-    if args.kernel_options:
-        from kernel_options import Patched, frame_kernels, parse_variant
-
-        known = frame_kernels()
-        Patched(parse_variant(args.kernel_options, known), known).apply()  # for the whole run
-        results["notes"].append(f"tomgs's kernels rebuilt with Warp launch options {args.kernel_options}")
     fns = {}
     if "tomgs" in args.lib_list:
         try:
             fns["tomgs"] = (graphed() if args.tomgs_graph else deferred(load_tomgs("tomgs.render:render_frame"))
                             if args.tomgs_defer else load_tomgs(args.tomgs_impl))
             if args.tomgs_graph:
-                results["notes"].append("tomgs timed replayed from CUDA graphs (tomgs.render.captured.FrameGraph, captured "
+                results["notes"].append("tomgs timed replayed from CUDA graphs (tomgs.FrameGraph, captured "
                                         "at a scene's first frame, warm-up): camera and time written per call, the "
                                         "counts read after the backward")
             elif args.tomgs_defer:

@@ -4,7 +4,7 @@
 One Gaussian with scales (L, 1e-3, 1e-3) at depth 3 in a 64x64 image (fx = fy = 60), a fixed random
 weight per pixel on image and alpha as the loss. Two families:
 
-  in-plane  the needle lies across the view (the safety issue's case); the 2D covariance's condition
+  in-plane  the needle lies across the view (where the renderer once failed); the 2D covariance's condition
             number then grows like L^2 (far past 1e6 at L = 100).
   tilted    the needle is tilted towards the optical axis so that the 2D covariance has a given
             condition number (1e2 .. 1e6), for each L: long in 3D, as thin on screen as asked.
@@ -16,23 +16,26 @@ of L >= 1e3 pointing nearly at the camera is out of float32's reach for any rend
 cancels the needle's ~L f / z pixels down to a few; `f32ref` shows it): the summary keeps those
 apart, as cases where f32ref > 1e-3.
 
-Usage:
-  python benchmarks/check_needles.py                  # CPU
-  python benchmarks/check_needles.py --device cuda    # the GPU (H100 etc.)
-  python benchmarks/check_needles.py --json out.json  # also write the numbers
+Usage (writes check_needles.md / .json):
+  python -m benchmarks.check_needles                  # CPU
+  python -m benchmarks.check_needles --device cuda    # the GPU (H100 etc.)
+  python -m benchmarks.check_needles --smoke          # two needles on the CPU, seconds
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import sys
 
 import torch
 
 import tomgs
 from tomgs.runtime import resolve_device
+
+if __package__:
+    from .common import environment, markdown_table, output_folder, write_report
+else:  # run as a file: Python puts this folder first on sys.path
+    from common import environment, markdown_table, output_folder, write_report
 
 NAMES = ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales", "viewmat", "K", "background")
 SHORT = dict(means="mean", quats="quat", scales="scale", opacities="opac", colors="color", t_means="t_mean",
@@ -139,13 +142,17 @@ def check(scene: dict, device: str) -> dict:
                 f32ref=max(rel(g, r) for g, r in zip(f32_grads, ref_grads)))
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv=None) -> list[dict]:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (default cpu)")
     ap.add_argument("--lengths", default="10,100,1e3,1e4", help="needle lengths L (comma-separated)")
     ap.add_argument("--conds", default="1e2,1e3,1e4,1e5,1e6", help="condition numbers of the tilted family")
-    ap.add_argument("--json", help="also write the results here")
+    ap.add_argument("--out", default=None, help="default bench_out/check_needles")
+    ap.add_argument("--smoke", action="store_true", help="L = 10 and 100, condition number 1e2, on the CPU")
     args = ap.parse_args(argv)
+    if args.smoke:
+        args.device, args.lengths, args.conds = "cpu", "10,100", "1e2"
+    out = output_folder(args.out, args.smoke, "check_needles")
     device = str(resolve_device(args.device))
     lengths = [float(x) for x in args.lengths.split(",")]
     conds = [float(x) for x in args.conds.split(",")]
@@ -171,14 +178,18 @@ def main(argv=None) -> int:
             worst_ratio = max(worst_ratio, error / result["f32ref"])
         print(f"{case:<10} {length:>7.0e} {result['cond']:>9.2e} {result['image']:>8.1e} "
               + " ".join(f"{result['grads'][n]:>8.1e}" for n in NAMES) + f" {result['f32ref']:>8.1e}", flush=True)
-    print(f"largest gradient error at condition numbers <= 1e6 (float32-resolvable cases): {worst:.2e}")
+    table = markdown_table(["case", "L", "2D condition number", "image", *(SHORT[n] for n in NAMES), "f32ref"],
+                           [[r["case"], f"{r['L']:.0e}", f"{r['cond']:.2e}", f"{r['image']:.1e}",
+                             *(f"{r['grads'][n]:.1e}" for n in NAMES), f"{r['f32ref']:.1e}"] for r in rows])
+    summary = f"Largest gradient error at condition numbers <= 1e6 (float32-resolvable cases): {worst:.2e}."
     if worst_ratio:
-        print(f"where the float32 reference itself misses by > 1e-3: at most {worst_ratio:.2f} x its error")
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump(dict(device=device, rows=rows), f, indent=1)
-    return 0
+        summary += f" Where the float32 reference itself misses by > 1e-3: at most {worst_ratio:.2f} x its error."
+    body = ("Relative L2 error of each gradient against the float64 reference; image: its largest absolute "
+            f"error; f32ref: the float32 reference's largest gradient error.\n\n{table}\n\n{summary}")
+    write_report(out, "check_needles", f"check_needles: tomgs.rasterize on {device}, needles",
+                 environment(device, "check_needles", argv), body, rows)
+    return rows
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()

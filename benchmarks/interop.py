@@ -12,18 +12,19 @@ trainer starts), gsply, open3d (legacy and tensor API; RPly underneath), a parse
 round trip a SuperSplat user makes: the native scene through splat-transform, loaded again with
 `--cameras`, rendered against the original.
 
-    python benchmarks/interop.py                      # the demo scene; table on stdout
-    python benchmarks/interop.py --scene camel.ply --frame 40 --npm /tmp/npm --json interop.json
+    python -m benchmarks.interop                      # the demo scene
+    python -m benchmarks.interop --scene camel.ply --frame 40 --npm /tmp/npm --out <out>
+    python -m benchmarks.interop --smoke              # the demo scene, no splat-transform
 
-`--npm DIR` is a folder where `npm install @playcanvas/splat-transform` was run (default: install
-it into a temporary folder when npm is there; skipped with a note when not).
+Run from the repository root: the readers' transcriptions are the tests' (tests/scenes.py,
+tests/test_export.py). `--npm DIR` is a folder where `npm install @playcanvas/splat-transform` was run
+(default: install it into a temporary folder when npm is there; skipped with a note when not). Writes
+interop.md / .json.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import math
 import shutil
 import subprocess
 import sys
@@ -33,19 +34,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from tests.scenes import inria_load_ply  # the readers, transcribed once, for the tests and this table
+from tests.test_export import C0, demo_model, resaved_like_splat_transform, stride_summing_parse
+from tomgs import load_scene, render_sequence, save_scene
+from tomgs.edit.export import pick_moment, static_moment, write_cameras
+from tomgs.io.splats import RDF_TO_RUB, write_static
+from tomgs.temporal import frozen_at
 
-from tests.scenes import inria_load_ply  # noqa: E402  (the readers, transcribed once, for tests and this table)
-from tests.test_export import (  # noqa: E402
-    C0,
-    demo_model,
-    resaved_like_splat_transform,
-    stride_summing_parse,
-)
-from tomgs.edit.export import pick_moment, static_moment  # noqa: E402
-from tomgs.io.scene import load_scene, save_scene  # noqa: E402
-from tomgs.io.splats import RDF_TO_RUB, write_static  # noqa: E402
-from tomgs.temporal import frozen_at  # noqa: E402
+if __package__:
+    from .common import environment, output_folder, write_report
+else:  # run as a file (PYTHONPATH=. python benchmarks/interop.py): Python puts this folder first on sys.path
+    from common import environment, output_folder, write_report
 
 FIELDS = ("positions", "colours", "opacities", "scales")
 
@@ -201,9 +200,6 @@ def run(scene_path: Path, frame: int, npm: Path | None, work: Path) -> dict:
 def supersplat_round_trip(scene_path: Path, scene, npm, work: Path, k: int) -> dict:
     """The native scene re-saved (by splat-transform when there, else as it writes), loaded with
     --cameras, rendered at frame k against the original: max pixel difference."""
-    from tomgs.edit.export import write_cameras
-    from tomgs.render.sequence import render_sequence
-
     resaved = work / "resaved.ply"
     if npm is not None:
         splat_transform(npm, scene_path, resaved)
@@ -243,28 +239,31 @@ def markdown(result: dict) -> str:
     return "\n".join(lines)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scene", default=None, help="a tomgs scene (default: the demo scene, made here)")
     parser.add_argument("--frame", type=int, default=5)
     parser.add_argument("--npm", default=None, help="folder with @playcanvas/splat-transform installed")
-    parser.add_argument("--json", default=None)
-    args = parser.parse_args()
-    work = Path(tempfile.mkdtemp(prefix="tomgs-interop-"))
+    parser.add_argument("--out", default=None, help="default bench_out/interop")
+    parser.add_argument("--smoke", action="store_true", help="the demo scene, splat-transform left out")
+    args = parser.parse_args(argv)
+    out = output_folder(args.out, args.smoke, "interop")
+    work = Path(tempfile.mkdtemp(prefix="tomgs-interop-", dir=out))
     scene_path = Path(args.scene) if args.scene else None
     if scene_path is None:
         model, cams = demo_model()
         scene_path = save_scene(work / "demo.ply", model, cams)
-    try:
-        npm = find_npm(args.npm)
-    except (subprocess.SubprocessError, OSError) as e:
-        print(f"splat-transform not available ({e}); its rows are left out", file=sys.stderr)
-        npm = None
+    npm = None
+    if not args.smoke:
+        try:
+            npm = find_npm(args.npm)
+        except (subprocess.SubprocessError, OSError) as e:
+            print(f"splat-transform not available ({e}); its rows are left out", file=sys.stderr)
     with torch.no_grad():
         result = run(scene_path, args.frame, npm, work)
-    print(markdown(result))
-    if args.json:
-        Path(args.json).write_text(json.dumps(result, indent=1, default=lambda v: None if not math.isfinite(v) else v))
+    write_report(out, "interop", "interop: tomgs's files in other readers", environment("cpu", "interop", argv),
+                 markdown(result), result)
+    return result
 
 
 if __name__ == "__main__":

@@ -15,19 +15,20 @@ checkpoint exists yet). For each kill:
     restart_s    seconds from the resume's launch to its first step (imports, decoding, set-up)
     psnr         the resumed fit's final full-clip PSNR, against an uninterrupted fit's
 
-    python benchmarks/kill_resume.py [--video tomgs/data/bunny.mp4] [--preset quick] [--kills 4] [--seed 0]
+    python -m benchmarks.kill_resume [--video tomgs/data/bunny.mp4] [--preset quick] [--kills 4] [--seed 0]
+    python -m benchmarks.kill_resume --smoke     # a 6-frame synthetic clip, 12 iterations, one kill
 
-The child logs every iteration (log_interval=1) so the moment of the kill is known to the step, and
-measures the full-clip PSNR at the end only; everything else is the preset's, checkpoint schedule
-included. `--pythonpath DIR` runs the children
-on another copy of tomgs (e.g. an older commit, to compare schedules).
+Every fit (the uninterrupted reference, each killed fit and its resume) runs in a child process that
+logs every iteration (log_interval=1) so the moment of the kill is known to the step, and measures the
+full-clip PSNR at the end only; everything else is the preset's, checkpoint schedule included.
+`--pythonpath DIR` runs the children on another copy of tomgs (e.g. an older commit, to compare
+schedules). Writes kill_resume.md / .json.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
-import inspect
 import json
 import os
 import random
@@ -38,15 +39,22 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-BUNNY = next((p for p in (ROOT / "tomgs" / "data" / "bunny.mp4", ROOT / "assets" / "bunny.mp4") if p.exists()),
-             ROOT / "tomgs" / "data" / "bunny.mp4")
+if __package__:
+    from .common import ROOT, environment, markdown_table, output_folder, demo_video, write_report
+else:  # run as a file (the children are): Python puts this folder first on sys.path
+    from common import ROOT, environment, markdown_table, output_folder, demo_video, write_report
+
+BUNNY = ROOT / "tomgs" / "data" / "bunny.mp4"
 
 
-def child(args) -> None:
-    """One fit (or its resume) in this process; JSON lines on stdout."""
-    launched = time.perf_counter()
+def child(args, launched: float) -> None:
+    """One fit (or its resume) of args.video to args.output on the CPU, in this process: JSON lines on
+    stdout, its first log row ({"event": "first_row", ...}) and its end ({"event": "done", ...});
+    `launched`: perf_counter at the process's start."""
     from tomgs.train import fit, preset
+
+    def say(event):
+        print(json.dumps(event), flush=True)
 
     # a log row every step, and the full-clip PSNR only at the end (with a row per step, the preset's
     # evaluation every few seconds would take a share of the run that depends on the machine's load)
@@ -57,15 +65,13 @@ def child(args) -> None:
     def progress(row):
         if not first:
             first.append(row)
-            print(json.dumps(dict(event="first_row", iteration=row["iteration"], wall_s=row["wall_s"],
-                                  since_launch=time.perf_counter() - launched)), flush=True)
+            say(dict(event="first_row", iteration=row["iteration"], wall_s=row["wall_s"],
+                     since_launch=time.perf_counter() - launched))
 
-    kw = dict(poses=args.poses, device="cpu", progress=progress)
-    if "overwrite" in inspect.signature(fit).parameters:
-        kw["overwrite"] = not args.resume
-    result = fit(args.video, args.output, config, resume=args.resume, **kw)
-    print(json.dumps(dict(event="done", iterations=result.iterations, seconds=result.seconds,
-                          clip_psnr=result.clip_psnr, since_launch=time.perf_counter() - launched)), flush=True)
+    result = fit(args.video, args.output, config, resume=args.resume, poses=args.poses, device="cpu",
+                 progress=progress, overwrite=not args.resume)
+    say(dict(event="done", iterations=result.iterations, seconds=result.seconds, clip_psnr=result.clip_psnr,
+             since_launch=time.perf_counter() - launched))
 
 
 def launch(args, output: Path, resume: bool) -> subprocess.Popen:
@@ -135,7 +141,8 @@ def kill_at(args, output: Path, target: int, extra: float) -> dict:
                 train_s_at_kill=at_seen + (killed - seen))
 
 
-def main() -> None:
+def main(argv=None) -> list[dict]:
+    launched = time.perf_counter()
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--video", type=Path, default=BUNNY)
     ap.add_argument("--preset", default="quick")
@@ -144,16 +151,21 @@ def main() -> None:
     ap.add_argument("--kills", type=int, default=4)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--pythonpath", default=None, help="run the children on this copy of tomgs")
-    ap.add_argument("--json", type=Path, default=None, help="also write the figures here")
+    ap.add_argument("--out", default=None, help="default bench_out/kill_resume")
+    ap.add_argument("--smoke", action="store_true", help="a 6-frame synthetic clip at 48x28, 12 iterations, one kill")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--output", type=Path, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--resume", action="store_true", help=argparse.SUPPRESS)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     if args.child:
-        return child(args)
+        return child(args, launched)
+    out = output_folder(args.out, args.smoke, "kill_resume")
+    if args.smoke:
+        args.video = demo_video(out / "smoke.mp4")
+        args.iterations, args.kills, args.poses = 12, 1, "identity"
 
     rng = random.Random(args.seed)
-    work = Path(tempfile.mkdtemp(prefix="kill_resume."))
+    work = Path(tempfile.mkdtemp(prefix="kill_resume.", dir=out))
     reference, reference_wall = finish(args, work / "reference.ply", resume=False)
     done = reference["done"]
     total = done["iterations"]
@@ -184,10 +196,14 @@ def main() -> None:
         print(json.dumps(row), flush=True)
 
     lost = [r["lost_s"] for r in results]
-    print(f"\n{len(results)} kills: training seconds lost mean {sum(lost) / len(lost):.1f}, max {max(lost):.1f}; "
-          f"iterations lost {[r['lost_it'] for r in results]} of {total}")
-    if args.json:
-        args.json.write_text(json.dumps(dict(reference=done, kills=results), indent=1) + "\n")
+    head = ["kill_s", "train_s_at_kill", "reached", "saved", "lost_it", "lost_s", "restart_s", "psnr",
+            "reference_psnr"]
+    body = (f"{args.video}, --preset {args.preset}, {total} iterations ({done['seconds']:.1f} s of training), seed "
+            f"{args.seed}: {len(results)} kills, training seconds lost mean {sum(lost) / len(lost):.1f}, max "
+            f"{max(lost):.1f}\n\n" + markdown_table(head, [[r[h] for h in head] for r in results]))
+    write_report(out, "kill_resume", "kill_resume: what a kill -9 costs a fit", environment("cpu", "kill_resume", argv),
+                 body, dict(reference=done, kills=results))
+    return results
 
 
 if __name__ == "__main__":

@@ -1,30 +1,36 @@
-"""Phone-sized videos end to end (issue 14): `tomgs fit` with the built-in poses under a budget.
+"""Phone-sized videos end to end: `tomgs fit` with the built-in poses under a budget, its time, memory and
+quality.
 
-    python benchmarks/phone_video.py --clip ../shared/data/videos/bigbuckbunny.mp4 --budget 300 \
-        --device cuda --json benchmarks/results/phone_video.json
-    python benchmarks/phone_video.py --quick            # CPU smoke check: tiny clips, 25 s budget
+    python -m benchmarks.phone_video --clip ../shared/data/videos/bigbuckbunny.mp4 --budget 300 \
+        --device cuda --out <out>
+    python -m benchmarks.phone_video --smoke            # one 6-frame synthetic clip on the CPU, 10 iterations
 
-Cases: every --clip as it is, and synthetic clips of the demo scene (`tomgs demo`) at --size with
---frames frames each (1920x1080 with 300, 900 and 1800 by default; made once in --work and kept).
+Cases: every --clip as it is, and synthetic clips of the demo scene at --size with --synthetic frames
+each (1920x1080 with 300, 900 and 1800 by default; rendered on --device once into --work and kept).
 Each case runs `tomgs fit CLIP -o scene.ply --budget B --json ...` in its own process (peak
 resident memory is per process) and records: the ETA its plan printed and the wall time the
 command took, seconds per phase (read, poses, init, train, save), peak host (resident) and GPU
 (torch allocated) memory, the uint8 size of the selected frames (the host budget is that plus
 2 GB), the clip PSNR at 1, 2 and 5 minutes of the command's wall time (and the frames it covers:
 evenly spaced ones before the fit's last measurement, "(N fr.)" in the table) and at the end,
-Gaussians and iterations. Writes JSON to --json and prints a table.
+Gaussians and iterations. Writes phone_video.md / .json.
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
 import json
-import os
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+from tomgs.io.video import probe_clip
+
+if __package__:
+    from .common import demo_video, environment, log_rows, output_folder, parse_size, psnr_at, write_report
+else:  # run as a file: Python puts this folder first on sys.path
+    from common import demo_video, environment, log_rows, output_folder, parse_size, psnr_at, write_report
 
 MARKS = (60, 120, 300)  # seconds of the command's wall time at which the PSNR is reported
 
@@ -34,24 +40,13 @@ def tomgs(*args) -> list[str]:
 
 
 def make_synthetic(work: Path, frames: int, size: str, device: str) -> Path:
+    """The demo scene's clip of `frames` frames at `size` (WxH), made once in `work`."""
     path = work / f"demo_{frames}_{size}.mp4"
     if not path.exists():
         began = time.perf_counter()
-        subprocess.run(tomgs("demo", "--frames", frames, "--size", size, "-o", path, "--device", device, "-q"),
-                       check=True)
+        demo_video(path, frames, *parse_size(size), device=device)
         print(f"made {path} in {time.perf_counter() - began:.0f} s", flush=True)
     return path
-
-
-def psnr_at(rows: list[dict], before_training: float, seconds: float):
-    """The clip PSNR measured last at or before `seconds` of the command (training rows count from its
-    start, `before_training` seconds in) and the frames it covers (evenly spaced before the last;
-    None from a log without the column); (None, None) if training had not measured one by then."""
-    best = (None, None)
-    for row in rows:
-        if row["clip_psnr"] and before_training + float(row["wall_s"]) <= seconds:
-            best = (float(row["clip_psnr"]), int(row["clip_frames"]) if row.get("clip_frames") else None)
-    return best
 
 
 def run_sampled(command: list[str]) -> tuple[subprocess.CompletedProcess, dict]:
@@ -94,8 +89,6 @@ def run_sampled(command: list[str]) -> tuple[subprocess.CompletedProcess, dict]:
 
 
 def run_case(name: str, clip: Path, args, work: Path) -> dict:
-    from tomgs.io.video import probe_clip
-
     frames, height, width, _ = probe_clip(clip, args.frames, args.max_side)
     out = work / name
     out.mkdir(parents=True, exist_ok=True)
@@ -105,6 +98,8 @@ def run_case(name: str, clip: Path, args, work: Path) -> dict:
         command += ["--frames", args.frames]
     if args.max_side:
         command += ["--max-side", str(args.max_side)]
+    if args.iterations:
+        command += ["--iterations", str(args.iterations)]
     print(f"{name}: {frames} frames of {width}x{height}: {' '.join(command[3:])}", flush=True)
     began = time.perf_counter()
     done, peaks = run_sampled(command)
@@ -114,10 +109,10 @@ def run_case(name: str, clip: Path, args, work: Path) -> dict:
         print(done.stderr[-2000:], file=sys.stderr)
         return dict(case=name, clip=str(clip), error=done.stderr.strip().splitlines()[-1:], wall_s=wall)
     fit = json.loads(report.read_text())
-    rows = list(csv.DictReader(open(fit["csv"])))
+    rows = log_rows(fit["csv"])
     phases = fit["phase_seconds"]
     before = sum(phases.get(k, 0.0) for k in ("read", "poses", "init")) + (fit["wall_seconds"] - sum(phases.values()))
-    marks = {m: psnr_at(rows, before, m) if m <= fit["wall_seconds"] + 5 else (None, None) for m in MARKS}
+    marks = {m: psnr_at(rows, m, before) if m <= fit["wall_seconds"] + 5 else (None, None) for m in MARKS}
     return dict(case=name, clip=str(clip), frames=frames, width=width, height=height, budget_s=args.budget,
                 plan=plan, eta_s=round(fit["eta_seconds"], 1), wall_s=round(wall, 1),
                 fit_wall_s=round(fit["wall_seconds"], 1), phases_s={k: round(v, 1) for k, v in phases.items()},
@@ -153,8 +148,8 @@ def table(results: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def main(argv=None) -> list[dict]:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--clip", action="append", default=[], help="a video to fit as it is (repeatable)")
     ap.add_argument("--synthetic", default="300,900,1800", help="frame counts of the synthetic clips ('' for none)")
     ap.add_argument("--size", default="1920x1080", help="size of the synthetic clips")
@@ -162,13 +157,16 @@ def main() -> None:
     ap.add_argument("--device", default="cuda")
     ap.add_argument("--frames", default=None, help="--frames for every fit")
     ap.add_argument("--max-side", type=int, default=None, help="--max-side for every fit")
-    ap.add_argument("--work", type=Path, default=Path("phone_video_work"), help="clips and scenes go here")
-    ap.add_argument("--json", type=Path, default=Path("phone_video.json"))
-    ap.add_argument("--quick", action="store_true",
-                    help="CPU smoke check: synthetic 12 and 24 frames at 96x54, --budget 25")
-    args = ap.parse_args()
-    if args.quick:
-        args.synthetic, args.size, args.budget, args.device = "12,24", "96x54", min(args.budget, 25.0), "cpu"
+    ap.add_argument("--iterations", type=int, default=None, help="--iterations for every fit (default: the preset's)")
+    ap.add_argument("--work", type=Path, default=None, help="clips and scenes go here (default: <out>/work)")
+    ap.add_argument("--out", type=Path, default=None, help="default bench_out/phone_video")
+    ap.add_argument("--smoke", action="store_true",
+                    help="one synthetic clip of 6 frames at 48x28 on the CPU, 10 iterations")
+    args = ap.parse_args(argv)
+    out = output_folder(args.out, args.smoke, "phone_video")
+    if args.smoke:
+        args.synthetic, args.size, args.device, args.iterations = "6", "48x28", "cpu", 10
+    args.work = args.work or out / "work"
     args.work.mkdir(parents=True, exist_ok=True)
     cases = [(Path(c).stem, Path(c)) for c in args.clip]
     for n in filter(None, args.synthetic.split(",")):
@@ -176,10 +174,11 @@ def main() -> None:
     results = []
     for name, clip in cases:
         results.append(run_case(name, clip, args, args.work))
-        args.json.write_text(json.dumps(dict(device=args.device, budget_s=args.budget, host=os.uname().nodename,
-                                             results=results), indent=1))
-    print(table(results))
-    print(f"wrote {args.json}")
+        (out / "phone_video.partial.json").write_text(json.dumps(results, indent=1))  # a cut-off run keeps what it did
+    write_report(out, "phone_video", "phone_video: phone-sized videos end to end",
+                 environment(args.device, "phone_video", argv), table(results), results)
+    (out / "phone_video.partial.json").unlink()
+    return results
 
 
 if __name__ == "__main__":

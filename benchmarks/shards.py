@@ -1,10 +1,11 @@
-"""Several GPUs for long clips (issue 16): the same clip fitted with 1 and with N GPUs for the same wall time.
+"""Several GPUs for long clips: the same clip fitted with 1 and with N GPUs for the same wall time.
 
-    PYTHONPATH=/tmp/site:$PWD python benchmarks/shards.py --out $OUT          # nvidia-h200-x2, ~8 min
-    python benchmarks/shards.py --tiny --out bench_out/shards_tiny             # CPU smoke: 2 CPU processes
+    python -m benchmarks.shards --out $OUT                                  # nvidia-h200-x2, ~8 min
+    python -m benchmarks.shards --tiny --out bench_out/shards_tiny          # CPU: 2 gloo ranks, 45 s fits
+    python -m benchmarks.shards --smoke                                     # CPU: 8 iterations a fit, seconds
 
-The clip: --clip (a video or a frame folder), or `tomgs demo --frames F --size WxH` made once in --work.
-Every case is one fit (tomgs.train.pipeline, as `tomgs fit ... --budget B` runs it) in its own process, with
+The clip: --clip (a video or a frame folder), or the demo scene (--synthetic FRAMES,WxH) made once in --work.
+Every case is one fit (tomgs.train.fit, as `tomgs fit ... --budget B` runs it) in its own process, with
 the same --budget (the whole command's wall time: reading, poses, training, merge and saving) and, on
 a GPU, 100,000 iterations, so that every fit ends at its budget:
 
@@ -30,6 +31,7 @@ save, exit; a one-GPU fit's phases laid end to end) and budget_left_s (the budge
 fit took to return), as a table per case at the end of shards.md. Writes WORK/<case>/result.json as each case
 ends, and OUT/shards.json, OUT/shards.md (every case found in WORK) and each case's CSV logs to OUT.
 Cases already in WORK are kept unless --redo: a run split over several commands (--cases) adds up.
+The history of these runs: docs/notes/multi-gpu.md.
 """
 
 from __future__ import annotations
@@ -43,16 +45,18 @@ import sys
 import time
 from pathlib import Path
 
-HERE = Path(__file__).resolve().parent
+if __package__:
+    from .common import demo_video, environment, output_folder, parse_size, write_report
+else:  # run as a file (each case is): Python puts this folder first on sys.path
+    from common import demo_video, environment, output_folder, parse_size, write_report
 
 
 def make_clip(work: Path, frames: int, size: str, device: str) -> Path:
-    """`tomgs demo` at `size` with `frames` frames (kept in `work`), as an MP4."""
+    """The demo scene at `size` with `frames` frames (kept in `work`), as an MP4 rendered on `device`."""
     path = work / f"demo_{frames}_{size}.mp4"
     if not path.exists():
         began = time.perf_counter()
-        subprocess.run([sys.executable, "-m", "tomgs.cli", "demo", "--frames", str(frames), "--size", size, "-o",
-                        str(path), "--device", device, "-q"], check=True)
+        demo_video(path, frames, *parse_size(size), device="cuda" if device == "cuda" else "cpu")
         print(f"made {path} in {time.perf_counter() - began:.0f} s", flush=True)
     return path
 
@@ -130,9 +134,9 @@ def run_case(spec_path: Path) -> None:
     """One case, in this process: the fit (its own budget), then every frame of its scene measured."""
     spec = json.loads(spec_path.read_text())
     if spec["gpus"]:  # as `tomgs fit --gpus N` does: the ranks import while this process does
-        from tomgs.train.multigpu import pool as rank_pool
+        from tomgs.train.multigpu import pool
 
-        rank_pool.start(spec["gpus"])
+        pool.start(spec["gpus"])
     import numpy as np
     import torch
 
@@ -215,7 +219,7 @@ def evaluate(scene_path: Path, clip: str, device: str) -> tuple[list[float], flo
     from tomgs.io.scene import load_scene
     from tomgs.io.video import read_video_for
     from tomgs.metrics import psnr
-    from tomgs.render.frame import rasterize
+    from tomgs.render import rasterize
 
     began = time.perf_counter()
     dev = torch.device("cuda:0" if device == "cuda" else "cpu")
@@ -278,8 +282,7 @@ def summarize(work: Path, out: Path, args, count: int) -> dict:
     report = dict(clip=args.clip_path, frames=count, gpus=args.gpus, budget_s=args.budget, near=args.near,
                   boundaries=bounds, device=next(iter(results.values()))["device"] if results else None,
                   cases=rows, goal=verdict)
-    (out / "shards.json").write_text(json.dumps(dict(report, results=results), indent=1))
-    (out / "shards.md").write_text(markdown(report))
+    write_report(out, "shards", "shards: N GPUs against one", args.env, markdown(report), dict(report, results=results))
     return report
 
 
@@ -362,10 +365,13 @@ def warm_up(args, work: Path) -> None:
         print(f"warm-up ({gpus or 1} GPU): {time.perf_counter() - began:.0f} s", flush=True)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", type=Path, default=None, help="shards.json, shards.md and the CSV logs go here")
-    ap.add_argument("--work", type=Path, default=Path("bench_out/shards"), help="clip, scenes, per-case results")
+def main(argv=None) -> dict | None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", type=Path, default=None,
+                    help="shards.json, shards.md and the CSV logs go here (default bench_out/shards)")
+    ap.add_argument("--work", type=Path, default=None,
+                    help="clip, scenes, per-case results (default bench_out/shards_work, bench_out/shards_tiny with "
+                         "--tiny, <out>/work with --smoke)")
     ap.add_argument("--clip", default=None, help="a video or frame folder (default: the demo clip, made in --work)")
     ap.add_argument("--synthetic", default="600,854x480", help="frames,size of the demo clip")
     ap.add_argument("--frames", default=None, help="--frames of the clip (a source range)")
@@ -391,22 +397,26 @@ def main() -> None:
                     help="which groups to run: halves, full_1gpu, full_Ngpu, variants")
     ap.add_argument("--redo", action="store_true", help="run cases whose result is already in --work")
     ap.add_argument("--no-warmup", dest="warmup", action="store_false")
-    ap.add_argument("--tiny", action="store_true", help="CPU smoke: 16 frames of 48x36, 2 CPU ranks, --budget 45")
+    ap.add_argument("--tiny", action="store_true", help="on the CPU: 16 frames of 48x36, 2 gloo ranks, --budget 45")
+    ap.add_argument("--smoke", action="store_true",
+                    help="on the CPU: 8 frames of 32x18, the halves and the 2-rank fit, 8 iterations each")
     ap.add_argument("--run-case", type=Path, default=None, help=argparse.SUPPRESS)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     if args.run_case is not None:
         run_case(args.run_case)
-        return
-    if args.out is None:
-        ap.error("--out is required")
-    if args.tiny:
+        return None
+    args.out = output_folder(args.out, args.smoke, "shards")
+    if args.tiny or args.smoke:
         args.synthetic, args.device, args.budget, args.near = "16,48x36", "cpu", min(args.budget, 45.0), 2
-        args.work = args.work if args.work != Path("bench_out/shards") else Path("bench_out/shards_tiny")
         args.warmup = False
+    if args.smoke:
+        args.synthetic, args.iterations, args.cases, args.poses = "8,32x18", 8, "halves,full_Ngpu", "identity"
+    args.work = args.work or (args.out / "work" if args.smoke else Path("bench_out/shards_tiny" if args.tiny else
+                                                                         "bench_out/shards_work"))
     if args.iterations is None and args.device == "cuda":
         args.iterations = 100_000
     args.work.mkdir(parents=True, exist_ok=True)
-    args.out.mkdir(parents=True, exist_ok=True)
+    args.env = environment(args.device, "shards", argv)
     if args.clip is None:
         frames, size = args.synthetic.split(",")
         args.clip = str(make_clip(args.work, int(frames), size, args.device))
@@ -431,9 +441,9 @@ def main() -> None:
         run_group(specs, args, Path(args.clip), args.work)
         report = summarize(args.work, args.out, args, count)  # after every group: a cut-off run keeps what it did
     report = summarize(args.work, args.out, args, count)
-    print((args.out / "shards.md").read_text())
     if report["goal"]:
         print(json.dumps(report["goal"]))
+    return report
 
 
 if __name__ == "__main__":

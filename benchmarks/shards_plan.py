@@ -1,9 +1,10 @@
 """Where temporal shards stop scaling: a model of a sharded fit (docs/multi-gpu.md) for 1..R ranks.
 
-    python benchmarks/shards_plan.py                                  # the defaults below (H100/H200 guesses)
-    python benchmarks/shards_plan.py --measured bench_out/shards/shards.json --budget 300 --seconds-of-clip 60
+    python -m benchmarks.shards_plan                                  # the defaults below (H100/H200 guesses)
+    python -m benchmarks.shards_plan --measured bench_out/shards/shards.json --budget 300
+    python -m benchmarks.shards_plan --smoke     # the two-H200 run in benchmarks/results, its merge cost put in
 
-Weak scaling, the issue's question: a clip of `frames_per_rank` x R frames on R GPUs in the same
+Weak scaling, the question: a clip of `frames_per_rank` x R frames on R GPUs in the same
 wall-clock budget. Each phase's time follows what it is made of, from per-rank figures that the
 arguments give (or --measured fills from benchmarks/shards.py's JSON: steps per second per rank, the
 union's Gaussians, the share of Gaussians alive in more than one stretch, the phases of rank 0):
@@ -37,7 +38,15 @@ import json
 import math
 from pathlib import Path
 
+if __package__:
+    from .common import ROOT, environment, output_folder, write_report
+else:  # run as a file: Python puts this folder first on sys.path
+    from common import ROOT, environment, output_folder, write_report
+
 GIB = 2**30
+# the per-rank figures of a two-H200 run and the merge's own cost measured there (benchmarks/README.md)
+MEASURED = ROOT / "benchmarks" / "results" / "shards_h200x2.json"
+MEASURED_MERGE_DB = 0.39
 
 
 def model(args, ranks: int, reference_steps: float | None = None) -> dict:
@@ -103,6 +112,8 @@ def table(rows: list[dict]) -> str:
 def fill_from(path: Path, args) -> None:
     """Per-rank figures from benchmarks/shards.py's JSON: the sharded case's steps/s, Gaussians, frames."""
     data = json.loads(path.read_text())
+    if "env" in data:  # shards.py's report: the run's command and commit beside it
+        data = data["results"]
     results = data["results"]
     sharded = results.get(f"full_{data['gpus']}gpu")
     if sharded is None:
@@ -116,8 +127,8 @@ def fill_from(path: Path, args) -> None:
           f"{args.gaussians_per_rank:,.0f} Gaussians per rank, budget {args.budget:.0f} s")
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def main(argv=None) -> list[dict]:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     a = ap.add_argument
     a("--measured", type=Path, default=None, help="benchmarks/shards.py's shards.json: per-rank figures from it")
     a("--budget", type=float, default=300.0, help="the wall-clock budget of every fit, seconds")
@@ -152,12 +163,20 @@ def main() -> None:
     a("--gpu-gib", type=float, default=139.0)
     a("--frames-gib-per-rank", type=float, default=0.4, help="a rank's uint8 frames on its GPU")
     a("--ranks", default="1,2,4,8,16,32,64")
-    args = ap.parse_args()
+    a("--out", default=None, help="default bench_out/shards_plan")
+    a("--smoke", action="store_true", help=f"--measured {MEASURED.relative_to(ROOT)} --merge-db {MEASURED_MERGE_DB}")
+    args = ap.parse_args(argv)
+    if args.smoke:
+        args.measured, args.merge_db = MEASURED, MEASURED_MERGE_DB
+    out = output_folder(args.out, args.smoke, "shards_plan")
     if args.measured is not None:
         fill_from(args.measured, args)
     reference = model(args, 1)["steps"]  # one GPU on one stretch: the goal's reference
     rows = [model(args, int(r), reference) for r in args.ranks.split(",")]
-    print(table(rows))
+    write_report(out, "shards_plan", "shards_plan: where temporal shards stop scaling (a model)",
+                 environment("cpu", "shards_plan", argv), table(rows),
+                 dict(args={k: str(v) for k, v in vars(args).items()}, rows=rows))
+    return rows
 
 
 if __name__ == "__main__":

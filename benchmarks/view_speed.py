@@ -1,6 +1,7 @@
 """How fast `tomgs view` answers: time to first picture and updates per second while scrubbing.
 
-    python benchmarks/view_speed.py SCENE [--layer L ...] [--device auto] [--json view_speed.json]
+    python -m benchmarks.view_speed SCENE [--layer L ...] [--device auto] [--out <out>]
+    python -m benchmarks.view_speed --smoke       # the demo scene on the CPU, seconds
 
 Starts the viewer as `tomgs view` does (no browser needed) and reports
 - first picture: from the start (scene loaded from disk, server started) to the first frame's splats
@@ -10,33 +11,38 @@ Starts the viewer as `tomgs view` does (no browser needed) and reports
   opacity, covariances, colours: tomgs.viewer.server.ViewScene.frame) and to pack and queue it for the
   clients (viser's set_gaussians), their sum as updates per second, and the splats per update.
 The browser's own sorting and drawing are not included: they run on the viewer's machine.
-Prints a summary and writes the numbers as JSON.
+Writes view_speed.md / .json.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import platform
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from tomgs.viewer import open_viewer
 
-from tomgs.viewer.server import open_viewer  # noqa: E402
+if __package__:
+    from .common import environment, markdown_table, output_folder, smoke_scene, write_report
+else:  # run as a file: Python puts this folder first on sys.path
+    from common import environment, markdown_table, output_folder, smoke_scene, write_report
 
 
-def main() -> None:
+def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("scene")
+    parser.add_argument("scene", nargs="?")
     parser.add_argument("--layer", action="append", default=[])
     parser.add_argument("--device", default="auto")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--json", default="view_speed.json")
-    args = parser.parse_args()
+    parser.add_argument("--out", default=None, help="default bench_out/view_speed")
+    parser.add_argument("--smoke", action="store_true", help="the demo scene (8 frames at 48x27) on the CPU")
+    args = parser.parse_args(argv)
+    out = output_folder(args.out, args.smoke, "view_speed")
+    if args.smoke:
+        args.scene, args.device = str(smoke_scene(out / "smoke.ply")), "cpu"
+    elif args.scene is None:
+        parser.error("a scene file is required (or --smoke)")
 
     start = time.perf_counter()
     viewer = open_viewer(args.scene, args.layer, port=0, device=args.device, echo=lambda line: None)
@@ -65,19 +71,18 @@ def main() -> None:
         "build_ms_median": 1e3 * float(np.median(build)), "send_ms_median": 1e3 * float(np.median(send)),
         "update_ms_median": 1e3 * float(np.median(walls)), "update_ms_p95": 1e3 * float(np.percentile(walls, 95)),
         "updates_per_s": float(1.0 / np.median(walls)), "splats_per_update_mean": float(splats.mean()),
-        "python": platform.python_version(), "machine": platform.machine(),
     }
-    if viewer.view.device.type == "cuda":
-        import torch
-
-        result["gpu"] = torch.cuda.get_device_name(viewer.view.device)
-    print(f"{args.scene}: {result['gaussians']:,} Gaussians, {result['frames']} frames on {result['device']}\n"
-          f"  first picture {first:.2f} s after start (load, server, first payload)\n"
-          f"  scrubbing: {result['updates_per_s']:.1f} updates/s (median {result['update_ms_median']:.1f} ms: "
-          f"build {result['build_ms_median']:.1f}, pack and queue {result['send_ms_median']:.1f}; "
-          f"p95 {result['update_ms_p95']:.1f} ms), {result['splats_per_update_mean']:,.0f} splats per update")
-    Path(args.json).write_text(json.dumps(result, indent=1))
-    print(f"  written to {args.json}")
+    body = (f"{args.scene}: {result['gaussians']:,} Gaussians, {result['frames']} frames, server side (the "
+            "browser draws)\n\n"
+            + markdown_table(["first picture s", "updates/s while scrubbing", "update ms, median / p95",
+                              "build ms", "pack and queue ms", "splats per update"],
+                             [[first, result["updates_per_s"],
+                               f"{result['update_ms_median']:.1f} / {result['update_ms_p95']:.1f}",
+                               result["build_ms_median"], result["send_ms_median"],
+                               f"{result['splats_per_update_mean']:,.0f}"]]))
+    write_report(out, "view_speed", "view_speed: how fast tomgs view answers",
+                 environment(viewer.view.device, "view_speed", argv), body, result)
+    return result
 
 
 if __name__ == "__main__":

@@ -1,0 +1,1 @@
+"""The benchmark suite: one script per claim tomgs makes (benchmarks/README.md)."""
