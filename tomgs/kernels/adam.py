@@ -11,7 +11,7 @@ two SH blocks, temporal mean and scale), each viewed as [N, D]: one thread per r
 once where the row was not seen and else updates the row's elements of every parameter. A launch
 per parameter cost the GPU machine's host more than the update itself (eight launches and ~40 torch
 calls per step); a thread per element of all of them (~16 N threads) took twice the GPU time on a
-fitted scene (benchmarks/RASTER_NOTES.md, "Session 25").
+fitted scene (docs/notes/training.md).
 """
 
 import warp as wp

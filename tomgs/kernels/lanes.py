@@ -129,8 +129,8 @@ COUNTER_STRIDE = wp.constant(32)
 INLINE_LANES = 16  # on CUDA; on a CPU every thread runs alone, so each runs its own (inline lanes 1)
 # Registers of a stage's dense pass over all N (`cuda_max_registers`; most rows dead at a frame): at 64,
 # 4 blocks of 256 fit a multiprocessor where the projection's 74 (forward) and 109 (backward) registers
-# fitted 3 and 2, and these passes are latency bound. H100 (benchmarks/kernel_options.py, RASTER_NOTES
-# "Session 29"), 1080p 5M temporal: forward 0.203 -> 0.170 ms, backward 0.143 -> 0.122, keys 0.066 -> 0.053.
+# fitted 3 and 2, and these passes are latency bound. H100 (docs/notes/rasterizer.md), 1080p 5M temporal:
+# forward 0.203 -> 0.170 ms, backward 0.143 -> 0.122, keys 0.066 -> 0.053.
 # The listed passes keep theirs: at 64 their long path lost 10-30%.
 DENSE_REGISTERS = 64
 

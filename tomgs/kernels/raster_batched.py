@@ -12,7 +12,7 @@ of raster.py, so both pairs give the same image to rounding.
 The backward runs a thread per two pixels of a tile, one above the other (`paired_pixels`): a block of
 128, each warp a 16x4 patch, so the nine gradient terms of an entry are summed in the thread over its
 two pixels, then over the warp's lanes once for 64 pixels (the lane sums and the per-entry work shared
-by two pixels were most of its issued instructions; ncu, session 30).
+by two pixels were most of its issued instructions in ncu; docs/notes/rasterizer.md).
 
 Block width: 256 (forward) and 128 (backward) on CUDA; on the CPU Warp runs a block of width 1 (every
 thread alone: it stages the whole batch itself, which gives exactly the per-pixel result), or of 256 /

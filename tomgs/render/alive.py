@@ -470,8 +470,8 @@ def pays_on(device) -> bool:
     against 63.4 without (torch gathers of the rows, before the kernels read them in place: 59.0).
     On the H100 (4M Gaussians, 15% alive, 854x480) it loses even with the kernels reading the rows in
     place: a step 8.93 ms against 7.32, frames 587 against 653 fps, rendering 18.3% of the rows for
-    13.2% alive (`alive_index.py --device cuda`, session 16). Storing the cloud in time order, so
-    that a frame's rows lie in runs, did not change that (session 20: an indexed step 3.95-4.54 ms
+    13.2% alive (`alive_index.py --device cuda`). Storing the cloud in time order, so that a frame's
+    rows lie in runs, did not change that (an indexed step 3.95-4.54 ms
     against 3.30-3.50 rendering all; indexed frames 624-678 fps against 778-934 before): scattered
     rows are not what the index costs there. (Rendering a fixed cloud: `pays_for_sequence`.)"""
     return torch.device(device).type != "cuda"
@@ -485,7 +485,7 @@ def pays_for_sequence(device, frames: int) -> bool:
     """Whether `render_sequence` renders `frames` frames of one cloud from its index (built once for
     them). On a CPU it does (`pays_on`). On the H100 an indexed frame of a fitted DAVIS clip (5M
     Gaussians, 10-21% alive, 854x480) took 0.3-0.38 ms less than one of every Gaussian (kite-surf
-    0.93-0.98 against 1.29 ms, camel 1.48-1.54 against 1.86: benchmarks/render_speed.py, session 24),
+    0.93-0.98 against 1.29 ms, camel 1.48-1.54 against 1.86: benchmarks/render_speed.py),
     while the build takes ~7 ms: it pays from a few tens of frames (SEQUENCE_FRAMES), not for one.
     (On a machine whose host set the pace, ~1.7 ms a frame either way, a light clip lost 3% with it.)"""
     return pays_on(device) or int(frames) >= SEQUENCE_FRAMES

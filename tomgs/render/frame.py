@@ -140,7 +140,7 @@ class _Frame:
 # temporal frame is host bound): stages pass Warp descriptors along instead of re-wrapping tensors,
 # gradients nobody asked for are not materialised, and what needs no intersection count is
 # allocated before the frame's one host sync, the tile keys included (into a buffer of a bound kept
-# between frames). benchmarks/host_ops.py counts ops and launches, and those after the sync.
+# between frames). What each of these saved: docs/notes/rasterizer.md ("Host path").
 
 
 # Visible (or alive) lanes from which a warp runs a stage's long path itself rather than listing its rows

@@ -27,7 +27,7 @@ COUNT_KEYS = ("n_visible", "n_alive", "n_intersections")
 # frames of a call from which the alive index pays for its build (tomgs.render.alive.pays_for_sequence)
 SEQUENCE_FRAMES = alive.SEQUENCE_FRAMES
 # frames a renderer renders, over all its calls, from which it captures its frame. Measured on the H100
-# (benchmarks/render_speed.py, 1-minute fits, session 31): a capture made within a call of kite-surf's 50
+# (benchmarks/render_speed.py, 1-minute fits): a capture made within a call of kite-surf's 50
 # frames took it from 923 to 828 fps and camel's 90 from 698 to 583, while captured frames ran 0.13 ms
 # (kite-surf: 1179 against 1022 fps) and 0.03 ms (camel: 752 against 733) quicker than frames issued from
 # Python: the capture pays on a light clip from ~100 frames, on a heavy one from several hundred.

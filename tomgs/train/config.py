@@ -8,19 +8,18 @@ from dataclasses import dataclass
 
 # Initial points per frame by device: (fewest, most, the whole start's size between them). On a GPU
 # a step costs little more for more Gaussians and a denser start shortens the growth phase, after
-# which the PSNR climbs fastest: 1-minute fits (H100, benchmarks/first_minute.py, RESULTS.md session
-# 19) reached kite-surf 43.69 / 44.23 / 44.54 dB at 16,000 / 32,000 / 48,000 a frame and camel 34.00 /
-# 34.15 at 16,000 / 32,000, and a 5-minute kite-surf fit ended at 52.00 dB with 48,000 against 49.61
-# with 16,000. Those clips (40-104 frames) start from 2-5M Gaussians; a longer clip gets as many per
-# frame as keep its start at 5M, never fewer than 16,000 (a 900-frame phone video as before, not
-# 35M Gaussians before its first step). On a CPU the serial kernels' cost grows with every Gaussian,
-# and a short fit gets fewer steps (DAVIS camel's background layer at 240x135, 3 minutes: 51 steps
-# with 6480 per frame).
+# which the PSNR climbs fastest: 1-minute fits (H100, docs/notes/training.md) reached kite-surf 43.69 /
+# 44.23 / 44.54 dB at 16,000 / 32,000 / 48,000 a frame and camel 34.00 / 34.15 at 16,000 / 32,000, and a
+# 5-minute kite-surf fit ended at 52.00 dB with 48,000 against 49.61 with 16,000. Those clips (40-104
+# frames) start from 2-5M Gaussians; a longer clip gets as many per frame as keep its start at 5M, never
+# fewer than 16,000 (a 900-frame phone video as before, not 35M Gaussians before its first step). On a
+# CPU the serial kernels' cost grows with every Gaussian, and a short fit gets fewer steps (DAVIS camel's
+# background layer at 240x135, 3 minutes: 51 steps with 6480 per frame).
 AUTO_POINTS_PER_FRAME = {"cuda": (16000, 48000, 5_000_000), "cpu": (2000, 2000, 0)}
 # The densification threshold by device. A GPU fit under a budget of minutes is limited by how soon
 # its cloud has grown (the PSNR climbs fastest once growth stops): at 1e-4 with 16,000 points a frame
 # DAVIS camel reaches the 5M cap at ~37 s of training instead of ~80 s, and the first minute gained
-# 1.7 dB (H100, benchmarks/first_minute.py, RESULTS.md). A CPU fit runs hundreds of steps, where
+# 1.7 dB (H100, docs/notes/training.md). A CPU fit runs hundreds of steps, where
 # every added Gaussian slows each one: 3DGS's 2e-4.
 AUTO_GRAD_THRESHOLD = {"cuda": 1e-4, "cpu": 2e-4}
 INIT_DEPTHS = ("tracks", "median")  # TrainConfig.init_depth
@@ -43,7 +42,7 @@ class TrainConfig:
     # at the end of training, leave out the Gaussians that give no frame of the clip this many pixels'
     # worth of colour (their blend weights summed over a frame's pixels: tomgs.render.blend_weights).
     # 1-minute DAVIS fits (H100): 10% of camel's and kite-surf's 5M Gaussians, -0.001 dB, renders +8%;
-    # at 0.05, 22% and -0.10 dB (benchmarks/RESULTS.md, session 26). 0: keep every Gaussian
+    # at 0.05, 22% and -0.10 dB (docs/notes/training.md). 0: keep every Gaussian
     compact_pixels: float = 0.01
     opacity_reset_interval: int = 0  # 0: off (TOM-GS); 3000 reproduces the 3DGS heuristic (ablation)
     # sampling of training frames: "inverse_psnr" (TOM-GS) or "uniform" (ablation)
@@ -71,9 +70,9 @@ class TrainConfig:
     lr_scales: float = 5e-3
     lr_quats: float = 1e-3
     lr_t_means: float = 1e-3
-    # the temporal windows' width (log sigma), at twice the rate of sessions 1-31: with starts of one frame (below)
-    # the windows of what stays in view must open fast; camel's first minute (H100, first_minute.py,
-    # RESULTS.md session 32) 34.6 -> 34.8-35.0 dB at 60 s with it (4e-2: 34.7, 8e-2: 34.1)
+    # the temporal windows' width (log sigma), at twice its rate before (1e-2): with starts of one frame (below) the
+    # windows of what stays in view must open fast; camel's first minute (H100, docs/notes/training.md)
+    # 34.6 -> 34.8-35.0 dB at 60 s with it (4e-2: 34.7, 8e-2: 34.1)
     lr_t_scales: float = 2e-2
     ssim_weight: float = 0.2  # loss = (1 - w) L1 + w (1 - SSIM)
     # initialisation: points unprojected from every frame, alive around that frame's time; None:
@@ -81,17 +80,17 @@ class TrainConfig:
     init_points_per_frame: int | None = None
     # sigma of per-frame points, in frames. Narrower starts leave fewer Gaussians alive at a frame: camel's
     # first minute at 2 / 1 / 0.7 / 0.5 / 0.35 frames 34.4 / 34.6 / 34.85 / 34.5 / 34.05 dB at 60 s, 153 /
-    # 178 / 209 / 215 / 254 steps/s (H100, first_minute.py, RESULTS.md session 32)
+    # 178 / 209 / 215 / 254 steps/s (H100, docs/notes/training.md)
     init_t_scale_frames: float = 1.0
     # depth of the per-frame points: "tracks", interpolated from the tracked points each frame sees (Trainer's
     # log-depth grid), so a static surface's points from every frame start on it; "median", the frame's median
-    # depth of them everywhere (sessions 1-33, an ablation)
+    # depth of them everywhere (the rule before; an ablation)
     init_depth: str = "tracks"
     # sigma of the per-frame points' log-depth noise (a point's depth times exp(sigma * N(0, 1))). At the same
     # number of steps 0.03-0.3 end alike, but a wider spread steps faster (camel's first minute, H100: 169 /
     # 181 / 184 / 190 steps/s at 0.03 / 0.1 / 0.2 / 0.3); 0.3 against 0.1 over the six DAVIS clips' first
     # minute +0.18 dB on average (-0.39..+0.59 paired, runs of one setting ~0.1-0.4 apart); camel's 5 minutes
-    # 38.88 dB (38.71 at 0.1, session 34; RESULTS.md session 35). A tiny flat clip under a still camera
+    # 38.88 dB (38.71 at 0.1; docs/notes/training.md). A tiny flat clip under a still camera
     # (tests/test_stiff_clips.py) starts slower with it: 40.0 / 53.6 dB at 300 / 600 steps against 43.4 / 55.2
     init_depth_jitter: float = 0.3
     # logging

@@ -28,7 +28,7 @@ RENDER_COST = {"cpu": (0.005, 1.7e-6, 1e-6), "cuda": (1e-3, 0.5e-9, 2e-9)}
 DECODE_COST = 10e-9  # seconds per source pixel decoded and converted (H.264, 2 cores)
 POSE_COST = {"cpu": 1e-6, "cuda": 7e-9}  # seconds per fitted pixel of the built-in tracker (H100: 900 x 1080p in 12.7 s)
 SETUP_COST = {"cpu": 0.5, "cuda": 5.0}  # seconds each for the tracker's and the trainer's start (H100: kernels load)
-# seconds to write the scene and plot: a + b * Gaussians (H100, sessions 31-34: 0.7-1.5 s for 4.0-4.8M; the
+# seconds to write the scene and plot: a + b * Gaussians (H100, DAVIS fits: 0.7-1.5 s for 4.0-4.8M; the
 # 0.3e-6 before left ~0.8 s of every 1-minute fit unused)
 SAVE_COST = (0.5, 0.2e-6)
 # when the preset would run longer than this on the device, the fit stops at this budget instead

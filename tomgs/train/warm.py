@@ -12,8 +12,8 @@ too, beside it. What made the two contend was torch.optim.Optimizer's first add_
 imports torch._dynamo (1.5-5 s of Python holding the interpreter lock against the tracker's):
 SeenAdam no longer goes through it (tomgs/train/optim.py). With that, kite-surf's poses took 2.8-3.3
 s beside the thread (6.5-7.0 s before) and a 1-minute fit started training 3.5-4.0 s in (7.2-8.2 s
-before; H100, benchmarks/RESULTS.md, session 19). Without the thread a Trainer's construction and
-first steps took 5.2-6.4 s (session 18, then with the import).
+before; H100, docs/notes/training.md). Without the thread a Trainer's construction and first steps
+took 5.2-6.4 s (then with the import).
 """
 
 from __future__ import annotations
