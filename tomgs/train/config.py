@@ -62,6 +62,11 @@ class TrainConfig:
     # and gradients, work following the ~15% alive instead of all); False renders all (ablation,
     # tests); None: where it pays (tomgs.render.alive.pays_on: on a CPU, not on a GPU)
     alive_index: bool | None = None
+    # each step replayed from one CUDA graph (tomgs.train.captured_step): the host issues a launch and a
+    # replay instead of ~100 operations, where a GPU step of a million Gaussians was host bound. None: on a
+    # GPU where the fit allows it (SeenAdam, no alive index, no per-pixel weights, frames on the device);
+    # True also runs its logic on a CPU, issued from Python (tests); False: the eager step
+    captured_step: bool | None = None
     # learning rates (3DGS; means scaled by the scene extent and decayed exponentially)
     lr_means: float = 1.6e-4
     lr_means_final: float = 1.6e-6
