@@ -36,8 +36,17 @@ def pair(device: str, **settings):
     """(eager trainer, captured trainer) of one seeded start, a GPU's step settings on any device."""
     images, cams, points, colors = clip()
     base = dict(sparse_adam=True, alive_index=False) | settings
-    return tuple(Trainer(images, cams, points, colors, small_config(200, captured_step=captured, **base),
-                         torch.device(device)) for captured in (False, True))
+    trainers = tuple(Trainer(images, cams, points, colors, small_config(200, captured_step=captured, **base),
+                             torch.device(device)) for captured in (False, True))
+    # turned and stretched alike: an isotropic start's rotations take gradients of rounding noise alone
+    g = torch.Generator().manual_seed(3)
+    n = len(trainers[0].model)
+    turn, stretch = 0.3 * torch.randn(n, 4, generator=g), 0.4 * torch.randn(n, 3, generator=g)
+    for trainer in trainers:
+        with torch.no_grad():
+            trainer.model.quats.add_(turn.to(device))
+            trainer.model.log_scales.add_(stretch.to(device))
+    return trainers
 
 
 def state_of(trainer: Trainer) -> dict:
@@ -58,21 +67,23 @@ def state_of(trainer: Trainer) -> dict:
 def assert_same(got: dict, want: dict, device: str, exact: bool = True):
     """The captured trainer's state against the eager one's: bit for bit on a CPU (same kernels, one thread)
     where `exact`, else to float32 rounding. On a GPU the gradients sum by atomics in no fixed order:
-    moments and statistics to the oracle's gradient tolerance, and parameters too, but for a few elements
-    (an Adam step of eps 1e-15 is lr times the gradient's sign, which a gradient summing to nearly zero
-    may flip)."""
+    moments and statistics to 1e-3 of their norm, parameters to 1e-3 but for 2% of their elements (an Adam
+    step of eps 1e-15 is about lr times the gradient's sign, which a gradient summing to nearly zero may
+    flip)."""
     assert got.keys() == want.keys()
     for key, value in want.items():
         if isinstance(value, float):
             assert got[key] == value, key
         elif device == "cpu" and exact:
             assert torch.equal(got[key], value), key
-        elif device == "cpu" or "." in key:
+        elif device == "cpu":
             scale = float(value.abs().max()) if value.numel() else 0.0
             torch.testing.assert_close(got[key], value, rtol=1e-3, atol=1e-3 * scale + 1e-7, msg=key)
+        elif "." in key:
+            assert float((got[key] - value).norm()) <= 1e-3 * float(value.norm()) + 1e-12, key
         else:
             apart = ~torch.isclose(got[key], value, rtol=1e-3, atol=1e-5)
-            assert int(apart.sum()) <= max(2, value.numel() // 500), (key, int(apart.sum()), value.numel())
+            assert int(apart.sum()) <= max(2, value.numel() // 50), (key, int(apart.sum()), value.numel())
 
 
 def step_both(eager: Trainer, captured: Trainer, steps: int = 1):
@@ -92,12 +103,11 @@ def test_capacities_hold_the_model_and_its_frames():
     assert rows_fit(1060, 1000, False) and not rows_fit(1100, 1000, False)  # settled: 1/16 of padding at most
     assert keys_needed(8000, 1.0) == 8000 and keys_needed(8000, 1.5) == 12000
     assert keys_needed(8000, 0.5) == 8000  # a pruned model's frames: the bound still holds
-    assert keys_capacity(8000, growing=False) == 9000 and keys_capacity(8000, growing=True) == 10000
-    assert keys_fit(9000, 8000, False) and keys_fit(9000, 9000, False)
-    assert not keys_fit(0, 100, True)  # none captured yet
-    assert not keys_fit(9000, 9001, True)  # frames may need more (a recent one did, or the model grew)
-    assert not keys_fit(10_001, 8000, False)  # far above the need: the padded sort pays for each key
-    assert keys_fit(10_001, 8000, True) and not keys_fit(16_001, 8000, True)  # less so while the model may grow
+    assert keys_capacity(8000) == 10000
+    assert keys_fit(10000, 8000) and keys_fit(16000, 8000)
+    assert not keys_fit(0, 100)  # none captured yet
+    assert not keys_fit(9000, 9001)  # frames may need more (a recent one did, or the model grew)
+    assert not keys_fit(16_001, 8000)  # far above the need: the padded sort pays for each key
 
 
 @pytest.fixture
@@ -177,7 +187,7 @@ def test_a_step_whose_keys_overflowed_updates_nothing_and_is_captured_again(devi
     before = state_of(captured)
     captures = step.captures
     psnr = captured.captured.run(0, True, False).clone()
-    assert step.captures == captures + 1 and step.keys == keys_capacity(1 + 256, False)
+    assert step.captures == captures + 1 and step.keys == keys_capacity(1 + 256)
     assert torch.isnan(psnr).item()
     after = state_of(captured)
     for key, value in before.items():
@@ -186,7 +196,7 @@ def test_a_step_whose_keys_overflowed_updates_nothing_and_is_captured_again(devi
     step.settle()
     assert step.dropped == 1
     psnr = captured.captured.run(0, True, False)
-    assert step.captures == captures + 2 and step.keys > keys_capacity(1 + 256, False)
+    assert step.captures == captures + 2 and step.keys > keys_capacity(1 + 256)
     assert not torch.isnan(psnr).item()
     step.settle()
     assert step.dropped == 1
@@ -220,7 +230,7 @@ def test_the_captured_step_serves_only_where_it_can():
     assert "weights" in unsupported(layer)
     with pytest.raises(InputError, match="dense Adam"):
         Trainer(images, cams, points, colors, small_config(10, sparse_adam=False, captured_step=True), CPU)
-    # unset: on a GPU only; here the eager step
+    # off unless asked for
     plain = Trainer(images, cams, points, colors, small_config(10, sparse_adam=True, alive_index=False), CPU)
     assert unsupported(plain) is None and plain.captured is None
     assert isinstance(Trainer(images, cams, points, colors, small_config(10, sparse_adam=True, alive_index=False,

@@ -18,9 +18,8 @@ quarter, at most the cap, while densification may add Gaussians; the model's siz
 edit gives them new tensors, the next step copies them in (no capture) and binds the views again; a
 model past the rows (or under half of them) is captured again at its new capacity. The frame's tile keys
 are held to the renderer's bound of recent frames of this size (as a deferred frame's, tomgs.render),
-scaled by the model's growth since those frames, plus an eighth (a quarter while densification may add
-Gaussians); captured again once frames may need more, or, after densification, the bound fell far
-below them. The first EAGER_STEPS steps run eagerly: their frames teach the bound.
+scaled by the model's growth since those frames, plus a quarter; captured again once frames may need
+more, or the bound fell to under half of them. The first EAGER_STEPS steps run eagerly: their frames teach the bound.
 
 Nothing on the step's path waits for the device. The graph itself decides whether the update applies
 (`kernels/step.py`'s judge_step: the frame's keys held its whole list, its inputs kept the renderer's
@@ -54,9 +53,7 @@ from tomgs.runtime import launch, scope, wrap, wrap_rows
 
 RING = 16  # steps whose flags and PSNR the device keeps; the host copies the flags every RING // 2 steps
 ROWS_HEADROOM = 4  # rows held beyond the model's N: N / ROWS_HEADROOM (a densification's growth, mostly)
-KEYS_HEADROOM = 8  # tile keys held beyond what frames may need: that / KEYS_HEADROOM (the fit moves its totals)
-KEYS_GROWING_HEADROOM = 4  # the same while densification may still add Gaussians
-KEYS_SLACK = 4  # once it cannot: captured again smaller when the keys pass the need by a quarter
+KEYS_HEADROOM = 4  # tile keys held beyond what frames may need: that / KEYS_HEADROOM
 # the first steps run eagerly, waiting where their frames overflowed their keys: the renderer's bound of this
 # size learns the clip's views before the first capture takes its keys from it
 EAGER_STEPS = 16
@@ -77,7 +74,7 @@ def unsupported(trainer) -> str | None:
         return "the alive index (alive_index on)"
     if trainer.weights is not None or trainer.alpha_targets is not None:
         return "per-pixel loss weights or alpha targets (a layer's fit)"
-    if trainer.frames.device != trainer.device:
+    if trainer.frames.device.type != trainer.device.type:
         return "frames kept on the host (too large for the GPU's memory)"
     return None
 
@@ -102,18 +99,18 @@ def keys_needed(bound: int, growth: float) -> int:
     return max(bound, math.ceil(bound * growth))
 
 
-def keys_capacity(needed: int, growing: bool) -> int:
-    """The tile keys a capture's frames hold for frames needing `needed`: an eighth more, a quarter while
-    densification may add Gaussians (the next densification fits more often without a capture); at most
-    what the sort takes."""
-    return min(MAX_INTERSECTIONS, needed + needed // (KEYS_GROWING_HEADROOM if growing else KEYS_HEADROOM))
+def keys_capacity(needed: int) -> int:
+    """The tile keys a capture's frames hold for frames needing `needed`: a quarter more (a clip's views
+    differ in their totals by tens of percent, and the bound follows the last few), at most what the sort
+    takes."""
+    return min(MAX_INTERSECTIONS, needed + needed // KEYS_HEADROOM)
 
 
-def keys_fit(keys: int, needed: int, growing: bool) -> bool:
+def keys_fit(keys: int, needed: int) -> bool:
     """Whether frames holding `keys` tile keys serve frames that may need `needed` (`keys_needed`): they hold
-    that many, and no more than needed / KEYS_SLACK beyond once densification cannot add Gaussians, twice
-    the need while it may (the padded sort costs what the keys hold)."""
-    return 0 < keys and needed <= keys <= (2 * needed if growing else needed + needed // KEYS_SLACK)
+    that many, and no more than twice as many (the padded sort costs what the keys hold; a capture costs
+    two rehearsals, so the keys do not follow every turn of the bound)."""
+    return 0 < keys and needed <= keys <= 2 * needed
 
 
 class CapturedStep:
@@ -181,8 +178,8 @@ class CapturedStep:
         if not self._counted_size:  # the eager steps before the first capture counted this model's frames
             self._counted_size = n
         needed = keys_needed(key_bound(self._frame)[0], n / self._counted_size)
-        if not keys_fit(self.keys, needed, growing):
-            self.keys = keys_capacity(needed, growing)
+        if not keys_fit(self.keys, needed):
+            self.keys = keys_capacity(needed)
             capture = True
         if model.sh_degree != self._sh_degree or self._leaves is None or (self._captured and self._graph is None):
             capture = True

@@ -335,14 +335,12 @@ class Trainer:
     def _captured_step(self) -> CapturedStep | None:
         """The step replayed from a CUDA graph (config.captured_step), or None for the eager step. InputError
         when asked for where the fit cannot have it."""
-        wanted = self.config.captured_step
+        if not self.config.captured_step:
+            return None
         why = unsupported(self)
-        if wanted is None:
-            return CapturedStep(self) if self.device.type == "cuda" and why is None else None
-        if wanted and why is not None:
-            raise InputError(f"captured_step: a training step is captured only without {why}; leave captured_step "
-                             "unset (or False)")
-        return CapturedStep(self) if wanted else None
+        if why is not None:
+            raise InputError(f"captured_step: a training step is captured only without {why}; leave captured_step off")
+        return CapturedStep(self)
 
     def _set_means_lr(self) -> None:
         for group in self.optimizer.param_groups:
