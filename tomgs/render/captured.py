@@ -342,7 +342,7 @@ class FrameGraph:
 
 def timed_frame(width: int, height: int, near: float, far: float, device: torch.device, times: torch.Tensor,
                 row_count=NO_ARRAY):
-    """The frame (tomgs.render's, for `issue_frame`) of one image size whose time is read from `times`
+    """The frame (tomgs.render.frame's, for `issue_frame`) of one image size whose time is read from `times`
     (float32 [2], t_hi and t_lo: device memory written before each replay, as `time_table`'s rows) and,
     with `row_count` (a descriptor of int32 [1]), whose rows are that many of those given."""
     with scope(device) as wp_device:
@@ -356,7 +356,7 @@ def time_table(times, device: torch.device) -> torch.Tensor:
 
 
 def key_bound(frame) -> tuple[int, int]:
-    """(the tile keys a frame of `frame`'s size holds without waiting for its count: tomgs.render's bound
+    """(the tile keys a frame of `frame`'s size holds without waiting for its count: tomgs.render.frame's bound
     of recent frames of that size, the largest total among them); (0, 0) before one was counted."""
     return render._bounds.capacity(frame), render._bounds.largest(frame)
 

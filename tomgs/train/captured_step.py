@@ -12,14 +12,15 @@ writes both into device memory in one launch (`kernels/step.py`'s set_step) and 
 
 Memory of its own, in capacities that outlive many densifications: the parameters, Adam's moments and
 the densifier's statistics live in buffers of `rows` rows (`rows_capacity`: the model's size plus a
-quarter, at most the cap, while densification may add Gaussians; the model's size after), whose first N rows the model, the optimiser and the densifier hold as views
-(their attributes are set to them, `_bind`), and whose other rows are padding the projection culls
-(opacity 0), that Adam and the statistics never take. When densification, pruning, a checkpoint or an
-edit gives them new tensors, the next step copies them in (no capture) and binds the views again; a
-model past the rows (or under half of them) is captured again at its new capacity. The frame's tile keys
-are held to the renderer's bound of recent frames of this size (as a deferred frame's, tomgs.render),
-scaled by the model's growth since those frames, plus a quarter; captured again once frames may need
-more, or the bound fell to under half of them. The first EAGER_STEPS steps run eagerly: their frames teach the bound.
+quarter, at most the cap, while densification may add Gaussians; the model's size after), whose first
+N rows the model, the optimiser and the densifier hold as views (their attributes are set to them,
+`_bind`), and whose other rows are padding the projection culls (opacity 0), that Adam and the
+statistics never take. When densification, pruning, a checkpoint or an edit gives them new tensors, the
+next step copies them in (no capture) and binds the views again; a model past the rows (or under half
+of them) is captured again at its new capacity. The frame's tile keys are held to the renderer's bound
+of recent frames of this size (as a deferred frame's, tomgs.render.frame), scaled by the model's growth
+since those frames, plus a quarter; captured again once frames may need more, or the bound fell to
+under half of them. The first EAGER_STEPS steps run eagerly: their frames teach the bound.
 
 Nothing on the step's path waits for the device. The graph itself decides whether the update applies
 (`kernels/step.py`'s judge_step: the frame's keys held its whole list, its inputs kept the renderer's
@@ -222,7 +223,8 @@ class CapturedStep:
         self._graph = self._leaves = None
         self._buffers = None
         params = self.trainer.model.parameters_by_name()
-        shaped = {name: dict(size=(rows, *p.shape[1:]), device=self.device, dtype=p.dtype) for name, p in params.items()}
+        shaped = {name: dict(size=(rows, *p.shape[1:]), device=self.device, dtype=p.dtype)
+                  for name, p in params.items()}
         self._buffers = dict(
             params={name: torch.empty(**kw) for name, kw in shaped.items()},
             exp_avg={name: torch.zeros(**kw) for name, kw in shaped.items()},
@@ -274,7 +276,8 @@ class CapturedStep:
         else:
             args += [adam.vec_slots(*(values + [1.0] * (adam.SLOTS - len(values)))) for values in rates]
         with scope(self.device) as device:
-            launch(kernels.set_step, 1, device=device, args=[*args, wrap(self._ints), wrap(self._rates, adam.vec_slots)])
+            launch(kernels.set_step, 1, device=device,
+                   args=[*args, wrap(self._ints), wrap(self._rates, adam.vec_slots)])
 
     def _advance(self) -> tuple[list, list, list]:
         """Count the step in Adam's state of each trained parameter: (lr, bias1, bias2_sqrt) lists, slot order."""
