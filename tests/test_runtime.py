@@ -16,6 +16,30 @@ def _copy(src: wp.array(dtype=wp.int32), dst: wp.array(dtype=wp.int32)):
     dst[i] = src[i]
 
 
+@wp.kernel
+def _two_vectors(a: wp.vec3, b: wp.vec3, out: wp.array(dtype=wp.vec3)):
+    out[0] = a
+    out[1] = b
+
+
+@pytest.mark.parametrize("device", devices())
+def test_a_recorded_launch_keeps_each_vector_argument_apart(device):
+    """A vector passed for two arguments of the first (recorded) launch: the command sets each one's value in
+    place at later launches, so each must hold its own copy (else the last value set reached both), and the
+    caller's vector keeps its value."""
+    from tomgs.runtime import Launches
+
+    fresh = Launches()
+    out = torch.zeros(2, 3, device=device)
+    one = wp.vec3(1.0, 1.0, 1.0)
+    with scope(torch.device(device)) as wp_device:
+        fresh(_two_vectors, 1, [one, one, wrap(out, wp.vec3)], wp_device)
+        assert out.tolist() == [[1.0] * 3] * 2
+        fresh(_two_vectors, 1, [wp.vec3(2.0, 3.0, 4.0), wp.vec3(5.0, 6.0, 7.0), wrap(out, wp.vec3)], wp_device)
+    assert out.tolist() == [[2.0, 3.0, 4.0], [5.0, 6.0, 7.0]]
+    assert list(one) == [1.0, 1.0, 1.0]
+
+
 @pytest.mark.parametrize("device", devices())
 def test_wrap_part_reads_and_writes_its_range_only(device):
     """A kernel sees elements [start, start + length) of the tensor, and writing through the part

@@ -63,6 +63,13 @@ def stored_t_scales(t_scales):
     return _log(t_scales)
 
 
+def _sh_coefficients(sh_dc: torch.Tensor, sh_rest: torch.Tensor, degree: int) -> torch.Tensor:
+    """SH coefficients [N,(d+1)^2,3] of degree `degree` from the stored blocks sh_dc [N,1,3] and sh_rest [N,K-1,3]."""
+    if degree == 0:
+        return sh_dc  # no copy: most video scenes never leave degree 0
+    return torch.cat([sh_dc, sh_rest[:, : (degree + 1) ** 2 - 1]], dim=1)
+
+
 def rgb_to_sh_dc(rgb: torch.Tensor) -> torch.Tensor:
     """DC coefficient [N,1,3] whose colour (C0 * dc + 0.5) is `rgb` [N,3]."""
     return ((rgb - 0.5) / _C0)[:, None, :]
@@ -153,17 +160,22 @@ class GaussianModel(torch.nn.Module):
 
     def sh(self, degree: int | None = None) -> torch.Tensor:
         """SH coefficients [N,(d+1)^2,3] of the active degree (or `degree`)."""
-        degree = self.sh_degree if degree is None else degree
-        if degree == 0:
-            return self.sh_dc  # no copy: most video scenes never leave degree 0
-        return torch.cat([self.sh_dc, self.sh_rest[:, : (degree + 1) ** 2 - 1]], dim=1)
+        return _sh_coefficients(self.sh_dc, self.sh_rest, self.sh_degree if degree is None else degree)
 
     def render_inputs(self) -> dict[str, torch.Tensor]:
         """Keyword arguments of `tomgs.rasterize` for these Gaussians (camera and time excluded); a
         frame of some of them passes their indices as `rows` (tomgs.render.alive), which the kernels read
         in place, so nothing is gathered and autograd needs no scatter."""
-        return dict(means=self.means, quats=self.quats, scales=self.scales, opacities=self.opacities,
-                    colors=self.sh(), t_means=self.t_means, t_scales=self.t_scales)  # RENDER_INPUTS
+        return self.render_inputs_of(self.parameters_by_name())
+
+    def render_inputs_of(self, params: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """`render_inputs` of other stored tensors in this model's layout (`params` by PARAM_NAMES, any
+        number of rows), at its active SH degree: a captured training step activates its own copy of
+        the parameters (tomgs.train.captured_step)."""
+        colors = _sh_coefficients(params["sh_dc"], params["sh_rest"], self.sh_degree)
+        return dict(means=params["means"], quats=params["quats"], scales=activated_scales(params["log_scales"]),
+                    opacities=activated_opacities(params["opacity_logits"]), colors=colors,
+                    t_means=params["t_means"], t_scales=activated_t_scales(params["log_t_scales"]))  # RENDER_INPUTS
 
     def parameters_by_name(self) -> dict[str, torch.nn.Parameter]:
         return {name: getattr(self, name) for name in PARAM_NAMES}
@@ -217,9 +229,9 @@ class PlanarGaussianModel(GaussianModel):
     def scales(self) -> torch.Tensor:
         return activated_scales(on_plane(self.means, self.quats, self.log_scales)[2])
 
-    def render_inputs(self) -> dict[str, torch.Tensor]:
-        means, quats, _ = on_plane(self.means, self.quats, self.log_scales)
-        return dict(super().render_inputs(), means=means, quats=quats)
+    def render_inputs_of(self, params: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        means, quats, log_scales = on_plane(params["means"], params["quats"], params["log_scales"])
+        return super().render_inputs_of(dict(params, means=means, quats=quats, log_scales=log_scales))
 
     def replace(self, tensors: dict[str, torch.Tensor]) -> None:
         means, quats, log_scales = on_plane(tensors["means"], tensors["quats"], tensors["log_scales"])

@@ -303,6 +303,10 @@ class Launches:
         key = (kernel, device, block_dim)  # the kernel itself: two modules may name kernels alike
         entry = self._recorded.get(key)
         if entry is None:
+            # the command holds a vector or matrix argument as the object it is given and later sets its value
+            # in place: each gets a copy of its own (one object passed twice would take both values, and the
+            # caller's own object would change at later launches)
+            args = [type(arg).from_buffer_copy(arg) if isinstance(arg, ctypes.Array) else arg for arg in args]
             cmd = wp.launch(kernel, dim=dim, inputs=args, device=device, block_dim=block_dim, record_cmd=True)
             # each array argument gets a descriptor of the command's own (the launch may hold the
             # caller's, which is shared: NO_ARRAY, a frame's saved descriptors), and later ones have

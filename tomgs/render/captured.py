@@ -48,7 +48,7 @@ from tomgs.render.inputs import _check_rows, prepare_inputs
 from tomgs.kernels import project
 from tomgs.render import frame as render
 from tomgs.render.frame import FrameCounts, _check_scalars, _check_time, _Frame, issue_frame
-from tomgs.runtime import launch, scope, torch_stream, warp_device, wrap
+from tomgs.runtime import NO_ARRAY, launch, scope, torch_stream, warp_device, wrap
 
 
 def _storage_of(tensor: torch.Tensor) -> int:
@@ -94,9 +94,7 @@ class FrameGraph:
         p = self._prepare()  # RenderError now for a cloud outside the contract's shapes and types
         self.width, self.height, self.device = p.width, p.height, device
         self.near, self.far = p.near, p.far
-        with scope(device) as wp_device:
-            self._frame = _Frame(p.width, p.height, 0.0, 0.0, p.near, p.far, wp_device, times=wrap(self._times),
-                                 row_count=wrap(self._row_count))
+        self._frame = timed_frame(p.width, p.height, p.near, p.far, device, self._times, wrap(self._row_count))
         self._set_args = [wrap(self._viewmat, wp.mat44), wrap(self._K, wp.mat33), wrap(self._times)]
         self._params = [(name, tensor) for name, tensor in self.cloud.items() if tensor.requires_grad]
         self._param_tensors = tuple(tensor for _, tensor in self._params)
@@ -234,7 +232,7 @@ class FrameGraph:
     def _capture(self) -> None:
         """The forward and backward graphs at `capacity`, after two frames run eagerly on a side stream
         (Warp's modules loaded and launches recorded before capturing; the sort's scratch is the
-        graph's, `_known_to_warp`)."""
+        graph's, `known_to_warp`)."""
         # the last capture's memory goes back first (what a caller holds of it, the new graph never writes)
         self._graphs = self._outputs = self._grads = self._v = None
         self._output_refs = ()  # their storages may go with them
@@ -260,14 +258,14 @@ class FrameGraph:
         # its gradients may lie where the next forward writes (`_release_grads` runs before both)
         pool = torch.cuda.graph_pool_handle()
         forward = torch.cuda.CUDAGraph()
-        with _no_collection(), torch.enable_grad(), torch.cuda.graph(forward, pool=pool, stream=side), \
-                _known_to_warp(self.device):
+        with no_collection(), torch.enable_grad(), torch.cuda.graph(forward, pool=pool, stream=side), \
+                known_to_warp(self.device):
             self._outputs = self._issue()
         self._output_refs = [(storage, _use_count(storage)) for storage in map(_storage_of, self._outputs[:2])]
         backward = None
         if self._params:
             backward = torch.cuda.CUDAGraph()
-            with _no_collection(), torch.cuda.graph(backward, pool=pool, stream=side):
+            with no_collection(), torch.cuda.graph(backward, pool=pool, stream=side):
                 # the incoming gradients' buffers come from the pool too, where the forward's scratch
                 # (dead by then) may lie: written before each backward replay, as an eager frame's are
                 self._v = (torch.empty(h, w, 3, device=self.device), torch.empty(h, w, 1, device=self.device))
@@ -342,8 +340,34 @@ class FrameGraph:
         self._handed_out = False
 
 
+def timed_frame(width: int, height: int, near: float, far: float, device: torch.device, times: torch.Tensor,
+                row_count=NO_ARRAY):
+    """The frame (tomgs.render.frame's, for `issue_frame`) of one image size whose time is read from `times`
+    (float32 [2], t_hi and t_lo: device memory written before each replay, as `time_table`'s rows) and,
+    with `row_count` (a descriptor of int32 [1]), whose rows are that many of those given."""
+    with scope(device) as wp_device:
+        return _Frame(width, height, 0.0, 0.0, near, far, wp_device, times=wrap(times), row_count=row_count)
+
+
+def time_table(times, device: torch.device) -> torch.Tensor:
+    """float32 [T,2] (t_hi, t_lo) of each time t in `times` (t = t_hi + t_lo to ~48 bits, as a replayed
+    frame reads it): a captured step picks its frame's row on the device."""
+    return torch.tensor([_check_time(t) for t in times], dtype=torch.float32, device=device).reshape(-1, 2)
+
+
+def key_bound(frame) -> tuple[int, int]:
+    """(the tile keys a frame of `frame`'s size holds without waiting for its count: tomgs.render.frame's bound
+    of recent frames of that size, the largest total among them); (0, 0) before one was counted."""
+    return render._bounds.capacity(frame), render._bounds.largest(frame)
+
+
+def remember_total(frame, total: int) -> None:
+    """A frame of `frame`'s size needed `total` tile keys (read after it ran): the bound learns it."""
+    render._bounds.remember(frame, total)
+
+
 @contextlib.contextmanager
-def _no_collection():
+def no_collection():
     """No garbage collection while capturing: a collection may free another CUDA graph, and a graph
     destroyed during a capture (global mode) invalidates the capture."""
     enabled = gc.isenabled()
@@ -356,12 +380,13 @@ def _no_collection():
 
 
 @contextlib.contextmanager
-def _known_to_warp(device: torch.device):
-    """Tell Warp that torch is capturing its current stream (torch.cuda.graph's default mode, global):
-    Warp's sort then takes its scratch from the graph, where it is freed, and not from memory it would
-    leak (and warn about) at every capture."""
+def known_to_warp(device: torch.device, thread_local: bool = False):
+    """Tell Warp that torch is capturing its current stream (in torch.cuda.graph's default mode, global,
+    or with `thread_local` its capture_error_mode "thread_local"): Warp's sort then takes its scratch from
+    the graph, where it is freed, and not from memory it would leak (and warn about) at every capture."""
     stream = torch_stream(warp_device(device))
-    wp.capture_begin(stream=stream, external=True, capture_mode=wp.CaptureMode.GLOBAL)
+    mode = wp.CaptureMode.THREAD_LOCAL if thread_local else wp.CaptureMode.GLOBAL
+    wp.capture_begin(stream=stream, external=True, capture_mode=mode)
     try:
         yield
     finally:

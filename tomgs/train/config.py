@@ -61,6 +61,13 @@ class TrainConfig:
     # and gradients, work following the ~15% alive instead of all); False renders all (ablation,
     # tests); None: where it pays (tomgs.render.alive.pays_on: on a CPU, not on a GPU)
     alive_index: bool | None = None
+    # each step replayed from one CUDA graph (tomgs.train.captured_step): the host issues a launch and a
+    # replay instead of ~100 operations, where a GPU step of a million Gaussians was host bound (H100,
+    # kite-surf, densification off: 184 -> 492 steps/s at 1M Gaussians, 195 -> 650 at 0.3M, 196 -> 237 at
+    # 5M; benchmarks/train_step.py). Needs SeenAdam, no alive index, no per-pixel weights and the frames on
+    # the device (InputError otherwise); on a CPU it issues the same step from Python (tests). Off until a
+    # GPU fit and the CUDA test have confirmed it (benchmarks/RESULTS.md)
+    captured_step: bool = False
     # learning rates (3DGS; means scaled by the scene extent and decayed exponentially)
     lr_means: float = 1.6e-4
     lr_means_final: float = 1.6e-6

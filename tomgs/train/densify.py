@@ -32,24 +32,38 @@ class Densifier:
         self.grad_sum = torch.zeros(n, device=device)
         self.seen = torch.zeros(n, device=device)
 
+    def statistics(self) -> dict[str, torch.Tensor]:
+        """The per-step statistics by attribute name, float [N] each, which `accumulate` adds to: a
+        captured training step (tomgs.train.captured_step) holds them in memory of its own and puts
+        views of it in these attributes."""
+        return dict(grad_sum=self.grad_sum, seen=self.seen)
+
     def observe(self, meta: dict, visible: torch.Tensor) -> None:
         """Accumulate the view-space positional gradient of the Gaussians visible in this frame
         (`visible`: bool [N], the rasterizer's radii > 0), in NDC units, and count the view. A render
         of some Gaussians only names them in meta['rows'] (int [M]; its means2d are [M,2]): their rows
-        take its statistics. One launch (tomgs/kernels/densify.py)."""
-        from tomgs.kernels.densify import observe_view_gradients
-        from tomgs.runtime import NO_ARRAY, launch, scope, wrap
-
+        take its statistics."""
         grad = meta["means2d"].grad
         if grad is None:
             return
         rows = meta.get("rows")
-        rows = None if rows is None else rows.long().contiguous()
+        self.accumulate(self.statistics(), grad, None if rows is None else rows.long().contiguous(), visible,
+                        meta["width"], meta["height"])
+
+    @staticmethod
+    def accumulate(statistics: dict[str, torch.Tensor], grad: torch.Tensor, rows: torch.Tensor | None,
+                   visible: torch.Tensor, width: int, height: int) -> None:
+        """`statistics` (`statistics()`'s layout, float [N] each) take a frame of `width` x `height`: grad
+        [M,2] the projected means' gradient (pixels), rows int64 [M] the Gaussian of each (None: M = N),
+        visible bool [N] the Gaussians that count. One launch (tomgs/kernels/densify.py)."""
+        from tomgs.kernels.densify import observe_view_gradients
+        from tomgs.runtime import NO_ARRAY, launch, scope, wrap
+
         grad, visible = grad.contiguous(), visible.contiguous()  # held until the launch is queued
         with scope(grad.device) as device:
             launch(observe_view_gradients, grad.shape[0], device=device, args=[
                 wrap(grad, wp.vec2), NO_ARRAY if rows is None else wrap(rows), wrap(visible),
-                wp.vec2(meta["width"] / 2.0, meta["height"] / 2.0), wrap(self.grad_sum), wrap(self.seen)])
+                wp.vec2(width / 2.0, height / 2.0), wrap(statistics["grad_sum"]), wrap(statistics["seen"])])
 
     # -- the schedule (gsplat's strategy shape: the trainer calls these two around backward) -------
 
@@ -57,6 +71,10 @@ class Densifier:
         """Whether this step's screen-space gradients are wanted: until densification stops
         (`densify_stop_fraction` of the run) or the cap is reached."""
         return progress < self.config.densify_stop_fraction and not self.capped
+
+    def may_grow(self, progress: float) -> bool:
+        """Whether densification may still add Gaussians: before the end of its window, under the cap."""
+        return self.collecting(progress) and self.config.densify_start_fraction < self.config.densify_stop_fraction
 
     def step_pre_backward(self, meta: dict, progress: float) -> None:
         """Before loss.backward(): keep the gradient of the projected means when collecting."""
@@ -74,9 +92,14 @@ class Densifier:
         `opacity_reset_interval` steps while densifying. A prune inside the window that frees rows under
         a reached cap lets densification go on into them: Gaussians the optimiser has faded out at
         every frame (windows shrunk between frames) give their room to those with high gradients."""
-        c = self.config
         if self.collecting(progress):
             self.observe(meta, visible)
+        self.schedule(model, optimizer, iteration, progress)
+
+    def schedule(self, model: GaussianModel, optimizer, iteration: int, progress: float) -> None:
+        """`step_post_backward`'s decisions, once the step's statistics are in (a captured step
+        accumulates them on the device): densify, prune, reset opacities when due."""
+        c = self.config
         if self.due(iteration, progress) and not self.capped:
             self.step(model, optimizer)
             self.changed_at = iteration
@@ -84,7 +107,7 @@ class Densifier:
             if self.prune(model, optimizer) and progress < c.densify_stop_fraction \
                     and len(model) < c.max_gaussians:
                 self.capped = False
-            self.reset_stats(len(model), visible.device)
+            self.reset_stats(len(model), model.means.device)
             self.changed_at = iteration
         if c.opacity_reset_interval and iteration % c.opacity_reset_interval == 0 \
                 and progress < c.densify_stop_fraction:

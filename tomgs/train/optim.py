@@ -95,6 +95,25 @@ class SeenAdam:
         self.param_groups = [{**{k: v for k, v in g.items() if k != "params"}, "params": own["params"]}
                              for g, own in zip(groups, self.param_groups)]
 
+    def state_of(self, p: torch.Tensor) -> dict:
+        """`p`'s Adam state (step, exp_avg, exp_avg_sq), made at zero when it has none."""
+        state = self.state[p]
+        if not state:
+            state["step"] = torch.tensor(0.0)
+            state["exp_avg"] = torch.zeros_like(p)
+            state["exp_avg_sq"] = torch.zeros_like(p)
+        return state
+
+    def advance(self, group: dict, p: torch.Tensor) -> tuple[float, float, float]:
+        """Count one more step of `p` (of `group`): (lr, 1 - beta1^step, sqrt(1 - beta2^step)), its update's
+        rates. `step` calls it for every parameter it updates; a captured training step
+        (tomgs.train.captured_step), whose graph runs the update, for the parameters it updates."""
+        beta1, beta2 = self.defaults["betas"]
+        state = self.state_of(p)
+        state["step"] += 1
+        step = float(state["step"])  # a CPU tensor: no wait for the device
+        return group["lr"], 1.0 - beta1 ** step, math.sqrt(1.0 - beta2 ** step)
+
     @torch.no_grad()
     def step(self, seen: torch.Tensor) -> None:
         """One Adam step on the rows where `seen` (bool [N], N = every parameter's first axis) is True."""
@@ -109,15 +128,8 @@ class SeenAdam:
                     continue
                 if p.shape[0] != seen.shape[0]:
                     raise ValueError(f"seen has {seen.shape[0]} rows but the parameter has {p.shape[0]}")
-                state = self.state[p]
-                if not state:
-                    state["step"] = torch.tensor(0.0)
-                    state["exp_avg"] = torch.zeros_like(p)
-                    state["exp_avg_sq"] = torch.zeros_like(p)
-                state["step"] += 1
-                step = float(state["step"])  # a CPU tensor: no wait for the device
-                slots.append((p, p.grad.contiguous(), state["exp_avg"], state["exp_avg_sq"], group["lr"],
-                              1.0 - beta1 ** step, math.sqrt(1.0 - beta2 ** step)))
+                state = self.state_of(p)
+                slots.append((p, p.grad.contiguous(), state["exp_avg"], state["exp_avg_sq"], *self.advance(group, p)))
         if not slots:
             return
         seen = seen.contiguous()  # held until the launches are queued: a descriptor does not own its tensor

@@ -46,6 +46,7 @@ from tomgs.outputs import write_text
 from tomgs.train.checkpoint import (FORMAT, LOG_FIELDS, START_OVER, VERSION, CheckpointWriter, FitInterrupted,
                                     StopSignals, check_same_settings, config_from, config_to_dict, own_copies,
                                     read_checkpoint, state_bytes, write_checkpoint)
+from tomgs.train.captured_step import CapturedStep, unsupported
 from tomgs.train.config import TrainConfig
 from tomgs.train.densify import Densifier
 from tomgs.train.optim import make_adam, uses_seen_adam
@@ -162,6 +163,7 @@ class Trainer:
         # on a GPU a step does not wait for the device: its frame's counts are read once the backward is
         # queued (tomgs.render.render_frame(defer=True)), the sampler's PSNRs a flush late
         self.pipelined = device.type == "cuda"
+        self.captured = self._captured_step()
         self.iteration = 0
         self.progress = 0.0  # fraction of the run done: iterations or wall-clock budget, whichever is further
         self.elapsed = 0.0  # wall seconds of earlier sessions of a resumed run
@@ -330,6 +332,21 @@ class Trainer:
                   t_means=c.lr_t_means if c.temporal else 0.0, log_t_scales=c.lr_t_scales if c.temporal else 0.0)
         return make_adam(self.model.parameters_by_name(), lr, self.sparse_adam, self.device)
 
+    def _captured_step(self) -> CapturedStep | None:
+        """The step replayed from a CUDA graph (config.captured_step), or None for the eager step. InputError
+        when asked for where the fit cannot have it."""
+        if not self.config.captured_step:
+            return None
+        why = unsupported(self)
+        if why is not None:
+            raise InputError(f"captured_step: a training step is captured only without {why}; leave captured_step off")
+        return CapturedStep(self)
+
+    def _set_means_lr(self) -> None:
+        for group in self.optimizer.param_groups:
+            if group["name"] == "means":
+                group["lr"] = self._means_lr()
+
     def _means_lr(self) -> float:
         c = self.config
         frac = min(self.progress, 1.0)
@@ -403,6 +420,14 @@ class Trainer:
 
     def step(self) -> None:
         k = self.sampler.sample()
+        if self.captured is not None and self.captured.ready():
+            self._set_means_lr()
+            # the whole step in one replay; the densifier decides after it, on the host, as after an eager one
+            self._heard(k, self.captured.run(k, self.densifier.collecting(self.progress),
+                                             self.densifier.may_grow(self.progress)))
+            self.iteration += 1
+            self.densifier.schedule(self.model, self.optimizer, self.iteration, self.progress)
+            return
         defer = self.pipelined
         while True:
             image, alpha, meta = self.render(k, defer=defer)
@@ -418,16 +443,12 @@ class Trainer:
                 break
             self.optimizer.zero_grad(set_to_none=True)
             defer = False
-        self._measured.append((k, measured))
-        if len(self._measured) >= SAMPLER_LAG:
-            self.flush_measurements(wait=not self.pipelined)
+        self._heard(k, measured)
         seen = in_view = (meta["radii"] > 0).any(-1)  # bool [M]: the rendered rows this step's gradient reaches
         if meta["rows"] is not None:  # -> bool [N]
             in_view = torch.zeros(len(self.model), dtype=torch.bool, device=self.device).index_put_(
                 (meta["rows"],), seen)
-        for group in self.optimizer.param_groups:
-            if group["name"] == "means":
-                group["lr"] = self._means_lr()
+        self._set_means_lr()
         if self.sparse_adam:
             self.optimizer.step(in_view)
         else:
@@ -437,6 +458,12 @@ class Trainer:
         self.optimizer.zero_grad(set_to_none=True)
         self.iteration += 1
         self.densifier.step_post_backward(self.model, self.optimizer, meta, in_view, self.iteration, self.progress)
+
+    def _heard(self, k: int, measured: torch.Tensor) -> None:
+        """Frame k's PSNR (0-d, where the device wrote it) for the sampler, handed over SAMPLER_LAG steps at a time."""
+        self._measured.append((k, measured))
+        if len(self._measured) >= SAMPLER_LAG:
+            self.flush_measurements(wait=not self.pipelined)
 
     def flush_measurements(self, wait: bool = True) -> None:
         """Hand the PSNRs measured so far to the sampler, in order. Without `wait` (a pipelined step's
@@ -621,6 +648,11 @@ class Trainer:
         if stop.signum is not None:  # arrived after the loop's last look: still a step boundary
             stop_here(stop.signum)
         self.elapsed = time.perf_counter() - start
+        if self.captured is not None:
+            self.captured.settle()
+            if self.captured.dropped:
+                self.notes.append(f"{self.captured.dropped} of {self.captured.steps} captured steps updated nothing "
+                                  "(their frames needed more tile keys than captured; captured again larger)")
         ended = self.history[-1] if self.history else {}
         final = ended["clip_psnr"] if ended.get("clip_psnr", "") != "" and ended.get("clip_frames") == self.num_frames \
             else float(np.mean(self.clip_psnr()))
