@@ -2,34 +2,35 @@
 without it (the eager, deferred step), and where a step's time goes: wall time against the GPU's kernel
 time (torch profiler, Warp's kernels and the graphs' included).
 
-    python benchmarks/train_step.py .clips/camel .clips/kite-surf --caps 300000 1000000 5000000 --out $OUT
-    python benchmarks/train_step.py .clips/camel --caps 1000000 --fit-iters 3000 --out $OUT
-    python benchmarks/train_step.py --smoke          # CPU: the tests' tiny clip, a few steps each way
+    python -m benchmarks.train_step .clips/camel .clips/kite-surf --caps 300000 1000000 5000000 --out $OUT
+    python -m benchmarks.train_step .clips/camel --caps 1000000 --fit-iters 3000 --out $OUT
+    python -m benchmarks.train_step --smoke          # CPU: the demo scene's tiny clip, a few steps each way
 
 Speed (per clip and cap): a Trainer of `cap` Gaussians (identity cameras, cap / frames points per frame,
-each alive around its frame, as benchmarks/profile_fit.py starts), densification off, seeded: --warm
+each alive around its frame, as benchmarks/profilers/fit.py starts), densification off, seeded: --warm
 steps, then --steps timed between device syncs, eager and captured in turn (two rounds, the quicker of
 each kept), then --profile steps of each under the profiler. A fit (--fit-iters): `Trainer.run` of that
 many iterations at the cap with the default schedule (densification from the start's cap / 2), seeded,
-each way; its final clip PSNR, wall time, captures and dropped steps. Writes <out>/train_step.json.
+each way; its final clip PSNR, wall time, captures and dropped steps. Writes <out>/train_step.{md,json}.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+from tomgs.cameras import Cameras, intrinsics
+from tomgs.train import Trainer, preset
 
-from tomgs.cameras import Cameras, intrinsics  # noqa: E402
-from tomgs.train import Trainer, preset  # noqa: E402
+if __package__:
+    from .common import demo_frames, environment, kernel_times, markdown_table, output_folder, write_report
+else:  # run as a file: Python puts this folder first on sys.path
+    from common import demo_frames, environment, kernel_times, markdown_table, output_folder, write_report
 
 NO_POINTS = np.zeros((0, 3)), np.zeros((0, 3), np.float32)
 # a GPU's defaults, also on a CPU (--smoke), where the captured step needs them
@@ -69,8 +70,6 @@ def timed_steps(trainer: Trainer, steps: int, sync) -> float:
 
 def kernel_ms(trainer: Trainer, steps: int) -> float:
     """GPU kernel milliseconds per step (torch profiler)."""
-    from profile_raster import kernel_times
-
     return sum(kernel_times(trainer.step, steps).values())
 
 
@@ -118,14 +117,12 @@ def main(argv=None) -> dict:
     ap.add_argument("--profile", type=int, default=30, help="steps profiled for the kernel time (0: none)")
     ap.add_argument("--fit-iters", type=int, default=0, help="also fit this many iterations each way, at each cap")
     ap.add_argument("--device", default="cuda")
-    ap.add_argument("--out", type=Path, help="folder for train_step.json")
+    ap.add_argument("--out", type=Path, help="folder for train_step.md and .json (default bench_out/train_step)")
     ap.add_argument("--smoke", action="store_true", help="a tiny CPU run of the whole script (tests)")
     args = ap.parse_args(argv)
     if args.smoke:
-        from test_train import synthetic_clip
-
-        frames, cameras = synthetic_clip(3, 32, 18)[:2]
-        clips = {"smoke": (frames, cameras)}
+        frames = np.stack(list(demo_frames(3, 32, 18)))
+        clips = {"smoke": (frames, identity_cameras(frames))}
         args.caps, args.warm, args.steps, args.profile = [600], 3, 3, 0
         args.fit_iters = args.fit_iters or 12
         device = torch.device("cpu")
@@ -143,9 +140,13 @@ def main(argv=None) -> dict:
                 row["fit"] = fit(frames, cameras, cap, args.fit_iters, device)
             results[f"{name}@{cap}"] = row
             print(name, json.dumps(row), flush=True)
-    if args.out is not None:
-        args.out.mkdir(parents=True, exist_ok=True)
-        (args.out / "train_step.json").write_text(json.dumps(results, indent=1))
+    rows = [[key, row["gaussians"], row["steps_per_s"]["eager"], row["steps_per_s"]["captured"], row["ratio"],
+             row["captures"], row["dropped"]] for key, row in results.items()]
+    body = markdown_table(["clip@cap", "Gaussians", "eager steps/s", "captured steps/s", "ratio", "captures",
+                           "dropped"], rows)
+    write_report(output_folder(args.out, args.smoke, "train_step"), "train_step",
+                 "train_step: steps per second, captured against eager", environment(device, "train_step", argv),
+                 body, results)
     return results
 
 

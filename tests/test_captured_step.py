@@ -6,8 +6,6 @@ frame outside the renderer's contract, and falls back where it cannot serve."""
 from __future__ import annotations
 
 import copy
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -251,10 +249,8 @@ def test_a_run_with_captured_steps_ends_like_an_eager_one():
 
 
 def test_the_train_step_benchmark_runs_on_a_cpu():
-    path = Path(__file__).resolve().parent.parent / "benchmarks" / "train_step.py"
-    spec = importlib.util.spec_from_file_location("train_step_benchmark", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    (row,) = module.main(["--smoke"]).values()
+    from benchmarks import train_step
+
+    (row,) = train_step.main(["--smoke"]).values()
     assert row["steps_per_s"]["eager"] > 0 and row["steps_per_s"]["captured"] > 0
     assert row["fit"]["captured"]["clip_psnr"] == pytest.approx(row["fit"]["eager"]["clip_psnr"], abs=0.05)
