@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 from tomgs.errors import InputError
-from tomgs.outputs import check_file_output, remove_stale_temporaries
+from tomgs.outputs import check_distinct, check_file_output, existing_path, remove_stale_temporaries
 from tomgs.train.checkpoint import START_OVER, FitInterrupted, StopSignals, check_same_settings, read_checkpoint
 from tomgs.train.config import TrainConfig
 from tomgs.train.trainer import FitResult, Trainer, write_csv
@@ -110,6 +110,9 @@ def fit(video, output, config: TrainConfig | None = None, *, masks=None, frames=
     from tomgs.runtime import resolve_device
     from tomgs.train.multigpu.rank import fit_shards, wants_shards
 
+    check_distinct({f"the fit's {what}": path for what, path in output_paths(output).items()},
+                   {"the video": existing_path(video), "the masks": existing_path(masks),
+                    "the poses": existing_path(poses)})
     if wants_shards(gpus):
         return fit_shards(video, output, config, gpus=gpus, masks=masks, frames=frames, max_side=max_side, poses=poses,
                           focal=focal, device=device, resume=resume, overwrite=overwrite, progress=progress,
