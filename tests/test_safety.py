@@ -51,7 +51,7 @@ def tiny_cameras(frames: int = T) -> Cameras:
 
 
 def write_scene(path, info=None, model=None) -> Path:
-    save_scene(path, model or tiny_model(), tiny_cameras(), {"fps": 12.0, **(info or {})})
+    save_scene(path, tiny_model() if model is None else model, tiny_cameras(), {"fps": 12.0, **(info or {})})
     return Path(path)
 
 
@@ -236,3 +236,148 @@ def test_defect10_the_ends_of_every_range_run(scene, tmp_path):
     for fps in ("0.1", "1000"):
         result = run("render", scene, "-o", tmp_path / f"r{fps}.mp4", "--fps", fps, "--device", "cpu")
         assert result.exit_code == 0, result.output
+
+
+# -- 3. a full disk at a checkpoint ---------------------------------------------------------------------
+
+
+def test_defect03_a_checkpoint_that_cannot_be_written_lets_training_go_on(tmp_path, monkeypatch):
+    """A fit died at 64.6 s with a multi-page traceback when a checkpoint met a full disk. The run goes
+    on, notes it, and the last complete checkpoint stays the one to resume."""
+    from test_train import background_writes, run_clip
+
+    background_writes(monkeypatch, {}, error=OSError(errno.ENOSPC, "No space left on device", "run.ckpt"))
+    rows = []
+    result = run_clip(30, checkpoint=tmp_path / "run.ckpt", checkpoint_interval_s=0.0, log_interval=1,
+                      on_row=rows.append)
+    assert result.iterations == 30 and len(rows) == 30
+    said = [n for n in result.notes if "checkpoint could not be written" in n]
+    assert len(said) == 1 and "No space left on device" in said[0] and "training went on" in said[0], result.notes
+
+
+def test_defect03_torch_zip_writer_on_a_full_disk_is_an_os_error_naming_the_checkpoint(tmp_path, monkeypatch):
+    import tomgs.train.checkpoint as checkpoint
+    from test_train import CPU, small_config, synthetic_clip
+    from tomgs.train import Trainer
+
+    images, cams, points, colors = synthetic_clip(2, 24, 14)
+    state = Trainer(images, cams, points, colors, small_config(5), CPU).state_dict()
+    path = tmp_path / "run.ckpt"
+    path.write_bytes(b"the last complete checkpoint")
+    monkeypatch.setattr(checkpoint, "open", FullDisk(500), raising=False)
+    with pytest.raises(OSError) as caught:
+        checkpoint.write_checkpoint(path, state)
+    assert caught.value.errno == errno.ENOSPC and caught.value.filename == str(path)
+    assert "the existing run.ckpt is kept" in caught.value.strerror
+    assert listing(tmp_path) == {"run.ckpt": b"the last complete checkpoint"}
+
+
+def test_defect03_a_stop_whose_save_fails_points_at_the_last_complete_checkpoint(tmp_path, monkeypatch):
+    import tomgs.train.trainer as trainer
+    from test_train import background_writes, run_clip
+    from tomgs.train import FitInterrupted
+
+    background_writes(monkeypatch, {})
+    monkeypatch.setattr(trainer, "write_checkpoint",
+                        lambda path, state: (_ for _ in ()).throw(OSError(errno.ENOSPC, "No space left on device",
+                                                                         str(path))))
+    with pytest.raises(FitInterrupted) as caught:
+        run_clip(40, interrupt_at=20, checkpoint=tmp_path / "run.ckpt", checkpoint_interval_s=0.0, log_interval=1)
+    assert caught.value.checkpoint == tmp_path / "run.ckpt"
+    assert "could not be saved" in caught.value.message() and "last complete checkpoint" in caught.value.message()
+
+
+def test_defect03_a_full_disk_at_the_final_save_is_one_line_naming_the_scene(clip, tmp_path, monkeypatch):
+    import tomgs.io.scene as scene_io
+
+    monkeypatch.setattr(scene_io, "open", FullDisk(0), raising=False)
+    out = tmp_path / "s.ply"
+    result = run("fit", clip, "-o", out, "--iterations", "3", "--device", "cpu", "--poses", "identity", "-q")
+    line = one_line_refusal(result, code=1)
+    assert str(out) in line and "No space left on device" in line and "run the fit again" in line, line
+    assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
+
+
+# -- 11. lesser ---------------------------------------------------------------------------------------------
+
+
+def test_defect11_compaction_never_leaves_an_empty_scene_and_an_empty_scene_exports(clip, tmp_path):
+    """`--compact inf` wrote a 0-Gaussian scene (exit 0), and exporting that crashed."""
+    out = tmp_path / "s.ply"
+    result = run("fit", clip, "-o", out, "--iterations", "3", "--device", "cpu", "--poses", "identity",
+                 "--compact", "1e6")
+    assert result.exit_code == 0, result.output
+    assert len(load_scene(out).model) > 0 and "would leave out every Gaussian" in result.output
+    empty = tiny_model()
+    empty.replace({k: v.detach()[:0] for k, v in empty.parameters_by_name().items()})
+    path = write_scene(tmp_path / "empty.ply", model=empty)
+    for name in ("e.ply", "e.splat", "e.spz"):
+        result = run("export", path, "-o", tmp_path / name, "--frame", "0")
+        assert result.exit_code == 0 and "0 of 0 Gaussians" in result.output, result.output
+
+
+def test_defect11_the_cap_holds_from_the_first_step(clip, tmp_path):
+    """`--cap 100` ended with 171 Gaussians: the tracked points and a point a frame came on top of it."""
+    out = tmp_path / "s.ply"
+    result = run("fit", clip, "-o", out, "--iterations", "3", "--device", "cpu", "--cap", "5", "--compact", "0")
+    assert result.exit_code == 0, result.output
+    assert len(load_scene(out).model) <= 5
+
+
+def test_defect11_a_resumed_fit_says_the_limit_it_ran_under():
+    """A resume's note claimed a time limit longer than its --budget: the training seconds of both runs."""
+    from test_train import CPU, small_config, synthetic_clip
+    from tomgs.train import Trainer
+
+    images, cams, points, colors = synthetic_clip(2, 24, 14)
+    trainer = Trainer(images, cams, points, colors, small_config(10**6), CPU)
+    trainer.elapsed = 500.0  # as if resumed after 500 s of training
+    result = trainer.run(time_limit=501.0)
+    note = [n for n in result.notes if "time limit" in n]
+    assert note and "1 s of training in this run, 501 s in all" in note[0], result.notes
+
+
+@pytest.mark.parametrize("option", ["--budget", "--compact"])
+def test_defect11_nan_is_refused_not_ignored(option, clip, tmp_path):
+    line = one_line_refusal(run("fit", clip, "-o", tmp_path / "s.ply", option, "nan"))
+    assert option in line and "finite" in line
+
+
+def test_defect11_ctrl_c_while_a_command_starts_exits_130_in_one_line(scene, tmp_path, monkeypatch):
+    """Ctrl-C during start-up (a command's imports) exited 1 with "Aborted!"."""
+    import tomgs.io.scene as scene_io
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(scene_io, "load_scene", interrupted)
+    result = run("render", scene, "-o", tmp_path / "r.mp4")
+    assert result.exit_code == 130, result.output
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert lines == ["interrupted (SIGINT): stopped, outputs left as they were"], result.output
+
+
+@pytest.mark.parametrize("command", ["export", "edit", "info"])
+def test_defect11_a_full_disk_names_the_file_in_every_command(command, scene, tmp_path, monkeypatch):
+    import tomgs.outputs as outputs
+
+    real = Path.write_bytes
+
+    def full(self, data):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(Path, "write_bytes", full)
+    monkeypatch.setattr(outputs, "_fsync_folder", lambda folder: None)
+    import tomgs.io.scene as scene_io
+    import tomgs.io.splats as splats
+
+    monkeypatch.setattr(scene_io, "open", FullDisk(0), raising=False)
+    monkeypatch.setattr(splats, "open", FullDisk(0), raising=False)
+    target = {"export": tmp_path / "x.splat", "edit": tmp_path / "e.ply", "info": tmp_path / "p.png"}[command]
+    args = {"export": ["export", scene, "-o", target, "--frame", "0"],
+            "edit": ["edit", scene, "-o", target, "--translate", "1,0,0"],
+            "info": ["info", scene, "--plot", target]}[command]
+    line = one_line_refusal(run(*args), code=1)
+    monkeypatch.setattr(Path, "write_bytes", real)
+    assert line == f"Error: {target}: No space left on device; nothing was written", line
+    assert list(tmp_path.iterdir()) == []

@@ -259,9 +259,19 @@ def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses
         info["layer"] = layer
     result.cameras = cameras
     phases("save", 0, 2, None)
-    save_scene(paths["scene"], result.model, cameras, info)
+    try:
+        save_scene(paths["scene"], result.model, cameras, info)
+    except OSError as e:  # a full disk: what a resume continues from, if anything
+        checkpoint = paths["checkpoint"]
+        kept = f"the checkpoint {checkpoint} is kept: free some space, then run again with --resume" \
+            if checkpoint.is_file() else "no checkpoint was written: free some space and run the fit again"
+        raise OSError(e.errno, f"{e.strerror}; {kept}", e.filename) from None
     phases("save", 1, 2, None)
-    _plot(paths["plot"], result.history)
+    try:
+        _plot(paths["plot"], result.history)
+    except OSError as e:  # the scene and its log are written: the plot is drawn from the log
+        result.notes.append(f"the PSNR plot could not be written ({e.filename}: {e.strerror}); {paths['csv']} "
+                            f"holds its numbers")
     phases("save", 2, 2, None)
     paths["checkpoint"].unlink(missing_ok=True)
     for path in paths.values():  # a kill just before a resume left some too fresh to remove at its start
