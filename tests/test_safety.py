@@ -381,3 +381,69 @@ def test_defect11_a_full_disk_names_the_file_in_every_command(command, scene, tm
     monkeypatch.setattr(Path, "write_bytes", real)
     assert line == f"Error: {target}: No space left on device; nothing was written", line
     assert list(tmp_path.iterdir()) == []
+
+
+# -- 4. --gpus N started N processes before any check ------------------------------------------------------
+
+
+@pytest.mark.parametrize("args, gpus, cores, message", [
+    (["--gpus", "12"], 0, 2, "--gpus 12: torch sees no GPU here; give --device cpu"),
+    (["--gpus", "3", "--device", "cuda"], 2, 2, "--gpus 3: this host has 2 GPUs"),
+    (["--gpus", "12", "--device", "cpu"], 0, 2, "--gpus 12 --device cpu: this machine has 2 CPU cores"),
+    (["--gpus", "2", "--device", "cuda:1"], 2, 2, "each rank takes its own GPU"),
+    (["--gpus", "100000"], 8, 64, "--gpus 100000: out of range; give processes in 1..1024"),
+])
+def test_defect04_gpus_beyond_the_host_are_refused_before_any_process_starts(args, gpus, cores, message, clip,
+                                                                            tmp_path, monkeypatch):
+    """`--gpus 12` on a machine without GPUs took 32 s and 2.4 GB before its refusal, and had no bound."""
+    from tomgs.train.multigpu import pool as rank_pool
+
+    started = []
+    monkeypatch.setattr(rank_pool, "start", started.append)
+    monkeypatch.setattr(rank_pool, "visible_gpus", lambda: gpus)
+    monkeypatch.setattr(os, "cpu_count", lambda: cores)
+    line = one_line_refusal(run("fit", clip, "-o", tmp_path / "s.ply", *args))
+    assert message in line, line
+    assert started == [] and list(tmp_path.iterdir()) == []
+
+
+def test_defect04_gpus_are_counted_without_torch(monkeypatch, tmp_path):
+    from tomgs.train.multigpu import pool as rank_pool
+
+    monkeypatch.setattr(os, "listdir", lambda path: ["0000:01:00.0", "0000:02:00.0", "0000:03:00.0"]
+                        if path == "/proc/driver/nvidia/gpus" else [])
+    for visible, count in ((None, 3), ("1,0", 2), ("0,7,1", 1), ("", 0), ("-1", 0), ("GPU-abc,2", 2)):
+        if visible is None:
+            monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
+        else:
+            monkeypatch.setenv("CUDA_VISIBLE_DEVICES", visible)
+        assert rank_pool.visible_gpus() == (count if os.uname().sysname == "Linux" else None), visible
+
+
+# -- 5. a crafted checkpoint: stride-0 views declaring what their bytes do not hold ---------------------------
+
+
+def test_defect05_a_checkpoint_of_views_declaring_more_than_their_storage_is_refused(tmp_path):
+    """A 32 KB checkpoint whose tensors were stride-0 views declaring 200M rows over one made `--resume`
+    allocate without bound (5.7 GB, then an allocator traceback)."""
+    from test_train import CPU, small_config, synthetic_clip
+    from tomgs.errors import InputError
+    from tomgs.train import Trainer, read_checkpoint
+
+    images, cams, points, colors = synthetic_clip(2, 24, 14)
+    state = Trainer(images, cams, points, colors, small_config(5), CPU).state_dict()
+    rows = 200_000_000
+
+    def declared(t):
+        return t.detach()[:1].expand(rows, *t.shape[1:])
+
+    state["params"] = {k: declared(v) for k, v in state["params"].items()}
+    for entry in state["optimizer"]["state"].values():
+        entry["exp_avg"], entry["exp_avg_sq"] = declared(entry["exp_avg"]), declared(entry["exp_avg_sq"])
+    state["densifier"]["grad_sum"] = declared(state["densifier"]["grad_sum"])
+    state["densifier"]["seen"] = declared(state["densifier"]["seen"])
+    path = tmp_path / "s.ckpt"
+    torch.save(state, path)
+    assert path.stat().st_size < 200_000
+    with pytest.raises(InputError, match=r"a tensor of shape \(200000000, 3\) over [\d,]+ stored bytes"):
+        read_checkpoint(path)

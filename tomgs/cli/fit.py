@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import click
 
 from tomgs.cli import (
@@ -74,6 +76,8 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
     """
     from tomgs.train.multigpu import pool as rank_pool
 
+    if gpus is not None and gpus > 1 and not rank_pool.under_torchrun():  # a host that cannot run them starts none
+        rank_pool.check_world(gpus, device, rank_pool.visible_gpus(), cores=os.cpu_count())
     if gpus is not None:  # the ranks import while this process does (tomgs.train.multigpu.pool)
         rank_pool.start(gpus)
     from tomgs.outputs import check_distinct, existing_path

@@ -291,10 +291,21 @@ def read_checkpoint(path) -> dict:
     except Exception as e:  # noqa: BLE001 - every way a foreign or damaged file fails to load
         raise InputError(f"{path} is not a checkpoint tomgs can read ({_load_failure(e)}); nothing in it was run. "
                          f"Delete it, or {START_OVER}") from None
+    _check_storages(state, path)
     check_state(state, path)
     for row in state["history"]:  # an older checkpoint's rows: every clip PSNR covered all the views
         row.setdefault("clip_frames", state["frames"][0] if row["clip_psnr"] != "" else "")
     return state
+
+
+def _check_storages(state, path) -> None:
+    """InputError for a tensor its stored bytes do not hold: a view that repeats its storage (a stride
+    of 0 declaring 200M rows over one). Such a tensor costs nothing to load, and the first copy of it
+    allocates what it declares. (torch.load itself refuses a view that reaches past its storage.)"""
+    for t in _tensors(state):
+        bytes_held = t.untyped_storage().nbytes()
+        if t.numel() * t.element_size() > bytes_held:
+            raise _bad(path, f"a tensor of shape {tuple(t.shape)} over {bytes_held:,} stored bytes")
 
 
 def _load_failure(error: Exception) -> str:
