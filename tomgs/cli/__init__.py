@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import signal
 import sys
 import time
 
@@ -16,7 +17,8 @@ import click
 
 from tomgs import __version__
 from tomgs.errors import InputError, RenderError
-from tomgs.render.jobs import parse_floats, run_render
+from tomgs.cli.params import FOCAL, FPS, SIDE, Colour
+from tomgs.render.jobs import run_render
 
 
 class UsageError(click.ClickException):
@@ -27,18 +29,54 @@ class UsageError(click.ClickException):
 
 def user_errors(command):
     """Bad input found by the library (InputError, RenderError): exit 2 with its message. An OS
-    error while reading or writing (disk full, a file removed under us): exit 1 naming the file.
-    Never a traceback."""
+    error while reading or writing (disk full, a file removed under us, a file that ends early):
+    exit 1 naming the file; so is running out of memory. Never a traceback."""
     @functools.wraps(command)
     def wrapper(*args, **kwargs):
         try:
             return command(*args, **kwargs)
         except (InputError, RenderError) as e:
             raise UsageError(str(e)) from None
-        except OSError as e:
-            where = f"{e.filename}: " if e.filename else ""
-            raise click.ClickException(f"{where}{e.strerror or e}") from None
+        except (OSError, EOFError) as e:  # PyAV's errors are both FFmpegError and one of these
+            where = f"{e.filename}: " if getattr(e, "filename", None) else ""
+            raise click.ClickException(f"{where}{getattr(e, 'strerror', None) or e}") from None
+        except MemoryError as e:
+            raise click.ClickException(out_of_memory(e)) from None
+        except RuntimeError as e:
+            if "can't allocate memory" not in str(e):  # torch's host allocator
+                raise
+            raise click.ClickException(out_of_memory(e)) from None
     return wrapper
+
+
+def out_of_memory(error: BaseException) -> str:
+    detail = str(error).strip().splitlines()[-1][:160] if str(error).strip() else "the allocator refused"
+    return (f"out of memory ({detail}); give the command less to hold: fewer or smaller frames (--frames, "
+            f"--max-side), or a lower --cap")
+
+
+class Group(click.Group):
+    """The `tomgs` group. Every command runs with SIGINT, SIGTERM and SIGHUP raising an interrupt
+    (tomgs.interrupts), so its writers release their files and remove their temporaries on the way
+    out; an interrupted command says so in one line and exits 128 + the signal (130 for Ctrl-C,
+    also while it imports). Whatever ends a command, none of its temporaries is left."""
+
+    def invoke(self, ctx):
+        from tomgs.interrupts import held, raising, signal_name
+        from tomgs.outputs import remove_temporaries
+
+        with raising():
+            try:
+                return super().invoke(ctx)
+            except KeyboardInterrupt as e:
+                signum = getattr(e, "signum", signal.SIGINT)
+                with held():
+                    remove_temporaries()
+                click.echo(f"\ninterrupted ({signal_name(signum)}): stopped, outputs left as they were", err=True)
+                raise SystemExit(128 + signum) from None
+            finally:
+                with held():
+                    remove_temporaries()
 
 
 OUTPUT_HELP = "an .mp4/.avi/.mov/.mkv file, or a folder (no suffix) for PNG frames"
@@ -48,10 +86,10 @@ def clip_options(f):
     """--frames, --max-side, --masks and --focal, as `poses` and `fit` read a clip."""
     for option in reversed([
         click.option("--frames", default=None, help="frame range start:stop:step of the source, e.g. 0:80 or ::2"),
-        click.option("--max-side", type=click.IntRange(16), default=None, help="resize frames so that max(W, H) <= N"),
+        click.option("--max-side", type=SIDE, default=None, help="resize frames so that max(W, H) <= N"),
         click.option("--masks", type=click.Path(path_type=str), default=None,
                      help="folder of masks, one per source frame, white on the moving object (left out of poses)"),
-        click.option("--focal", type=float, default=None, help="focal length in pixels of the (resized) frames"),
+        click.option("--focal", type=FOCAL, default=None, help="focal length in pixels of the (resized) frames"),
     ]):
         f = option(f)
     return f
@@ -68,8 +106,9 @@ def render_options(f):
     for option in reversed([
         click.option("--frames", default=None, help="frame range start:stop:step in the scene's frame numbers"),
         device_option,
-        click.option("--background", default=None, help="r,g,b in [0, 1]; default: the scene's, else black"),
-        click.option("--fps", type=click.FloatRange(min=0.1), default=None,
+        click.option("--background", type=Colour(), default=None,
+                     help="r,g,b in [0, 1]; default: the scene's, else black"),
+        click.option("--fps", type=FPS, default=None,
                      help="frame rate of a video output; default: the scene's, else 25"),
         overwrite_option,
     ]):
@@ -80,7 +119,7 @@ def render_options(f):
 _VERBOSITY = {"level": 1}  # 0: -q, 1: default, 2: -v (set by `main` for the command it runs)
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(cls=Group, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="tomgs")
 @click.option("-q", "--quiet", is_flag=True, help="no progress bars or notes on stderr: results and errors only")
 @click.option("-v", "--verbose", is_flag=True, help="also every training log row on stderr")
@@ -115,6 +154,12 @@ def write_json(json_out: str | None, value) -> None:
         write_text(json_out, json_text(value))
 
 
+def selector_paths(selectors) -> list[str]:
+    """The files and folders that `--select` selectors read (index:FILE, mask:FOLDER): a command's inputs."""
+    return [rest.strip() for kind, _, rest in (str(s).partition(":") for s in selectors)
+            if kind.strip().lower() in ("index", "mask") and rest.strip()]
+
+
 def check_json(json_out: str | None, overwrite: bool) -> bool:
     """Check a --json file before any work; True when the JSON goes to stdout (print nothing else)."""
     from tomgs.outputs import check_file_output
@@ -122,26 +167,6 @@ def check_json(json_out: str | None, overwrite: bool) -> bool:
     if json_out and json_out != "-":
         check_file_output(json_out, overwrite, what="JSON report")
     return json_out == "-"
-
-
-def parse_background(text: str | None):
-    """--background 'r,g,b' in [0, 1] -> tuple, or None."""
-    rgb = None if text is None else parse_floats(text)
-    if rgb is not None and (len(rgb) != 3 or not all(0.0 <= v <= 1.0 for v in rgb)):
-        raise UsageError(f"--background must be three numbers in [0, 1] like 0,0,0 or 1,1,1, got {text!r}")
-    return rgb
-
-
-def parse_numbers(text: str | None, option: str, counts=(3,)):
-    """'a,b,c' -> tuple of floats (one of `counts` many), or None; UsageError naming `option` otherwise."""
-    if text is None:
-        return None
-    values = parse_floats(text)
-    if len(values) not in counts:
-        shape = " or ".join(",".join("xyz"[:n] if n > 1 else "s") for n in counts)
-        raise UsageError(f"{option} takes {' or '.join(map(str, counts))} comma-separated numbers ({shape}), "
-                         f"got {text!r}")
-    return values
 
 
 SELECT_HELP = ("pick Gaussians (repeat to intersect): box:x0,y0,z0,x1,y1,z1 | sphere:x,y,z,r | time:t0,t1 (clip "

@@ -4,27 +4,17 @@ from __future__ import annotations
 
 import click
 
-from tomgs.cli import UsageError, device_option, main, overwrite_option, progress_bar, user_errors
+from tomgs.cli import device_option, main, overwrite_option, progress_bar, user_errors
+from tomgs.cli.params import Number, Size
 from tomgs.render.jobs import render_frames
-
-
-def _parse_size(text: str) -> tuple[int, int]:
-    try:
-        width, height = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise UsageError(f"--size must look like 320x180, got {text!r}") from None
-    from tomgs.constants import MAX_SIDE
-
-    if not (1 <= width <= MAX_SIDE and 1 <= height <= MAX_SIDE):
-        raise UsageError(f"--size sides must be 1..{MAX_SIDE} pixels, got {text!r}")
-    return width, height
 
 
 @main.command()
 @click.option("-o", "--output", default="demo.mp4", show_default=True, type=click.Path(path_type=str),
               help="an .mp4/.avi/.mov/.mkv file, or a folder (no suffix) for PNG frames")
-@click.option("--frames", "num_frames", default=48, show_default=True, type=click.IntRange(1, 10000))
-@click.option("--size", default="320x180", show_default=True, help="WIDTHxHEIGHT in pixels")
+@click.option("--frames", "num_frames", default=48, show_default=True,
+              type=Number(1, 10000, integer=True, what="frames"))
+@click.option("--size", type=Size(), default="320x180", show_default=True, help="WIDTHxHEIGHT in pixels")
 @device_option
 @overwrite_option
 @user_errors
@@ -41,7 +31,7 @@ def demo(output, num_frames, size, device, overwrite):
     from tomgs.io.writer import check_output
     from tomgs.runtime import resolve_device
 
-    width, height = _parse_size(size)
+    width, height = size
     check_output(output, overwrite)
     dev = resolve_device(device)
     gaussians, cams = demo_scene(num_frames, width, height)

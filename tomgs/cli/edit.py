@@ -11,12 +11,12 @@ from tomgs.cli import (
     UsageError,
     is_scene_path,
     main,
-    parse_background,
-    parse_numbers,
     render_options,
     render_planned,
+    selector_paths,
     user_errors,
 )
+from tomgs.cli.params import COORDINATES, SCALES, Number, Numbers
 from tomgs.render.jobs import plan_render
 
 
@@ -25,12 +25,15 @@ from tomgs.render.jobs import plan_render
 @click.option("-o", "--output", required=True, type=click.Path(path_type=str),
               help="the edited scene (.ply), or a video / PNG folder to render the edit to")
 @click.option("--select", "selectors", multiple=True, help=SELECT_HELP)
-@click.option("--translate", default=None, help="move the selection by dx,dy,dz")
-@click.option("--rotate", default=None, help="rotate the selection by rx,ry,rz degrees (about x, then y, then z)")
-@click.option("--scale", default=None, help="scale the selection by s or sx,sy,sz")
-@click.option("--centre", default=None, help="x,y,z that --rotate and --scale turn about; default: the "
+@click.option("--translate", type=COORDINATES, default=None, help="move the selection by dx,dy,dz")
+@click.option("--rotate", type=Numbers((3,), Number(-1e6, 1e6, what="degrees")), default=None,
+              help="rotate the selection by rx,ry,rz degrees (about x, then y, then z)")
+@click.option("--scale", type=SCALES, default=None, help="scale the selection by s or sx,sy,sz")
+@click.option("--centre", type=COORDINATES, default=None,
+              help="x,y,z that --rotate and --scale turn about; default: the "
               "selection's bounding-box centre")
-@click.option("--duplicate", default=None, help="keep the selection and add a copy offset by dx,dy,dz (moved "
+@click.option("--duplicate", type=COORDINATES, default=None,
+              help="keep the selection and add a copy offset by dx,dy,dz (moved "
               "by --translate/--rotate/--scale or --keyframes too)")
 @click.option("--remove", is_flag=True, help="delete the selection")
 @click.option("--keyframes", type=click.Path(path_type=str), default=None,
@@ -56,13 +59,11 @@ def edit(scene, output, selectors, translate, rotate, scale, centre, duplicate, 
     """
     from tomgs.edit.transforms import edit_scene, keyframed_clouds, load_keyframes
     from tomgs.io.scene import load_scene, save_scene
-    from tomgs.outputs import check_file_output
+    from tomgs.outputs import check_distinct, check_file_output
 
-    move = dict(translate=parse_numbers(translate, "--translate"), rotate=parse_numbers(rotate, "--rotate"),
-                scale=parse_numbers(scale, "--scale", (1, 3)), centre=parse_numbers(centre, "--centre"),
-                duplicate=parse_numbers(duplicate, "--duplicate"))
-    if move["scale"] is not None and min(move["scale"]) <= 0:
-        raise UsageError(f"--scale must be positive, got {scale!r}")
+    check_distinct({"-o": output, "--render": render_out},
+                   {"SCENE": scene, "--keyframes": keyframes, "--over": over, "--select": selector_paths(selectors)})
+    move = dict(translate=translate, rotate=rotate, scale=scale, centre=centre, duplicate=duplicate)
     rigid = any(move[k] is not None for k in ("translate", "rotate", "scale"))
     if keyframes and (rigid or remove):
         raise UsageError("--keyframes gives the motion: leave out --translate, --rotate, --scale and --remove")
@@ -80,7 +81,7 @@ def edit(scene, output, selectors, translate, rotate, scale, centre, duplicate, 
         check_file_output(output, overwrite, what="edited scene")
     loaded = load_scene(scene)
     video = output if keyframes else render_out
-    plan = plan_render(video, loaded.cameras, frames, device, parse_background(background), overwrite, over=over,
+    plan = plan_render(video, loaded.cameras, frames, device, background, overwrite, over=over,
                        name=scene) if video else None
     keys = load_keyframes(keyframes, loaded.cameras) if keyframes else None
     edited, rows = edit_scene(loaded, selectors, remove=remove, **move)

@@ -32,8 +32,10 @@ def evaluate_command(scene, video, lpips_weights, json_out, device, overwrite):
     from tomgs.io.scene import load_scene
     from tomgs.io.video import read_video_for
     from tomgs.metrics import LPIPS, default_lpips_weights, evaluate
+    from tomgs.outputs import check_distinct
     from tomgs.runtime import resolve_device
 
+    check_distinct({"--json": json_out}, {"SCENE": scene, "VIDEO": video, "--lpips": lpips_weights})
     to_stdout = check_json(json_out, overwrite)
     dev = resolve_device(device)
     loaded = load_scene(scene, device=dev)

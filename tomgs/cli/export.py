@@ -7,15 +7,18 @@ from pathlib import Path
 import click
 
 from tomgs.cli import UsageError, main, overwrite_option, scene_cameras_option, user_errors
+from tomgs.cli.params import SH_DEGREE, Number
 
 
 @main.command()
 @click.argument("scene", type=click.Path(path_type=str))
 @click.option("-o", "--output", type=click.Path(path_type=str), default=None,
               help="the static scene: .ply (INRIA 3DGS), .splat (antimatter15) or .spz (Niantic)")
-@click.option("--frame", type=int, default=None, help="the moment: a frame number of the scene (as render --frames)")
-@click.option("--time", "clip_time", type=float, default=None, help="the moment: clip time in [0, 1]")
-@click.option("--sh-degree", type=click.IntRange(0, 3), default=None,
+@click.option("--frame", type=Number(0, 2**31 - 1, integer=True, what="a frame number"), default=None,
+              help="the moment: a frame number of the scene (as render --frames)")
+@click.option("--time", "clip_time", type=Number(0.0, 1.0, what="clip time"), default=None,
+              help="the moment: clip time in [0, 1]")
+@click.option("--sh-degree", type=SH_DEGREE, default=None,
               help="SH degree written (default the scene's; 3 pads zeros, for SIBR and INRIA's loader)")
 @click.option("--layer", "layer_paths", multiple=True, type=click.Path(path_type=str),
               help="a scene composited over SCENE (as render --layer), joined into the static scene in front")
@@ -41,8 +44,12 @@ def export(scene, output, frame, clip_time, sh_degree, layer_paths, cameras_out,
     from tomgs.edit.export import CAMERA_FILES, moment_with_layers, pick_moment, write_cameras
     from tomgs.io.scene import load_scene
     from tomgs.io.splats import FORMATS, write_static
-    from tomgs.outputs import check_file_output, check_folder_output
+    from tomgs.outputs import check_distinct, check_file_output, check_folder_output
 
+    check_distinct({"-o": output, "--cameras-out": cameras_out,
+                    "a file --cameras-out writes": [] if cameras_out is None else
+                    [str(Path(cameras_out) / name) for name in CAMERA_FILES]},
+                   {"SCENE": scene, "--layer": list(layer_paths), "--cameras": cameras_path})
     if output is None and cameras_out is None:
         raise UsageError("give -o OUT (.ply, .splat or .spz) for the static scene, --cameras-out DIR, or both")
     if output is not None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import click
 
 from tomgs.cli import (
@@ -16,6 +18,7 @@ from tomgs.cli import (
     user_errors,
     write_json,
 )
+from tomgs.cli.params import SEED, SH_DEGREE, Number
 
 
 @main.command()
@@ -24,30 +27,32 @@ from tomgs.cli import (
               help="scene file to write (.ply); a .csv log and a .psnr.png plot are written beside it")
 @click.option("--preset", default="default", show_default=True, type=click.Choice(["default", "paper", "quick"]),
               help="default: tuned for speed; paper: 80k iterations, densify to 60k; quick: a few hundred")
-@click.option("--iterations", type=click.IntRange(1), default=None, help="override the preset's iteration count")
+@click.option("--iterations", type=Number(1, 10**7, integer=True, what="iterations"), default=None,
+              help="override the preset's iteration count")
 @click.option("--poses", default="auto", show_default=True,
               help="auto, identity, or a cameras .json / AnyCam .npy / COLMAP folder / .onnx model")
 @clip_options
 @device_option
-@click.option("--cap", "max_gaussians", type=click.IntRange(1), default=None,
+@click.option("--cap", "max_gaussians", type=Number(1, 10**9, integer=True, what="Gaussians"), default=None,
               help="most Gaussians (default: by the clip's frames x pixels and the device, see the plan line)")
-@click.option("--budget", "max_seconds", type=click.FloatRange(min=1.0), default=None,
+@click.option("--budget", "max_seconds", type=Number(1.0, 1e7, what="seconds"), default=None,
               help="the whole command's wall time in seconds, reading, poses and saving included (schedules follow "
                    "it); default: none on a GPU, chosen where the iterations would take longer (10 min on a CPU)")
 @click.option("--sampling", type=click.Choice(["inverse_psnr", "uniform"]), default=None)
 @click.option("--static", "static_3dgs", is_flag=True, help="ablation: no temporal opacity (static 3DGS)")
-@click.option("--opacity-reset", type=click.IntRange(0), default=None, help="ablation: reset opacities every N")
-@click.option("--sh-degree", type=click.IntRange(0, 3), default=None, help="view-dependent colour (default 0)")
-@click.option("--compact", "compact_pixels", type=click.FloatRange(min=0.0), default=None,
+@click.option("--opacity-reset", type=Number(0, 10**7, integer=True, what="iterations"), default=None,
+              help="ablation: reset opacities every N")
+@click.option("--sh-degree", type=SH_DEGREE, default=None, help="view-dependent colour (default 0)")
+@click.option("--compact", "compact_pixels", type=Number(0.0, 1e6, what="pixels"), default=None,
               help="at the end, leave out the Gaussians that give no frame this many pixels' worth of colour "
                    "(default 0.01; 0 keeps every Gaussian)")
-@click.option("--seed", type=int, default=None)
+@click.option("--seed", type=SEED, default=None, help="the random draws' seed (default: the preset's)")
 @click.option("--resume", is_flag=True, help="continue from the checkpoint beside OUTPUT")
 @click.option("--layer", type=click.Choice(["background", "foreground"]), default=None,
               help="fit one layer (needs --masks): the pixels outside the masks, or the masked object on a plane")
-@click.option("--mask-dilation", type=click.IntRange(0), default=2, show_default=True,
+@click.option("--mask-dilation", type=Number(0, 1024, integer=True, what="pixels"), default=2, show_default=True,
               help="background layer: grow the masks by this many pixels before leaving them out")
-@click.option("--gpus", type=click.IntRange(1), default=None,
+@click.option("--gpus", type=Number(1, 1024, integer=True, what="processes"), default=None,
               help="fit N stretches of the clip side by side, one process per GPU (--device cpu: N CPU processes), "
                    "merged into one scene; default 1, or under torchrun its ranks (docs/multi-gpu.md)")
 @json_option("the fit's summary")
@@ -71,14 +76,20 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
     """
     from tomgs.train.multigpu import pool as rank_pool
 
+    if gpus is not None and gpus > 1 and not rank_pool.under_torchrun():  # a host that cannot run them starts none
+        rank_pool.check_world(gpus, device, rank_pool.visible_gpus(), cores=os.cpu_count())
     if gpus is not None:  # the ranks import while this process does (tomgs.train.multigpu.pool)
         rank_pool.start(gpus)
+    from tomgs.outputs import check_distinct, existing_path
     from tomgs.train import FitInterrupted, output_paths
     from tomgs.train import fit as fit_scene
     from tomgs.train import preset as make_config
     from tomgs.train.pipeline import phase_text, process_started
     from tomgs.train.multigpu.rank import ShardFailed, is_leader
 
+    beside = {f"the fit's {what}": path for what, path in output_paths(output).items() if what != "scene"}
+    check_distinct({"-o": output, **beside, "--json": json_out},
+                   {"VIDEO": video, "--masks": masks, "--poses": existing_path(poses)})
     started = process_started()
     overrides = dict(iterations=iterations, max_gaussians=max_gaussians, max_seconds=max_seconds, sampling=sampling,
                      opacity_reset_interval=opacity_reset, sh_degree=sh_degree, compact_pixels=compact_pixels,

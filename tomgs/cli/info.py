@@ -27,7 +27,7 @@ def info(scene, plot, as_json, cameras_path, overwrite):
     import json
 
     from tomgs.io.scene import load_scene
-    from tomgs.outputs import check_file_output
+    from tomgs.outputs import check_distinct, check_file_output
     from tomgs.io.summary import (
         check_png_path,
         format_summary,
@@ -35,6 +35,7 @@ def info(scene, plot, as_json, cameras_path, overwrite):
         summarize,
     )
 
+    check_distinct({"--plot": plot}, {"SCENE": scene, "--cameras": cameras_path})
     if plot is not None:
         check_file_output(check_png_path(plot), overwrite, what="plot")
     loaded = load_scene(scene, cameras=cameras_path)

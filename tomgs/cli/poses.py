@@ -38,9 +38,11 @@ def poses(video, output, masks, frames, method, focal, max_side, json_out, overw
       tomgs fit clip.mp4 -o scene.ply --poses cameras.json
     """
     from tomgs.io import read_video
-    from tomgs.outputs import check_file_output
+    from tomgs.outputs import check_distinct, check_file_output, existing_path
     from tomgs.poses import estimate_cameras
 
+    check_distinct({"-o": output, "--json": json_out},
+                   {"VIDEO": video, "--masks": masks, "--method": existing_path(method)})
     check_file_output(output, overwrite, what="cameras file")
     to_stdout = check_json(json_out, overwrite)
     with phase_bars() as bars:

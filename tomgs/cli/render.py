@@ -7,7 +7,6 @@ import click
 from tomgs.cli import (
     OUTPUT_HELP,
     main,
-    parse_background,
     render_options,
     render_planned,
     scene_cameras_option,
@@ -36,11 +35,13 @@ def render(scene, frames, output, device, background, fps, layer_paths, overwrit
       tomgs render edited.ply --cameras cams/cameras.json -o out.mp4   # re-saved by SuperSplat
     """
     from tomgs.io.scene import load_scene
+    from tomgs.outputs import check_distinct
     from tomgs.render.layers import check_layers
 
+    check_distinct({"-o": output}, {"SCENE": scene, "--layer": list(layer_paths), "--cameras": cameras_path})
     loaded = load_scene(scene, cameras=cameras_path)
     layers = [load_scene(path) for path in layer_paths]
     check_layers(loaded.cameras, [layer.cameras for layer in layers], list(layer_paths))
-    plan = plan_render(output, loaded.cameras, frames, device, parse_background(background), overwrite)
+    plan = plan_render(output, loaded.cameras, frames, device, background, overwrite)
     render_planned(loaded, loaded.model.render_inputs(), plan, fps,
                   layers=[(layer.model.render_inputs(), layer.cameras) for layer in layers])

@@ -12,11 +12,11 @@ from tomgs.cli import (
     device_option,
     main,
     overwrite_option,
-    parse_background,
-    parse_numbers,
     render_planned,
+    selector_paths,
     user_errors,
 )
+from tomgs.cli.params import CELL, COORDINATES, FPS, Colour, Number, Numbers
 from tomgs.errors import InputError
 from tomgs.render.jobs import plan_render
 
@@ -29,22 +29,25 @@ from tomgs.render.jobs import plan_render
 @click.option("--render", "render_out", type=click.Path(path_type=str), default=None,
               help="also render the shot here (" + OUTPUT_HELP + ")")
 @click.option("--over", type=click.Path(path_type=str), default=None, help="for --render: " + OVER_HELP)
-@click.option("--drop", type=float, default=0.0, show_default=True,
+@click.option("--drop", type=Number(-1e6, 1e6, what="scene units"), default=0.0, show_default=True,
               help="start raised this far against gravity (scene units)")
-@click.option("--spin", default=None, help="initial spin wx,wy,wz in rad/s about the centre of mass (world axes)")
-@click.option("--velocity", default=None, help="initial velocity vx,vy,vz in scene units per second")
-@click.option("--size", type=click.FloatRange(min=0, min_open=True), default=1.0, show_default=True,
+@click.option("--spin", type=Numbers((3,), Number(-1e4, 1e4, what="rad/s")), default=None,
+              help="initial spin wx,wy,wz in rad/s about the centre of mass (world axes)")
+@click.option("--velocity", type=COORDINATES, default=None, help="initial velocity vx,vy,vz in scene units per second")
+@click.option("--size", type=Number(1e-6, 1e6, what="metres"), default=1.0, show_default=True,
               help="real size in metres of the selection's largest side: gravity is scaled so it falls like that")
-@click.option("--stiffness", type=click.FloatRange(min=0, min_open=True), default=None,
+@click.option("--stiffness", type=Number(1e-6, 1e9, what="a stiffness"), default=None,
               help="edge stiffness, the inverse of the XPBD compliance (1000: a stiff jelly, 100: a soft one)")
-@click.option("--damping", type=click.FloatRange(min=0), default=None, help="velocity damping rate, 1/s")
-@click.option("--frames", "num_frames", type=click.IntRange(1), default=None,
+@click.option("--damping", type=Number(0.0, 1e6, what="per second"), default=None,
+              help="velocity damping rate, 1/s")
+@click.option("--frames", "num_frames", type=Number(1, 10**6, integer=True, what="frames"), default=None,
               help="frames to simulate (default: the scene's frame count; frame f is the scene's frame f)")
-@click.option("--cell", type=click.FloatRange(min=0, min_open=True), default=None,
+@click.option("--cell", type=CELL, default=None,
               help="cage cell size in scene units; default: 1/8 of the selection's largest extent")
 @device_option
-@click.option("--background", default=None, help="r,g,b in [0, 1] for --render; default: the scene's, else black")
-@click.option("--fps", type=click.FloatRange(min=0.1), default=None,
+@click.option("--background", type=Colour(), default=None,
+              help="r,g,b in [0, 1] for --render; default: the scene's, else black")
+@click.option("--fps", type=FPS, default=None,
               help="frames per second of the shot and the video; default: the scene's, else 25")
 @overwrite_option
 @user_errors
@@ -67,15 +70,16 @@ def simulate(scene, output, selectors, render_out, over, drop, spin, velocity, s
     from tomgs.io.scene import load_scene
     from tomgs.io.tets import save_sequence, save_tets
     from tomgs.render.jobs import render_defaults
-    from tomgs.outputs import check_file_output
+    from tomgs.outputs import check_distinct, check_file_output
     from tomgs.runtime import resolve_device
 
-    spin, velocity = parse_numbers(spin, "--spin"), parse_numbers(velocity, "--velocity")
     if not output.lower().endswith(".npz"):
         raise UsageError(f"-o {output}: the shot is a vertex sequence, an .npz")
     if over and not render_out:
         raise UsageError("--over is what the render goes over: give --render too")
     cage_path = output[:-4] + ".cage.ply"
+    check_distinct({"-o": output, "its cage": cage_path, "--render": render_out},
+                   {"SCENE": scene, "--over": over, "--select": selector_paths(selectors)})
     check_file_output(output, overwrite, what="vertex sequence")
     check_file_output(cage_path, overwrite, what="cage")
     dev = resolve_device(device)
@@ -85,7 +89,7 @@ def simulate(scene, output, selectors, render_out, over, drop, spin, velocity, s
     if frames > len(cams):
         raise InputError(f"--frames {frames}: the scene has {len(cams)} frames, and frame f of the shot is "
                          f"rendered with the scene's frame f; simulate at most {len(cams)}")
-    plan = plan_render(render_out, cams, None, device, parse_background(background), overwrite,
+    plan = plan_render(render_out, cams, None, device, background, overwrite,
                        only=set(range(frames)), over=over, name=scene) if render_out else None
     indices = select(loaded.model, cams, selectors)
     config = shot_config(loaded.model, indices, frames, fps or render_defaults(loaded.info)[1], size, drop, spin,

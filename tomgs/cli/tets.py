@@ -12,11 +12,12 @@ from tomgs.cli import (
     is_scene_path,
     main,
     overwrite_option,
-    parse_background,
     render_options,
     render_planned,
+    selector_paths,
     user_errors,
 )
+from tomgs.cli.params import CELL
 from tomgs.errors import InputError
 from tomgs.render.jobs import plan_render
 
@@ -33,7 +34,7 @@ def tets():
 @click.option("--select", "selectors", multiple=True, help=SELECT_HELP)
 @click.option("--cage", is_flag=True, help="a connected voxel cage with the Gaussians bound into it (for soft "
               "bodies) instead of one tet per Gaussian")
-@click.option("--cell", type=click.FloatRange(min=0, min_open=True), default=None,
+@click.option("--cell", type=CELL, default=None,
               help="cage cell size in scene units; default: 1/8 of the selection's largest extent")
 @overwrite_option
 @user_errors
@@ -50,8 +51,9 @@ def tets_export(scene, output, selectors, cage, cell, overwrite):
     from tomgs.edit.selection import select
     from tomgs.io.scene import load_scene
     from tomgs.io.tets import save_tets
-    from tomgs.outputs import check_file_output
+    from tomgs.outputs import check_distinct, check_file_output
 
+    check_distinct({"-o": output}, {"SCENE": scene, "--select": selector_paths(selectors)})
     if cell is not None and not cage:
         raise UsageError("--cell sets the cage's cell size: give --cage too")
     if not is_scene_path(output):
@@ -94,8 +96,9 @@ def tets_import(scene, tets_file, sequence, output, over, frames, device, backgr
     )
     from tomgs.io.scene import load_scene, save_scene
     from tomgs.io.tets import load_sequence, load_tets
-    from tomgs.outputs import check_file_output
+    from tomgs.outputs import check_distinct, check_file_output
 
+    check_distinct({"-o": output}, {"SCENE": scene, "TETS": tets_file, "SEQUENCE": sequence, "--over": over})
     if is_scene_path(output):
         check_file_output(output, overwrite, what="scene")
     loaded = load_scene(scene)
@@ -115,6 +118,6 @@ def tets_import(scene, tets_file, sequence, output, over, frames, device, backgr
         click.echo(f"{output}: {len(mesh.gaussians):,} Gaussians moved by {sequence}")
         return
     rows = sequence_rows(loaded.cameras, len(vertices), numbers)
-    plan = plan_render(output, loaded.cameras, frames, device, parse_background(background), overwrite, only=rows,
+    plan = plan_render(output, loaded.cameras, frames, device, background, overwrite, only=rows,
                        over=over, name=scene)
     render_planned(loaded, sequence_clouds(loaded.model, mesh, vertices, rows), plan, fps)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import click
 
 from tomgs.cli import device_option, main, user_errors
+from tomgs.cli.params import Number
 
 
 @main.command()
@@ -14,7 +15,7 @@ from tomgs.cli import device_option, main, user_errors
                    "in front")
 @click.option("--host", default="127.0.0.1", show_default=True,
               help="address to serve on (0.0.0.0: every network of this machine)")
-@click.option("--port", type=click.IntRange(0, 65535), default=8080, show_default=True,
+@click.option("--port", type=Number(0, 65535, integer=True, what="a port"), default=8080, show_default=True,
               help="port to serve on (busy: the next free one; 0: any free one)")
 @device_option
 @user_errors

@@ -22,6 +22,7 @@ clip) and writes atomically. The layouts, as the readers expect them (REFERENCES
 from __future__ import annotations
 
 import gzip
+import math
 import struct
 from dataclasses import dataclass
 from pathlib import Path
@@ -89,9 +90,11 @@ def _ply_bytes(g: StaticGaussians) -> bytes:
 
     n = len(g)
     columns = [g.means, np.zeros((n, 3), np.float32), g.sh_dc,
-               g.sh_rest.transpose(0, 2, 1).reshape(n, -1),  # channel-major, as INRIA
+               g.sh_rest.transpose(0, 2, 1),  # channel-major, as INRIA
                g.opacity_logits[:, None], g.log_scales, g.quats]
-    rows = np.concatenate([np.asarray(c, np.float32).reshape(n, -1) for c in columns], axis=1).astype("<f4")
+    # each column's width from its own shape: reshape(n, -1) cannot tell it when n = 0
+    rows = np.concatenate([np.asarray(c, np.float32).reshape(n, math.prod(np.shape(c)[1:])) for c in columns],
+                          axis=1).astype("<f4")
     names = inria_properties(g.sh_degree)
     assert rows.shape == (n, len(names))
     return ply_header(names, n) + np.ascontiguousarray(rows).tobytes()

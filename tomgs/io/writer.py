@@ -8,22 +8,22 @@ PNGs (`00012.png`, the files tomgs writes there) and keeps every other file.
 
 from __future__ import annotations
 
+import errno
 import os
 import re
-import shutil
-import tempfile
 from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
 
 from tomgs.errors import InputError
-from tomgs.outputs import check_file_output, check_folder_output, publish
+from tomgs.outputs import check_file_output, check_folder_output, discard, publish, temporary, write_failed
 
 # suffix -> codec: H.264 (yuv420p, index first) through PyAV for the containers browsers and players
 # read (OpenCV's mp4v, MPEG-4 Part 2, plays in no browser); Motion JPEG through OpenCV for .avi
 VIDEO_SUFFIXES = {".mp4": "h264", ".mov": "h264", ".mkv": "h264", ".avi": "mjpg"}
 H264_CRF = 18  # x264's constant quality: visually lossless for rendered frames
+FPS_RANGE = (0.1, 1000.0)  # frames per second a video is written at (containers store the rate as a fraction)
 _FRAME_PNG = re.compile(r"\d{5,}\.png")
 
 
@@ -50,12 +50,17 @@ def write_frames(frames: Iterable[np.ndarray], path, fps: float = 25.0, numbers:
     """Write RGB uint8 frames [H,W,3] to `path`: a video file by suffix, else a folder of PNGs
     named by `numbers` (the frames' numbers, e.g. the scene's frame numbers; default 0, 1, ...),
     zero-padded to five digits: 00000.png, .... Returns the number of frames written. Existing
-    output is refused unless `overwrite`, and then replaced only on success."""
+    output is refused unless `overwrite`, and then replaced only on success. Frames are staged in a
+    temporary folder beside `path` (tomgs.outputs.temporary), removed on every exit path; the video
+    writer is closed once. An OSError while writing (a full disk) names `path` and what was kept."""
     import cv2
 
     path = check_output(path, overwrite)
     is_video = bool(path.suffix)
-    staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
+    if is_video and not (isinstance(fps, (int, float)) and FPS_RANGE[0] <= fps <= FPS_RANGE[1]):
+        raise InputError(f"{path}: {fps!r} frames per second; a video is written at "
+                         f"{FPS_RANGE[0]:g}..{FPS_RANGE[1]:g}")
+    staging = temporary(path, folder=True)
     count = 0
     writer = None
     names = None if numbers is None else iter(numbers)
@@ -72,37 +77,100 @@ def write_frames(frames: Iterable[np.ndarray], path, fps: float = 25.0, numbers:
                 writer.write(frame)
             else:
                 number = count if names is None else int(next(names))
-                if not cv2.imwrite(str(target / f"{number:05d}.png"), frame[..., ::-1]):
-                    raise InputError(f"{path}: could not write PNG frame {number}")
+                ok, png = cv2.imencode(".png", frame[..., ::-1])
+                if not ok:
+                    raise InputError(f"{path}: could not encode PNG frame {number}")
+                with open(target / f"{number:05d}.png", "wb") as f:
+                    f.write(png.tobytes())
             count += 1
         if writer is not None:
-            writer.close()
-            writer = None
+            writer, closing = None, writer  # closed once, whether or not its close succeeds
+            closing.close()
         if count == 0:
             raise InputError(f"{path}: no frames to write")
         if is_video or not path.exists():
             publish(target, path)
         else:
             _merge_frames(staging, path)
+    except OSError as e:
+        raise write_failed(e, path, None if is_video or not path.exists() else
+                           "the frames already in the folder are kept") from None
     finally:
-        if writer is not None:
-            writer.close()
-        shutil.rmtree(staging, ignore_errors=True)
+        if writer is not None:  # an exception before the close: release the writer, its error aside
+            try:
+                writer.close()
+            except OSError:
+                pass
+        discard(staging)
     return count
+
+
+class _Sink:
+    """The file an H.264 container writes through: a write that fails (a full disk) is kept in
+    `error` rather than raised into FFmpeg, which would go on writing (PyAV prints each error after
+    the first); the writer raises it after the call. A failed sink takes no more bytes."""
+
+    def __init__(self, path: Path):
+        self.file = open(path, "w+b")  # noqa: SIM115 - closed by the writer's close()
+        self.name = str(path)  # faststart opens the file again by its name to move the index to the front
+        self.error: OSError | None = None
+
+    def write(self, data: bytes) -> int:
+        if self.error is None:
+            try:
+                self.file.write(data)
+            except OSError as e:
+                self.error = e
+        return len(data)
+
+    def read(self, size: int = -1) -> bytes:
+        return self.file.read(size)
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        return self.file.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self.file.tell()
+
+    @property
+    def closed(self) -> bool:
+        return self.file.closed
+
+    def check(self) -> None:
+        if self.error is not None:
+            raise self.error
+
+    def close(self) -> None:
+        try:
+            self.file.close()  # its last bytes reach the disk here: a full disk may show only now
+        except OSError as e:
+            self.error = self.error or e
 
 
 class _H264Writer:
     """H.264 High profile, yuv420p, constant quality H264_CRF, the index at the front of the file
     (`+faststart`: a browser starts playing before the whole file is loaded). yuv420p needs even
-    sides: an odd width or height is padded by repeating the last column or row."""
+    sides: an odd width or height is padded by repeating the last column or row. The container
+    writes through a `_Sink`; after a failed write the sink is closed before the container, which
+    PyAV takes as no index to write (FFmpeg's faststart would build it by reading back a torn file:
+    a segmentation fault)."""
+
+    CONTAINERS = {".mp4": "mp4", ".mov": "mov", ".mkv": "matroska"}
 
     def __init__(self, path: Path, fps: float, width: int, height: int):
         from fractions import Fraction
 
         import av
 
-        self.container = av.open(str(path), "w", options={"movflags": "+faststart"})
-        self.stream = self.container.add_stream("libx264", rate=Fraction(fps).limit_denominator(1001))
+        self.sink = _Sink(path)
+        try:
+            kind = self.CONTAINERS[path.suffix.lower()]
+            self.container = av.open(self.sink, "w", format=kind,
+                                     options={"movflags": "+faststart"} if kind in ("mp4", "mov") else {})
+            self.stream = self.container.add_stream("libx264", rate=Fraction(fps).limit_denominator(1001))
+        except BaseException:
+            self.sink.close()
+            raise
         self.stream.width, self.stream.height = width + width % 2, height + height % 2
         self.stream.pix_fmt = "yuv420p"
         self.stream.options = {"crf": str(H264_CRF), "profile": "high"}
@@ -114,13 +182,23 @@ class _H264Writer:
             rgb = np.pad(rgb, self.pad, mode="edge")
         for packet in self.stream.encode(self.av.VideoFrame.from_ndarray(rgb, format="rgb24")):
             self.container.mux(packet)
+        self.sink.check()
 
     def close(self) -> None:
+        """Flush the encoder's delayed frames and write the index (neither after a failed write);
+        the container and the file are released either way. Call once."""
         try:
-            for packet in self.stream.encode():  # flush the encoder's delayed frames
-                self.container.mux(packet)
+            if self.sink.error is None:
+                for packet in self.stream.encode():
+                    self.container.mux(packet)
         finally:
-            self.container.close()
+            if self.sink.error is not None:
+                self.sink.close()
+            try:
+                self.container.close()
+            finally:
+                self.sink.close()
+        self.sink.check()
 
 
 class _MJPGWriter:
@@ -129,15 +207,35 @@ class _MJPGWriter:
     def __init__(self, path: Path, fps: float, width: int, height: int):
         import cv2
 
+        self.level = cv2.utils.logging.getLogLevel()  # its warning a frame on a full disk: the close says it once
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
         self.writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, (width, height))
         if not self.writer.isOpened():
+            cv2.utils.logging.setLogLevel(self.level)
             raise InputError(f"{path.name}: OpenCV cannot write .avi here; write .mp4 or PNG frames to a folder")
+        self.path, self.count = path, 0
 
     def write(self, rgb: np.ndarray) -> None:
         self.writer.write(np.ascontiguousarray(rgb[..., ::-1]))
+        self.count += 1
 
     def close(self) -> None:
-        self.writer.release()
+        """Release the writer, then read the file's index back: OpenCV's writer does not report a
+        failed write (a full disk), a file short of frames does."""
+        import cv2
+
+        try:
+            self.writer.release()
+        finally:
+            cv2.utils.logging.setLogLevel(self.level)
+        video = cv2.VideoCapture(str(self.path))
+        found = int(video.get(cv2.CAP_PROP_FRAME_COUNT)) if video.isOpened() else 0
+        video.release()
+        if found != self.count:
+            full = os.statvfs(self.path.parent).f_bavail == 0 if hasattr(os, "statvfs") else False
+            code = errno.ENOSPC if full else errno.EIO
+            raise OSError(code, f"{os.strerror(code)} (the video holds {found} of its {self.count} frames)",
+                          str(self.path))
 
 
 def _merge_frames(staging: Path, folder: Path) -> None:

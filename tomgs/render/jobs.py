@@ -9,7 +9,6 @@ rendered, layers composited, written atomically) and reported.
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -18,6 +17,7 @@ import numpy as np
 
 from tomgs.cameras import Cameras
 from tomgs.errors import InputError
+from tomgs.io.writer import FPS_RANGE
 
 
 @dataclass
@@ -51,15 +51,6 @@ class RenderReport:
         return (f"{self.output}: {self.frames} frames {self.what} on {self.device} in {self.seconds:.1f} s "
                 f"({fps:.1f} fps)\n  {total} Gaussians; alive per frame {self.alive[0]:,}..{self.alive[1]:,}: only "
                 f"those alive near each frame's time were projected")
-
-
-def parse_floats(text: str) -> tuple[float, ...]:
-    """'a,b,c' -> (a, b, c) of finite floats; () when any part is not a finite number."""
-    try:
-        values = tuple(float(v) for v in text.split(","))
-    except ValueError:
-        return ()
-    return values if all(math.isfinite(v) for v in values) else ()
 
 
 def plan_render(output, cameras, frames=None, device="auto", background=None, overwrite: bool = False, *,
@@ -189,7 +180,7 @@ def select_frames(cameras: Cameras, spec) -> np.ndarray:
 
 def render_defaults(info: dict) -> tuple[tuple[float, float, float], float]:
     """(background RGB, frames per second) for rendering a scene: its info's `background` and `fps`
-    when they are valid, else black and 25."""
+    when they are valid (a rate in tomgs.io.writer.FPS_RANGE), else black and 25."""
     background, fps = (0.0, 0.0, 0.0), 25.0
     try:
         rgb = tuple(float(v) for v in info.get("background", ()))
@@ -199,8 +190,8 @@ def render_defaults(info: dict) -> tuple[tuple[float, float, float], float]:
         pass
     try:
         value = float(info.get("fps", fps))
-        if math.isfinite(value) and value > 0:
+        if FPS_RANGE[0] <= value <= FPS_RANGE[1]:
             fps = value
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         pass
     return background, fps

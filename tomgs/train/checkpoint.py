@@ -21,11 +21,14 @@ After loading, its layout is checked (`check_state`) before a tensor of it is us
                       PSNRs covered every frame)
     clip              what identifies the clip for `fit(resume=True)` (tomgs.train.pipeline fills it)
 
-Signals: `StopSignals` turns SIGINT and SIGTERM into a request that the training loop reads at a
-step boundary, where the parameters, the optimiser and the densifier agree; the loop saves and
+Signals: `StopSignals` turns SIGINT, SIGTERM and SIGHUP into a request that the training loop reads
+at a step boundary, where the parameters, the optimiser and the densifier agree; the loop saves and
 raises `FitInterrupted`. A second signal, or one outside the loop (`immediate=True`: decoding,
 poses, writing the scene), raises `FitInterrupted` at once; the checkpoint on disk is then the last
 complete one.
+
+A checkpoint that cannot be written (a full disk) stops nothing: `CheckpointWriter.failed` holds the
+OSError, the trainer notes it and goes on, and the last complete checkpoint stays the one to resume.
 """
 
 from __future__ import annotations
@@ -42,6 +45,7 @@ from pathlib import Path
 import torch
 
 from tomgs.errors import InputError
+from tomgs.interrupts import STOP_SIGNALS, deferrable
 from tomgs.model import PARAM_NAMES
 from tomgs.outputs import atomic_file
 
@@ -59,10 +63,12 @@ class FitInterrupted(KeyboardInterrupt):
     is none (stopped before training began); `signum`: the signal; `iteration`: the step saved, or
     None. `exit_code` is the shell's convention, 128 + signum."""
 
-    def __init__(self, checkpoint: Path | None, signum: int = signal.SIGINT, iteration: int | None = None):
+    def __init__(self, checkpoint: Path | None, signum: int = signal.SIGINT, iteration: int | None = None,
+                 unsaved: str | None = None):
         self.checkpoint = None if checkpoint is None else Path(checkpoint)
         self.signum = int(signum)
         self.iteration = iteration
+        self.unsaved = unsaved  # why the step reached could not be saved (the checkpoint kept is an older one)
         super().__init__(self.message())
 
     @property
@@ -74,24 +80,26 @@ class FitInterrupted(KeyboardInterrupt):
             name = signal.Signals(self.signum).name
         except ValueError:
             name = f"signal {self.signum}"
+        lost = f"; the step reached could not be saved ({self.unsaved})" if self.unsaved else ""
         if self.checkpoint is None:
-            return f"interrupted ({name}) before the first checkpoint: nothing to resume; run the fit again"
+            return f"interrupted ({name}) before the first checkpoint{lost}: nothing to resume; run the fit again"
         at = f" (iteration {self.iteration})" if self.iteration is not None else ""
-        return f"interrupted ({name}): checkpoint{at} at {self.checkpoint}; continue with --resume"
+        kept = "the last complete checkpoint" if self.unsaved else "checkpoint"
+        return f"interrupted ({name}){lost}: {kept}{at} at {self.checkpoint}; continue with --resume"
 
     def __str__(self) -> str:
         return self.message()
 
 
 class StopSignals:
-    """Context manager: SIGINT and SIGTERM, while it is active, set `signum` (the loop stops at its
+    """Context manager: SIGINT, SIGTERM and SIGHUP, while it is active, set `signum` (the loop stops at its
     next step boundary) instead of killing the process or raising in the middle of a step. A second
     signal raises FitInterrupted(`checkpoint`) at once, and so does the first with `immediate=True`.
     `checkpoint`: the last complete checkpoint, kept up to date by its user. Installs nothing outside
     the main thread (signals are delivered there only) nor for a signal that is ignored (a
     background job's SIGINT); the previous handlers are restored on exit."""
 
-    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+    SIGNALS = STOP_SIGNALS
 
     def __init__(self, immediate: bool = False, checkpoint: Path | None = None):
         self.immediate = immediate
@@ -116,7 +124,7 @@ class StopSignals:
                 if previous is signal.SIG_IGN or previous is None:
                     continue  # ignored by whoever started us (or set from C): leave it so
                 self._previous[sig] = previous
-                signal.signal(sig, self._handle)
+                signal.signal(sig, deferrable(self._handle))  # held back while a file is renamed into place
         return self
 
     def __exit__(self, *exc) -> None:
@@ -135,7 +143,13 @@ def write_checkpoint(path, state: dict) -> Path:
     check_state(state, path, ours=True)
     _check_plain(state, "state", path)
     with atomic_file(path, durable=True) as tmp, open(tmp, "wb") as f, _pinned_copies(state):
-        torch.save(state, f)
+        try:
+            torch.save(state, f)
+        except RuntimeError as e:  # torch's zip writer wraps the file's own OSError (a full disk)
+            cause = e.__cause__ or e.__context__
+            if not isinstance(cause, OSError):
+                raise
+            raise cause from None
     return Path(path)
 
 
@@ -169,12 +183,14 @@ class CheckpointWriter:
     state's tensors must be the writer's alone (`own_copies`), since training changes its own in place.
     `wait()` returns once nothing is being written and raises the first error a write met (a full
     disk); `done` is the last checkpoint written completely (None before one). As a context manager
-    it waits on leaving."""
+    it waits on leaving. A write that fails with an OSError (a full disk) is not raised: it is kept in
+    `failed` (the latest such) for the trainer to note, and `done` stays the last complete one."""
 
     def __init__(self):
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
         self.done: Path | None = None
+        self.failed: OSError | None = None
 
     def submit(self, path, state: dict, ready=None) -> None:
         """Write `state` to `path` on the thread. `ready`: None, or a CUDA event recorded after the
@@ -192,6 +208,8 @@ class CheckpointWriter:
                 side.wait_event(ready)
                 with torch.cuda.stream(side):  # the thread's own current stream: training's is untouched
                     self.done = write_checkpoint(path, state)
+            except OSError as e:  # training goes on; the trainer says so
+                self.failed = e
             except BaseException as e:  # handed to the training thread by wait()
                 self._error = e
 
@@ -273,10 +291,21 @@ def read_checkpoint(path) -> dict:
     except Exception as e:  # noqa: BLE001 - every way a foreign or damaged file fails to load
         raise InputError(f"{path} is not a checkpoint tomgs can read ({_load_failure(e)}); nothing in it was run. "
                          f"Delete it, or {START_OVER}") from None
+    _check_storages(state, path)
     check_state(state, path)
     for row in state["history"]:  # an older checkpoint's rows: every clip PSNR covered all the views
         row.setdefault("clip_frames", state["frames"][0] if row["clip_psnr"] != "" else "")
     return state
+
+
+def _check_storages(state, path) -> None:
+    """InputError for a tensor its stored bytes do not hold: a view that repeats its storage (a stride
+    of 0 declaring 200M rows over one). Such a tensor costs nothing to load, and the first copy of it
+    allocates what it declares. (torch.load itself refuses a view that reaches past its storage.)"""
+    for t in _tensors(state):
+        bytes_held = t.untyped_storage().nbytes()
+        if t.numel() * t.element_size() > bytes_held:
+            raise _bad(path, f"a tensor of shape {tuple(t.shape)} over {bytes_held:,} stored bytes")
 
 
 def _load_failure(error: Exception) -> str:

@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 from tomgs.errors import InputError
-from tomgs.outputs import check_file_output, remove_stale_temporaries
+from tomgs.outputs import check_distinct, check_file_output, existing_path, remove_stale_temporaries
 from tomgs.train.checkpoint import START_OVER, FitInterrupted, StopSignals, check_same_settings, read_checkpoint
 from tomgs.train.config import TrainConfig
 from tomgs.train.trainer import FitResult, Trainer, write_csv
@@ -110,6 +110,9 @@ def fit(video, output, config: TrainConfig | None = None, *, masks=None, frames=
     from tomgs.runtime import resolve_device
     from tomgs.train.multigpu.rank import fit_shards, wants_shards
 
+    check_distinct({f"the fit's {what}": path for what, path in output_paths(output).items()},
+                   {"the video": existing_path(video), "the masks": existing_path(masks),
+                    "the poses": existing_path(poses)})
     if wants_shards(gpus):
         return fit_shards(video, output, config, gpus=gpus, masks=masks, frames=frames, max_side=max_side, poses=poses,
                           focal=focal, device=device, resume=resume, overwrite=overwrite, progress=progress,
@@ -256,9 +259,19 @@ def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses
         info["layer"] = layer
     result.cameras = cameras
     phases("save", 0, 2, None)
-    save_scene(paths["scene"], result.model, cameras, info)
+    try:
+        save_scene(paths["scene"], result.model, cameras, info)
+    except OSError as e:  # a full disk: what a resume continues from, if anything
+        checkpoint = paths["checkpoint"]
+        kept = f"the checkpoint {checkpoint} is kept: free some space, then run again with --resume" \
+            if checkpoint.is_file() else "no checkpoint was written: free some space and run the fit again"
+        raise OSError(e.errno, f"{e.strerror}; {kept}", e.filename) from None
     phases("save", 1, 2, None)
-    _plot(paths["plot"], result.history)
+    try:
+        _plot(paths["plot"], result.history)
+    except OSError as e:  # the scene and its log are written: the plot is drawn from the log
+        result.notes.append(f"the PSNR plot could not be written ({e.filename}: {e.strerror}); {paths['csv']} "
+                            f"holds its numbers")
     phases("save", 2, 2, None)
     paths["checkpoint"].unlink(missing_ok=True)
     for path in paths.values():  # a kill just before a resume left some too fresh to remove at its start

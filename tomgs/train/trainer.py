@@ -18,7 +18,8 @@ at most CHECKPOINT_OVERHEAD of the run), and one when SIGINT or SIGTERM arrives:
 at the next step boundary (never inside a densification, where the parameters and the optimiser disagree),
 that step is saved and FitInterrupted raised. A crash (kill -9, power loss) loses at most the
 interval (or 20 saves' time) of training; `resume=True` continues from the checkpoint, and a seeded
-CPU run repeats exactly.
+CPU run repeats exactly. A checkpoint or log row that cannot be written (a full disk) is noted and
+training goes on; the last complete checkpoint stays the one to resume.
 """
 
 from __future__ import annotations
@@ -234,6 +235,11 @@ class Trainer:
         if n < total:  # frames with no allowed pixel gave none
             all_points, all_colors, t_means, start_t_scales, sizes = (
                 a[:n].clone() for a in (all_points, all_colors, t_means, start_t_scales, sizes))
+        if n > c.max_gaussians:  # the tracked points and a point a frame outnumber a small cap: a random share
+            keep = torch.randperm(n, generator=g)[:c.max_gaussians].sort().values.to(self.device)
+            all_points, all_colors, t_means, start_t_scales, sizes = (
+                a[keep] for a in (all_points, all_colors, t_means, start_t_scales, sizes))
+            self.notes.append(f"{c.max_gaussians:,} of the {n:,} starting points kept: the cap")
         t_scales = start_t_scales if c.temporal else STATIC_T_SCALE
         del start_t_scales
         model = GaussianModel.from_points(all_points, all_colors, t_means, t_scales, max_sh_degree=c.sh_degree,
@@ -536,6 +542,11 @@ class Trainer:
             torch.maximum(largest, weights, out=largest)
             if tick is not None:
                 tick(f"leaving out unused Gaussians {k + 1}/{self.num_frames}")
+        if len(self.model) and bool((largest < threshold).all()):  # an empty scene helps nobody: say so instead
+            self.notes.append(f"compact_pixels {threshold:g} would leave out every Gaussian (the most any gives a "
+                              f"frame is {float(largest.max()):.3g} of a pixel's colour): all kept; give a smaller "
+                              f"--compact")
+            return 0
         removed = self.densifier.remove(self.model, self.optimizer, largest < threshold)
         if removed:
             self.densifier.reset_stats(len(self.model), self.device)
@@ -581,15 +592,28 @@ class Trainer:
         saved = Path(checkpoint) if checkpoint is not None and Path(checkpoint).is_file() else None
         settle = max(c.densify_interval // 2, 1)
         step_seconds = None  # running mean of a step's time (the first, which loads kernels, left out)
+        failures = {}  # what could not be written: "log" / "checkpoint" -> (times, the latest OSError)
+        began_at = self.elapsed  # training seconds before this run (a resume's)
 
         def stop_here(signum):
-            """Save the step just finished (a step boundary) and raise FitInterrupted."""
+            """Save the step just finished (a step boundary) and raise FitInterrupted; when that save
+            fails (a full disk), the last complete checkpoint is the one to resume."""
             if checkpoint is None:
                 raise FitInterrupted(None, signum)
             writer.wait()
             self.elapsed = time.perf_counter() - start
-            self.save_checkpoint(checkpoint)
+            try:
+                self.save_checkpoint(checkpoint)
+            except OSError as e:
+                raise FitInterrupted(writer.done or saved, signum, unsaved=f"{e.filename}: {e.strerror}") from None
             raise FitInterrupted(checkpoint, signum, self.iteration)
+
+        def log(rows):
+            """The CSV log as of now; a write that fails (a full disk) is noted, and training goes on."""
+            try:
+                write_csv(log_csv, rows)
+            except OSError as e:
+                failures["log"] = (failures.get("log", (0,))[0] + 1, e)
 
         # the periodic checkpoints are written while training goes on; leaving the block waits for the last
         with CheckpointWriter() as writer, StopSignals(checkpoint=lambda: writer.done or saved) as stop:
@@ -626,7 +650,7 @@ class Trainer:
                     row = self._row(now, clip)
                     self.history.append(row)
                     if log_csv is not None:
-                        write_csv(log_csv, self.history)
+                        log(self.history)
                     if progress is not None:
                         try:
                             progress(row)
@@ -639,12 +663,21 @@ class Trainer:
                     tick(self.iteration, self.elapsed, "saving a checkpoint")
                     began = time.perf_counter()
                     self._checkpoint_in_background(checkpoint, writer)
+                    self._count_failed(writer, failures, lambda text: tick(self.iteration, self.elapsed, text))
                     cost = time.perf_counter() - began  # what training waited for
                     next_ckpt = time.perf_counter() - start + max(c.checkpoint_interval_s, cost / CHECKPOINT_OVERHEAD)
                 if out_of_time:
-                    self.notes.append(f"training stopped after {self.iteration} iterations at its {limit:.0f} s "
-                                      "time limit")
+                    this_run = f"{limit - began_at:.0f} s of training in this run, {limit:.0f} s in all" \
+                        if began_at > 0 else f"{limit:.0f} s"
+                    self.notes.append(f"training stopped after {self.iteration} iterations at its time limit "
+                                      f"({this_run})")
                     break
+        self._count_failed(writer, failures, lambda text: tick(self.iteration, self.elapsed, text))
+        for what, (times, error) in failures.items():
+            kept = f"; the last complete one is {writer.done or saved}" if what == "checkpoint" and \
+                (writer.done or saved) else ""
+            self.notes.append(f"the {what} could not be written {times} time{'s' if times > 1 else ''} "
+                              f"({error.filename}: {error.strerror}): training went on{kept}")
         if stop.signum is not None:  # arrived after the loop's last look: still a step boundary
             stop_here(stop.signum)
         self.elapsed = time.perf_counter() - start
@@ -714,6 +747,15 @@ class Trainer:
             if sent else None
         self._measured = [(int(k), torch.tensor(float(v), device=self.device)) for k, v in kept]
 
+    @staticmethod
+    def _count_failed(writer: CheckpointWriter, failures: dict, say) -> None:
+        """Count the write `writer` could not make (a full disk: training goes on) and `say` it."""
+        writer.wait()
+        if writer.failed is not None:
+            error, writer.failed = writer.failed, None
+            failures["checkpoint"] = (failures.get("checkpoint", (0,))[0] + 1, error)
+            say(f"checkpoint not written ({error.strerror})")
+
     def _checkpoint_in_background(self, path: Path, writer: CheckpointWriter) -> None:
         """Hand `writer` a copy of the state (made where the tensors live, at this step boundary), or
         write it here when the device lacks the room for that copy."""
@@ -723,7 +765,10 @@ class Trainer:
             free, _ = torch.cuda.mem_get_info(self.device)
             free += torch.cuda.memory_reserved(self.device) - torch.cuda.memory_allocated(self.device)
             if state_bytes(state) > free / 2:
-                writer.done = write_checkpoint(path, state)
+                try:
+                    writer.done = write_checkpoint(path, state)
+                except OSError as e:
+                    writer.failed = e
                 return
         copies, ready = own_copies(state), None
         if self.device.type == "cuda":

@@ -7,7 +7,9 @@ knows it fits in shards (the CLI's `fit --gpus N`) calls `start(N)` first thing:
 tomgs.train.multigpu.rank while the parent imports and plans, then wait for their Job. The parent's
 `take(N)` (tomgs.train.multigpu.rank, when it would spawn) hands them over; a pool nobody takes (the parent
 refused its inputs, or failed) is sent away when the parent exits, and a rank whose parent dies
-gets SIGTERM (Linux). This module imports nothing heavy: it runs before torch is imported.
+gets SIGTERM (Linux). This module imports nothing heavy: it runs before torch is imported; so
+`check_world` refuses a count of ranks the host cannot run (more than its GPUs, counted without
+torch by `visible_gpus`, or than its cores for CPU ranks) before `start` spawns any.
 """
 
 from __future__ import annotations
@@ -18,6 +20,8 @@ import signal
 import sys
 import time
 from dataclasses import dataclass
+
+from tomgs.errors import InputError
 
 
 @dataclass
@@ -37,6 +41,63 @@ _pool: Pool | None = None
 def under_torchrun() -> bool:
     """torchrun started this process as one rank: there is no parent to start ranks."""
     return "RANK" in os.environ and "WORLD_SIZE" in os.environ
+
+
+def visible_gpus() -> int | None:
+    """NVIDIA GPUs this process may use, counted without importing torch (Linux: the driver's
+    /proc/driver/nvidia/gpus, or /dev/nvidiaN, narrowed by CUDA_VISIBLE_DEVICES up to its first
+    entry that is not a device, as CUDA reads it); 0 where no NVIDIA driver is loaded; None where
+    that cannot be told (other systems)."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        count = len(os.listdir("/proc/driver/nvidia/gpus"))
+    except OSError:
+        try:
+            count = sum(1 for name in os.listdir("/dev") if name.startswith("nvidia") and name[6:].isdigit())
+        except OSError:
+            return None
+    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if visible is None:
+        return count
+    listed = 0
+    for entry in visible.split(","):
+        entry = entry.strip()
+        if not (entry.isdigit() and int(entry) < count) and not entry.startswith(("GPU-", "MIG-")):
+            break
+        listed += 1
+    return min(listed, count)
+
+
+def check_world(world: int, device, gpus: int | None, local: int | None = None, cores: int | None = None) -> str:
+    """The device type, "cuda" or "cpu", of a fit in `world` ranks asked for `device` (None or "auto",
+    "cpu", "cuda") on a host with `gpus` GPUs (None: not known, not checked) that runs `local` of the
+    ranks (default all), each CPU rank on one of `cores` cores (None: not checked); else InputError
+    saying what to give."""
+    text = "auto" if device is None else str(device)
+    local = world if local is None else local
+    if text == "auto":
+        if gpus == 0:  # N CPU processes are asked for by name, not fallen into
+            raise InputError(f"--gpus {world}: torch sees no GPU here; give --device cpu to fit with {world} CPU "
+                             f"processes")
+        text = "cuda"
+    if text.startswith("cuda:"):
+        raise InputError(f"--device {text} with --gpus {world}: each rank takes its own GPU (cuda:0 .. cuda:"
+                         f"{world - 1} on each host); give --device cuda")
+    if text not in ("cuda", "cpu"):
+        raise InputError(f"--device {text}: give cpu or cuda (a sharded fit puts one rank on each GPU)")
+    if text == "cpu":
+        if cores is not None and local > cores:
+            raise InputError(f"--gpus {world} --device cpu: this machine has {cores} CPU "
+                             f"core{'s' if cores != 1 else ''}; give --gpus {cores} or fewer")
+        return text
+    if gpus == 0:
+        raise InputError(f"--device cuda: torch sees no GPU here; use --device cpu for {world} CPU processes")
+    if gpus is not None and local > gpus:
+        raise InputError(f"--gpus {world}: this host has {gpus} GPU{'s' if gpus != 1 else ''} "
+                         f"(CUDA_VISIBLE_DEVICES={os.environ.get('CUDA_VISIBLE_DEVICES', 'unset')}); give --gpus "
+                         f"{gpus} or fewer, or spread the ranks over hosts with torchrun")
+    return text
 
 
 def start(world: int) -> None:
@@ -136,4 +197,4 @@ def _waiting(jobs, reports) -> None:
     ranks.spawned(rank, job, reports, imported=imported)
 
 
-__all__ = ["Pool", "dismiss", "leave_terminal", "start", "take", "under_torchrun"]
+__all__ = ["Pool", "check_world", "dismiss", "leave_terminal", "start", "take", "under_torchrun", "visible_gpus"]

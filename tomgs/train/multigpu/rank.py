@@ -260,28 +260,10 @@ def fit_shards(video, output, config, *, gpus=None, masks=None, frames=None, max
 
 
 def _device_type(device, world: int, env) -> str:
-    """"cuda" or "cpu" for a run of `world` ranks; InputError for a device it cannot use."""
-    text = "auto" if device is None else str(device)
-    if text == "auto":
-        if not torch.cuda.is_available():  # N CPU processes are asked for by name, not fallen into
-            raise InputError(f"--gpus {world}: torch sees no GPU here; give --device cpu to fit with {world} CPU "
-                             f"processes")
-        text = "cuda"
-    if text.startswith("cuda:"):
-        raise InputError(f"--device {text} with --gpus {world}: each rank takes its own GPU (cuda:0 .. cuda:"
-                         f"{world - 1} on each host); give --device cuda")
-    if text not in ("cuda", "cpu"):
-        raise InputError(f"--device {text}: give cpu or cuda (a sharded fit puts one rank on each GPU)")
-    if text == "cuda":
-        if not torch.cuda.is_available():
-            raise InputError(f"--device cuda: torch sees no GPU here; use --device cpu for {world} CPU processes")
-        local = env[3] if env is not None else world
-        count = torch.cuda.device_count()
-        if local > count:
-            raise InputError(f"--gpus {world}: this host has {count} GPU{'s' if count != 1 else ''} "
-                             f"(CUDA_VISIBLE_DEVICES={os.environ.get('CUDA_VISIBLE_DEVICES', 'unset')}); give --gpus "
-                             f"{count} or fewer, or spread the ranks over hosts with torchrun")
-    return text
+    """"cuda" or "cpu" for a run of `world` ranks; InputError for a device it cannot use
+    (tomgs.train.multigpu.pool.check_world, with the GPUs torch sees)."""
+    gpus = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    return rank_pool.check_world(world, device, gpus, local=env[3] if env is not None else None)
 
 
 def check_shard_outputs(output, world: int, resume: bool, overwrite: bool, tidy: bool = False) -> dict:
