@@ -13,7 +13,7 @@ gradient where value + 0.5 >= 0 and keeps NaN, as torch.clamp_min. float32; degr
 
 import warp as wp
 
-from tomgs import sh as basis
+from tomgs.render import sh as basis
 from tomgs.kernels.rows import put
 
 wp.set_module_options({"enable_backward": False})
