@@ -12,7 +12,7 @@ from tomgs.cli import UsageError, main, overwrite_option, scene_cameras_option, 
 @main.command()
 @click.argument("scene", type=click.Path(path_type=str))
 @click.option("-o", "--output", type=click.Path(path_type=str), default=None,
-              help="the static scene: .ply (INRIA 3DGS), .splat (antimatter15) or .spz (Niantic)")
+              help="the static scene: .ply (INRIA 3DGS), .splat (antimatter15), .spz (Niantic) or .sog (PlayCanvas)")
 @click.option("--frame", type=int, default=None, help="the moment: a frame number of the scene (as render --frames)")
 @click.option("--time", "clip_time", type=float, default=None, help="the moment: clip time in [0, 1]")
 @click.option("--sh-degree", type=click.IntRange(0, 3), default=None,
@@ -34,6 +34,7 @@ def export(scene, output, frame, clip_time, sh_degree, layer_paths, cameras_out,
     Examples:
       tomgs export scene.ply --frame 40 -o frame40.ply          # SuperSplat, gsplat, open3d ...
       tomgs export scene.ply --time 0.5 -o mid.splat            # antimatter15/splat viewers
+      tomgs export scene.tsog --frame 40 -o f40.sog             # SuperSplat, PlayCanvas (SOG)
       tomgs export scene.ply --frame 40 -o f40.ply --sh-degree 3   # SIBR, INRIA's loader
       tomgs export bg.ply --layer fg.ply --frame 10 -o both.spz
       tomgs export scene.ply --cameras-out cams/                # COLMAP + transforms.json only
@@ -44,7 +45,7 @@ def export(scene, output, frame, clip_time, sh_degree, layer_paths, cameras_out,
     from tomgs.outputs import check_file_output, check_folder_output
 
     if output is None and cameras_out is None:
-        raise UsageError("give -o OUT (.ply, .splat or .spz) for the static scene, --cameras-out DIR, or both")
+        raise UsageError("give -o OUT (.ply, .splat, .spz or .sog) for the static scene, --cameras-out DIR, or both")
     if output is not None:
         if Path(output).suffix.lower() not in FORMATS:
             raise UsageError(f"-o {output}: unknown format {Path(output).suffix or '(no extension)'!r}; the static "
