@@ -3,6 +3,7 @@ compress and to load it, and the PSNR of the scene before and after against the 
 
     python benchmarks/compress.py scene.ply .clips/camel/images --json out/camel.json
     python benchmarks/compress.py scene.ply                          # PSNR of the .tsog against the PLY's renders
+    python benchmarks/compress.py scene.ply frames/ --means-bits 16,14,12 --t-bits 16,12   # precisions swept
     python benchmarks/compress.py --synthetic 1000000                # times at 1M Gaussians, no PSNR
     python benchmarks/compress.py --smoke                            # tiny CPU run (tests/test_benchmarks_compress.py)
 
@@ -11,7 +12,9 @@ clip (8 bytes / (width x height x frames), the scene's cameras), compress time (
 .tsog), load time (tomgs.load_scene of the .tsog, and of the input for comparison), and, with
 CLIP_FRAMES, the mean PSNR over every frame of the input scene and of the .tsog against the clip
 (tomgs.evaluate: float renders against the 8-bit frames); without them, the .tsog's renders against
-the input's. Public API only. The .tsog is written to --out (default: a temporary folder).
+the input's. With --means-bits / --t-bits lists, each other pair of precisions adds a row to
+"sweep" (bytes, bits per pixel, PSNR). Public API only. The .tsog is written to --out (default: a
+temporary folder).
 """
 
 from __future__ import annotations
@@ -77,16 +80,20 @@ def timed(fn, repeats: int = 1):
     return out, best
 
 
-def measure(scene_path: Path, frames_path: Path | None, out_dir: Path, device, repeats: int = 1) -> dict:
-    """The report of one scene file (see the module's docstring)."""
+def measure(scene_path: Path, frames_path: Path | None, out_dir: Path, device, repeats: int = 1,
+            precisions=((16, 16),)) -> dict:
+    """The report of one scene file (see the module's docstring); `precisions`: (means_bits, t_bits)
+    pairs, the first timed and reported in full, the others in "sweep"."""
     scene, load_input = timed(lambda: tomgs.load_scene(scene_path), repeats)
     cams, n = scene.cameras, len(scene.model)
     target = out_dir / (scene_path.stem + ".tsog")
-    _, compress_seconds = timed(lambda: tomgs.save_scene(target, scene.model, scene.cameras, scene.info), repeats)
+    (means_bits, t_bits), *others = precisions
+    _, compress_seconds = timed(lambda: tomgs.save_scene(target, scene.model, scene.cameras, scene.info,
+                                                         means_bits=means_bits, t_bits=t_bits), repeats)
     compressed, load_seconds = timed(lambda: tomgs.load_scene(target), repeats)
     size_in, size_out = scene_path.stat().st_size, target.stat().st_size
     report = {
-        "scene": str(scene_path), "gaussians": n, "frames": len(cams), "width": cams.width, "height": cams.height,
+        "scene": str(scene_path), "means_bits": means_bits, "t_bits": t_bits, "gaussians": n, "frames": len(cams), "width": cams.width, "height": cams.height,
         "input_bytes": size_in, "output_bytes": size_out, "ratio": size_in / size_out,
         "bytes_per_gaussian": size_out / max(n, 1), "bits_per_pixel": bits_per_pixel(size_out, cams),
         "input_bits_per_pixel": bits_per_pixel(size_in, cams),
@@ -97,14 +104,30 @@ def measure(scene_path: Path, frames_path: Path | None, out_dir: Path, device, r
     if frames_path is not None:
         clip = read_video_for(frames_path, cams)
         report["clip_frames"] = str(frames_path)
-        report["clip_jpeg_bytes"] = sum(p.stat().st_size for p in Path(frames_path).glob("*.jp*g")) or None
+        jpeg = sum(p.stat().st_size for p in Path(frames_path).glob("*.jp*g"))
+        report["clip_jpeg_bytes"] = jpeg or None
+        report["clip_jpeg_bits_per_pixel"] = bits_per_pixel(jpeg, cams) if jpeg else None
         report["psnr_input"] = mean_psnr(scene.model.to(device), cams, clip, device)
-        report["psnr_output"] = mean_psnr(compressed.model.to(device), cams, clip, device)
-        report["psnr_drop"] = report["psnr_input"] - report["psnr_output"]
     else:
-        reference = np.stack([image.numpy() for _, image, _ in
-                              render_sequence(scene.model.to(device).render_inputs(), cams, device=device)])
-        report["psnr_output_against_input"] = mean_psnr(compressed.model.to(device), cams, reference, device)
+        clip = np.stack([image.numpy() for _, image, _ in
+                         render_sequence(scene.model.to(device).render_inputs(), cams, device=device)])
+        report["psnr_input"] = None  # the clip is the input's own render
+
+    def scored(model) -> dict:
+        psnr = mean_psnr(model.to(device), cams, clip, device)
+        if report["psnr_input"] is None:
+            return {"psnr_output_against_input": psnr}
+        return {"psnr_output": psnr, "psnr_drop": report["psnr_input"] - psnr}
+
+    report.update(scored(compressed.model))
+    report["sweep"] = []
+    for means_bits, t_bits in others:
+        path = out_dir / f"{scene_path.stem}_m{means_bits}_t{t_bits}.tsog"
+        tomgs.save_scene(path, scene.model, cams, scene.info, means_bits=means_bits, t_bits=t_bits)
+        size = path.stat().st_size
+        report["sweep"].append({"means_bits": means_bits, "t_bits": t_bits, "output_bytes": size,
+                                "bytes_per_gaussian": size / max(n, 1), "bits_per_pixel": bits_per_pixel(size, cams),
+                                **scored(tomgs.load_scene(path).model)})
     return report
 
 
@@ -141,6 +164,9 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=None, help="folder for the .tsog (default: a temporary one)")
     ap.add_argument("--device", default="auto", help="where to render for PSNR (auto, cpu, cuda)")
     ap.add_argument("--repeats", type=int, default=1, help="time compress and load this many times, keep the quickest")
+    ap.add_argument("--means-bits", default="16", help="bits an axis of the means, or a list (16,14,12): the first is "
+                    "timed, the others swept")
+    ap.add_argument("--t-bits", default="16", help="bits of t_mean, or a list (swept with --means-bits)")
     ap.add_argument("--synthetic", type=int, default=None, metavar="N", help="time a synthetic scene of N Gaussians")
     ap.add_argument("--smoke", action="store_true", help="tiny CPU run")
     ap.add_argument("--json", default=None, help="write the report as JSON here")
@@ -156,9 +182,16 @@ def main(argv=None) -> int:
             report = measure_synthetic(args.synthetic, out_dir, args.repeats)
         else:
             device = resolve_device(args.device)
+            means, times = ([int(v) for v in text.split(",")] for text in (args.means_bits, args.t_bits))
+            precisions = [(m, t) for m in means for t in times]
             report = measure(Path(args.scene), None if args.clip_frames is None else Path(args.clip_frames), out_dir,
-                             device, args.repeats)
+                             device, args.repeats, precisions)
     for key, value in report.items():
+        if key == "sweep":
+            for row in value:
+                print(f"{'sweep':28s} " + ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
+                                                     for k, v in row.items()))
+            continue
         if isinstance(value, dict):
             value = ", ".join(f"{k} {v:.2f}" for k, v in value.items())
         elif isinstance(value, float):

@@ -102,6 +102,27 @@ def test_round_trip_within_each_quantisation_step(tmp_path, max_sh_degree):
         assert b["sh_rest"].shape == (300, 0, 3)
 
 
+@pytest.mark.parametrize("means_bits, t_bits", [(12, 16), (16, 10), (8, 8)])
+def test_fewer_bits_round_trip_within_their_step(tmp_path, means_bits, t_bits):
+    model, cams = wall_model(300), wall_cameras()
+    arrays = arrays_of(model)
+    records = np.zeros(len(cams), np.dtype([("c2w", "<f8", (16,)), ("time", "<f8"), ("index", "<i8")]))
+    records["c2w"] = cams.c2w.reshape(-1, 16)
+    records["time"], records["index"] = cams.times, cams.frame_indices
+    clip = {"format": "tomgs-scene", "version": 2, "width": W, "height": H, "K": cams.K.tolist(), "sh_degree": 0,
+            "max_sh_degree": 0, "tomgs": "test", "cameras": T, "info": {}}
+    path = tsog.write_tsog(tmp_path / "s.tsog", arrays, clip, records, means_bits=means_bits, t_bits=t_bits)
+    header, _, order = tsog.encode_gaussians(arrays, means_bits, t_bits)
+    back = load_scene(path)
+    a, b = arrays["means"][order].astype(np.float64), back.model.means.detach().numpy().astype(np.float64)
+    step = (np.array(header["means"]["maxs"]) - np.array(header["means"]["mins"])) / ((1 << means_bits) - 1)
+    assert (np.abs(np.sign(b) * np.log1p(np.abs(b)) - np.sign(a) * np.log1p(np.abs(a))) <= step / 2 * 1.0001 + 1e-7).all()
+    t = header["t_means"]
+    error = np.abs(back.model.t_means.detach().numpy() - arrays["t_means"][order])
+    assert error.max() <= (t["max"] - t["min"]) / ((1 << t_bits) - 1) / 2 * 1.0001 + 1e-7
+    assert path.stat().st_size < save_scene(tmp_path / "full.tsog", model, cams, {}).stat().st_size
+
+
 def test_clip_and_info_come_back_exactly(saved):
     model, cams, info, path = saved
     back = load_scene(path)
@@ -244,6 +265,8 @@ CASES = {
     "opacity codebook outside (0, 1)": (lambda p, d: _edit(p, d, lambda h: h["opacities"]["codebook"]
                                                            .__setitem__(0, 0.0)), "outside (0, 1)"),
     "an image that is not WebP": (lambda p, d: _corrupt_image(p, d, "means_lo"), "not a readable lossless WebP"),
+    "means past their bits": (lambda p, d: _edit(p, d, _set("means", "bits", value=4)), "past the 4 bits"),
+    "bits out of range": (lambda p, d: _edit(p, d, _set("t_means", "bits", value=17)), "'t_means'"),
     "wrong quaternion tags": (lambda p, d: _replace_image(p, d, "quats", np.full((20, 20, 4), 7, np.uint8)),
                               "tag outside 252..255"),
 }

@@ -127,10 +127,12 @@ def bits_per_pixel(nbytes: int, cameras: Cameras) -> float:
 
 # ---- writing -----------------------------------------------------------------------------------
 
-def save_scene(path, model, cameras: Cameras, info: dict | None = None) -> Path:
+def save_scene(path, model, cameras: Cameras, info: dict | None = None, *, means_bits: int = tsog.MEANS_BITS,
+               t_bits: int = tsog.T_MEANS_BITS) -> Path:
     """Write `model` (a GaussianModel), `cameras` and `info` (a JSON-serialisable dict) to the scene
     file `path`, atomically: a temporary file in the same folder, renamed at the end. A path ending
-    in .tsog is a compressed scene (tomgs.io.tsog), any other a PLY scene."""
+    in .tsog is a compressed scene (tomgs.io.tsog), its means and t_means quantised to `means_bits`
+    (an axis) and `t_bits` (1..16); any other path a PLY scene, exact."""
     path = Path(path)
     info = {} if info is None else info
     if not isinstance(info, dict):
@@ -161,7 +163,7 @@ def save_scene(path, model, cameras: Cameras, info: dict | None = None) -> Path:
         raise ValueError(f"info must be JSON-serialisable ({e})") from None
     if path.suffix.lower() == tsog.SUFFIX:
         arrays = {name: value.cpu().numpy() for name, value in params.items()}
-        return tsog.write_tsog(path, arrays, clip, records)
+        return tsog.write_tsog(path, arrays, clip, records, means_bits, t_bits)
     names = vertex_properties(degree)
 
     def rows(start: int, stop: int) -> bytes:

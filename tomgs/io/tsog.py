@@ -54,7 +54,7 @@ FORMAT = "tomgs-tsog"
 VERSION = 1
 SUFFIX = ".tsog"
 MAX_HEADER = 64 << 20  # the header holds codebooks (kilobytes) and the clip's settings
-MEANS_BITS = 16
+MEANS_BITS = 16  # the default bits an axis of the means and of t_mean; a file may hold 1..16 (its header says)
 T_MEANS_BITS = 16
 PALETTE_SIZE = 4096  # most SH rest vectors in the palette (k-means on the CPU stays seconds at 1M)
 PALETTE_ROW = 64  # palette entries per image row, as SOG
@@ -101,11 +101,15 @@ def _unfixed(q: np.ndarray, lo, hi, bits: int) -> np.ndarray:
     return np.asarray(lo) + q.astype(np.float64) / ((1 << bits) - 1) * (np.asarray(hi) - np.asarray(lo))
 
 
-def encode_gaussians(arrays: dict) -> tuple[dict, list[bytes], np.ndarray]:
+def encode_gaussians(arrays: dict, means_bits: int = MEANS_BITS,
+                     t_bits: int = T_MEANS_BITS) -> tuple[dict, list[bytes], np.ndarray]:
     """(the header's attribute entries and grid, the images in _images order, the order [N]: the
     k-th Gaussian of the file is row order[k] of `arrays`). `arrays`: the stored parameters, float32
     numpy: means [N,3], quats [N,4], log_scales [N,3], opacity_logits [N], sh_dc [N,1,3], sh_rest
-    [N,K-1,3], t_means [N], log_t_scales [N]."""
+    [N,K-1,3], t_means [N], log_t_scales [N]. `means_bits` and `t_bits` (1..16): the precision of
+    the means (an axis) and of t_mean; below 16 the high bytes' images hold fewer bits."""
+    if not (1 <= means_bits <= 16 and 1 <= t_bits <= 16):
+        raise ValueError(f"means_bits and t_bits must be 1..16, got {means_bits} and {t_bits}")
     n = len(arrays["means"])
     degree = sh_degree_of(arrays["sh_rest"].shape[1] + 1)
     f64 = {name: np.asarray(value, np.float64).reshape(n, int(np.prod(np.shape(value)[1:])))
@@ -114,10 +118,10 @@ def encode_gaussians(arrays: dict) -> tuple[dict, list[bytes], np.ndarray]:
 
     log_means = _log1p_signed(f64["means"])
     lo, hi = (log_means.min(0), log_means.max(0)) if n else (np.zeros(3), np.zeros(3))
-    q_means = _fixed(log_means, lo, hi, MEANS_BITS)
+    q_means = _fixed(log_means, lo, hi, means_bits)
     t = f64["t_means"][:, 0]
     t_lo, t_hi = (float(t.min()), float(t.max())) if n else (0.0, 0.0)
-    q_t = _fixed(t, t_lo, t_hi, T_MEANS_BITS)
+    q_t = _fixed(t, t_lo, t_hi, t_bits)
     order = quantise.morton_order(q_means)  # t_mean left out of the curve: see docs/scene-format.md
 
     # opacities kept inside float32's logit range: an opacity that rounds to 0 or 1 has no logit to load
@@ -135,12 +139,12 @@ def encode_gaussians(arrays: dict) -> tuple[dict, list[bytes], np.ndarray]:
         "t_scales": quantise.encode_codebook(f64["log_t_scales"], books["t_scales"]),
     }
     entries = {
-        "means": {"mins": lo.tolist(), "maxs": hi.tolist(), "bits": MEANS_BITS},
+        "means": {"mins": lo.tolist(), "maxs": hi.tolist(), "bits": means_bits},
         "quats": {},
         "log_scales": {"codebook": _short_floats(books["scales"])},
         "sh_dc": {"codebook": _short_floats(books["colours"])},
         "opacities": {"codebook": _short_floats(books["opacities"])},
-        "t_means": {"min": t_lo, "max": t_hi, "bits": T_MEANS_BITS},
+        "t_means": {"min": t_lo, "max": t_hi, "bits": t_bits},
         "log_t_scales": {"codebook": _short_floats(books["t_scales"])},
     }
     palette_image = None
@@ -185,6 +189,12 @@ def decode_gaussians(header: dict, images: dict[str, np.ndarray], what: str) -> 
     column = {name: image.reshape(-1, image.shape[2])[:n] for name, image in images.items() if name != "sh_palette"}
     means = header["means"]
     q_means = (column["means_hi"].astype(np.int64) << 8) | column["means_lo"]
+    t = header["t_means"]
+    q_t = (column["t_hi"][:, 0].astype(np.int64) << 8) | column["t_lo"][:, 0]
+    for name, q, bits in (("means", q_means, means["bits"]), ("t_means", q_t, t["bits"])):
+        if n and int(q.max()) >= 1 << bits:
+            raise InputError(f"{what}: {name} reach {int(q.max())}, past the {bits} bits the header gives them: the "
+                             f"file is damaged: {FIX}")
     log_means = _unfixed(q_means, means["mins"], means["maxs"], means["bits"])
     tags = column["quats"][:, 3]
     bad = (tags < quantise.QUAT_TAG) | (tags > quantise.QUAT_TAG + 3)
@@ -195,8 +205,6 @@ def decode_gaussians(header: dict, images: dict[str, np.ndarray], what: str) -> 
     def book(name):
         return np.asarray(header[name]["codebook"], np.float64)
 
-    t = header["t_means"]
-    q_t = (column["t_hi"][:, 0].astype(np.int64) << 8) | column["t_lo"][:, 0]
     with np.errstate(divide="ignore", over="ignore"):
         opacities = book("opacities")[column["opacities"][:, 0]]
         out = {
@@ -226,12 +234,13 @@ def decode_gaussians(header: dict, images: dict[str, np.ndarray], what: str) -> 
 
 # ---- the file ------------------------------------------------------------------------------------
 
-def write_tsog(path, arrays: dict, clip: dict, records: np.ndarray) -> Path:
+def write_tsog(path, arrays: dict, clip: dict, records: np.ndarray, means_bits: int = MEANS_BITS,
+               t_bits: int = T_MEANS_BITS) -> Path:
     """Write a .tsog file atomically: the Gaussians `arrays` (encode_gaussians' input), `clip` (the
     PLY scene's clip JSON object: format, version, size, K, SH degrees, cameras, info) and the camera
     `records` (tomgs.io.scene.CAMERA_RECORD [T])."""
     path = Path(path)
-    header, images, _ = encode_gaussians(arrays)
+    header, images, _ = encode_gaussians(arrays, means_bits, t_bits)
     degree = sh_degree_of(arrays["sh_rest"].shape[1] + 1)
     header = {"format": FORMAT, "version": VERSION, **header,
               "images": [{"name": name, "channels": channels, "bytes": len(data)}
@@ -350,10 +359,11 @@ def _checked_header(text: bytes, size: int, data_start: int, record: int, path: 
     for key, fields in (("means", ("mins", "maxs")),):
         entry = header.get(key)
         if not (isinstance(entry, dict) and all(_numbers(entry.get(f), 3) for f in fields)
-                and entry.get("bits") == MEANS_BITS):
+                and _integer(entry.get("bits")) and 1 <= entry["bits"] <= 16):
             raise bad(key)
     t = header.get("t_means")
-    if not (isinstance(t, dict) and _numbers([t.get("min"), t.get("max")], 2) and t.get("bits") == T_MEANS_BITS):
+    if not (isinstance(t, dict) and _numbers([t.get("min"), t.get("max")], 2)
+            and _integer(t.get("bits")) and 1 <= t["bits"] <= 16):
         raise bad("t_means")
     books = ["log_scales", "sh_dc", "opacities", "log_t_scales"] + (["sh_rest"] if degree > 0 else [])
     for key in books:
