@@ -1,8 +1,10 @@
 """Quantisation and lossless image coding of per-Gaussian attributes, shared by the compressed
 scene (tomgs.io.tsog) and PlayCanvas's SOG export (tomgs.io.sog).
 
+    signed_log / fixed           positions' transform, sign(x) log(1 + |x|), and values between a min and
+                                 a max as unsigned integers of some bits (with their inverses)
     morton_order(cells)          the order that sorts integer 3D or 4D cells along a Z-order curve
-    grid_shape(n)                the 2D grid a sorted cloud is laid out on, in rows
+    grid_shape(n) / grid_image   the 2D grid a sorted cloud is laid out on, in rows, and an image of it
     codebook / encode_codebook   a 256-entry 1D k-means codebook of values, and each value's index
     palette                      a k-means palette of vectors (SH rest), labels and centroids
     smallest_three / unpack_quats   unit quaternions as three 8-bit components and the largest's index
@@ -26,6 +28,35 @@ WEBP_MAX_SIDE = 16383  # the most pixels a WebP image has on a side (libwebp's l
 CODEBOOK_SIZE = 256
 _HISTOGRAM_BINS = 1 << 16  # codebook k-means runs on a histogram of this many bins: O(bins) a step
 _CODEBOOK_STEPS = 40
+
+
+# ---- fixed point ---------------------------------------------------------------------------------
+
+def signed_log(x: np.ndarray) -> np.ndarray:
+    """sign(x) log(1 + |x|), float64: positions' transform (SOG's), fine near 0 and coarse far out."""
+    x = np.asarray(x, np.float64)
+    return np.sign(x) * np.log1p(np.abs(x))
+
+
+def signed_exp(v: np.ndarray) -> np.ndarray:
+    """The inverse of `signed_log`, float64."""
+    v = np.asarray(v, np.float64)
+    return np.sign(v) * np.expm1(np.abs(v))
+
+
+def fixed(values: np.ndarray, lo, hi, bits: int) -> np.ndarray:
+    """int64: float `values` between `lo` and `hi` (broadcast) as round((v - lo) / (hi - lo) (2^bits - 1)),
+    clipped to 0 .. 2^bits - 1 (a range of zero width gives 0)."""
+    top = (1 << bits) - 1
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    span = np.where(hi > lo, hi - lo, 1.0)
+    return np.clip(np.rint((np.asarray(values, np.float64) - lo) / span * top), 0, top).astype(np.int64)
+
+
+def unfixed(q: np.ndarray, lo, hi, bits: int) -> np.ndarray:
+    """float64: the inverse of `fixed`."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    return lo + np.asarray(q, np.float64) / ((1 << bits) - 1) * (hi - lo)
 
 
 # ---- order and layout ---------------------------------------------------------------------------
@@ -64,6 +95,16 @@ def grid_shape(n: int) -> tuple[int, int]:
     Gaussian)."""
     width = max(4, 4 * int(np.ceil(np.sqrt(max(n, 1)) / 4)))
     return width, max(4, 4 * int(np.ceil(max(n, 1) / width / 4)))
+
+
+def grid_image(values: np.ndarray, width: int, height: int) -> np.ndarray:
+    """uint8 [height, width, C]: `values` [N, C] (in the grid's order) row by row, the pixels past N
+    repeating the last value (nothing new for the coder; zeros when N = 0)."""
+    values = np.asarray(values, np.uint8)
+    grid = np.empty((width * height, values.shape[1]), np.uint8)
+    grid[len(values):] = values[-1] if len(values) else 0
+    grid[:len(values)] = values
+    return grid.reshape(height, width, values.shape[1])
 
 
 # ---- codebooks ----------------------------------------------------------------------------------

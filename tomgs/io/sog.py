@@ -36,10 +36,6 @@ PALETTE_ROW = 64  # SH palette entries per row of shN_centroids.webp, fixed by t
 PALETTE_SIZE = 4096  # most SH palette entries (the format allows 65536; k-means on the CPU stays seconds at 1M)
 
 
-def _signed_log(x: np.ndarray) -> np.ndarray:
-    return np.sign(x) * np.log1p(np.abs(x))
-
-
 def sog_bytes(g) -> bytes:
     """The bytes of a SOG version 2 file (a ZIP) of `g`, a StaticGaussians (means [N,3], quats [N,4]
     w x y z, log_scales [N,3], opacity_logits [N], sh_dc [N,3], sh_rest [N,K-1,3])."""
@@ -47,24 +43,21 @@ def sog_bytes(g) -> bytes:
 
     n = len(g)
     width, height = quantise.grid_shape(n)
-    log_means = _signed_log(np.asarray(g.means, np.float64))
+    log_means = quantise.signed_log(g.means)
     mins, maxs = (log_means.min(0), log_means.max(0)) if n else (np.zeros(3), np.zeros(3))
-    span = np.where(maxs > mins, maxs - mins, 1.0)
-    q = np.clip(np.rint((log_means - mins) / span * 65535), 0, 65535).astype(np.int64)
+    q = quantise.fixed(log_means, mins, maxs, 16)
     order = quantise.morton_order(q)
 
     def image(values: np.ndarray, alpha: np.ndarray | None = None) -> bytes:
         """A W x H image of uint8 `values` [N, C] in Morton order (C <= 3 padded to RGB; A = `alpha`,
         or 255 when given none and C < 4), unused pixels repeating the last."""
         values = values.reshape(n, -1)
-        rgba = np.full((width * height, 4), 255, np.uint8)
-        rgba[:, :values.shape[1]] = 0
-        rgba[:n, :values.shape[1]] = values[order]
+        rgba = np.zeros((n, 4), np.uint8)
+        rgba[:, 3] = 255
+        rgba[:, :values.shape[1]] = values
         if alpha is not None:
-            rgba[:n, 3] = alpha[order]
-        if n:
-            rgba[n:] = rgba[n - 1]
-        return quantise.encode_webp(rgba.reshape(height, width, 4))
+            rgba[:, 3] = alpha
+        return quantise.encode_webp(quantise.grid_image(rgba[order], width, height))
 
     opacity = 0.5 + 0.5 * np.tanh(0.5 * np.asarray(g.opacity_logits, np.float64))  # sigmoid, no overflow
     scales = quantise.codebook(g.log_scales)

@@ -16,14 +16,14 @@ or writes a scene takes one. docs/scene-format.md gives the layout and the why; 
                                        (row k // W); unused pixels repeat the last
     T camera records, 144 bytes each   as the PLY scene's (tomgs.io.scene.CAMERA_RECORD)
 
-Attributes (Gaussians sorted along a Z-order curve of their quantised means and t_mean):
-    means          16 bits an axis of sign(x) log(1 + |x|) between the header's mins and maxs,
-                   high bytes in image means_hi (RGB), low bytes in means_lo (RGB), as SOG
+Attributes (Gaussians sorted along a Z-order curve of their quantised means):
+    means          `bits` (16 by default) an axis of sign(x) log(1 + |x|) between the header's mins
+                   and maxs, high bytes in image means_hi (RGB), low bytes in means_lo (RGB), as SOG
     quats          smallest three, 8 bits each, and 252 + the largest's index (RGBA), as SOG
     log_scales     indices (RGB) into a 256-entry codebook shared by the three axes
     sh_dc          indices (RGB) into a 256-entry codebook shared by the three channels
     opacities      index (grey) into a 256-entry codebook of sigmoid(opacity_logit)
-    t_means        16 bits between the header's min and max: t_hi and t_lo (grey)
+    t_means        `bits` (16 by default) between the header's min and max: t_hi and t_lo (grey)
     log_t_scales   index (grey) into a 256-entry codebook
     sh_rest        (SH degree > 0 only) a palette of up to PALETTE_SIZE vectors: labels 16 bits
                    (sh_labels: R low byte, G high byte) and the palette as an image of 64 entries a
@@ -85,22 +85,6 @@ def _images(max_sh_degree: int) -> list[tuple[str, int]]:
     return images + ([("sh_labels", 2), ("sh_palette", 3)] if max_sh_degree > 0 else [])
 
 
-def _log1p_signed(x: np.ndarray) -> np.ndarray:
-    return np.sign(x) * np.log1p(np.abs(x))
-
-
-def _fixed(values: np.ndarray, lo, hi, bits: int) -> np.ndarray:
-    """int64: `values` (float64) between lo and hi as round((v - lo) / (hi - lo) * (2^bits - 1))."""
-    top = (1 << bits) - 1
-    span = np.where(np.asarray(hi) > np.asarray(lo), np.asarray(hi) - np.asarray(lo), 1.0)
-    return np.clip(np.rint((values - lo) / span * top), 0, top).astype(np.int64)
-
-
-def _unfixed(q: np.ndarray, lo, hi, bits: int) -> np.ndarray:
-    """float64: the inverse of `_fixed`."""
-    return np.asarray(lo) + q.astype(np.float64) / ((1 << bits) - 1) * (np.asarray(hi) - np.asarray(lo))
-
-
 def encode_gaussians(arrays: dict, means_bits: int = MEANS_BITS,
                      t_bits: int = T_MEANS_BITS) -> tuple[dict, list[bytes], np.ndarray]:
     """(the header's attribute entries and grid, the images in _images order, the order [N]: the
@@ -116,12 +100,12 @@ def encode_gaussians(arrays: dict, means_bits: int = MEANS_BITS,
            for name, value in arrays.items()}
     width, height = quantise.grid_shape(n)
 
-    log_means = _log1p_signed(f64["means"])
+    log_means = quantise.signed_log(f64["means"])
     lo, hi = (log_means.min(0), log_means.max(0)) if n else (np.zeros(3), np.zeros(3))
-    q_means = _fixed(log_means, lo, hi, means_bits)
+    q_means = quantise.fixed(log_means, lo, hi, means_bits)
     t = f64["t_means"][:, 0]
     t_lo, t_hi = (float(t.min()), float(t.max())) if n else (0.0, 0.0)
-    q_t = _fixed(t, t_lo, t_hi, t_bits)
+    q_t = quantise.fixed(t, t_lo, t_hi, t_bits)
     order = quantise.morton_order(q_means)  # t_mean left out of the curve: see docs/scene-format.md
 
     # opacities kept inside float32's logit range: an opacity that rounds to 0 or 1 has no logit to load
@@ -168,11 +152,8 @@ def encode_gaussians(arrays: dict, means_bits: int = MEANS_BITS,
         if name == "sh_palette":
             images.append(quantise.encode_webp(palette_image))
             continue
-        values = columns[name].reshape(n, channels)[order]
-        grid = np.empty((width * height, channels), np.uint8)
-        grid[n:] = values[-1] if n else 0  # unused pixels repeat the last Gaussian: nothing new to code
-        grid[:n] = values
-        images.append(quantise.encode_webp(grid.reshape(height, width, channels)))
+        images.append(quantise.encode_webp(quantise.grid_image(columns[name].reshape(n, channels)[order], width,
+                                                               height)))
     return dict(entries, count=n, grid=[width, height]), images, order
 
 
@@ -195,7 +176,7 @@ def decode_gaussians(header: dict, images: dict[str, np.ndarray], what: str) -> 
         if n and int(q.max()) >= 1 << bits:
             raise InputError(f"{what}: {name} reach {int(q.max())}, past the {bits} bits the header gives them: the "
                              f"file is damaged: {FIX}")
-    log_means = _unfixed(q_means, means["mins"], means["maxs"], means["bits"])
+    log_means = quantise.unfixed(q_means, means["mins"], means["maxs"], means["bits"])
     tags = column["quats"][:, 3]
     bad = (tags < quantise.QUAT_TAG) | (tags > quantise.QUAT_TAG + 3)
     if bad.any():
@@ -208,12 +189,12 @@ def decode_gaussians(header: dict, images: dict[str, np.ndarray], what: str) -> 
     with np.errstate(divide="ignore", over="ignore"):
         opacities = book("opacities")[column["opacities"][:, 0]]
         out = {
-            "means": np.clip(np.sign(log_means) * np.expm1(np.abs(log_means)), -FLOAT32_MAX, FLOAT32_MAX),
+            "means": np.clip(quantise.signed_exp(log_means), -FLOAT32_MAX, FLOAT32_MAX),
             "quats": quantise.unpack_quats(column["quats"]),
             "log_scales": book("log_scales")[column["scales"]],
             "opacity_logits": np.log(opacities) - np.log1p(-opacities),
             "sh_dc": book("sh_dc")[column["colours"]].reshape(n, 1, 3),
-            "t_means": _unfixed(q_t, t["min"], t["max"], t["bits"]),
+            "t_means": quantise.unfixed(q_t, t["min"], t["max"], t["bits"]),
             "log_t_scales": book("log_t_scales")[column["t_scales"][:, 0]],
         }
     degree = header["max_sh_degree"]
