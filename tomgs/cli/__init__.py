@@ -241,8 +241,11 @@ scene_cameras_option = click.option(
          "that another tool re-saved without them (SuperSplat, splat-transform); replaces the scene's own")
 
 
+SCENE_SUFFIXES = (".ply", ".tsog")  # a PLY scene, or a compressed one (tomgs.io.tsog)
+
+
 def is_scene_path(path: str) -> bool:
-    return path.lower().endswith(".ply")
+    return path.lower().endswith(SCENE_SUFFIXES)
 
 
 def _set_verbosity(ctx, param, value) -> None:
@@ -271,6 +274,6 @@ _verbosity_options(main)
 
 # the commands, one module each: importing a module adds its command to `main`
 from tomgs.cli import (  # noqa: E402,F401  (registers the commands)
-    demo, edit, eval, export, fit, info, poses, render, simulate, tets, view)
+    compress, demo, edit, eval, export, fit, info, poses, render, simulate, tets, view)
 
 _verbosity_options(main)

@@ -23,7 +23,7 @@ from tomgs.render.jobs import plan_render
 @main.command()
 @click.argument("scene", type=click.Path(path_type=str))
 @click.option("-o", "--output", required=True, type=click.Path(path_type=str),
-              help="the edited scene (.ply), or a video / PNG folder to render the edit to")
+              help="the edited scene (.ply, or .tsog compressed), or a video / PNG folder to render the edit to")
 @click.option("--select", "selectors", multiple=True, help=SELECT_HELP)
 @click.option("--translate", type=COORDINATES, default=None, help="move the selection by dx,dy,dz")
 @click.option("--rotate", type=Numbers((3,), Number(-1e6, 1e6, what="degrees")), default=None,
@@ -71,10 +71,11 @@ def edit(scene, output, selectors, translate, rotate, scale, centre, duplicate, 
         raise UsageError("nothing to do: give --translate, --rotate, --scale, --duplicate, --remove or --keyframes")
     if is_scene_path(output) == bool(keyframes):
         raise UsageError(f"-o {output}: " + ("a time-varying edit (--keyframes) is rendered: give a video or a "
-                                             "folder, not a .ply" if keyframes else
-                                             "use a .ply to write the edited scene, or --keyframes to render"))
+                                             "folder, not a scene file" if keyframes else
+                                             "use a .ply or .tsog to write the edited scene, or --keyframes to "
+                                             "render"))
     if render_out and not is_scene_path(output):
-        raise UsageError("--render goes with a .ply output; -o already renders")
+        raise UsageError("--render goes with a scene output (.ply or .tsog); -o already renders")
     if over and not (render_out or keyframes):
         raise UsageError("--over is what the render goes over: give --render (or --keyframes with a video -o)")
     if not keyframes:

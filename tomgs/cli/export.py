@@ -13,7 +13,7 @@ from tomgs.cli.params import SH_DEGREE, Number
 @main.command()
 @click.argument("scene", type=click.Path(path_type=str))
 @click.option("-o", "--output", type=click.Path(path_type=str), default=None,
-              help="the static scene: .ply (INRIA 3DGS), .splat (antimatter15) or .spz (Niantic)")
+              help="the static scene: .ply (INRIA 3DGS), .splat (antimatter15), .spz (Niantic) or .sog (PlayCanvas)")
 @click.option("--frame", type=Number(0, 2**31 - 1, integer=True, what="a frame number"), default=None,
               help="the moment: a frame number of the scene (as render --frames)")
 @click.option("--time", "clip_time", type=Number(0.0, 1.0, what="clip time"), default=None,
@@ -37,6 +37,7 @@ def export(scene, output, frame, clip_time, sh_degree, layer_paths, cameras_out,
     Examples:
       tomgs export scene.ply --frame 40 -o frame40.ply          # SuperSplat, gsplat, open3d ...
       tomgs export scene.ply --time 0.5 -o mid.splat            # antimatter15/splat viewers
+      tomgs export scene.tsog --frame 40 -o f40.sog             # SuperSplat, PlayCanvas (SOG)
       tomgs export scene.ply --frame 40 -o f40.ply --sh-degree 3   # SIBR, INRIA's loader
       tomgs export bg.ply --layer fg.ply --frame 10 -o both.spz
       tomgs export scene.ply --cameras-out cams/                # COLMAP + transforms.json only
@@ -51,7 +52,7 @@ def export(scene, output, frame, clip_time, sh_degree, layer_paths, cameras_out,
                     [str(Path(cameras_out) / name) for name in CAMERA_FILES]},
                    {"SCENE": scene, "--layer": list(layer_paths), "--cameras": cameras_path})
     if output is None and cameras_out is None:
-        raise UsageError("give -o OUT (.ply, .splat or .spz) for the static scene, --cameras-out DIR, or both")
+        raise UsageError("give -o OUT (.ply, .splat, .spz or .sog) for the static scene, --cameras-out DIR, or both")
     if output is not None:
         if Path(output).suffix.lower() not in FORMATS:
             raise UsageError(f"-o {output}: unknown format {Path(output).suffix or '(no extension)'!r}; the static "

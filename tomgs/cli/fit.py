@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import click
 
@@ -24,7 +25,8 @@ from tomgs.cli.params import SEED, SH_DEGREE, Number
 @main.command()
 @click.argument("video", type=click.Path(path_type=str))
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=str),
-              help="scene file to write (.ply); a .csv log and a .psnr.png plot are written beside it")
+              help="scene file to write (.ply, or .tsog compressed); a .csv log and a .psnr.png plot are written "
+                   "beside it")
 @click.option("--preset", default="default", show_default=True, type=click.Choice(["default", "paper", "quick"]),
               help="default: tuned for speed; paper: 80k iterations, densify to 60k; quick: a few hundred")
 @click.option("--iterations", type=Number(1, 10**7, integer=True, what="iterations"), default=None,
@@ -81,6 +83,7 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
     if gpus is not None:  # the ranks import while this process does (tomgs.train.multigpu.pool)
         rank_pool.start(gpus)
     from tomgs.outputs import check_distinct, existing_path
+    from tomgs.io.scene import bits_per_pixel
     from tomgs.train import FitInterrupted, output_paths
     from tomgs.train import fit as fit_scene
     from tomgs.train import preset as make_config
@@ -137,9 +140,13 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
     paths = output_paths(output)
     memory = f"peak memory {result.peak_host_mb / 1024:.2f} GiB host" + (
         "" if result.peak_gpu_mb is None else f", {result.peak_gpu_mb / 1024:.2f} GiB GPU")
+    nbytes = Path(output).stat().st_size
+    bpp = bits_per_pixel(nbytes, result.cameras)
     if not to_stdout:
         click.echo(f"{output}: {len(result.model):,} Gaussians, {result.iterations} iterations in "
                    f"{result.seconds:.1f} s, full-clip PSNR {result.clip_psnr:.2f} dB")
+        click.echo(f"  {nbytes:,} bytes, {bpp:.3f} bits per pixel of the clip ({len(result.cameras)} frames of "
+                   f"{result.cameras.width}x{result.cameras.height})")
         click.echo(f"  {result.wall_seconds:.1f} s in all ({phase_text(result.phase_seconds)}), {memory}")
         click.echo(f"  error against run time: {paths['csv']} and {paths['plot']}")
     for note in result.notes:
@@ -149,5 +156,6 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
                                phase_seconds=result.phase_seconds, eta_seconds=result.plan.eta,
                                peak_host_mb=result.peak_host_mb, peak_gpu_mb=result.peak_gpu_mb,
                                peak_host_mb_by_phase=result.peak_host_mb_by_phase,
-                               clip_psnr=result.clip_psnr, csv=str(paths["csv"]), plot=str(paths["plot"]),
+                               clip_psnr=result.clip_psnr, scene_bytes=nbytes, bits_per_pixel=bpp,
+                               csv=str(paths["csv"]), plot=str(paths["plot"]),
                                notes=list(result.notes), shards=getattr(result, "shards", None)))

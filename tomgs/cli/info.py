@@ -16,7 +16,8 @@ from tomgs.cli import main, overwrite_option, scene_cameras_option, user_errors
 @overwrite_option
 @user_errors
 def info(scene, plot, as_json, cameras_path, overwrite):
-    """Counts, time coverage, temporal scales and opacities of SCENE (a .ply from `tomgs fit`).
+    """Counts, file size (bytes, bits per pixel of the clip), time coverage, temporal scales and
+    opacities of SCENE (a .ply or .tsog from `tomgs fit`).
 
     \b
     Examples:

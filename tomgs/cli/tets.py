@@ -56,7 +56,7 @@ def tets_export(scene, output, selectors, cage, cell, overwrite):
     check_distinct({"-o": output}, {"SCENE": scene, "--select": selector_paths(selectors)})
     if cell is not None and not cage:
         raise UsageError("--cell sets the cage's cell size: give --cage too")
-    if not is_scene_path(output):
+    if not output.lower().endswith(".ply"):
         raise UsageError(f"-o {output}: a tets file is a .ply")
     check_file_output(output, overwrite, what="tets file")
     loaded = load_scene(scene)
@@ -72,7 +72,7 @@ def tets_export(scene, output, selectors, cage, cell, overwrite):
 @click.argument("tets_file", metavar="TETS", type=click.Path(path_type=str))
 @click.argument("sequence", type=click.Path(path_type=str))
 @click.option("-o", "--output", required=True, type=click.Path(path_type=str),
-              help=OUTPUT_HELP + "; or a .ply scene when SEQUENCE has one frame")
+              help=OUTPUT_HELP + "; or a scene (.ply or .tsog) when SEQUENCE has one frame")
 @click.option("--over", type=click.Path(path_type=str), default=None, help="when rendering: " + OVER_HELP)
 @render_options
 @user_errors

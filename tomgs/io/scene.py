@@ -1,7 +1,9 @@
 """Scene files: one PLY holds the Gaussians, the cameras and the frame-to-time mapping.
 
 `save_scene(path, model, cameras, info)` writes it atomically; `load_scene(path)` reads it back
-exactly (float32 parameters and float64 cameras bit for bit, the active SH degree, `info`).
+exactly (float32 parameters and float64 cameras bit for bit, the active SH degree, `info`). A path
+ending in .tsog is written compressed (tomgs.io.tsog: the Gaussians quantised, the clip the same), and
+`load_scene` reads a file by its first bytes, so every command that reads a scene reads either.
 
 Layout (format "tomgs-scene" version 2; docs/scene-format.md has the why and the readers tried):
 
@@ -63,6 +65,7 @@ import torch
 
 from tomgs.cameras import Cameras, short_repr
 from tomgs.errors import InputError
+from tomgs.io import tsog
 from tomgs.outputs import atomic_file
 
 if TYPE_CHECKING:  # for the annotation only; load_scene imports the model when it builds one
@@ -115,11 +118,21 @@ class Scene:
     info: dict = field(default_factory=dict)
 
 
+def bits_per_pixel(nbytes: int, cameras: Cameras) -> float:
+    """Bits of a scene file of `nbytes` bytes per pixel of the clip its `cameras` were fitted to
+    (8 nbytes / (width x height x frames)): what the scene costs beside its clip's frames (JPEG
+    frames take ~1.3 bits a pixel, H.264 ~0.1-0.2)."""
+    return 8.0 * nbytes / (cameras.width * cameras.height * len(cameras))
+
+
 # ---- writing -----------------------------------------------------------------------------------
 
-def save_scene(path, model, cameras: Cameras, info: dict | None = None) -> Path:
-    """Write `model` (a GaussianModel), `cameras` and `info` (a JSON-serialisable dict) to the PLY
-    file `path`, atomically: a temporary file in the same folder, renamed at the end."""
+def save_scene(path, model, cameras: Cameras, info: dict | None = None, *, means_bits: int = tsog.MEANS_BITS,
+               t_bits: int = tsog.T_MEANS_BITS) -> Path:
+    """Write `model` (a GaussianModel), `cameras` and `info` (a JSON-serialisable dict) to the scene
+    file `path`, atomically: a temporary file in the same folder, renamed at the end. A path ending
+    in .tsog is a compressed scene (tomgs.io.tsog), its means and t_means quantised to `means_bits`
+    (an axis) and `t_bits` (1..16); any other path a PLY scene, exact."""
     path = Path(path)
     info = {} if info is None else info
     if not isinstance(info, dict):
@@ -134,20 +147,6 @@ def save_scene(path, model, cameras: Cameras, info: dict | None = None) -> Path:
     bad = [name for name, value in params.items() if not bool(torch.isfinite(value).all())]
     if bad:
         raise ValueError(f"cannot save a scene with non-finite parameters ({', '.join(bad)})")
-    names = vertex_properties(degree)
-
-    def rows(start: int, stop: int) -> bytes:
-        """Vertex rows start..stop as little-endian float32 bytes, in `names` order."""
-        p = {name: value[start:stop] for name, value in params.items()}
-        m = stop - start
-        columns = [p["means"], torch.zeros(m, 3, device=p["means"].device), p["sh_dc"].reshape(m, 3),
-                   p["sh_rest"].transpose(1, 2).reshape(m, -1),  # [M,3,K-1]: channel-major, as INRIA
-                   p["opacity_logits"].reshape(m, 1), p["log_scales"], p["quats"], p["t_means"].reshape(m, 1),
-                   p["log_t_scales"].reshape(m, 1)]
-        block = torch.cat([c.float() for c in columns], dim=1).cpu().numpy()
-        assert block.shape == (m, len(names))
-        return block.astype("<f4", copy=False).tobytes()
-
     records = np.empty(len(cameras), CAMERA_RECORD)
     records["c2w"] = cameras.c2w.reshape(len(cameras), 16)
     records["time"] = cameras.times
@@ -162,6 +161,22 @@ def save_scene(path, model, cameras: Cameras, info: dict | None = None) -> Path:
         text = json.dumps(clip, ensure_ascii=True, separators=(",", ":")).encode("ascii")
     except (TypeError, ValueError) as e:
         raise ValueError(f"info must be JSON-serialisable ({e})") from None
+    if path.suffix.lower() == tsog.SUFFIX:
+        arrays = {name: value.cpu().numpy() for name, value in params.items()}
+        return tsog.write_tsog(path, arrays, clip, records, means_bits, t_bits)
+    names = vertex_properties(degree)
+
+    def rows(start: int, stop: int) -> bytes:
+        """Vertex rows start..stop as little-endian float32 bytes, in `names` order."""
+        p = {name: value[start:stop] for name, value in params.items()}
+        m = stop - start
+        columns = [p["means"], torch.zeros(m, 3, device=p["means"].device), p["sh_dc"].reshape(m, 3),
+                   p["sh_rest"].transpose(1, 2).reshape(m, -1),  # [M,3,K-1]: channel-major, as INRIA
+                   p["opacity_logits"].reshape(m, 1), p["log_scales"], p["quats"], p["t_means"].reshape(m, 1),
+                   p["log_t_scales"].reshape(m, 1)]
+        block = torch.cat([c.float() for c in columns], dim=1).cpu().numpy()
+        assert block.shape == (m, len(names))
+        return block.astype("<f4", copy=False).tobytes()
 
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_file(path, durable=True) as tmp, open(tmp, "wb") as f:
@@ -176,20 +191,51 @@ def save_scene(path, model, cameras: Cameras, info: dict | None = None) -> Path:
 # ---- reading -----------------------------------------------------------------------------------
 
 def load_scene(path, device="cpu", cameras=None) -> Scene:
-    """Read a scene written by `save_scene` (or by an earlier tomgs); the model's parameters are put
-    on `device`. `cameras` (a Cameras, or the path of a cameras JSON from `tomgs export --cameras-out`
+    """Read a scene written by `save_scene` (or by an earlier tomgs): a PLY scene, or a compressed
+    one (.tsog, known by its first bytes whatever its name); the model's parameters are put on
+    `device`. `cameras` (a Cameras, or the path of a cameras JSON from `tomgs export --cameras-out`
     or `tomgs poses`) replaces the file's own, and gives a scene back its cameras after a tool that
     re-saved the PLY (SuperSplat, splat-transform) dropped them. Raises `tomgs.InputError` naming the
     file and the fix when it is missing or malformed."""
-    from tomgs.io.ply import ply_layout, read_ply
     from tomgs.model import GaussianModel
 
     path = Path(path)
     fix = "write scenes with `tomgs fit` or tomgs.save_scene"
     if not path.is_file():
         raise InputError(f"scene file {path} does not exist" + (" (it is a folder)" if path.is_dir() else "")
-                         + f": give the path of a .ply scene ({fix})")
+                         + f": give the path of a .ply or .tsog scene ({fix})")
     given = _given_cameras(cameras)
+    if tsog.is_tsog(path):
+        header, stored, arrays = tsog.read_tsog(path, CAMERA_RECORD, lambda clip: _checked_clip(clip, path, fix))
+    else:
+        header, stored, arrays = _read_ply_scene(path, given, fix)
+    n = len(arrays["means"])
+    bad = {name: int((~np.isfinite(a.reshape(n, a[0].size if n else 0))).any(axis=1).sum())
+           for name, a in arrays.items()}
+    bad = {name: count for name, count in bad.items() if count}
+    if bad:
+        raise InputError(f"{path}: non-finite values (NaN or infinity) in "
+                         + ", ".join(f"{name} of {count} Gaussians" for name, count in bad.items())
+                         + ": the file is corrupt or came from a diverged fit; refit or remove those Gaussians")
+
+    if given is not None:
+        scene_cameras = given
+    else:
+        try:  # Cameras checks sizes, poses, K, times and frame numbers
+            scene_cameras = Cameras(stored["c2w"].reshape(-1, 4, 4), np.asarray(header["K"], dtype=np.float64),
+                                    header["width"], header["height"], stored["time"], stored["index"])
+        except (ValueError, TypeError, OverflowError) as e:  # InputError from Cameras, or a K it cannot hold
+            raise InputError(f"{path}: bad cameras ({str(e).removeprefix('Cameras: ')}): {fix}") from None
+
+    tensors = {name: torch.from_numpy(np.ascontiguousarray(a)).to(device) for name, a in arrays.items()}
+    model = GaussianModel(**tensors, sh_degree=header["sh_degree"])
+    return Scene(model=model, cameras=scene_cameras, info=header["info"])
+
+
+def _read_ply_scene(path: Path, given: Cameras | None, fix: str) -> tuple[dict, np.ndarray | None, dict]:
+    """(clip header, camera records or None, the stored parameters as float32 numpy) of a PLY scene."""
+    from tomgs.io.ply import ply_layout, read_ply
+
     # header read with a byte cap, element counts checked against the file's size, then memory-mapped:
     # each column is copied out once below
     layout = ply_layout(path, "scene file", fix)
@@ -245,26 +291,7 @@ def load_scene(path, device="cpu", cameras=None) -> Scene:
         "t_means": col(["t_mean"])[:, 0],
         "log_t_scales": col(["t_log_sigma"])[:, 0],
     }
-    bad = {name: int((~np.isfinite(a.reshape(n, a[0].size if n else 0))).any(axis=1).sum())
-           for name, a in arrays.items()}
-    bad = {name: count for name, count in bad.items() if count}
-    if bad:
-        raise InputError(f"{path}: non-finite values (NaN or infinity) in "
-                         + ", ".join(f"{name} of {count} Gaussians" for name, count in bad.items())
-                         + ": the file is corrupt or came from a diverged fit; refit or remove those Gaussians")
-
-    if given is not None:
-        scene_cameras = given
-    else:
-        try:  # Cameras checks sizes, poses, K, times and frame numbers
-            scene_cameras = Cameras(stored["c2w"].reshape(-1, 4, 4), np.asarray(header["K"], dtype=np.float64),
-                                    header["width"], header["height"], stored["time"], stored["index"])
-        except (ValueError, TypeError, OverflowError) as e:  # InputError from Cameras, or a K it cannot hold
-            raise InputError(f"{path}: bad cameras ({str(e).removeprefix('Cameras: ')}): {fix}") from None
-
-    tensors = {name: torch.from_numpy(np.ascontiguousarray(a)).to(device) for name, a in arrays.items()}
-    model = GaussianModel(**tensors, sh_degree=header["sh_degree"])
-    return Scene(model=model, cameras=scene_cameras, info=header["info"])
+    return header, stored, arrays
 
 
 def _given_cameras(cameras) -> Cameras | None:
@@ -363,6 +390,11 @@ def _checked_header(text, path: Path, fix: str) -> dict:
         raise InputError(f"{path}: the scene's settings nest too deeply to read: {fix}") from None
     except (ValueError, UnicodeDecodeError) as e:  # JSONDecodeError, or a number of more than 4300 digits
         raise InputError(f"{path}: the scene's settings are not valid JSON ({str(e)[:200]}): {fix}") from None
+    return _checked_clip(header, path, fix)
+
+
+def _checked_clip(header, path: Path, fix: str) -> dict:
+    """The scene's clip object (decoded JSON: size, K, SH degrees, info), its fields checked."""
     if not isinstance(header, dict) or header.get("format") != FORMAT:
         raise InputError(f"{path}: the scene's settings lack \"format\": \"{FORMAT}\": {fix}")
     if header.get("version") not in READS:

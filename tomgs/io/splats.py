@@ -1,4 +1,5 @@
-"""Static 3DGS files for other tools: the INRIA PLY, antimatter15's `.splat` and Niantic's `.spz`.
+"""Static 3DGS files for other tools: the INRIA PLY, antimatter15's `.splat`, Niantic's `.spz` and
+PlayCanvas's `.sog` (tomgs.io.sog).
 
 Each writer takes one `StaticGaussians` (what `tomgs.edit.export.static_moment` makes of a moment of a
 clip) and writes atomically. The layouts, as the readers expect them (REFERENCES.md, "Files"):
@@ -29,10 +30,11 @@ from pathlib import Path
 
 import numpy as np
 
+from tomgs.io.sog import sog_bytes
 from tomgs.outputs import atomic_file
 from tomgs.render.sh import _C0, sh_degree_of
 
-FORMATS = (".ply", ".splat", ".spz")
+FORMATS = (".ply", ".splat", ".spz", ".sog")
 FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")  # StaticGaussians' arrays
 
 
@@ -72,7 +74,8 @@ class StaticGaussians:
 def write_static(path, gaussians: StaticGaussians) -> Path:
     """Write `gaussians` in the format of `path`'s extension (FORMATS), atomically."""
     path = Path(path)
-    writer = {".ply": _ply_bytes, ".splat": _splat_bytes, ".spz": _spz_bytes}.get(path.suffix.lower())
+    writers = {".ply": _ply_bytes, ".splat": _splat_bytes, ".spz": _spz_bytes, ".sog": sog_bytes}
+    writer = writers.get(path.suffix.lower())
     if writer is None:
         raise ValueError(f"unknown static format {path.suffix!r}; one of {', '.join(FORMATS)}")
     data = writer(gaussians)

@@ -12,7 +12,8 @@ import torch
 from tomgs.cameras import Cameras
 from tomgs.constants import ALPHA_MIN
 from tomgs.errors import InputError
-from tomgs.io.scene import Scene
+from tomgs.io.scene import Scene, bits_per_pixel
+from tomgs.io.tsog import image_sizes, is_tsog
 from tomgs.temporal import alive_at, clip_time_to_frames, peak_opacity
 
 
@@ -71,9 +72,14 @@ def summarize(scene: Scene, path=None) -> dict:
         return {"min": float(np.min(x)), "median": float(np.median(x)), "mean": float(np.mean(x)),
                 "max": float(np.max(x))}
 
+    nbytes = None if path is None else Path(path).stat().st_size
     out = {
         "path": None if path is None else str(path),
-        "file_bytes": None if path is None else Path(path).stat().st_size,
+        "file_bytes": nbytes,
+        "file_format": None if path is None else "tsog" if is_tsog(path) else "ply",
+        "bits_per_pixel": None if nbytes is None else bits_per_pixel(nbytes, cams),
+        "bytes_per_gaussian": None if nbytes is None or n == 0 else nbytes / n,
+        "image_bytes": image_sizes(path) if path is not None and is_tsog(path) else None,
         "gaussians": n,
         "frames": T,
         "frame_numbers": [int(cams.frame_indices.min()), int(cams.frame_indices.max())],
@@ -82,7 +88,7 @@ def summarize(scene: Scene, path=None) -> dict:
         "focal": cams.focal,
         "sh_degree": int(model.sh_degree),
         "max_sh_degree": int(model.max_sh_degree),
-        "alive_per_frame": {**{k: v for k, v in stats(counts).items() if k != "mean"},
+        "alive_per_frame": {**stats(counts),
                             "min_frame": int(cams.frame_indices[int(np.argmin(counts))]),
                             "max_frame": int(cams.frame_indices[int(np.argmax(counts))]),
                             "counts": counts.tolist()},
@@ -99,13 +105,20 @@ def summarize(scene: Scene, path=None) -> dict:
 def format_summary(s: dict, width: int = 40) -> str:
     """Human-readable text of `summarize`'s dict, with a bar histogram of temporal scales."""
     lines = []
-    size = "" if s["file_bytes"] is None else f", {s['file_bytes'] / 1e6:.2f} MB"
     lines.append(f"{s['path'] or 'scene'}: {s['gaussians']:,} Gaussians, {s['frames']} frames "
                  f"(numbers {s['frame_numbers'][0]}..{s['frame_numbers'][1]}) at {s['width']}x{s['height']}, "
-                 f"focal {s['focal']:.1f} px, SH degree {s['sh_degree']} of {s['max_sh_degree']}{size}")
+                 f"focal {s['focal']:.1f} px, SH degree {s['sh_degree']} of {s['max_sh_degree']}")
+    if s["file_bytes"] is not None:
+        per = "" if s["bytes_per_gaussian"] is None else f", {s['bytes_per_gaussian']:.2f} bytes a Gaussian"
+        lines.append(f"file: {s['file_bytes']:,} bytes ({s['file_format']}), {s['bits_per_pixel']:.3f} bits per pixel "
+                     f"of the clip ({s['frames']} frames of {s['width']}x{s['height']}){per}")
+    if s.get("image_bytes") and s["gaussians"]:
+        lines.append("  bytes a Gaussian by image: " + ", ".join(
+            f"{name} {size / s['gaussians']:.2f}" for name, size in s["image_bytes"].items()))
     a = s["alive_per_frame"]
-    lines.append(f"alive per frame: min {a['min']:,.0f} (frame {a['min_frame']}), median {a['median']:,.0f}, "
-                 f"max {a['max']:,.0f} (frame {a['max_frame']}); never alive in any frame: {s['never_alive']:,}")
+    lines.append(f"alive per frame: min {a['min']:,.0f} (frame {a['min_frame']}), mean {a['mean']:,.0f}, median "
+                 f"{a['median']:,.0f}, max {a['max']:,.0f} (frame {a['max_frame']}); never alive in any frame: "
+                 f"{s['never_alive']:,}")
     o, p = s["opacity"], s["peak_opacity_in_clip"]
     if s["gaussians"]:
         lines.append(f"opacity (base): min {o['min']:.3f}, median {o['median']:.3f}, mean {o['mean']:.3f}, "

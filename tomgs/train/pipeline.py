@@ -1,6 +1,7 @@
 """`tomgs.fit`: video in, scene file out, with the error-against-run-time record beside it.
 
-    scene.ply         the Gaussians, cameras and frame times (tomgs.load_scene reads it)
+    scene.ply         the Gaussians, cameras and frame times (tomgs.load_scene reads it); scene.tsog
+                      for the same compressed (tomgs.io.tsog)
     scene.csv         iteration, wall seconds of training, training PSNR (running, of the frames
                       trained on), clip PSNR and clip_frames, the frames it covers, Gaussians, memory
                       (peak MiB: GPU allocated, or host resident). The clip PSNR (frames rendered at
@@ -57,8 +58,9 @@ def check_outputs(output, resume: bool = False, overwrite: bool = False) -> dict
     otherwise. Without `overwrite` an existing scene, log or plot is refused; a checkpoint is
     expected with `resume` (and the log may exist then), and refused without it."""
     paths = output_paths(output)
-    if paths["scene"].suffix.lower() != ".ply":
-        raise InputError(f"{output}: a scene is written as .ply; name the output like scene.ply")
+    if paths["scene"].suffix.lower() not in (".ply", ".tsog"):
+        raise InputError(f"{output}: a scene is written as .ply (or .tsog, compressed); name the output like "
+                         f"scene.ply or scene.tsog")
     check_file_output(paths["scene"], overwrite, "scene")
     check_file_output(paths["plot"], overwrite, "PSNR plot")
     checkpoint = paths["checkpoint"]

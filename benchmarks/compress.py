@@ -1,0 +1,210 @@
+"""What a compressed scene (.tsog) costs and keeps: bytes, bits per pixel of its clip, the time to
+compress and to load it, and the PSNR of the scene before and after against the clip's frames.
+
+    python benchmarks/compress.py scene.ply .clips/camel/images --json out/camel.json
+    python benchmarks/compress.py scene.ply                          # PSNR of the .tsog against the PLY's renders
+    python benchmarks/compress.py scene.ply frames/ --means-bits 16,14,12 --t-bits 16,12   # precisions swept
+    python benchmarks/compress.py --synthetic 1000000                # times at 1M Gaussians, no PSNR
+    python benchmarks/compress.py --smoke                            # tiny CPU run (tests/test_benchmarks_compress.py)
+
+Reports: the input's bytes, the .tsog's bytes (and by image, per Gaussian), bits per pixel of the
+clip (8 bytes / (width x height x frames), the scene's cameras), compress time (tomgs.save_scene to
+.tsog), load time (tomgs.load_scene of the .tsog, and of the input for comparison), and, with
+CLIP_FRAMES, the mean PSNR over every frame of the input scene and of the .tsog against the clip
+(tomgs.evaluate: float renders against the 8-bit frames); without them, the .tsog's renders against
+the input's. With --means-bits / --t-bits lists, each other pair of precisions adds a row to
+"sweep" (bytes, bits per pixel, PSNR). Public API only. The .tsog is written to --out (default: a
+temporary folder).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+import tomgs  # noqa: E402
+from tomgs.cameras import Cameras, intrinsics, look_at  # noqa: E402
+from tomgs.io.scene import bits_per_pixel  # noqa: E402
+from tomgs.io.tsog import image_sizes  # noqa: E402
+from tomgs.io.video import read_video_for  # noqa: E402
+from tomgs.model import GaussianModel  # noqa: E402
+from tomgs.runtime import resolve_device  # noqa: E402
+from tomgs.render.sequence import render_sequence  # noqa: E402
+
+
+def synthetic_scene(n: int, frames: int = 24, width: int = 854, height: int = 480, seed: int = 0):
+    """(model, cameras) of `n` Gaussians laid like a fitted video scene: on a few depth layers seen by a
+    camera that slides sideways, colours smooth across each layer, each alive around its own frame."""
+    g = torch.Generator().manual_seed(seed)
+    rand = lambda *shape: torch.rand(*shape, generator=g)  # noqa: E731
+    layer = torch.randint(0, 4, (n,), generator=g).float()
+    depth = 2.0 + 3.0 * layer + 0.05 * torch.randn(n, generator=g)
+    uv = rand(n, 2) * 2 - 1
+    means = torch.stack([uv[:, 0] * depth * 0.6, uv[:, 1] * depth * 0.35, depth], 1)
+    colour = 0.5 + 0.4 * torch.stack([torch.sin(3 * uv[:, 0] + layer), torch.cos(2 * uv[:, 1]),
+                                      torch.sin(uv[:, 0] * uv[:, 1] * 4)], 1) + 0.05 * torch.randn(n, 3, generator=g)
+    model = GaussianModel.from_points(means, colour.clamp(0, 1), rand(n), t_scale=0.05, max_sh_degree=0,
+                                      opacity=0.7, sizes=0.004 * depth)
+    with torch.no_grad():
+        model.quats.copy_(torch.nn.functional.normalize(torch.randn(n, 4, generator=g), dim=1))
+        model.log_scales.add_(0.5 * torch.randn(n, 3, generator=g))
+        model.log_t_scales.add_(torch.randn(n, generator=g))
+        model.opacity_logits.add_(torch.randn(n, generator=g))
+    c2w = np.stack([look_at([0.02 * k, 0.0, 0.0], [0.02 * k, 0.0, 5.0]) for k in range(frames)])
+    cams = Cameras.create(c2w, intrinsics(0.9 * width, width, height), width, height)
+    return model, cams
+
+
+def mean_psnr(model, cameras, frames, device) -> float:
+    """Mean over frames of the PSNR of `model` rendered at `cameras` against `frames` (uint8 or float)."""
+    return float(np.mean(tomgs.evaluate(model, cameras, frames, device=device).psnr))
+
+
+def timed(fn, repeats: int = 1):
+    """(the result of fn(), (its quickest wall time, the process's CPU time in that call) in seconds
+    over `repeats` calls). CPU time counts every thread: on a shared machine it shows the work that
+    wall time hides behind other processes."""
+    best, out = (math.inf, math.inf), None
+    for _ in range(repeats):
+        started, cpu = time.perf_counter(), time.process_time()
+        out = fn()
+        best = min(best, (time.perf_counter() - started, time.process_time() - cpu))
+    return out, best
+
+
+def measure(scene_path: Path, frames_path: Path | None, out_dir: Path, device, repeats: int = 1,
+            precisions=((16, 16),)) -> dict:
+    """The report of one scene file (see the module's docstring); `precisions`: (means_bits, t_bits)
+    pairs, the first timed and reported in full, the others in "sweep"."""
+    scene, (load_input, _) = timed(lambda: tomgs.load_scene(scene_path), repeats)
+    cams, n = scene.cameras, len(scene.model)
+    target = out_dir / (scene_path.stem + ".tsog")
+    (means_bits, t_bits), *others = precisions
+    _, (compress_seconds, compress_cpu) = timed(lambda: tomgs.save_scene(
+        target, scene.model, scene.cameras, scene.info, means_bits=means_bits, t_bits=t_bits), repeats)
+    compressed, (load_seconds, load_cpu) = timed(lambda: tomgs.load_scene(target), repeats)
+    size_in, size_out = scene_path.stat().st_size, target.stat().st_size
+    report = {
+        "scene": str(scene_path), "means_bits": means_bits, "t_bits": t_bits, "gaussians": n, "frames": len(cams), "width": cams.width, "height": cams.height,
+        "input_bytes": size_in, "output_bytes": size_out, "ratio": size_in / size_out,
+        "bytes_per_gaussian": size_out / max(n, 1), "bits_per_pixel": bits_per_pixel(size_out, cams),
+        "input_bits_per_pixel": bits_per_pixel(size_in, cams),
+        "image_bytes_per_gaussian": {name: size / max(n, 1) for name, size in image_sizes(target).items()},
+        "compress_seconds": compress_seconds, "compress_cpu_seconds": compress_cpu, "load_seconds": load_seconds,
+        "load_cpu_seconds": load_cpu, "input_load_seconds": load_input,
+        "device": str(device), "torch_threads": torch.get_num_threads(),
+    }
+    if frames_path is not None:
+        clip = read_video_for(frames_path, cams)
+        report["clip_frames"] = str(frames_path)
+        jpeg = sum(p.stat().st_size for p in Path(frames_path).glob("*.jp*g"))
+        report["clip_jpeg_bytes"] = jpeg or None
+        report["clip_jpeg_bits_per_pixel"] = bits_per_pixel(jpeg, cams) if jpeg else None
+        report["psnr_input"] = mean_psnr(scene.model.to(device), cams, clip, device)
+    else:
+        clip = np.stack([image.numpy() for _, image, _ in
+                         render_sequence(scene.model.to(device).render_inputs(), cams, device=device)])
+        report["psnr_input"] = None  # the clip is the input's own render
+
+    def scored(model) -> dict:
+        psnr = mean_psnr(model.to(device), cams, clip, device)
+        if report["psnr_input"] is None:
+            return {"psnr_output_against_input": psnr}
+        return {"psnr_output": psnr, "psnr_drop": report["psnr_input"] - psnr}
+
+    report.update(scored(compressed.model))
+    report["sweep"] = []
+    for means_bits, t_bits in others:
+        path = out_dir / f"{scene_path.stem}_m{means_bits}_t{t_bits}.tsog"
+        tomgs.save_scene(path, scene.model, cams, scene.info, means_bits=means_bits, t_bits=t_bits)
+        size = path.stat().st_size
+        report["sweep"].append({"means_bits": means_bits, "t_bits": t_bits, "output_bytes": size,
+                                "bytes_per_gaussian": size / max(n, 1), "bits_per_pixel": bits_per_pixel(size, cams),
+                                **scored(tomgs.load_scene(path).model)})
+    return report
+
+
+def measure_synthetic(n: int, out_dir: Path, repeats: int) -> dict:
+    """Bytes and times of a synthetic scene of `n` Gaussians (no PSNR: it has no clip)."""
+    model, cams = synthetic_scene(n)
+    target = out_dir / f"synthetic_{n}.tsog"
+    _, (compress_seconds, compress_cpu) = timed(lambda: tomgs.save_scene(target, model, cams, {}), repeats)
+    back, (load_seconds, load_cpu) = timed(lambda: tomgs.load_scene(target), repeats)
+    assert len(back.model) == n
+    size = target.stat().st_size
+    return {"scene": f"synthetic {n}", "gaussians": n, "output_bytes": size, "bytes_per_gaussian": size / n,
+            "image_bytes_per_gaussian": {name: b / n for name, b in image_sizes(target).items()},
+            "compress_seconds": compress_seconds, "compress_cpu_seconds": compress_cpu, "load_seconds": load_seconds,
+            "load_cpu_seconds": load_cpu, "torch_threads": torch.get_num_threads()}
+
+
+def smoke(out_dir: Path) -> dict:
+    """A tiny CPU run: a synthetic scene of 3,000 Gaussians at 96x54, its own renders as the clip."""
+    from tomgs.io.writer import write_frames
+
+    model, cams = synthetic_scene(3000, frames=4, width=96, height=54)
+    scene_path = tomgs.save_scene(out_dir / "smoke.ply", model, cams, {})
+    images = [image.numpy() for _, image, _ in render_sequence(model.render_inputs(), cams, device="cpu")]
+    frames_dir = out_dir / "smoke_frames"
+    write_frames([np.clip(np.rint(image * 255), 0, 255).astype(np.uint8) for image in images], frames_dir)
+    return measure(scene_path, frames_dir, out_dir, torch.device("cpu"))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("scene", nargs="?", help="a scene file (.ply or .tsog)")
+    ap.add_argument("clip_frames", nargs="?", help="the clip the scene was fitted to (a frame folder or video)")
+    ap.add_argument("--out", default=None, help="folder for the .tsog (default: a temporary one)")
+    ap.add_argument("--device", default="auto", help="where to render for PSNR (auto, cpu, cuda)")
+    ap.add_argument("--repeats", type=int, default=1, help="time compress and load this many times, keep the quickest")
+    ap.add_argument("--means-bits", default="16", help="bits an axis of the means, or a list (16,14,12): the first is "
+                    "timed, the others swept")
+    ap.add_argument("--t-bits", default="16", help="bits of t_mean, or a list (swept with --means-bits)")
+    ap.add_argument("--synthetic", type=int, default=None, metavar="N", help="time a synthetic scene of N Gaussians")
+    ap.add_argument("--smoke", action="store_true", help="tiny CPU run")
+    ap.add_argument("--json", default=None, help="write the report as JSON here")
+    args = ap.parse_args(argv)
+    if not (args.smoke or args.synthetic or args.scene):
+        ap.error("give SCENE [CLIP_FRAMES], --synthetic N or --smoke")
+    with tempfile.TemporaryDirectory() as scratch:
+        out_dir = Path(args.out or scratch)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        if args.smoke:
+            report = smoke(out_dir)
+        elif args.synthetic:
+            report = measure_synthetic(args.synthetic, out_dir, args.repeats)
+        else:
+            device = resolve_device(args.device)
+            means, times = ([int(v) for v in text.split(",")] for text in (args.means_bits, args.t_bits))
+            precisions = [(m, t) for m in means for t in times]
+            report = measure(Path(args.scene), None if args.clip_frames is None else Path(args.clip_frames), out_dir,
+                             device, args.repeats, precisions)
+    for key, value in report.items():
+        if key == "sweep":
+            for row in value:
+                print(f"{'sweep':28s} " + ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
+                                                     for k, v in row.items()))
+            continue
+        if isinstance(value, dict):
+            value = ", ".join(f"{k} {v:.2f}" for k, v in value.items())
+        elif isinstance(value, float):
+            value = f"{value:.4g}"
+        print(f"{key:28s} {value}")
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(report, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,341 @@
+"""Compressed scenes (.tsog): the round trip within each attribute's quantisation step, the render
+within a stated PSNR, the clip kept exactly, and malformed files refused (one line, exit 2 from the
+CLI, nothing decoded past a size that does not fit, nothing written)."""
+
+from __future__ import annotations
+
+import json
+import struct
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+from tomgs.cameras import Cameras, intrinsics, look_at
+from tomgs.cli import main
+from tomgs.errors import InputError
+from tomgs.io import quantise, tsog
+from tomgs.io.scene import load_scene, save_scene
+from tomgs.metrics import evaluate
+from tomgs.model import PARAM_NAMES, GaussianModel
+from tomgs.render.sequence import render_sequence
+
+W, H, T = 64, 36, 6
+
+
+def wall_model(n: int = 400, max_sh_degree: int = 0, seed: int = 7) -> GaussianModel:
+    """A textured wall of Gaussians at depth ~3: random colours, sizes, rotations, opacities and
+    temporal windows (some alive the whole clip, some a few frames)."""
+    g = torch.Generator().manual_seed(seed)
+    rand = lambda *shape: torch.rand(*shape, generator=g)  # noqa: E731
+    xy = rand(n, 2) * torch.tensor([2.6, 1.6]) - torch.tensor([1.3, 0.8])
+    means = torch.cat([xy, 3.0 + 0.2 * rand(n, 1)], 1)
+    rest = (max_sh_degree + 1) ** 2 - 1
+    return GaussianModel(means, torch.randn(n, 4, generator=g), torch.log(0.03 + 0.1 * rand(n, 3)),
+                         torch.randn(n, generator=g) + 1.5, (rand(n, 1, 3) - 0.5) * 3.0,
+                         (rand(n, rest, 3) - 0.5) * 0.4, rand(n), torch.log(0.05 + 0.5 * rand(n)),
+                         sh_degree=max_sh_degree)
+
+
+def wall_cameras(first: int = 20) -> Cameras:
+    c2w = np.stack([look_at([0.05 * k, 0.0, 0.0], [0.0, 0.0, 3.0]) for k in range(T)])
+    return Cameras.create(c2w, intrinsics(50.0, W, H), W, H, frame_indices=np.arange(first, first + T))
+
+
+def arrays_of(model) -> dict:
+    return {name: getattr(model, name).detach().numpy() for name in PARAM_NAMES}
+
+
+def run(*args):
+    return CliRunner().invoke(main, [str(a) for a in args])
+
+
+@pytest.fixture(scope="module")
+def saved(tmp_path_factory):
+    """(model, cameras, info, .tsog path) of the wall."""
+    model, cams = wall_model(), wall_cameras()
+    info = {"fps": 12.0, "background": [0.0, 0.0, 0.2], "note": "a wall", "odd": float("nan")}
+    path = tmp_path_factory.mktemp("tsog") / "wall.tsog"
+    save_scene(path, model, cams, info)
+    return model, cams, info, path
+
+
+# ---- the round trip ---------------------------------------------------------------------------------
+
+def _nearest_entry(values, book):
+    """The entry of `book` nearest each value (brute force: the reference for encode_codebook)."""
+    book = np.asarray(book, np.float64)
+    return book[np.abs(np.asarray(values, np.float64)[..., None] - book).argmin(-1)]
+
+
+@pytest.mark.parametrize("max_sh_degree", [0, 2])
+def test_round_trip_within_each_quantisation_step(tmp_path, max_sh_degree):
+    model, cams = wall_model(300, max_sh_degree), wall_cameras()
+    path = save_scene(tmp_path / "s.tsog", model, cams, {})
+    assert path.read_bytes().startswith(tsog.MAGIC)
+    back = load_scene(path)
+    header, _, order = tsog.encode_gaussians(arrays_of(model))
+    a = {name: value[order].astype(np.float64) for name, value in arrays_of(model).items()}  # the file's order
+    b = {name: value.astype(np.float64) for name, value in arrays_of(back.model).items()}
+    assert back.model.max_sh_degree == max_sh_degree and len(back.model) == 300
+
+    def log1p(x):
+        return np.sign(x) * np.log1p(np.abs(x))
+
+    step = (np.array(header["means"]["maxs"]) - np.array(header["means"]["mins"])) / 65535
+    assert (np.abs(log1p(b["means"]) - log1p(a["means"])) <= step / 2 * 1.0001 + 1e-7).all()
+    t = header["t_means"]
+    assert np.abs(b["t_means"] - a["t_means"]).max() <= (t["max"] - t["min"]) / 65535 / 2 * 1.0001 + 1e-7
+    for name, key in (("log_scales", "log_scales"), ("sh_dc", "sh_dc"), ("log_t_scales", "log_t_scales")):
+        np.testing.assert_allclose(b[name], _nearest_entry(a[name], header[key]["codebook"]), rtol=0, atol=1e-6)
+    opacity = 1 / (1 + np.exp(-a["opacity_logits"]))
+    np.testing.assert_allclose(1 / (1 + np.exp(-b["opacity_logits"])),
+                               _nearest_entry(opacity, header["opacities"]["codebook"]), rtol=0, atol=1e-6)
+    unit = a["quats"] / np.linalg.norm(a["quats"], axis=1, keepdims=True)
+    sign = np.sign((unit * b["quats"]).sum(1, keepdims=True))
+    assert np.abs(b["quats"] - sign * unit).max() <= 2 / 255  # kept components 1/(255 sqrt 2), the largest from them
+    if max_sh_degree:  # 300 vectors, a palette of up to 4096: every vector is its own entry, then the codebook
+        np.testing.assert_allclose(b["sh_rest"], _nearest_entry(a["sh_rest"], header["sh_rest"]["codebook"]),
+                                   rtol=0, atol=1e-6)
+    else:
+        assert b["sh_rest"].shape == (300, 0, 3)
+
+
+@pytest.mark.parametrize("means_bits, t_bits", [(12, 16), (16, 10), (8, 8)])
+def test_fewer_bits_round_trip_within_their_step(tmp_path, means_bits, t_bits):
+    model, cams = wall_model(300), wall_cameras()
+    arrays = arrays_of(model)
+    records = np.zeros(len(cams), np.dtype([("c2w", "<f8", (16,)), ("time", "<f8"), ("index", "<i8")]))
+    records["c2w"] = cams.c2w.reshape(-1, 16)
+    records["time"], records["index"] = cams.times, cams.frame_indices
+    clip = {"format": "tomgs-scene", "version": 2, "width": W, "height": H, "K": cams.K.tolist(), "sh_degree": 0,
+            "max_sh_degree": 0, "tomgs": "test", "cameras": T, "info": {}}
+    path = tsog.write_tsog(tmp_path / "s.tsog", arrays, clip, records, means_bits=means_bits, t_bits=t_bits)
+    header, _, order = tsog.encode_gaussians(arrays, means_bits, t_bits)
+    back = load_scene(path)
+    a, b = arrays["means"][order].astype(np.float64), back.model.means.detach().numpy().astype(np.float64)
+    step = (np.array(header["means"]["maxs"]) - np.array(header["means"]["mins"])) / ((1 << means_bits) - 1)
+    log_b, log_a = np.sign(b) * np.log1p(np.abs(b)), np.sign(a) * np.log1p(np.abs(a))
+    assert (np.abs(log_b - log_a) <= step / 2 * 1.0001 + 1e-7).all()
+    t = header["t_means"]
+    error = np.abs(back.model.t_means.detach().numpy() - arrays["t_means"][order])
+    assert error.max() <= (t["max"] - t["min"]) / ((1 << t_bits) - 1) / 2 * 1.0001 + 1e-7
+    assert path.stat().st_size < save_scene(tmp_path / "full.tsog", model, cams, {}).stat().st_size
+
+
+def test_clip_and_info_come_back_exactly(saved):
+    model, cams, info, path = saved
+    back = load_scene(path)
+    for name in ("c2w", "K", "times", "frame_indices"):
+        x, y = getattr(cams, name), getattr(back.cameras, name)
+        assert x.dtype == y.dtype and x.tobytes() == y.tobytes(), name
+    assert (back.cameras.width, back.cameras.height) == (W, H) and back.model.sh_degree == model.sh_degree
+    assert back.info["note"] == "a wall" and back.info["fps"] == 12.0 and np.isnan(back.info["odd"])
+
+
+def test_render_within_stated_psnr_of_the_original(saved):
+    """The compressed wall renders within 40 dB PSNR of the original at every frame (float renders)."""
+    model, cams, _, path = saved
+    original = np.stack([image.numpy() for _, image, _ in render_sequence(model.render_inputs(), cams,
+                                                                          device="cpu")])
+    report = evaluate(load_scene(path).model, cams, original, device="cpu")
+    assert min(report.psnr) > 40.0, report.psnr
+
+
+def test_empty_and_awkward_models_round_trip(tmp_path):
+    cams = wall_cameras()
+    empty = wall_model(0)
+    back = load_scene(save_scene(tmp_path / "e.tsog", empty, cams, {}))
+    assert len(back.model) == 0 and back.model.means.shape == (0, 3)
+    model = wall_model(20)
+    with torch.no_grad():  # extremes a float32 scene can hold: saturated opacities, a subnormal, a zero quaternion
+        model.opacity_logits[0], model.opacity_logits[1] = 3.4e38, -3.4e38
+        model.means[2, 0] = 1e-45
+        model.quats[3] = 0.0
+        model.means[4] = torch.tensor([1e30, -1e30, 3.0])
+    back = load_scene(save_scene(tmp_path / "a.tsog", model, cams, {}))
+    assert all(torch.isfinite(getattr(back.model, name)).all() for name in PARAM_NAMES)
+    assert back.model.opacities.max() > 0.999 and back.model.opacities.min() < 1e-3
+
+
+def test_a_scene_named_ply_but_compressed_loads_by_its_bytes(saved, tmp_path):
+    *_, path = saved
+    renamed = tmp_path / "looks_like.ply"
+    renamed.write_bytes(path.read_bytes())
+    assert len(load_scene(renamed).model) == 400
+
+
+# ---- quantisation pieces ------------------------------------------------------------------------------
+
+def test_codebook_is_nearest_entry_and_exact_on_few_values():
+    rng = np.random.default_rng(0)
+    values = np.concatenate([rng.normal(size=5000), rng.normal(size=100) * 40])
+    book = quantise.codebook(values)
+    assert book.shape == (256,) and (np.diff(book) >= 0).all()
+    np.testing.assert_array_equal(book[quantise.encode_codebook(values, book)], _nearest_entry(values, book))
+    few = rng.choice(np.float32([-3.5, 0.25, 7.0, 1e-30]), size=1000)
+    book = quantise.codebook(few)
+    assert np.array_equal(book[quantise.encode_codebook(few, book)], few)  # exact: four values, four entries
+
+
+def test_grid_holds_the_count_in_whole_rows():
+    for n in (0, 1, 255, 256, 257, 5000, 10 ** 6):
+        width, height = quantise.grid_shape(n)
+        assert width % 4 == 0 and height % 4 == 0 and width * height >= n
+        assert width * (height - 4) < max(n, 1) and abs(width - height) <= width // 4 + 4  # no spare row of 4
+
+
+def test_smallest_three_round_trip():
+    q = np.random.default_rng(1).normal(size=(2000, 4))
+    back = quantise.unpack_quats(quantise.smallest_three(q))
+    unit = q / np.linalg.norm(q, axis=1, keepdims=True)
+    assert np.abs(np.abs((back * unit).sum(1)) - 1).max() < 1e-4
+
+
+# ---- malformed files ---------------------------------------------------------------------------------
+
+def _parts(path):
+    """(header dict, the bytes after the header) of a .tsog file."""
+    data, lead = path.read_bytes(), len(tsog.MAGIC) + 8
+    (length,) = struct.unpack("<Q", data[lead - 8:lead])
+    return json.loads(data[lead:lead + length]), data[lead + length:]
+
+
+def _with_header(path, dst, header, rest=None):
+    text = json.dumps(header).encode()
+    parts_rest = _parts(path)[1] if rest is None else rest
+    dst.write_bytes(tsog.MAGIC + struct.pack("<Q", len(text)) + text + parts_rest)
+    return dst
+
+
+def _edit(path, dst, change):
+    header, rest = _parts(path)
+    change(header)
+    return _with_header(path, dst, header, rest)
+
+
+def _set(*keys, value):
+    def change(header):
+        target = header
+        for key in keys[:-1]:
+            target = target[key]
+        target[keys[-1]] = value
+    return change
+
+
+def _bomb_image(path, dst):
+    """The opacities image replaced by a 4000x4000 WebP of one colour: a few hundred bytes that decode
+    to 16 million pixels."""
+    header, rest = _parts(path)
+    sizes = [entry["bytes"] for entry in header["images"]]
+    index = [entry["name"] for entry in header["images"]].index("opacities")
+    start = sum(sizes[:index])
+    big = quantise.encode_webp(np.zeros((4000, 4000, 1), np.uint8))
+    header["images"][index]["bytes"] = len(big)
+    return _with_header(path, dst, header, rest[:start] + big + rest[start + sizes[index]:])
+
+
+CASES = {
+    "truncated": (lambda p, d: d.write_bytes(p.read_bytes()[:-100]), "do not add up"),
+    "truncated in the header": (lambda p, d: d.write_bytes(p.read_bytes()[:200]), "claims"),
+    "only the magic": (lambda p, d: d.write_bytes(tsog.MAGIC + b"\x01"), "ends inside its first 17 bytes"),
+    "header longer than the file": (lambda p, d: d.write_bytes(tsog.MAGIC + struct.pack("<Q", 10 ** 12) + b"{}"),
+                                    "claims 1,000,000,000,000 bytes"),
+    "bad JSON": (lambda p, d: d.write_bytes(tsog.MAGIC + struct.pack("<Q", 5) + b"{nope" + bytes(200)),
+                 "not valid JSON"),
+    "JSON not an object": (lambda p, d: _with_header(p, d, [1, 2]), "lacks \"format\""),
+    "wrong version": (lambda p, d: _edit(p, d, _set("version", value=99)), "version 99"),
+    "no clip": (lambda p, d: _edit(p, d, lambda h: h.pop("clip")), "\"clip\""),
+    "bad clip": (lambda p, d: _edit(p, d, _set("clip", "width", value="wide")), "'width'"),
+    "count bomb": (lambda p, d: _edit(p, d, _set("count", value=100_000_000)), "at most 64 a byte"),
+    "count past the cap": (lambda p, d: _edit(p, d, _set("count", value=1 << 40)), "'count'"),
+    "negative count": (lambda p, d: _edit(p, d, _set("count", value=-1)), "'count'"),
+    "wrong grid": (lambda p, d: _edit(p, d, _set("grid", value=[16, 28])), "'grid'"),
+    "more Gaussians than pixels hold": (lambda p, d: _edit(p, d, _set("count", value=500)), "'grid'"),
+    "image sizes bigger than the bytes": (lambda p, d: _edit(p, d, _set("images", 0, "bytes", value=10 ** 9)),
+                                          "do not add up"),
+    "images missing": (lambda p, d: _edit(p, d, lambda h: h["images"].pop()), "'images'"),
+    "image renamed": (lambda p, d: _edit(p, d, _set("images", 2, "name", value="rotations")), "'images'"),
+    "decompression bomb image": (_bomb_image, "4000x4000 image, not the"),
+    "NaN in a codebook": (lambda p, d: _edit(p, d, lambda h: h["log_scales"]["codebook"].__setitem__(3, float("nan"))),
+                          "'log_scales'"),
+    "short codebook": (lambda p, d: _edit(p, d, _set("sh_dc", "codebook", value=[0.0] * 10)), "'sh_dc'"),
+    "NaN in the means' range": (lambda p, d: _edit(p, d, _set("means", "mins", value=[0.0, float("nan"), 0.0])),
+                                "'means'"),
+    "opacity codebook outside (0, 1)": (lambda p, d: _edit(p, d, lambda h: h["opacities"]["codebook"]
+                                                           .__setitem__(0, 0.0)), "outside (0, 1)"),
+    "an image that is not WebP": (lambda p, d: _corrupt_image(p, d, "means_lo"), "not a readable lossless WebP"),
+    "means past their bits": (lambda p, d: _edit(p, d, _set("means", "bits", value=4)), "past the 4 bits"),
+    "bits out of range": (lambda p, d: _edit(p, d, _set("t_means", "bits", value=17)), "'t_means'"),
+    "wrong quaternion tags": (lambda p, d: _replace_image(p, d, "quats", np.full((20, 20, 4), 7, np.uint8)),
+                              "tag outside 252..255"),
+}
+
+
+def _corrupt_image(path, dst, name):
+    header, rest = _parts(path)
+    sizes = [entry["bytes"] for entry in header["images"]]
+    index = [entry["name"] for entry in header["images"]].index(name)
+    start = sum(sizes[:index])
+    garbage = bytes(range(256)) * (sizes[index] // 256 + 1)
+    return _with_header(path, dst, header, rest[:start] + garbage[:sizes[index]] + rest[start + sizes[index]:])
+
+
+def _replace_image(path, dst, name, image):
+    header, rest = _parts(path)
+    sizes = [entry["bytes"] for entry in header["images"]]
+    index = [entry["name"] for entry in header["images"]].index(name)
+    start = sum(sizes[:index])
+    data = quantise.encode_webp(image)
+    header["images"][index]["bytes"] = len(data)
+    return _with_header(path, dst, header, rest[:start] + data + rest[start + sizes[index]:])
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_malformed_files_raise_input_error_before_decoding_too_much(saved, tmp_path, monkeypatch, case):
+    *_, path = saved
+    make, message = CASES[case]
+    bad = tmp_path / "bad.tsog"
+    make(path, bad)
+    decoded = []  # pixels decoded: never more than the grid's
+    real = quantise.decode_webp
+
+    def counting(data, width, height, channels, what):
+        image = real(data, width, height, channels, what)
+        decoded.append(image.size)
+        return image
+
+    monkeypatch.setattr(quantise, "decode_webp", counting)
+    with pytest.raises(InputError, match=message.replace("(", r"\(").replace(")", r"\)")) as caught:
+        load_scene(bad)
+    assert "\n" not in str(caught.value) and str(bad) in str(caught.value)
+    assert max(decoded, default=0) <= 20 * 20 * 4  # the wall's grid: 400 Gaussians on 20 x 20 pixels, 4 channels
+
+
+def test_the_bomb_is_refused_before_its_pixels_are_decoded(saved, tmp_path, monkeypatch):
+    from PIL import Image
+
+    *_, path = saved
+    bad = _bomb_image(path, tmp_path / "bomb.tsog")
+    load = Image.Image.load
+    monkeypatch.setattr(Image.Image, "load",
+                        lambda self: pytest.fail("decoded the bomb") if self.size == (4000, 4000) else load(self))
+    with pytest.raises(InputError, match="4000x4000"):
+        load_scene(bad)
+
+
+@pytest.mark.parametrize("command", [["render", "{bad}", "-o", "{out}/out.mp4", "--device", "cpu"],
+                                     ["info", "{bad}"], ["compress", "{bad}", "-o", "{out}/c.tsog"],
+                                     ["export", "{bad}", "--frame", "20", "-o", "{out}/f.ply"]])
+def test_cli_refuses_a_malformed_file_with_exit_2_and_writes_nothing(saved, tmp_path, command):
+    *_, path = saved
+    bad = tmp_path / "bad.tsog"
+    bad.write_bytes(path.read_bytes()[:-300])
+    out = tmp_path / "out"
+    out.mkdir()
+    result = run(*(word.format(bad=bad, out=out) for word in command))
+    assert result.exit_code == 2, result.output
+    message = [line for line in result.output.splitlines() if line.startswith("Error:")]
+    assert len(message) == 1 and "damaged or truncated compressed scene" in message[0]
+    assert list(out.iterdir()) == []
