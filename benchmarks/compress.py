@@ -1,11 +1,11 @@
 """What a compressed scene (.tsog) costs and keeps: bytes, bits per pixel of its clip, the time to
 compress and to load it, and the PSNR of the scene before and after against the clip's frames.
 
-    python benchmarks/compress.py scene.ply .clips/camel/images --json out/camel.json
-    python benchmarks/compress.py scene.ply                          # PSNR of the .tsog against the PLY's renders
-    python benchmarks/compress.py scene.ply frames/ --means-bits 16,14,12 --t-bits 16,12   # precisions swept
-    python benchmarks/compress.py --synthetic 1000000                # times at 1M Gaussians, no PSNR
-    python benchmarks/compress.py --smoke                            # tiny CPU run (tests/test_benchmarks_compress.py)
+    python -m benchmarks.compress scene.ply .clips/camel/images --out $OUT
+    python -m benchmarks.compress scene.ply                          # PSNR of the .tsog against the PLY's renders
+    python -m benchmarks.compress scene.ply frames/ --means-bits 16,14,12 --t-bits 16,12   # precisions swept
+    python -m benchmarks.compress --synthetic 1000000                # times at 1M Gaussians, no PSNR
+    python -m benchmarks.compress --smoke                            # tiny CPU run (tests/test_benchmarks.py)
 
 Reports: the input's bytes, the .tsog's bytes (and by image, per Gaussian), bits per pixel of the
 clip (8 bytes / (width x height x frames), the scene's cameras), compress time (tomgs.save_scene to
@@ -13,33 +13,33 @@ clip (8 bytes / (width x height x frames), the scene's cameras), compress time (
 CLIP_FRAMES, the mean PSNR over every frame of the input scene and of the .tsog against the clip
 (tomgs.evaluate: float renders against the 8-bit frames); without them, the .tsog's renders against
 the input's. With --means-bits / --t-bits lists, each other pair of precisions adds a row to
-"sweep" (bytes, bits per pixel, PSNR). Public API only. The .tsog is written to --out (default: a
-temporary folder).
+"sweep" (bytes, bits per pixel, PSNR). Public API only. The .tsog and compress.{md,json} are written to
+--out (default bench_out/compress; a temporary folder for --smoke).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import sys
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+import tomgs
+from tomgs.cameras import Cameras, intrinsics, look_at
+from tomgs.io.scene import bits_per_pixel
+from tomgs.io.tsog import image_sizes
+from tomgs.io.video import read_video_for
+from tomgs.model import GaussianModel
+from tomgs.runtime import resolve_device
+from tomgs.render.sequence import render_sequence
 
-import tomgs  # noqa: E402
-from tomgs.cameras import Cameras, intrinsics, look_at  # noqa: E402
-from tomgs.io.scene import bits_per_pixel  # noqa: E402
-from tomgs.io.tsog import image_sizes  # noqa: E402
-from tomgs.io.video import read_video_for  # noqa: E402
-from tomgs.model import GaussianModel  # noqa: E402
-from tomgs.runtime import resolve_device  # noqa: E402
-from tomgs.render.sequence import render_sequence  # noqa: E402
+if __package__:
+    from .common import environment, markdown_table, output_folder, write_report
+else:  # run as a file: Python puts this folder first on sys.path
+    from common import environment, markdown_table, output_folder, write_report
 
 
 def synthetic_scene(n: int, frames: int = 24, width: int = 854, height: int = 480, seed: int = 0):
@@ -160,11 +160,11 @@ def smoke(out_dir: Path) -> dict:
     return measure(scene_path, frames_dir, out_dir, torch.device("cpu"))
 
 
-def main(argv=None) -> int:
+def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("scene", nargs="?", help="a scene file (.ply or .tsog)")
     ap.add_argument("clip_frames", nargs="?", help="the clip the scene was fitted to (a frame folder or video)")
-    ap.add_argument("--out", default=None, help="folder for the .tsog (default: a temporary one)")
+    ap.add_argument("--out", default=None, help="folder for the .tsog and the report (default bench_out/compress)")
     ap.add_argument("--device", default="auto", help="where to render for PSNR (auto, cpu, cuda)")
     ap.add_argument("--repeats", type=int, default=1, help="time compress and load this many times, keep the quickest")
     ap.add_argument("--means-bits", default="16", help="bits an axis of the means, or a list (16,14,12): the first is "
@@ -172,39 +172,32 @@ def main(argv=None) -> int:
     ap.add_argument("--t-bits", default="16", help="bits of t_mean, or a list (swept with --means-bits)")
     ap.add_argument("--synthetic", type=int, default=None, metavar="N", help="time a synthetic scene of N Gaussians")
     ap.add_argument("--smoke", action="store_true", help="tiny CPU run")
-    ap.add_argument("--json", default=None, help="write the report as JSON here")
     args = ap.parse_args(argv)
     if not (args.smoke or args.synthetic or args.scene):
         ap.error("give SCENE [CLIP_FRAMES], --synthetic N or --smoke")
-    with tempfile.TemporaryDirectory() as scratch:
-        out_dir = Path(args.out or scratch)
-        out_dir.mkdir(parents=True, exist_ok=True)
-        if args.smoke:
-            report = smoke(out_dir)
-        elif args.synthetic:
-            report = measure_synthetic(args.synthetic, out_dir, args.repeats)
-        else:
-            device = resolve_device(args.device)
-            means, times = ([int(v) for v in text.split(",")] for text in (args.means_bits, args.t_bits))
-            precisions = [(m, t) for m in means for t in times]
-            report = measure(Path(args.scene), None if args.clip_frames is None else Path(args.clip_frames), out_dir,
-                             device, args.repeats, precisions)
-    for key, value in report.items():
-        if key == "sweep":
-            for row in value:
-                print(f"{'sweep':28s} " + ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
-                                                     for k, v in row.items()))
-            continue
-        if isinstance(value, dict):
-            value = ", ".join(f"{k} {v:.2f}" for k, v in value.items())
-        elif isinstance(value, float):
-            value = f"{value:.4g}"
-        print(f"{key:28s} {value}")
-    if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(report, indent=1))
-    return 0
+    out_dir = output_folder(args.out, args.smoke, "compress")
+    if args.smoke:
+        device = torch.device("cpu")
+        report = smoke(out_dir)
+    elif args.synthetic:
+        device = torch.device("cpu")
+        report = measure_synthetic(args.synthetic, out_dir, args.repeats)
+    else:
+        device = resolve_device(args.device)
+        means, times = ([int(v) for v in text.split(",")] for text in (args.means_bits, args.t_bits))
+        precisions = [(m, t) for m in means for t in times]
+        report = measure(Path(args.scene), None if args.clip_frames is None else Path(args.clip_frames), out_dir,
+                         device, args.repeats, precisions)
+    rows = [[key, ", ".join(f"{k} {v:.2f}" for k, v in value.items()) if isinstance(value, dict) else value]
+            for key, value in report.items() if key != "sweep"]
+    body = markdown_table(["what", "value"], rows)
+    if report.get("sweep"):
+        head = list(report["sweep"][0])
+        body += "\n\nPrecisions swept:\n\n" + markdown_table(head, [[row[k] for k in head] for row in report["sweep"]])
+    write_report(out_dir, "compress", "compress: a .tsog's bytes, times and PSNR", environment(device, "compress", argv),
+                 body, report)
+    return report
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()

@@ -153,6 +153,15 @@ def check_shards(r):
     assert set(r["results"]) == {"half0", "half1", "full_2gpu"} and r["goal"] is not None
 
 
+def check_compress(r):
+    assert r["gaussians"] == 3000 and r["frames"] == 4
+    assert 0 < r["output_bytes"] < r["input_bytes"]
+    assert r["bits_per_pixel"] == 8 * r["output_bytes"] / (96 * 54 * 4)
+    assert r["compress_seconds"] > 0 and r["load_seconds"] > 0
+    assert set(r["image_bytes_per_gaussian"]) >= {"means_hi", "means_lo", "quats", "t_hi", "t_lo"}
+    assert r["psnr_input"] > 40 and r["psnr_output"] > 35  # the clip is the input's own render
+
+
 def check_shards_plan(r):
     two = next(row for row in r["rows"] if row["ranks"] == 2)
     assert round(two["gap_db"], 2) == -0.61  # the measured gap of the two-H200 run it models (benchmarks/README.md)
