@@ -228,7 +228,7 @@ def test_the_captured_step_serves_only_where_it_can():
     assert "weights" in unsupported(layer)
     with pytest.raises(InputError, match="dense Adam"):
         Trainer(images, cams, points, colors, small_config(10, sparse_adam=False, captured_step=True), CPU)
-    # off unless asked for
+    # off by default on a CPU (on by default only on a GPU)
     plain = Trainer(images, cams, points, colors, small_config(10, sparse_adam=True, alive_index=False), CPU)
     assert unsupported(plain) is None and plain.captured is None
     assert isinstance(Trainer(images, cams, points, colors, small_config(10, sparse_adam=True, alive_index=False,
@@ -254,3 +254,15 @@ def test_the_train_step_benchmark_runs_on_a_cpu():
     (row,) = train_step.main(["--smoke"]).values()
     assert row["steps_per_s"]["eager"] > 0 and row["steps_per_s"]["captured"] > 0
     assert row["fit"]["captured"]["clip_psnr"] == pytest.approx(row["fit"]["eager"]["clip_psnr"], abs=0.05)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_by_default_a_gpu_fit_captures_its_steps_where_it_can_and_any_fit_runs_where_it_cannot(device):
+    """captured_step=None (the default): a GPU fit with SeenAdam is captured; one it cannot serve (dense Adam)
+    steps eagerly without a word; a CPU fit steps eagerly."""
+    images, cams, points, colors = clip()
+    dev = torch.device(device)
+    default = Trainer(images, cams, points, colors, small_config(10, sparse_adam=True, alive_index=False), dev)
+    assert isinstance(default.captured, CapturedStep) == (dev.type == "cuda")
+    dense = Trainer(images, cams, points, colors, small_config(10, sparse_adam=False), dev)
+    assert dense.captured is None

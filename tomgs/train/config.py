@@ -62,12 +62,12 @@ class TrainConfig:
     # tests); None: where it pays (tomgs.render.alive.pays_on: on a CPU, not on a GPU)
     alive_index: bool | None = None
     # each step replayed from one CUDA graph (tomgs.train.captured_step): the host issues a launch and a
-    # replay instead of ~100 operations, where a GPU step of a million Gaussians was host bound (H100,
-    # kite-surf, densification off: 184 -> 492 steps/s at 1M Gaussians, 195 -> 650 at 0.3M, 196 -> 237 at
-    # 5M; benchmarks/train_step.py). Needs SeenAdam, no alive index, no per-pixel weights and the frames on
-    # the device (InputError otherwise); on a CPU it issues the same step from Python (tests). Off until a
-    # GPU fit and the CUDA test have confirmed it (benchmarks/RESULTS.md)
-    captured_step: bool = False
+    # replay instead of ~100 operations, where a GPU step of a million Gaussians was host bound (H100, camel,
+    # 1-minute fits capped at 1M: 249 -> 442 steps/s, 32.56 -> 33.74 dB; at 5M 192 -> 195 steps/s, 35.41 ->
+    # 35.45 dB; benchmarks/README.md). Needs SeenAdam, no alive index, no per-pixel weights and the frames on
+    # the device. None: on where the fit can have it on a GPU; True: required (InputError where it cannot be;
+    # on a CPU the same step is issued from Python, as tests use it); False: the eager step
+    captured_step: bool | None = None
     # learning rates (3DGS; means scaled by the scene extent and decayed exponentially)
     lr_means: float = 1.6e-4
     lr_means_final: float = 1.6e-6

@@ -339,11 +339,14 @@ class Trainer:
         return make_adam(self.model.parameters_by_name(), lr, self.sparse_adam, self.device)
 
     def _captured_step(self) -> CapturedStep | None:
-        """The step replayed from a CUDA graph (config.captured_step), or None for the eager step. InputError
-        when asked for where the fit cannot have it."""
-        if not self.config.captured_step:
+        """The step replayed from a CUDA graph (config.captured_step), or None for the eager step: by default
+        on a GPU wherever the fit can have it; InputError when asked for where it cannot."""
+        asked = self.config.captured_step
+        if asked is False or (asked is None and self.device.type != "cuda"):
             return None
         why = unsupported(self)
+        if why is not None and asked is None:
+            return None
         if why is not None:
             raise InputError(f"captured_step: a training step is captured only without {why}; leave captured_step off")
         return CapturedStep(self)
