@@ -447,3 +447,103 @@ def test_defect05_a_checkpoint_of_views_declaring_more_than_their_storage_is_ref
     assert path.stat().st_size < 200_000
     with pytest.raises(InputError, match=r"a tensor of shape \(200000000, 3\) over [\d,]+ stored bytes"):
         read_checkpoint(path)
+
+
+# -- 6. sizes declared that the bytes cannot fill -----------------------------------------------------------
+
+
+def _texture(k: int, h: int = 48, w: int = 64) -> np.ndarray:
+    y, x = np.mgrid[0:h, 0:w]
+    return np.stack([(x * 5 + 9 * k) % 256, (y * 7 + 3 * k) % 256, (x * y + k) % 256], -1).astype(np.uint8)
+
+
+def _declare(data: bytes, sof: bytes, width: int, height: int) -> bytes:
+    """`data` with every JPEG frame header `sof` (FFC0, FFC2) declaring `width` x `height`."""
+    out, at = bytearray(data), 0
+    while (at := data.find(sof, at)) >= 0:
+        out[at + 5:at + 9] = height.to_bytes(2, "big") + width.to_bytes(2, "big")
+        at += 2
+    return bytes(out)
+
+
+@pytest.mark.parametrize("progressive", [True, False])
+def test_defect06_jpeg_frames_declaring_more_than_their_bytes_are_refused_before_decoding(progressive, tmp_path):
+    """3 KB JPEGs patched to declare 16000x16000 made `poses` peak at 5.2 GB (progressive JPEG had a
+    lower bound of 0 bytes) and `fit` end in an allocator traceback."""
+    import cv2
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for k in range(3):
+        ok, data = cv2.imencode(".jpg", _texture(k), [cv2.IMWRITE_JPEG_PROGRESSIVE, int(progressive)])
+        patched = _declare(data.tobytes(), b"\xff\xc2" if progressive else b"\xff\xc0", 16000, 16000)
+        assert len(patched) < 4000
+        (folder / f"{k:05d}.jpg").write_bytes(patched)
+    for command in (["poses", folder, "-o", tmp_path / "c.json"], ["fit", folder, "-o", tmp_path / "s.ply"]):
+        line = one_line_refusal(run(*command))
+        assert "declares a 16000x16000 JPEG image, more than its" in line, line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frames"]
+
+
+def test_defect06_a_motion_jpeg_video_declaring_more_than_its_bytes_is_refused(tmp_path):
+    """A 27 KB MJPEG AVI whose frames declared large sizes peaked at 5.2 GB: videos were not checked."""
+    from tomgs.io import write_frames
+
+    write_frames([_texture(k) for k in range(8)], tmp_path / "small.avi")
+    patched = _declare((tmp_path / "small.avi").read_bytes(), b"\xff\xc0", 16000, 16000)
+    (tmp_path / "big.avi").write_bytes(patched)
+    line = one_line_refusal(run("poses", tmp_path / "big.avi", "-o", tmp_path / "c.json"))
+    assert "frame 0 declares a 16000x16000 JPEG, more than its" in line, line
+
+
+def test_defect06_an_image_of_another_format_under_an_image_name_is_refused(tmp_path):
+    """OpenCV decodes by content: a .png holding a format whose header tomgs does not read goes unchecked."""
+    import cv2
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    ok, data = cv2.imencode(".ppm", _texture(0))
+    (folder / "00000.png").write_bytes(data.tobytes())
+    line = one_line_refusal(run("poses", folder, "-o", tmp_path / "c.json"))
+    assert "not a PNG, JPEG, BMP or TIFF image" in line, line
+
+
+def test_defect06_tiff_sizes_are_checked(tmp_path):
+    import cv2
+
+    from tomgs.io.video import image_size
+
+    ok, data = cv2.imencode(".tiff", _texture(0), [cv2.IMWRITE_TIFF_COMPRESSION, 1])  # uncompressed
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    path = folder / "00000.tiff"
+    path.write_bytes(data.tobytes())
+    assert image_size(path) == (64, 48, "tiff", 64 * 48 * 3)
+    raw = bytearray(data.tobytes())
+    assert raw[:2] == b"II"
+    ifd = int.from_bytes(raw[4:8], "little")
+    for k in range(int.from_bytes(raw[ifd:ifd + 2], "little")):
+        entry = ifd + 2 + 12 * k
+        if int.from_bytes(raw[entry:entry + 2], "little") == 256:  # ImageWidth
+            raw[entry + 8:entry + 8 + (2 if raw[entry + 2] == 3 else 4)] = (16000).to_bytes(
+                2 if raw[entry + 2] == 3 else 4, "little")
+    path.write_bytes(bytes(raw))
+    line = one_line_refusal(run("poses", folder, "-o", tmp_path / "c.json"))
+    assert "declares a 16000x48 TIFF image, more than its" in line, line
+
+
+# -- 9. a truncated MP4 became a shorter clip -----------------------------------------------------------------
+
+
+def test_defect09_a_truncated_mp4_is_refused_not_read_short(tmp_path):
+    """An MP4 cut short (its index at the front) read as 10 of its 32 frames, exit 0."""
+    from tomgs.io import read_video, write_frames
+
+    whole = tmp_path / "whole.mp4"
+    write_frames([_texture(k) for k in range(32)], whole)
+    assert len(read_video(whole)) == 32
+    cut = tmp_path / "cut.mp4"
+    data = whole.read_bytes()
+    cut.write_bytes(data[:len(data) // 3])
+    line = one_line_refusal(run("poses", cut, "-o", tmp_path / "c.json"))
+    assert "index lists 32 frames but the file holds" in line and "truncated" in line, line
