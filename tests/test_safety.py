@@ -547,3 +547,91 @@ def test_defect09_a_truncated_mp4_is_refused_not_read_short(tmp_path):
     cut.write_bytes(data[:len(data) // 3])
     line = one_line_refusal(run("poses", cut, "-o", tmp_path / "c.json"))
     assert "index lists 32 frames but the file holds" in line and "truncated" in line, line
+
+
+# -- 7. SIGTERM left a render's temporary forever --------------------------------------------------------------
+
+
+def _dead_pid() -> int:
+    """The id of a process that has ended (and been reaped)."""
+    import subprocess
+
+    proc = subprocess.Popen(["true"])
+    proc.wait()
+    return proc.pid
+
+
+def _long_scene(tmp_path) -> Path:
+    cams = tiny_cameras(400)
+    path = tmp_path / "long.ply"
+    save_scene(path, tiny_model(200), cams, {"fps": 12.0})
+    return path
+
+
+@pytest.mark.parametrize("name", ["r.mp4", "frames"])
+def test_defect07_sigterm_to_a_render_leaves_no_temporary_and_says_so(name, tmp_path):
+    """SIGTERM to a render left its temporary folder (.d.mp4.*.tmp/, or 10 MB of partial PNG frames)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    scene = _long_scene(tmp_path)
+    out = tmp_path / "out"
+    out.mkdir()
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    proc = subprocess.Popen([sys.executable, "-m", "tomgs.cli", "render", str(scene), "-o", str(out / name), "-q",
+                             "--device", "cpu"], stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env)
+    deadline = time.monotonic() + 120
+    while not [p for p in out.iterdir() if p.name.endswith(".tmp")] and time.monotonic() < deadline:
+        time.sleep(0.05)
+    staged = [p for p in out.iterdir() if p.name.endswith(".tmp")]
+    assert staged, "the render never staged its output"
+    time.sleep(0.3)  # a few frames in
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    assert err.strip().splitlines()[-1] == "interrupted (SIGTERM): stopped, outputs left as they were", err
+    assert list(out.iterdir()) == []
+
+
+def test_defect07_writers_remove_their_own_stale_temporaries_and_nothing_else(scene, tmp_path):
+    """Only `fit` removed stale temporaries, and only files: render, demo, export and edit leave theirs too."""
+    dead = _dead_pid()
+    stale_video = tmp_path / f".r.mp4.{dead}.abcd1234.tmp"
+    stale_video.mkdir()
+    (stale_video / "out.mp4").write_bytes(b"x" * 1000)
+    stale_frames = tmp_path / f".frames.{dead}.efgh5678.tmp"
+    stale_frames.mkdir()
+    (stale_frames / "00003.png").write_bytes(b"png")
+    stale_file = tmp_path / f".x.splat.{dead}.ijkl9012.tmp"
+    stale_file.write_bytes(b"half a splat")
+    users = tmp_path / f".r.mp4.{dead}.mine.tmp"  # not what a writer stages: kept
+    users.mkdir()
+    (users / "notes.txt").write_text("mine")
+    live = tmp_path / f".e.ply.{os.getpid()}.live0000.tmp"  # a running writer's (this process)
+    live.write_bytes(b"being written")
+    assert run("render", scene, "-o", tmp_path / "r.mp4", "--device", "cpu").exit_code == 0
+    assert run("render", scene, "-o", tmp_path / "frames", "--device", "cpu").exit_code == 0
+    assert run("export", scene, "-o", tmp_path / "x.splat", "--frame", "0").exit_code == 0
+    assert run("edit", scene, "-o", tmp_path / "e.ply", "--translate", "0,0,1").exit_code == 0
+    assert not stale_video.exists() and not stale_frames.exists() and not stale_file.exists()
+    assert (users / "notes.txt").read_text() == "mine" and live.read_bytes() == b"being written"
+
+
+# -- 8. two fits to one output ----------------------------------------------------------------------------------
+
+
+def test_defect08_a_second_fit_of_an_output_is_refused_while_the_first_runs(clip, tmp_path):
+    """Two fits to one output both reported success; the later silently replaced the earlier's files."""
+    from tomgs.outputs import output_lock
+
+    out = tmp_path / "s.ply"
+    with output_lock(out):  # the first fit, writing s.ply (another open of the lock: as another process)
+        line = one_line_refusal(run("fit", clip, "-o", out, "--iterations", "3", "--device", "cpu", "-y"))
+        assert f"{out}: another tomgs fit (process {os.getpid()}) is writing it now" in line, line
+        assert sorted(p.name for p in tmp_path.iterdir()) == [".s.ply.lock"]
+    assert list(tmp_path.iterdir()) == []  # released and removed
+    result = run("fit", clip, "-o", out, "--iterations", "3", "--device", "cpu", "--poses", "identity")
+    assert result.exit_code == 0, result.output
+    assert not (tmp_path / ".s.ply.lock").exists()  # a finished fit leaves no lock
