@@ -447,3 +447,191 @@ def test_defect05_a_checkpoint_of_views_declaring_more_than_their_storage_is_ref
     assert path.stat().st_size < 200_000
     with pytest.raises(InputError, match=r"a tensor of shape \(200000000, 3\) over [\d,]+ stored bytes"):
         read_checkpoint(path)
+
+
+# -- 6. sizes declared that the bytes cannot fill -----------------------------------------------------------
+
+
+def _texture(k: int, h: int = 48, w: int = 64) -> np.ndarray:
+    y, x = np.mgrid[0:h, 0:w]
+    return np.stack([(x * 5 + 9 * k) % 256, (y * 7 + 3 * k) % 256, (x * y + k) % 256], -1).astype(np.uint8)
+
+
+def _declare(data: bytes, sof: bytes, width: int, height: int) -> bytes:
+    """`data` with every JPEG frame header `sof` (FFC0, FFC2) declaring `width` x `height`."""
+    out, at = bytearray(data), 0
+    while (at := data.find(sof, at)) >= 0:
+        out[at + 5:at + 9] = height.to_bytes(2, "big") + width.to_bytes(2, "big")
+        at += 2
+    return bytes(out)
+
+
+@pytest.mark.parametrize("progressive", [True, False])
+def test_defect06_jpeg_frames_declaring_more_than_their_bytes_are_refused_before_decoding(progressive, tmp_path):
+    """3 KB JPEGs patched to declare 16000x16000 made `poses` peak at 5.2 GB (progressive JPEG had a
+    lower bound of 0 bytes) and `fit` end in an allocator traceback."""
+    import cv2
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for k in range(3):
+        ok, data = cv2.imencode(".jpg", _texture(k), [cv2.IMWRITE_JPEG_PROGRESSIVE, int(progressive)])
+        patched = _declare(data.tobytes(), b"\xff\xc2" if progressive else b"\xff\xc0", 16000, 16000)
+        assert len(patched) < 4000
+        (folder / f"{k:05d}.jpg").write_bytes(patched)
+    for command in (["poses", folder, "-o", tmp_path / "c.json"], ["fit", folder, "-o", tmp_path / "s.ply"]):
+        line = one_line_refusal(run(*command))
+        assert "declares a 16000x16000 JPEG image, more than its" in line, line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frames"]
+
+
+def test_defect06_a_motion_jpeg_video_declaring_more_than_its_bytes_is_refused(tmp_path):
+    """A 27 KB MJPEG AVI whose frames declared large sizes peaked at 5.2 GB: videos were not checked."""
+    from tomgs.io import write_frames
+
+    write_frames([_texture(k) for k in range(8)], tmp_path / "small.avi")
+    patched = _declare((tmp_path / "small.avi").read_bytes(), b"\xff\xc0", 16000, 16000)
+    (tmp_path / "big.avi").write_bytes(patched)
+    line = one_line_refusal(run("poses", tmp_path / "big.avi", "-o", tmp_path / "c.json"))
+    assert "frame 0 declares a 16000x16000 JPEG, more than its" in line, line
+
+
+def test_defect06_an_image_of_another_format_under_an_image_name_is_refused(tmp_path):
+    """OpenCV decodes by content: a .png holding a format whose header tomgs does not read goes unchecked."""
+    import cv2
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    ok, data = cv2.imencode(".ppm", _texture(0))
+    (folder / "00000.png").write_bytes(data.tobytes())
+    line = one_line_refusal(run("poses", folder, "-o", tmp_path / "c.json"))
+    assert "not a PNG, JPEG, BMP or TIFF image" in line, line
+
+
+def test_defect06_tiff_sizes_are_checked(tmp_path):
+    import cv2
+
+    from tomgs.io.video import image_size
+
+    ok, data = cv2.imencode(".tiff", _texture(0), [cv2.IMWRITE_TIFF_COMPRESSION, 1])  # uncompressed
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    path = folder / "00000.tiff"
+    path.write_bytes(data.tobytes())
+    assert image_size(path) == (64, 48, "tiff", 64 * 48 * 3)
+    raw = bytearray(data.tobytes())
+    assert raw[:2] == b"II"
+    ifd = int.from_bytes(raw[4:8], "little")
+    for k in range(int.from_bytes(raw[ifd:ifd + 2], "little")):
+        entry = ifd + 2 + 12 * k
+        if int.from_bytes(raw[entry:entry + 2], "little") == 256:  # ImageWidth
+            raw[entry + 8:entry + 8 + (2 if raw[entry + 2] == 3 else 4)] = (16000).to_bytes(
+                2 if raw[entry + 2] == 3 else 4, "little")
+    path.write_bytes(bytes(raw))
+    line = one_line_refusal(run("poses", folder, "-o", tmp_path / "c.json"))
+    assert "declares a 16000x48 TIFF image, more than its" in line, line
+
+
+# -- 9. a truncated MP4 became a shorter clip -----------------------------------------------------------------
+
+
+def test_defect09_a_truncated_mp4_is_refused_not_read_short(tmp_path):
+    """An MP4 cut short (its index at the front) read as 10 of its 32 frames, exit 0."""
+    from tomgs.io import read_video, write_frames
+
+    whole = tmp_path / "whole.mp4"
+    write_frames([_texture(k) for k in range(32)], whole)
+    assert len(read_video(whole)) == 32
+    cut = tmp_path / "cut.mp4"
+    data = whole.read_bytes()
+    cut.write_bytes(data[:len(data) // 3])
+    line = one_line_refusal(run("poses", cut, "-o", tmp_path / "c.json"))
+    assert "index lists 32 frames but the file holds" in line and "truncated" in line, line
+
+
+# -- 7. SIGTERM left a render's temporary forever --------------------------------------------------------------
+
+
+def _dead_pid() -> int:
+    """The id of a process that has ended (and been reaped)."""
+    import subprocess
+
+    proc = subprocess.Popen(["true"])
+    proc.wait()
+    return proc.pid
+
+
+def _long_scene(tmp_path) -> Path:
+    cams = tiny_cameras(400)
+    path = tmp_path / "long.ply"
+    save_scene(path, tiny_model(200), cams, {"fps": 12.0})
+    return path
+
+
+@pytest.mark.parametrize("name", ["r.mp4", "frames"])
+def test_defect07_sigterm_to_a_render_leaves_no_temporary_and_says_so(name, tmp_path):
+    """SIGTERM to a render left its temporary folder (.d.mp4.*.tmp/, or 10 MB of partial PNG frames)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    scene = _long_scene(tmp_path)
+    out = tmp_path / "out"
+    out.mkdir()
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    proc = subprocess.Popen([sys.executable, "-m", "tomgs.cli", "render", str(scene), "-o", str(out / name), "-q",
+                             "--device", "cpu"], stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env)
+    deadline = time.monotonic() + 120
+    while not [p for p in out.iterdir() if p.name.endswith(".tmp")] and time.monotonic() < deadline:
+        time.sleep(0.05)
+    staged = [p for p in out.iterdir() if p.name.endswith(".tmp")]
+    assert staged, "the render never staged its output"
+    time.sleep(0.3)  # a few frames in
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    assert err.strip().splitlines()[-1] == "interrupted (SIGTERM): stopped, outputs left as they were", err
+    assert list(out.iterdir()) == []
+
+
+def test_defect07_writers_remove_their_own_stale_temporaries_and_nothing_else(scene, tmp_path):
+    """Only `fit` removed stale temporaries, and only files: render, demo, export and edit leave theirs too."""
+    dead = _dead_pid()
+    stale_video = tmp_path / f".r.mp4.{dead}.abcd1234.tmp"
+    stale_video.mkdir()
+    (stale_video / "out.mp4").write_bytes(b"x" * 1000)
+    stale_frames = tmp_path / f".frames.{dead}.efgh5678.tmp"
+    stale_frames.mkdir()
+    (stale_frames / "00003.png").write_bytes(b"png")
+    stale_file = tmp_path / f".x.splat.{dead}.ijkl9012.tmp"
+    stale_file.write_bytes(b"half a splat")
+    users = tmp_path / f".r.mp4.{dead}.mine.tmp"  # not what a writer stages: kept
+    users.mkdir()
+    (users / "notes.txt").write_text("mine")
+    live = tmp_path / f".e.ply.{os.getpid()}.live0000.tmp"  # a running writer's (this process)
+    live.write_bytes(b"being written")
+    assert run("render", scene, "-o", tmp_path / "r.mp4", "--device", "cpu").exit_code == 0
+    assert run("render", scene, "-o", tmp_path / "frames", "--device", "cpu").exit_code == 0
+    assert run("export", scene, "-o", tmp_path / "x.splat", "--frame", "0").exit_code == 0
+    assert run("edit", scene, "-o", tmp_path / "e.ply", "--translate", "0,0,1").exit_code == 0
+    assert not stale_video.exists() and not stale_frames.exists() and not stale_file.exists()
+    assert (users / "notes.txt").read_text() == "mine" and live.read_bytes() == b"being written"
+
+
+# -- 8. two fits to one output ----------------------------------------------------------------------------------
+
+
+def test_defect08_a_second_fit_of_an_output_is_refused_while_the_first_runs(clip, tmp_path):
+    """Two fits to one output both reported success; the later silently replaced the earlier's files."""
+    from tomgs.outputs import output_lock
+
+    out = tmp_path / "s.ply"
+    with output_lock(out):  # the first fit, writing s.ply (another open of the lock: as another process)
+        line = one_line_refusal(run("fit", clip, "-o", out, "--iterations", "3", "--device", "cpu", "-y"))
+        assert f"{out}: another tomgs fit (process {os.getpid()}) is writing it now" in line, line
+        assert sorted(p.name for p in tmp_path.iterdir()) == [".s.ply.lock"]
+    assert list(tmp_path.iterdir()) == []  # released and removed
+    result = run("fit", clip, "-o", out, "--iterations", "3", "--device", "cpu", "--poses", "identity")
+    assert result.exit_code == 0, result.output
+    assert not (tmp_path / ".s.ply.lock").exists()  # a finished fit leaves no lock

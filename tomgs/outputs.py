@@ -365,6 +365,9 @@ def output_lock(path, what: str = "fit") -> Iterator[None]:
         return
     path = Path(path)
     lock = path.parent / f".{path.name}{LOCK_SUFFIX}"
+    if not path.parent.is_dir():  # nothing can be written there: the output's own check says so
+        yield
+        return
     while True:
         try:
             fd = os.open(lock, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0), 0o644)

@@ -8,15 +8,16 @@ from pathlib import Path
 import click
 
 from tomgs.cli import UsageError, is_scene_path, main, overwrite_option, scene_cameras_option, user_errors
+from tomgs.cli.params import Number
 
 
 @main.command()
 @click.argument("scene", type=click.Path(path_type=str))
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=str),
               help="the compressed scene (.tsog); a .ply writes a PLY scene back")
-@click.option("--means-bits", type=click.IntRange(1, 16), default=16, show_default=True,
+@click.option("--means-bits", type=Number(1, 16, integer=True, what="bits"), default=16, show_default=True,
               help="bits an axis of the positions (after a log transform); fewer: a smaller file, coarser positions")
-@click.option("--t-bits", type=click.IntRange(1, 16), default=16, show_default=True,
+@click.option("--t-bits", type=Number(1, 16, integer=True, what="bits"), default=16, show_default=True,
               help="bits of each Gaussian's temporal centre (t_mean)")
 @scene_cameras_option
 @overwrite_option
@@ -34,8 +35,9 @@ def compress(scene, output, means_bits, t_bits, cameras_path, overwrite):
       tomgs compress scene.tsog -o back.ply          # a PLY scene again, for 3DGS tools
     """
     from tomgs.io.scene import bits_per_pixel, load_scene, save_scene
-    from tomgs.outputs import check_file_output
+    from tomgs.outputs import check_distinct, check_file_output
 
+    check_distinct({"-o": output}, {"SCENE": scene, "--cameras": cameras_path})
     if not is_scene_path(output):
         raise UsageError(f"-o {output}: a compressed scene is a .tsog (a .ply writes a PLY scene)")
     if output.lower().endswith(".ply") and (means_bits, t_bits) != (16, 16):

@@ -5,6 +5,7 @@ OpenCV is imported inside the functions so that `import tomgs` stays cheap.
 
 from __future__ import annotations
 
+import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -96,15 +97,64 @@ def _resized_size(h: int, w: int, max_side: int | None) -> tuple[int, int]:
 
 
 PNG_MAX_RATIO = 1032  # deflate's largest expansion: a PNG's pixels cannot outgrow 1032 x its bytes
+TIFF_MAX_RATIO = 131072  # pixels a byte of a compressed TIFF can code at most (CCITT G4: a bit a row of 16384)
+
+
+def jpeg_size(f) -> tuple[int, int, int] | None:
+    """(width, height, least bytes) from the markers of a JPEG in the binary file `f`, positioned just
+    after its SOI (FFD8); None for markers too damaged to say. Least bytes, by the frame's coding:
+    baseline and extended Huffman, 2 bits per 8x8 block (a DC code and an end of block); progressive
+    Huffman, 1 bit per block (its first DC scan codes every block); lossless, 1 bit per pixel; 0 for
+    arithmetic or hierarchical coding, which can code a block for a small fraction of a bit."""
+    for _ in range(1000):  # markers before the frame header: APPn, DQT, DHT, ... (64 kB each at most)
+        marker = f.read(4)
+        if len(marker) < 4 or marker[0] != 0xFF:
+            return None
+        kind, length = marker[1], int.from_bytes(marker[2:4], "big")
+        if 0xC0 <= kind <= 0xCF and kind not in (0xC4, 0xC8, 0xCC):  # SOFn: P, height, width
+            sof = f.read(5)
+            if len(sof) < 5:
+                return None
+            w, h = int.from_bytes(sof[3:5], "big"), int.from_bytes(sof[1:3], "big")
+            blocks = ((w + 7) // 8) * ((h + 7) // 8)
+            least = {0xC0: blocks // 4, 0xC1: blocks // 4, 0xC2: blocks // 8, 0xC3: w * h // 8}.get(kind, 0)
+            return w, h, least
+        f.seek(length - 2, 1)
+    return None
+
+
+def _tiff_size(f, head: bytes) -> tuple[int, int, int] | None:
+    """(width, height, least bytes) from a TIFF's first image directory; least: an uncompressed
+    image's rows, else its pixels over TIFF_MAX_RATIO."""
+    order = "little" if head[:2] == b"II" else "big"
+    f.seek(int.from_bytes(head[4:8], order))
+    count = int.from_bytes(f.read(2), order)
+    entries = f.read(12 * min(count, 1000))
+    tags = {}
+    for at in range(0, len(entries) - 11, 12):
+        entry = entries[at:at + 12]
+        tag, kind, n = (int.from_bytes(entry[a:b], order) for a, b in ((0, 2), (2, 4), (4, 8)))
+        width = 2 if kind == 3 else 4  # SHORT or LONG: the first of its values, inline or at its offset
+        value = entry[8:8 + width]
+        if n * width > 4:
+            f.seek(int.from_bytes(entry[8:12], order))
+            value = f.read(width)
+        tags[tag] = int.from_bytes(value, order)
+    if 256 not in tags or 257 not in tags:
+        return None
+    w, h = tags[256], tags[257]
+    if tags.get(259, 1) == 1:
+        bits = max(tags.get(258, 1), 1) * max(tags.get(277, 1), 1)
+        return w, h, h * ((w * bits + 7) // 8)
+    return w, h, w * h // TIFF_MAX_RATIO
 
 
 def image_size(path: Path) -> tuple[int, int, str, int] | None:
-    """(width, height, format, least bytes those pixels take in this format) that a PNG, JPEG or BMP
-    file declares in its header, read without decoding; None for other formats or a header too
+    """(width, height, format, least bytes those pixels take in this format) that a PNG, JPEG, BMP or
+    TIFF file declares in its header, read without decoding; None for other formats or a header too
     damaged to say. Least bytes: PNG, deflate's 1032:1 over one bit per pixel and the filter bytes;
-    uncompressed BMP, its rows; RLE BMP, 2 bytes per 255 pixels; baseline JPEG, 2 bits per 8x8 block
-    (a DC code and an end of block); 0 where a format can code pixels for almost nothing (progressive
-    or arithmetic JPEG, other BMP codings)."""
+    uncompressed BMP, its rows; RLE BMP, 2 bytes per 255 pixels; JPEG as `jpeg_size` says; TIFF as
+    `_tiff_size` says; 0 where a format can code pixels for almost nothing (other BMP codings)."""
     try:
         with open(path, "rb") as f:
             head = f.read(32)
@@ -120,32 +170,26 @@ def image_size(path: Path) -> tuple[int, int, str, int] | None:
                 return w, h, "bmp", least
             if head.startswith(b"\xff\xd8"):
                 f.seek(2)
-                for _ in range(1000):  # markers before the frame header: APPn, DQT, DHT, ... (64 kB each at most)
-                    marker = f.read(4)
-                    if len(marker) < 4 or marker[0] != 0xFF:
-                        return None
-                    kind, length = marker[1], int.from_bytes(marker[2:4], "big")
-                    if 0xC0 <= kind <= 0xCF and kind not in (0xC4, 0xC8, 0xCC):  # SOFn: P, height, width
-                        sof = f.read(5)
-                        if len(sof) < 5:
-                            return None
-                        w, h = int.from_bytes(sof[3:5], "big"), int.from_bytes(sof[1:3], "big")
-                        blocks = ((w + 7) // 8) * ((h + 7) // 8)
-                        return w, h, "jpeg", blocks // 4 if kind in (0xC0, 0xC1) else 0
-                    f.seek(length - 2, 1)
+                found = jpeg_size(f)
+                return None if found is None else (found[0], found[1], "jpeg", found[2])
+            if head[:4] in (b"II*\x00", b"MM\x00*"):
+                found = _tiff_size(f, head)
+                return None if found is None else (found[0], found[1], "tiff", found[2])
     except OSError:
         return None
     return None
 
 
-def _check_image(path: Path) -> None:
-    """InputError when the image's header declares a size beyond MAX_SIDE, or (PNG) more pixels than
-    its bytes can hold, before the decoder allocates it."""
+def _check_image(path: Path) -> tuple[int, int, str, int]:
+    """InputError when the image's header is not one of a PNG, JPEG, BMP or TIFF (OpenCV would decode
+    other formats by their content, unchecked), declares a size beyond MAX_SIDE, or more pixels than
+    its bytes can hold, before the decoder allocates it; else what image_size found."""
     from tomgs.constants import MAX_SIDE
 
     found = image_size(path)
     if found is None:
-        return
+        raise InputError(f"cannot read image {path}: the file is corrupt or not a PNG, JPEG, BMP or TIFF image; "
+                         "remove or replace it")
     w, h, kind, least = found
     if not (1 <= w <= MAX_SIDE and 1 <= h <= MAX_SIDE):
         raise InputError(f"{path}: its header declares a {w}x{h} image; frames are 1..{MAX_SIDE} pixels a side: "
@@ -153,6 +197,7 @@ def _check_image(path: Path) -> None:
     if least > path.stat().st_size:
         raise InputError(f"{path}: its header declares a {w}x{h} {kind.upper()} image, more than its "
                          f"{path.stat().st_size:,} bytes can hold: the file is corrupt or truncated; replace it")
+    return found
 
 
 def _read_image(path: Path, flags: int) -> np.ndarray:
@@ -171,12 +216,21 @@ def _read_image(path: Path, flags: int) -> np.ndarray:
 def _frame_budget() -> int:
     """Bytes the kept frames may take: half of this machine's memory (16 GiB where it cannot be told).
     A short file can decode to any number of large frames; this stops before the machine runs out."""
-    import os
-
     try:
         return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") // 2
     except (ValueError, OSError, AttributeError):
         return 16 << 30
+
+
+def _check_budget(path, count: int, height: int, width: int) -> None:
+    """InputError when `count` kept frames of `width` x `height` would pass _frame_budget."""
+    need = count * height * width * 3
+    if need > _frame_budget():
+        raise InputError(f"{path}: {count} frames of {width}x{height} take {need / 2**30:.1f} GiB, more than half of "
+                         f"this machine's memory: read fewer (--frames) or smaller (--max-side) frames")
+
+
+DECODE_BYTES = 1 << 30  # RGB bytes of the frames a video's decoder threads may hold at once
 
 
 class _Frames:
@@ -200,11 +254,7 @@ class _Frames:
         if self.size is None:
             self.size, self.first = image.shape[:2], name
             nh, nw = _resized_size(*self.size, self.max_side)
-            need = self.count * nh * nw * 3
-            if need > _frame_budget():
-                raise InputError(f"{self.path}: {self.count} frames of {nw}x{nh} take {need / 2**30:.1f} GiB, more "
-                                 f"than half of this machine's memory: read fewer (--frames) or smaller "
-                                 f"(--max-side) frames")
+            _check_budget(self.path, self.count, nh, nw)
             self.array = np.empty((self.count, nh, nw, 3), np.uint8)
         elif image.shape[:2] != self.size:
             raise InputError(f"{name} is {image.shape[1]}x{image.shape[0]} but {self.first} is "
@@ -291,13 +341,7 @@ def probe_clip(path, frames=None, max_side: int | None = None) -> tuple[int, int
         if not files:
             raise InputError(f"{path} holds no jpg/png frames: point at a folder of images or a video file")
         idx = _select(len(files), sel, frames, path)
-        found = image_size(files[idx[0]])
-        if found is None:
-            import cv2
-
-            h, w = _read_image(files[idx[0]], cv2.IMREAD_COLOR).shape[:2]
-        else:
-            w, h = found[:2]
+        w, h = _check_image(files[idx[0]])[:2]
         count = len(idx)
     else:
         import av
@@ -308,7 +352,7 @@ def probe_clip(path, frames=None, max_side: int | None = None) -> tuple[int, int
                     raise InputError(f"cannot open video {path}: no decodable video stream")
                 stream = container.streams.video[0]
                 w, h = stream.codec_context.width, stream.codec_context.height
-                count = len(range(len(_video_index(container, stream)[0]))[sel])
+                count = len(range(len(_video_index(container, stream, path)[0]))[sel])
                 container.seek(0)
                 first = next(container.decode(stream), None)  # one frame: the display rotation
                 if first is not None and round((first.rotation or 0) / 90) % 2:
@@ -320,14 +364,30 @@ def probe_clip(path, frames=None, max_side: int | None = None) -> tuple[int, int
     return count, nh, nw, h * w
 
 
-def _video_index(container, stream) -> tuple[list, list]:
-    """(pts, keyframe flags) of the stream's packets in file order, read without decoding."""
+def _video_index(container, stream, path) -> tuple[list, list]:
+    """(pts, keyframe flags) of the stream's packets in file order, read without decoding. InputError
+    for a file shorter than its own index (a truncated MP4 whose index lists frames its bytes lack:
+    it would read as a shorter clip), and for a Motion JPEG frame that declares more pixels than its
+    bytes can hold (each is a JPEG: `jpeg_size`)."""
+    import io
+
     pts, keys = [], []
+    mjpeg = stream.codec_context.name == "mjpeg"
     for packet in container.demux(stream):
         if packet.size == 0 or packet.is_discard:  # the flush packet; frames an edit list leaves out
             continue
+        if mjpeg:
+            data = io.BytesIO(bytes(packet))
+            found = jpeg_size(data) if data.read(2) == b"\xff\xd8" else None
+            if found is not None and found[2] > packet.size:
+                raise InputError(f"video {path}: frame {len(pts)} declares a {found[0]}x{found[1]} JPEG, more than "
+                                 f"its {packet.size:,} bytes can hold: the file is corrupt; replace it")
         pts.append(packet.pts)
         keys.append(bool(packet.is_keyframe))
+    listed = int(stream.frames or 0)  # what the container's index lists (0: it does not say)
+    if listed > len(pts):
+        raise InputError(f"video {path}: its index lists {listed} frames but the file holds {len(pts)}: it is "
+                         f"truncated (an interrupted copy or download); copy it again")
     return pts, keys
 
 
@@ -363,7 +423,7 @@ def _read_video_file(path: Path, sel: slice, spec, max_side, report):
         rate = stream.average_rate or stream.guessed_rate
         fps = float(rate) if rate else None
         fps = fps if fps is not None and math.isfinite(fps) and 0 < fps <= 1000 else None
-        pts, keys = _video_index(container, stream)
+        pts, keys = _video_index(container, stream, path)
         total = len(pts)
         if total == 0:
             raise InputError(f"video {path} has zero readable frames: the file is empty or corrupt; {fix}")
@@ -383,7 +443,10 @@ def _read_video_file(path: Path, sel: slice, spec, max_side, report):
             container.seek(order[start], stream=stream, backward=True, any_frame=False)
         else:
             container.seek(0)
+        _check_budget(path, len(wanted), *_resized_size(h, w, max_side))  # before a frame is decoded
         stream.thread_type = "AUTO"  # frame threads: phone clips decode several times faster
+        # each thread holds a frame: as many as DECODE_BYTES of frames of the declared size allow
+        stream.codec_context.thread_count = max(1, min(os.cpu_count() or 1, DECODE_BYTES // (w * h * 3)))
         kept = _Frames(path, max_side, len(wanted))
         todo, chosen = wanted[-1] + 1 - start, set(wanted)
         idx, decoded, k = [], 0, start - 1

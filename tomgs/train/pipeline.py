@@ -29,6 +29,7 @@ None when there is none yet.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import time
@@ -38,7 +39,7 @@ import numpy as np
 import torch
 
 from tomgs.errors import InputError
-from tomgs.outputs import check_distinct, check_file_output, existing_path, remove_stale_temporaries
+from tomgs.outputs import check_distinct, check_file_output, existing_path, output_lock, remove_stale_temporaries
 from tomgs.train.checkpoint import START_OVER, FitInterrupted, StopSignals, check_same_settings, read_checkpoint
 from tomgs.train.config import TrainConfig
 from tomgs.train.trainer import FitResult, Trainer, write_csv
@@ -110,45 +111,48 @@ def fit(video, output, config: TrainConfig | None = None, *, masks=None, frames=
     torchrun started. None or 1: this process alone.
     """
     from tomgs.runtime import resolve_device
-    from tomgs.train.multigpu.rank import fit_shards, wants_shards
+    from tomgs.train.multigpu.rank import fit_shards, is_leader, wants_shards
 
     check_distinct({f"the fit's {what}": path for what, path in output_paths(output).items()},
                    {"the video": existing_path(video), "the masks": existing_path(masks),
                     "the poses": existing_path(poses)})
-    if wants_shards(gpus):
-        return fit_shards(video, output, config, gpus=gpus, masks=masks, frames=frames, max_side=max_side, poses=poses,
-                          focal=focal, device=device, resume=resume, overwrite=overwrite, progress=progress,
-                          pose_progress=pose_progress, layer=layer, mask_dilation=mask_dilation, phases=phases,
-                          on_plan=on_plan, auto_budget=auto_budget, started=started)
+    with output_lock(output) if is_leader() else contextlib.nullcontext():  # one fit of an output at a time
+        if wants_shards(gpus):
+            return fit_shards(video, output, config, gpus=gpus, masks=masks, frames=frames, max_side=max_side,
+                              poses=poses, focal=focal, device=device, resume=resume, overwrite=overwrite,
+                              progress=progress, pose_progress=pose_progress, layer=layer,
+                              mask_dilation=mask_dilation, phases=phases, on_plan=on_plan, auto_budget=auto_budget,
+                              started=started)
 
-    started = time.perf_counter() if started is None else started
-    config = config or TrainConfig()
-    paths = check_outputs(output, resume=resume, overwrite=overwrite)
-    device = resolve_device(device)
-    options = dict(frames=None if frames is None else str(frames), max_side=None if max_side is None else int(max_side),
-                   layer=layer, mask_dilation=int(mask_dilation) if layer == "background" else None,
-                   masks=masks is not None or (getattr(video, "masks", None) is not None), poses=_poses_key(poses),
-                   focal=None if focal is None else float(focal))
-    saved = None
-    if resume:
-        saved = read_checkpoint(paths["checkpoint"])
-        _check_options(saved, options, config, paths["checkpoint"])
-    for path in paths.values():
-        remove_stale_temporaries(path)
+        started = time.perf_counter() if started is None else started
+        config = config or TrainConfig()
+        paths = check_outputs(output, resume=resume, overwrite=overwrite)
+        device = resolve_device(device)
+        options = dict(frames=None if frames is None else str(frames),
+                       max_side=None if max_side is None else int(max_side), layer=layer,
+                       mask_dilation=int(mask_dilation) if layer == "background" else None,
+                       masks=masks is not None or (getattr(video, "masks", None) is not None), poses=_poses_key(poses),
+                       focal=None if focal is None else float(focal))
+        saved = None
+        if resume:
+            saved = read_checkpoint(paths["checkpoint"])
+            _check_options(saved, options, config, paths["checkpoint"])
+        for path in paths.values():
+            remove_stale_temporaries(path)
 
-    def existing_checkpoint():
-        return paths["checkpoint"] if paths["checkpoint"].is_file() else None
+        def existing_checkpoint():
+            return paths["checkpoint"] if paths["checkpoint"].is_file() else None
 
-    try:
-        with StopSignals(immediate=True, checkpoint=existing_checkpoint):
-            return _fit(video, paths, config, saved, options, masks=masks, frames=frames, max_side=max_side,
-                        poses=poses, focal=focal, device=device, progress=progress, pose_progress=pose_progress,
-                        layer=layer, mask_dilation=mask_dilation, phases=phases or (lambda *a: None),
-                        on_plan=on_plan, auto_budget=auto_budget, started=started)
-    except FitInterrupted:
-        raise
-    except KeyboardInterrupt:  # raised by a callback, or outside the main thread's handlers
-        raise FitInterrupted(existing_checkpoint(), signal.SIGINT) from None
+        try:
+            with StopSignals(immediate=True, checkpoint=existing_checkpoint):
+                return _fit(video, paths, config, saved, options, masks=masks, frames=frames, max_side=max_side,
+                            poses=poses, focal=focal, device=device, progress=progress, pose_progress=pose_progress,
+                            layer=layer, mask_dilation=mask_dilation, phases=phases or (lambda *a: None),
+                            on_plan=on_plan, auto_budget=auto_budget, started=started)
+        except FitInterrupted:
+            raise
+        except KeyboardInterrupt:  # raised by a callback, or outside the main thread's handlers
+            raise FitInterrupted(existing_checkpoint(), signal.SIGINT) from None
 
 
 def _plan(video, config, device, saved, *, frames, max_side, poses, layer, auto_budget):
