@@ -186,6 +186,17 @@ def test_grid_holds_the_count_in_whole_rows():
         assert width * (height - 4) < max(n, 1) and abs(width - height) <= width // 4 + 4  # no spare row of 4
 
 
+def test_palette_labels_each_vector_near_its_nearest_entry():
+    rng = np.random.default_rng(2)
+    centres = rng.normal(size=(600, 9))
+    x = (centres[rng.integers(0, 600, 30000)] + 0.05 * rng.normal(size=(30000, 9))).astype(np.float32)
+    book, labels = quantise.palette(x, 1024)
+    assert book.shape == (1024, 9) and labels.min() >= 0 and labels.max() < 1024
+    error = ((x - book[labels]) ** 2).sum(1)
+    nearest = ((x[:, None] - book[None]) ** 2).sum(-1).min(1)  # every entry: the reference
+    assert error.mean() <= 1.05 * nearest.mean() and (error <= nearest + 1e-6).mean() > 0.99
+
+
 def test_smallest_three_round_trip():
     q = np.random.default_rng(1).normal(size=(2000, 4))
     back = quantise.unpack_quats(quantise.smallest_three(q))

@@ -151,11 +151,12 @@ def encode_codebook(values: np.ndarray, book: np.ndarray) -> np.ndarray:
     return np.minimum(index, len(book) - 1).astype(np.uint8)
 
 
-def palette(vectors: np.ndarray, size: int, steps: int = 8, sample: int = 1 << 16,
+def palette(vectors: np.ndarray, size: int, steps: int = 6, sample: int = 1 << 16,
             seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """(centroids float32 [K, D], labels int64 [N]) of k-means over `vectors` [N, D]: K = min(size,
     N) centroids from a random sample of at most `sample` rows refined `steps` Lloyd steps on that
-    sample, then every row labelled with its nearest centroid (in chunks: memory stays O(chunk x K))."""
+    sample, then every row labelled with its nearest centroid (`_nearest`: past 256 centroids, the
+    nearest of the centroids in the two groups of them nearest the row, of about sqrt(K) groups)."""
     x = torch.from_numpy(np.ascontiguousarray(vectors, np.float32))
     n = x.shape[0]
     k = max(1, min(size, n))
@@ -170,14 +171,53 @@ def palette(vectors: np.ndarray, size: int, steps: int = 8, sample: int = 1 << 1
     return centroids.numpy(), _nearest(x, centroids).numpy()
 
 
-def _nearest(x: torch.Tensor, centroids: torch.Tensor, chunk: int = 1 << 14) -> torch.Tensor:
-    """int64 [N]: the nearest centroid of each row of `x` [N, D]."""
+def _nearest(x: torch.Tensor, centroids: torch.Tensor, probes: int = 2) -> torch.Tensor:
+    """int64 [N]: a near centroid of each row of `x` [N, D]. Up to 256 centroids, the nearest (every
+    distance); past that, the centroids are grouped by k-means into about sqrt(K) groups and a row
+    takes the nearest centroid of its `probes` nearest groups': (1 + probes) sqrt(K) distances a row,
+    not K (4,096 centroids: 192), now and then a second-best for a row far from every group centre."""
+    k = centroids.shape[0]
+    if k <= 256:
+        return _nearest_of_all(x, centroids)[0]
+    groups = int(np.ceil(np.sqrt(k)))
+    centres = centroids[torch.linspace(0, k - 1, groups).long()].clone()
+    for _ in range(4):
+        member = _nearest_of_all(centroids, centres)[0]
+        total = torch.zeros_like(centres).index_add_(0, member, centroids)
+        count = torch.bincount(member, minlength=groups).to(centres.dtype)[:, None]
+        centres = torch.where(count > 0, total / count.clamp_min(1), centres)
+    member = _nearest_of_all(centroids, centres)[0]
+    members = torch.argsort(member)
+    member_edges = torch.searchsorted(member[members], torch.arange(groups + 1)).tolist()
+    near_groups = torch.cdist(x, centres).topk(min(probes, groups), dim=1, largest=False).indices  # [N, probes]
+    best = torch.zeros(x.shape[0], dtype=torch.int64)
+    best_distance = torch.full((x.shape[0],), float("inf"), dtype=x.dtype)
+    for probe in range(near_groups.shape[1]):
+        group = near_groups[:, probe]
+        rows = torch.argsort(group)
+        row_edges = torch.searchsorted(group[rows], torch.arange(groups + 1)).tolist()
+        for j in range(groups):
+            mine = rows[row_edges[j]:row_edges[j + 1]]
+            candidates = members[member_edges[j]:member_edges[j + 1]]
+            if len(mine) and len(candidates):
+                label, distance = _nearest_of_all(x[mine], centroids[candidates])
+                closer = distance < best_distance[mine]
+                best[mine[closer]] = candidates[label[closer]]
+                best_distance[mine[closer]] = distance[closer]
+    return best
+
+
+def _nearest_of_all(x: torch.Tensor, centroids: torch.Tensor,
+                    chunk: int = 1 << 12) -> tuple[torch.Tensor, torch.Tensor]:
+    """(int64 [N] the nearest of all `centroids` [K, D] to each row of `x` [N, D], its squared
+    distance [N] less the row's own squared norm), in chunks of rows: memory O(chunk x K)."""
     norms = centroids.square().sum(1)
-    out = torch.empty(x.shape[0], dtype=torch.int64)
+    label = torch.empty(x.shape[0], dtype=torch.int64)
+    distance = torch.empty(x.shape[0], dtype=x.dtype)
     for start in range(0, x.shape[0], chunk):
         block = x[start:start + chunk]
-        out[start:start + chunk] = (norms[None, :] - 2 * block @ centroids.T).argmin(1)
-    return out
+        distance[start:start + chunk], label[start:start + chunk] = (norms[None, :] - 2 * block @ centroids.T).min(1)
+    return label, distance
 
 
 # ---- quaternions ----------------------------------------------------------------------------------
