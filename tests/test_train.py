@@ -551,6 +551,56 @@ def test_the_clip_psnr_renders_again_a_frame_that_overflowed_its_keys(monkeypatc
     assert np.allclose(got, want, rtol=0, atol=1e-4), (got, want)
 
 
+def clocked_run(monkeypatch, limit: float, step_seconds, frame_seconds=None):
+    """A run of a 4-frame clip under a `limit` of fake seconds: step k takes step_seconds(k) of them, and
+    the clip PSNR's frames are known to take `frame_seconds` each (None: not measured yet). Returns
+    (result, fake seconds at the last step, the frames each clip PSNR covered)."""
+    clock, stepped, covered = [0.0], [0.0], []
+
+    def step(self):
+        clock[0] += step_seconds(self.iteration)
+        stepped[0] = clock[0]
+        self.iteration += 1
+
+    def clip_psnr(self, tick=None, frames=None):
+        frames = range(self.num_frames) if frames is None else frames
+        covered.append(len(frames))
+        clock[0] += (frame_seconds or 0.0) * len(frames)
+        return [20.0] * len(frames)
+
+    images, cams, points, colors = synthetic_clip(4, 32, 18)
+    trainer = Trainer(images, cams, points, colors, small_config(100_000), CPU)
+    trainer.eval_frame_seconds = frame_seconds
+    monkeypatch.setattr(time, "perf_counter", lambda: clock[0])
+    monkeypatch.setattr(Trainer, "step", step)
+    monkeypatch.setattr(Trainer, "clip_psnr", clip_psnr)
+    monkeypatch.setattr(Trainer, "compact", lambda self, tick=None: 0)
+    result = trainer.run(time_limit=limit)
+    monkeypatch.undo()
+    return result, stepped[0], covered
+
+
+def test_slow_first_steps_do_not_end_training_early(monkeypatch):
+    """Two slow first steps (a busy machine, kernels loading) made the end's estimate exceed the limit and
+    stopped training after 2 of them; the end keeps at most END_SHARE of the limit."""
+    from tomgs.train.trainer import END_SHARE
+
+    result, trained, covered = clocked_run(monkeypatch, 200.0, lambda k: 30.0 if k < 3 else 1.0)
+    assert trained >= (1 - END_SHARE) * 200.0 - 1.0, (trained, result.iterations, result.notes)
+    assert covered[-1] == 4 and result.clip_frames == 4  # the end fitted: every frame measured
+
+
+def test_a_short_end_measures_fewer_frames_and_says_so(monkeypatch):
+    """A clip PSNR whose frames take 8 s each (20 s left for the end): training still runs to the end's share
+    of the limit; the compaction is left out and the last measurement covers the frames that fit, in notes."""
+    result, trained, covered = clocked_run(monkeypatch, 200.0, lambda k: 1.0, frame_seconds=8.0)
+    assert trained >= 179.0, (trained, result.notes)
+    assert covered[-1] == result.clip_frames == 2, covered
+    assert result.history[-1]["clip_frames"] == 2
+    assert any("kept every Gaussian" in note for note in result.notes), result.notes
+    assert any("covers 2 evenly spaced frames of 4" in note for note in result.notes), result.notes
+
+
 def test_tracked_points_start_alive_over_the_frames_that_saw_them():
     images, cams, points, colors = synthetic_clip(9, 32, 18)
     spans = np.zeros((len(points), 2), dtype=np.int64)
