@@ -38,13 +38,19 @@ def export(scene, output, frame, clip_time, sh_degree, layer_paths, cameras_out,
       tomgs export bg.ply --layer fg.ply --frame 10 -o both.spz
       tomgs export scene.ply --cameras-out cams/                # COLMAP + transforms.json only
     """
-    from tomgs.edit.export import CAMERA_FILES, moment_with_layers, pick_moment, write_cameras
-    from tomgs.io.scene import load_scene
-    from tomgs.io.splats import FORMATS, write_static
     from tomgs.outputs import check_file_output, check_folder_output
+    from tomgs.preflight import check_scene
 
     if output is None and cameras_out is None:
         raise UsageError("give -o OUT (.ply, .splat or .spz) for the static scene, --cameras-out DIR, or both")
+    check_scene(scene, cameras=cameras_path)
+    for path in layer_paths:
+        check_scene(path)
+
+    from tomgs.edit.export import CAMERA_FILES, moment_with_layers, pick_moment, write_cameras
+    from tomgs.io.scene import load_scene
+    from tomgs.io.splats import FORMATS, write_static
+
     if output is not None:
         if Path(output).suffix.lower() not in FORMATS:
             raise UsageError(f"-o {output}: unknown format {Path(output).suffix or '(no extension)'!r}; the static "
