@@ -15,7 +15,7 @@ checkpoint exists yet). For each kill:
     restart_s    seconds from the resume's launch to its first step (imports, decoding, set-up)
     psnr         the resumed fit's final full-clip PSNR, against an uninterrupted fit's
 
-    python benchmarks/kill_resume.py [--video tomgs/data/bunny.mp4] [--preset quick] [--kills 4] [--seed 0]
+    python benchmarks/kill_resume.py [--video tomgs/data/ball.mp4] [--preset quick] [--kills 4] [--seed 0]
 
 The child logs every iteration (log_interval=1) so the moment of the kill is known to the step, and
 measures the full-clip PSNR at the end only; everything else is the preset's, checkpoint schedule
@@ -39,8 +39,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-BUNNY = next((p for p in (ROOT / "tomgs" / "data" / "bunny.mp4", ROOT / "assets" / "bunny.mp4") if p.exists()),
-             ROOT / "tomgs" / "data" / "bunny.mp4")
+CLIP = ROOT / "tomgs" / "data" / "ball.mp4"  # the bundled clip
 
 
 def child(args) -> None:
@@ -137,7 +136,7 @@ def kill_at(args, output: Path, target: int, extra: float) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--video", type=Path, default=BUNNY)
+    ap.add_argument("--video", type=Path, default=CLIP)
     ap.add_argument("--preset", default="quick")
     ap.add_argument("--iterations", type=int, default=None)
     ap.add_argument("--poses", default="auto")
