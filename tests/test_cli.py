@@ -31,6 +31,7 @@ def test_console_script_entry_point():
     assert tomgs.__version__ in out.stdout
 
 
+@pytest.mark.slow  # fresh Python processes, each importing torch
 def test_cpu_only_machine_gets_no_cuda_driver_warning(tmp_path):
     """Warp's native library warns about the missing CUDA driver on fd 2; where torch sees no GPU the
     commands keep that noise out of their output (and still print their own errors there)."""

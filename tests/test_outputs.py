@@ -272,6 +272,7 @@ def test_fit_refuses_to_replace_its_outputs_before_reading_the_video(tmp_path):
     assert result.exit_code == 2 and "cannot write" in result.output, result.output
 
 
+@pytest.mark.slow  # fresh Python processes, each importing torch
 def test_stdout_carries_results_only(scene, tmp_path):
     """Progress bars and notes go to stderr; `--json -` makes stdout pure JSON; -q silences stderr."""
     import json

@@ -45,6 +45,7 @@ def small_config(iterations: int, **kw):
     return preset("quick", **settings | kw)
 
 
+@pytest.mark.slow  # a long fit
 @pytest.mark.parametrize("sparse_adam", [False, True])
 def test_synthetic_clip_fits_to_30db(sparse_adam):
     images, cams, points, colors = synthetic_clip(4, 48, 27)
@@ -398,6 +399,7 @@ def run_clip(iterations, interrupt_at=None, checkpoint=None, resume_from=None, o
     return trainer.run(checkpoint=checkpoint, progress=progress)
 
 
+@pytest.mark.slow  # a long fit
 def test_seeded_run_repeats_and_resume_matches(tmp_path):
     """A seeded CPU run repeats exactly: measured at every step or never (the clock sets when a clip PSNR
     is taken, and measuring must not change what the sampler draws), and resumed from a checkpoint
