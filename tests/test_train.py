@@ -731,3 +731,24 @@ def test_frames_and_cameras_that_disagree_are_refused(frames, size):
     with pytest.raises(InputError, match="one camera per frame"):
         Trainer(other, cams, points, colors, small_config(10), CPU)
     Trainer(images, cams, points, colors, small_config(10), CPU)  # agreeing: accepted
+
+
+def test_a_first_run_s_compilation_is_in_the_plan_and_its_budget(monkeypatch, tmp_path):
+    """A machine that has not compiled these kernels for the device gets a compile phase in the plan,
+    its estimate counted against the budget (training gets less) and said in the plan line; the
+    marker a finished fit leaves in Warp's kernel cache ends that."""
+    import warp as wp
+
+    from tomgs import runtime
+    from tomgs.train.plan import COMPILE_COST, make_plan
+
+    config = preset("default", max_seconds=240.0)
+    plain, _ = make_plan(config, 40, 96, 160, 96 * 160, "cpu")
+    first, _ = make_plan(config, 40, 96, 160, 96 * 160, "cpu", compiles=True)
+    assert "compile" not in plain.phases and first.phases["compile"] == COMPILE_COST["cpu"]
+    assert first.phases["train"] <= plain.phases["train"] - COMPILE_COST["cpu"] + 0.1  # the start shrinks a little too
+    assert "compiling kernels first (first run only" in first.summary() and "compiling" not in plain.summary()
+    monkeypatch.setattr(wp.config, "kernel_cache_dir", str(tmp_path))
+    assert not runtime.kernels_compiled("cpu")
+    runtime.mark_kernels_compiled("cpu")
+    assert runtime.kernels_compiled("cpu") and not runtime.kernels_compiled("cuda")

@@ -225,7 +225,8 @@ def progress_bar(length: int, label: str, **options):
 
 
 STEPS = 1000  # a phase bar's length: phases count frames, iterations or seconds, shown as a fraction
-PHASE_LABELS = {"read": "reading", "poses": "poses", "init": "initialising", "train": "training", "save": "saving"}
+PHASE_LABELS = {"read": "reading", "poses": "poses", "compile": "compiling", "init": "initialising",
+                "train": "training", "save": "saving"}
 
 
 @contextlib.contextmanager

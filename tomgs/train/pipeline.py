@@ -45,7 +45,7 @@ from tomgs.train.checkpoint import START_OVER, FitInterrupted, StopSignals, chec
 from tomgs.train.config import TrainConfig
 from tomgs.train.trainer import FitResult, Trainer, write_csv
 
-PHASES = ("read", "poses", "init", "train", "save")
+PHASES = ("read", "poses", "compile", "init", "train", "save")  # "compile": a first run's kernels, on a CPU
 
 
 def fit(video, output, config: TrainConfig | None = None, *, masks=None, frames=None, max_side=None,
@@ -118,6 +118,7 @@ def _plan(video, config, device, saved, *, frames, max_side, poses, layer, auto_
     """The plan of a fit (tomgs.train.plan.make_plan) from the clip's index, before decoding."""
     from tomgs.io import Video
     from tomgs.io.video import probe_clip
+    from tomgs.runtime import kernels_compiled
     from tomgs.train.plan import make_plan
 
     if isinstance(video, Video):
@@ -131,7 +132,8 @@ def _plan(video, config, device, saved, *, frames, max_side, poses, layer, auto_
         free = torch.cuda.mem_get_info(device)[0] - views * height * width * 3
     estimated = layer != "foreground" and str(poses) == "auto" and not (saved and saved["clip"].get("cameras"))
     return make_plan(config, views, height, width, source * views // max(count, 1), device.type,
-                     poses_estimated=estimated, auto_budget=auto_budget, free_bytes=free)
+                     poses_estimated=estimated, auto_budget=auto_budget, free_bytes=free,
+                     compiles=not kernels_compiled(device.type))
 
 
 def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses, focal, device, progress,
@@ -141,7 +143,8 @@ def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses
     from tomgs.io.scene import save_scene
     from tomgs.io.video import clip_record
     from tomgs.poses import estimate_cameras
-    from tomgs.train.warm import WarmUp, pays_on
+    from tomgs.runtime import mark_kernels_compiled
+    from tomgs.train.warm import WarmUp, pays_on, warm_up
 
     plan, config = _plan(video, config, device, saved, frames=frames, max_side=max_side, poses=poses, layer=layer,
                          auto_budget=auto_budget)
@@ -189,6 +192,11 @@ def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses
         pose_seconds = float(saved["clip"].get("pose_seconds", pose_seconds))
 
     phases("poses", 1, 1, None)
+    if "compile" in plan.phases and warming is None:  # a first run on a CPU: the kernels compile here, said so
+        phases("compile", 0, 1, "compiling kernels, first run only")
+        warm_up(config, device)
+        phases("compile", 1, 1, None)
+        lap("compile")
     phases("init", 0, 1, None)
     if warming is not None:
         warming.join()  # before the seed: the warm-up forked the RNG, and its steps queue on the device
@@ -233,6 +241,7 @@ def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses
     _plot(paths["plot"], result.history)
     phases("save", 2, 2, None)
     paths["checkpoint"].unlink(missing_ok=True)
+    mark_kernels_compiled(device.type)  # the next fit's plan counts no compilation
     for path in paths.values():  # a kill just before a resume left some too fresh to remove at its start
         remove_stale_temporaries(path)
     lap("save")
