@@ -195,6 +195,7 @@ def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses
     if "compile" in plan.phases and warming is None:  # a first run on a CPU: the kernels compile here, said so
         phases("compile", 0, 1, "compiling kernels, first run only")
         warm_up(config, device)
+        mark_kernels_compiled(device.type)
         phases("compile", 1, 1, None)
         lap("compile")
     phases("init", 0, 1, None)
