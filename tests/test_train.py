@@ -600,7 +600,7 @@ def test_a_short_end_measures_fewer_frames_and_says_so(monkeypatch):
     assert covered[-1] == result.clip_frames == 2, covered
     assert result.history[-1]["clip_frames"] == 2
     assert any("kept every Gaussian" in note for note in result.notes), result.notes
-    assert any("covers 2 evenly spaced frames of 4" in note for note in result.notes), result.notes
+    assert any("covers 2 evenly spaced frames of 4: the budget left" in note for note in result.notes), result.notes
 
 
 def test_tracked_points_start_alive_over_the_frames_that_saw_them():

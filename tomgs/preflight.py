@@ -57,8 +57,9 @@ def check_clip(video, frames=None, max_side: int | None = None, masks=None, laye
     """The clip a command will read, checked from its index and header (tomgs.io.video.Source):
     it exists and is a video or a frame folder, `frames` selects some of its frames, they fit in
     memory at `max_side`, and `masks` (needed by a `layer`) holds one per frame, of their size."""
-    from tomgs.io.video import check_masks, probe_clip, probe_source
+    from tomgs.io.video import check_masks, parse_frames, probe_clip, probe_source
 
+    parse_frames(frames)  # a malformed range is answered before the clip is opened
     source = probe_source(video)
     probe_clip(video, frames, max_side)
     if layer is not None and masks is None:

@@ -42,6 +42,7 @@ from tomgs.render.frame import blend_weights, render_frame
 from tomgs.render.sequence import IssuedFrame, issue_in_order
 from tomgs.temporal import frames_to_clip_time
 from tomgs.errors import InputError
+from tomgs.text import counted
 from tomgs.outputs import write_text
 from tomgs.train.checkpoint import (FORMAT, LOG_FIELDS, START_OVER, VERSION, CheckpointWriter, FitInterrupted,
                                     StopSignals, check_same_settings, config_from, config_to_dict, own_copies,
@@ -623,8 +624,8 @@ class Trainer:
                     cost = time.perf_counter() - began  # what training waited for
                     next_ckpt = time.perf_counter() - start + max(c.checkpoint_interval_s, cost / CHECKPOINT_OVERHEAD)
                 if out_of_time:
-                    self.notes.append(f"training stopped after {self.iteration:,} iterations, at the end of "
-                                      f"its {limit:.0f} s of the budget")
+                    self.notes.append(f"training stopped after {counted(self.iteration, 'iteration')}, at the end "
+                                      f"of its {limit:.0f} s of the budget")
                     break
         if stop.signum is not None:  # arrived after the loop's last look: still a step boundary
             stop_here(stop.signum)
@@ -658,9 +659,8 @@ class Trainer:
         if full <= left:
             return self.num_frames
         count = min(max(int(left / max(frame_seconds, 1e-9)), 1), self.num_frames)
-        self.notes.append(f"the final clip PSNR covers {count} evenly spaced frame{'s' if count > 1 else ''} of "
-                          f"{self.num_frames}: all would have taken ~{full:.0f} s of the {max(left, 0):.0f} s the "
-                          f"budget left (`tomgs eval` measures every frame)")
+        self.notes.append(f"the final clip PSNR covers {counted(count, 'evenly spaced frame')} of {self.num_frames}: "
+                          f"the budget left {max(left, 0):.0f} s for it (`tomgs eval` measures every frame)")
         return count
 
     def status(self) -> str:
