@@ -15,7 +15,7 @@ checkpoint exists yet). For each kill:
     restart_s    seconds from the resume's launch to its first step (imports, decoding, set-up)
     psnr         the resumed fit's final full-clip PSNR, against an uninterrupted fit's
 
-    python -m benchmarks.kill_resume [--video tomgs/data/bunny.mp4] [--preset quick] [--kills 4] [--seed 0]
+    python -m benchmarks.kill_resume [--video tomgs/data/ball.mp4] [--preset quick] [--kills 4] [--seed 0]
     python -m benchmarks.kill_resume --smoke     # a 6-frame synthetic clip, 12 iterations, one kill
 
 Every fit (the uninterrupted reference, each killed fit and its resume) runs in a child process that
@@ -44,7 +44,7 @@ if __package__:
 else:  # run as a file (the children are): Python puts this folder first on sys.path
     from common import ROOT, environment, markdown_table, output_folder, demo_video, write_report
 
-BUNNY = ROOT / "tomgs" / "data" / "bunny.mp4"
+CLIP = ROOT / "tomgs" / "data" / "ball.mp4"  # the bundled clip
 
 
 def child(args, launched: float) -> None:
@@ -144,7 +144,7 @@ def kill_at(args, output: Path, target: int, extra: float) -> dict:
 def main(argv=None) -> list[dict]:
     launched = time.perf_counter()
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--video", type=Path, default=BUNNY)
+    ap.add_argument("--video", type=Path, default=CLIP)
     ap.add_argument("--preset", default="quick")
     ap.add_argument("--iterations", type=int, default=None)
     ap.add_argument("--poses", default="auto")

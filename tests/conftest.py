@@ -7,6 +7,19 @@ import shutil
 
 import pytest
 
+# Test files behind the `slow` marker: `pytest` alone leaves them out (pyproject's addopts), `-m slow`
+# runs them, and CI runs both. Other people's programs and readers (Blender, Chromium, viser, gsply and
+# open3d, onnxruntime), several processes, fuzzing. Single long tests elsewhere carry the marker themselves.
+SLOW_FILES = {"test_blender.py", "test_view.py", "test_video_out.py", "test_export.py", "test_poses_onnx.py",
+              "test_shards.py", "test_fuzz_loaders.py", "test_fuzz_render.py"}
+
+
+@pytest.hookimpl(tryfirst=True)  # before `-m` deselects by marker
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if item.path.name in SLOW_FILES:
+            item.add_marker(pytest.mark.slow)
+
 
 def required_program(name: str, install: str) -> str:
     """Path of the program `name` for tests that run it. Skips when it is not on PATH, unless

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
+import time
 
 import cv2
 import pytest
@@ -29,6 +31,7 @@ def test_console_script_entry_point():
     assert tomgs.__version__ in out.stdout
 
 
+@pytest.mark.slow  # fresh Python processes, each importing torch
 def test_cpu_only_machine_gets_no_cuda_driver_warning(tmp_path):
     """Warp's native library warns about the missing CUDA driver on fd 2; where torch sees no GPU the
     commands keep that noise out of their output (and still print their own errors there)."""
@@ -98,14 +101,38 @@ def test_outputs_get_default_permissions(tmp_path):
 
 
 def test_example_files_ship_with_the_package():
-    """The README's first command fits `tomgs example bunny.mp4`: the clip and the Blender script are
-    package data, found where the package is installed (tomgs/data), not in a checkout's assets/."""
+    """The README's first command fits `tomgs example ball.mp4`: the clip, its masks and the Blender
+    script are package data, found where the package is installed (tomgs/data), not in a checkout's
+    assets/."""
     import importlib.metadata
     from pathlib import Path
 
     listing = run("example").output
-    assert "bunny.mp4" in listing and "blender_softbody.py" in listing
-    path = Path(run("example", "bunny.mp4").output.strip())
+    assert "ball.mp4" in listing and "ball_masks" in listing and "blender_softbody.py" in listing
+    path = Path(run("example", "ball.mp4").output.strip())
     assert path.is_file() and path.parent == Path(tomgs.__file__).parent / "data"
+    masks = Path(run("example", "ball_masks").output.strip())
+    assert len(list(masks.glob("*.png"))) == 40
     assert CliRunner().invoke(main, ["example", "missing.mp4"]).exit_code == 2
     assert importlib.metadata.version("tomgs") == tomgs.__version__  # one version source: pyproject reads it
+
+
+def test_progress_lines_keep_coming_while_the_work_is_silent(capsys):
+    """Where stderr is not a terminal (a log, CI, `| tee`) progress is a line a phase starts and then one
+    every interval from a thread, even while the work reports nothing (a long step, a compilation):
+    the time so far, the phase, how far it is, what it said last and an ETA."""
+    from tomgs.cli import ProgressLines
+
+    lines = ProgressLines(interval=0.01)
+    lines.update("training", 0.5, "iteration 5, PSNR 20.00 dB, 1,000 Gaussians")
+    deadline = time.monotonic() + 30
+    seen = ""
+    while seen.count("\n") < 3 and time.monotonic() < deadline:
+        time.sleep(0.02)
+        seen += capsys.readouterr().err
+    lines.close()
+    rows = seen.splitlines()
+    assert len(rows) >= 3, seen  # the first at the phase's start, the others from the thread alone
+    when = r"[\d.]+ (s|min)"
+    want = rf"\[ *{when}\] training 50%: iteration 5, PSNR 20.00 dB, 1,000 Gaussians, ETA {when}"
+    assert all(re.fullmatch(want, row) for row in rows), rows

@@ -60,6 +60,7 @@ def fitted(compact_pixels: float, iterations: int = 150):
     return trainer, trainer.run()
 
 
+@pytest.mark.slow  # a long fit
 def test_a_run_ends_leaving_out_what_no_frame_shows():
     """The compacted scene renders every frame as the full one does, within what the dropped Gaussians
     gave (each under compact_pixels of a pixel's colour), and its final PSNR is its own."""

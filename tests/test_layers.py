@@ -149,6 +149,7 @@ def test_background_fills_the_objects_place(tmp_path):
         assert float(error) < 0.05, (k, float(error))
 
 
+@pytest.mark.slow  # a long fit
 def test_background_follows_moving_content(tmp_path):
     """A bar moving over the background (not masked) is still fitted by the temporal background."""
     frames, masks, truth = parked_clip(moving=True)

@@ -272,6 +272,7 @@ def test_fit_refuses_to_replace_its_outputs_before_reading_the_video(tmp_path):
     assert result.exit_code == 2 and "cannot write" in result.output, result.output
 
 
+@pytest.mark.slow  # fresh Python processes, each importing torch
 def test_stdout_carries_results_only(scene, tmp_path):
     """Progress bars and notes go to stderr; `--json -` makes stdout pure JSON; -q silences stderr."""
     import json
@@ -292,6 +293,8 @@ def test_stdout_carries_results_only(scene, tmp_path):
     assert out.returncode == 0 and out.stderr == "" and "5 frames" in out.stdout
     out = tomgs("render", scene, "-o", tmp_path / "after", "--device", "cpu", "-q")  # after the command too
     assert out.returncode == 0 and out.stderr == "" and "5 frames" in out.stdout
-    for args in (["-q", "-v", "info", scene], ["info", scene, "-q", "-v"]):
+    for args in (["-q", "-v", "info", scene], ["fit", scene, "-q", "-v"]):
         out = tomgs(*args)
         assert out.returncode == 2 and "contradict" in out.stderr
+    out = tomgs("info", scene, "-v")  # -v shows training rows: only the commands that train offer it
+    assert out.returncode == 2 and "No such option" in out.stderr

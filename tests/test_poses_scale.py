@@ -37,7 +37,7 @@ def test_slow_clip_solves_few_keyframes_and_poses_every_frame(slow_clip):
     traj, rot = trajectory_errors(cams.c2w, clip.c2w)
     assert traj <= 0.02 and rot <= 1.0, (traj, rot)
     assert abs(cams.focal / 225 - 1) <= 0.05, cams.focal
-    assert any("keyframes of 40 frames" in n for n in rep.notes)
+    assert any("of 40 frames solved together as keyframes" in n for n in rep.notes)
 
 
 def test_registered_frames_match_ground_truth(slow_clip):

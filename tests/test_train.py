@@ -45,6 +45,7 @@ def small_config(iterations: int, **kw):
     return preset("quick", **settings | kw)
 
 
+@pytest.mark.slow  # a long fit
 @pytest.mark.parametrize("sparse_adam", [False, True])
 def test_synthetic_clip_fits_to_30db(sparse_adam):
     images, cams, points, colors = synthetic_clip(4, 48, 27)
@@ -398,6 +399,7 @@ def run_clip(iterations, interrupt_at=None, checkpoint=None, resume_from=None, o
     return trainer.run(checkpoint=checkpoint, progress=progress)
 
 
+@pytest.mark.slow  # a long fit
 def test_seeded_run_repeats_and_resume_matches(tmp_path):
     """A seeded CPU run repeats exactly: measured at every step or never (the clock sets when a clip PSNR
     is taken, and measuring must not change what the sampler draws), and resumed from a checkpoint
@@ -541,6 +543,56 @@ def test_the_clip_psnr_renders_again_a_frame_that_overflowed_its_keys(monkeypatc
     assert np.allclose(got, want, rtol=0, atol=1e-4), (got, want)
 
 
+def clocked_run(monkeypatch, limit: float, step_seconds, frame_seconds=None):
+    """A run of a 4-frame clip under a `limit` of fake seconds: step k takes step_seconds(k) of them, and
+    the clip PSNR's frames are known to take `frame_seconds` each (None: not measured yet). Returns
+    (result, fake seconds at the last step, the frames each clip PSNR covered)."""
+    clock, stepped, covered = [0.0], [0.0], []
+
+    def step(self):
+        clock[0] += step_seconds(self.iteration)
+        stepped[0] = clock[0]
+        self.iteration += 1
+
+    def clip_psnr(self, tick=None, frames=None):
+        frames = range(self.num_frames) if frames is None else frames
+        covered.append(len(frames))
+        clock[0] += (frame_seconds or 0.0) * len(frames)
+        return [20.0] * len(frames)
+
+    images, cams, points, colors = synthetic_clip(4, 32, 18)
+    trainer = Trainer(images, cams, points, colors, small_config(100_000), CPU)
+    trainer.eval_frame_seconds = frame_seconds
+    monkeypatch.setattr(time, "perf_counter", lambda: clock[0])
+    monkeypatch.setattr(Trainer, "step", step)
+    monkeypatch.setattr(Trainer, "clip_psnr", clip_psnr)
+    monkeypatch.setattr(Trainer, "compact", lambda self, tick=None: 0)
+    result = trainer.run(time_limit=limit)
+    monkeypatch.undo()
+    return result, stepped[0], covered
+
+
+def test_slow_first_steps_do_not_end_training_early(monkeypatch):
+    """Two slow first steps (a busy machine, kernels loading) made the end's estimate exceed the limit and
+    stopped training after 2 of them; the end keeps at most END_SHARE of the limit."""
+    from tomgs.train.trainer import END_SHARE
+
+    result, trained, covered = clocked_run(monkeypatch, 200.0, lambda k: 30.0 if k < 3 else 1.0)
+    assert trained >= (1 - END_SHARE) * 200.0 - 1.0, (trained, result.iterations, result.notes)
+    assert covered[-1] == 4 and result.clip_frames == 4  # the end fitted: every frame measured
+
+
+def test_a_short_end_measures_fewer_frames_and_says_so(monkeypatch):
+    """A clip PSNR whose frames take 8 s each (20 s left for the end): training still runs to the end's share
+    of the limit; the compaction is left out and the last measurement covers the frames that fit, in notes."""
+    result, trained, covered = clocked_run(monkeypatch, 200.0, lambda k: 1.0, frame_seconds=8.0)
+    assert trained >= 179.0, (trained, result.notes)
+    assert covered[-1] == result.clip_frames == 2, covered
+    assert result.history[-1]["clip_frames"] == 2
+    assert any("kept every Gaussian" in note for note in result.notes), result.notes
+    assert any("covers 2 evenly spaced frames of 4: the budget left" in note for note in result.notes), result.notes
+
+
 def test_tracked_points_start_alive_over_the_frames_that_saw_them():
     images, cams, points, colors = synthetic_clip(9, 32, 18)
     spans = np.zeros((len(points), 2), dtype=np.int64)
@@ -669,3 +721,24 @@ def test_frames_and_cameras_that_disagree_are_refused(frames, size):
     with pytest.raises(InputError, match="one camera per frame"):
         Trainer(other, cams, points, colors, small_config(10), CPU)
     Trainer(images, cams, points, colors, small_config(10), CPU)  # agreeing: accepted
+
+
+def test_a_first_run_s_compilation_is_in_the_plan_and_its_budget(monkeypatch, tmp_path):
+    """A machine that has not compiled these kernels for the device gets a compile phase in the plan,
+    its estimate counted against the budget (training gets less) and said in the plan line; the
+    marker a finished fit leaves in Warp's kernel cache ends that."""
+    import warp as wp
+
+    from tomgs import runtime
+    from tomgs.train.plan import COMPILE_COST, make_plan
+
+    config = preset("default", max_seconds=240.0)
+    plain, _ = make_plan(config, 40, 96, 160, 96 * 160, "cpu")
+    first, _ = make_plan(config, 40, 96, 160, 96 * 160, "cpu", compiles=True)
+    assert "compile" not in plain.phases and first.phases["compile"] == COMPILE_COST["cpu"]
+    assert first.phases["train"] <= plain.phases["train"] - COMPILE_COST["cpu"] + 0.1  # the start shrinks a little too
+    assert "compiling kernels first (first run only" in first.summary() and "compiling" not in plain.summary()
+    monkeypatch.setattr(wp.config, "kernel_cache_dir", str(tmp_path))
+    assert not runtime.kernels_compiled("cpu")
+    runtime.mark_kernels_compiled("cpu")
+    assert runtime.kernels_compiled("cpu") and not runtime.kernels_compiled("cuda")

@@ -258,11 +258,15 @@ class Cameras:
             raise InputError(f"{source} does not follow the tomgs cameras schema ({type(e).__name__}: "
                              f"{str(e)[:200]}); {fix}") from None
 
+    def to_json(self) -> str:
+        """The cameras file's text (`save` writes it, `load` reads it)."""
+        return json.dumps(self.to_dict(), indent=1)
+
     def save(self, path) -> Path:
         """Write JSON atomically (temporary file in the same folder, then rename)."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        return write_text(path, json.dumps(self.to_dict(), indent=1))
+        return write_text(path, self.to_json())
 
     @classmethod
     def load(cls, path) -> "Cameras":

@@ -29,6 +29,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from tomgs.text import counted
+
 SSIM_WINDOW = 11
 SSIM_SIGMA = 1.5
 SSIM_C1 = 0.01 ** 2
@@ -366,7 +368,7 @@ class EvalReport:
         return out
 
     def summary(self) -> str:
-        text = f"{len(self.frames)} frames at {self.width}x{self.height}: PSNR {self.mean_psnr:.2f} dB, " \
+        text = f"{counted(len(self.frames), 'frame')} at {self.width}x{self.height}: PSNR {self.mean_psnr:.2f} dB, " \
                f"SSIM {self.mean_ssim:.4f}"
         if self.lpips is not None:
             text += f", LPIPS {self.mean_lpips:.4f}"

@@ -11,6 +11,7 @@ to replace.
                            existing non-empty folder is written into only with overwrite=True
     check_distinct(...)    no output of a command is another of its outputs or one of its inputs
     output_lock(path)      one writer of an output at a time: an advisory lock beside it
+    check_fit_outputs(...) the files a fit writes (fit_output_paths), its checkpoint's rule
 
 Temporary names are '.NAME.PID.XXXXXXXX.tmp' beside the target: a file, or a folder a writer
 stages in (`temporary`). This process notes its own until they are published or discarded, so
@@ -237,6 +238,50 @@ def check_folder_output(path, owned, overwrite: bool = False) -> Path:
         _probe_writable(path, path)
     else:
         _probe_writable(path.parent, path)
+    return path
+
+
+def fit_output_paths(scene_path) -> dict[str, Path]:
+    """What `tomgs.fit` writes for the scene `scene_path`: the scene, its log (.csv), its PSNR plot
+    (.psnr.png) and, while it runs, its checkpoint (.ckpt), by those keys."""
+    scene = Path(scene_path)
+    stem = scene.with_suffix("")
+    return dict(scene=scene, csv=Path(f"{stem}.csv"), plot=Path(f"{stem}.psnr.png"), checkpoint=Path(f"{stem}.ckpt"))
+
+
+def check_fit_outputs(output, resume: bool = False, overwrite: bool = False) -> dict[str, Path]:
+    """fit_output_paths(output) once every one can be written: InputError saying how to proceed
+    otherwise. Without `overwrite` an existing scene, log or plot is refused; a checkpoint is
+    expected with `resume` (and the log may exist then), and refused without it."""
+    paths = fit_output_paths(output)
+    if paths["scene"].suffix.lower() not in (".ply", ".tsog"):
+        raise InputError(f"{output}: a scene is written as .ply (or .tsog, compressed); name the output like "
+                         f"scene.ply or scene.tsog")
+    check_file_output(paths["scene"], overwrite, "scene")
+    check_file_output(paths["plot"], overwrite, "PSNR plot")
+    checkpoint = paths["checkpoint"]
+    if resume:
+        if not checkpoint.is_file():
+            raise InputError(f"{checkpoint}: no checkpoint to resume from; run without --resume")
+        check_file_output(checkpoint, True, "checkpoint")
+        check_file_output(paths["csv"], True, "log")
+    else:
+        if (checkpoint.exists() or checkpoint.is_symlink()) and not overwrite:
+            raise InputError(f"{checkpoint} holds an interrupted fit of {paths['scene'].name}: pass --resume to "
+                             f"continue it, or --overwrite (-y) to start over (Python: resume=True or "
+                             f"overwrite=True)")
+        check_file_output(checkpoint, overwrite, "checkpoint")
+        check_file_output(paths["csv"], overwrite, "log")
+    return paths
+
+
+def check_png_path(path) -> Path:
+    """The plot's path, checked before any work: a .png in an existing folder, else InputError."""
+    path = Path(path)
+    if path.suffix.lower() != ".png":
+        raise InputError(f"{path}: the plot is a PNG; give a path ending in .png")
+    if not path.parent.exists():
+        raise InputError(f"{path}: folder {path.parent} does not exist; create it or choose another path")
     return path
 
 

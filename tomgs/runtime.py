@@ -16,6 +16,9 @@
     whole_blocks(n)                  the launch size, in whole blocks of 256, of n threads of work
     sort_pairs(keys, values, count, end_bit, begin_bit)
                                      Warp's radix sort of int64 keys and int32 values, on tensors
+    kernels_compiled(device_type)    whether this machine has compiled these kernels for that device
+                                     before (a marker in Warp's kernel cache); mark_kernels_compiled
+                                     writes it once a fit has run them
 
 Used by tomgs.render (the rasterizer), tomgs.metrics (SSIM), tomgs.train.optim (SeenAdam) and
 tomgs.edit.physics (XPBD). Every buffer is a torch tensor handed to Warp without a copy, so torch's
@@ -48,10 +51,41 @@ import warp._src.context as _warp_context  # private: only for sort_pairs (see t
 
 from tomgs.errors import RenderError
 
-__all__ = ["resolve_device", "init_warp", "warp_device", "scope", "torch_stream", "wrap", "wrap_rows", "wrap_flat", "NO_ARRAY",
+__all__ = ["resolve_device", "kernels_compiled", "mark_kernels_compiled", "init_warp", "warp_device", "scope", "torch_stream", "wrap", "wrap_rows", "wrap_flat", "NO_ARRAY",
            "indexable", "launch", "Launches", "whole_blocks", "ArrayDescriptor", "sort_pairs"]
 
 _warp_ready = False
+
+
+def _compiled_marker(device_type: str):
+    """The marker file, in Warp's kernel cache, of tomgs's kernels (their source's digest) compiled
+    for `device_type`. Warp compiles a kernel module at its first launch and caches it by a hash of
+    its code; a fresh machine (or a new tomgs) pays that once, about a minute on a 2-core CPU."""
+    import hashlib
+    from pathlib import Path
+
+    kernels = Path(__file__).parent / "kernels"
+    digest = hashlib.sha1()
+    for path in sorted(kernels.glob("*.py")):
+        digest.update(path.name.encode() + path.read_bytes())
+    return Path(wp.config.kernel_cache_dir or "") / f"tomgs-{digest.hexdigest()[:12]}-{device_type}.compiled"
+
+
+def kernels_compiled(device_type: str) -> bool:
+    """Whether tomgs's kernels as they are now were compiled for `device_type` on this machine (and
+    are in Warp's kernel cache); False on a first run, whose first steps compile them."""
+    init_warp()
+    return _compiled_marker(device_type).is_file()
+
+
+def mark_kernels_compiled(device_type: str) -> None:
+    """Record that the kernels ran (compiled) on `device_type`; a cache that cannot be written is left
+    as it is (the next run only announces a compilation that does not come)."""
+    init_warp()
+    try:
+        _compiled_marker(device_type).touch()
+    except OSError:
+        pass
 
 
 def resolve_device(name: str | None = "auto") -> torch.device:

@@ -11,6 +11,7 @@ import contextlib
 import functools
 import signal
 import sys
+import threading
 import time
 
 import click
@@ -18,7 +19,6 @@ import click
 from tomgs import __version__
 from tomgs.errors import InputError, RenderError
 from tomgs.cli.params import FOCAL, FPS, SIDE, Colour
-from tomgs.render.jobs import run_render
 
 
 class UsageError(click.ClickException):
@@ -122,7 +122,7 @@ _VERBOSITY = {"level": 1}  # 0: -q, 1: default, 2: -v (set by `main` for the com
 @click.group(cls=Group, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="tomgs")
 @click.option("-q", "--quiet", is_flag=True, help="no progress bars or notes on stderr: results and errors only")
-@click.option("-v", "--verbose", is_flag=True, help="also every training log row on stderr")
+@click.option("-v", "--verbose", is_flag=True, help="also every training log row of `fit` on stderr")
 def main(quiet: bool, verbose: bool) -> None:
     """Editable video as static 3D Gaussians with temporal opacity (TOM-GS).
 
@@ -177,12 +177,68 @@ OVER_HELP = ("a scene to render behind (e.g. a background from `fit --layer back
               "at the same frames; the rendered scene is composited over it as `render --layer` does")
 
 
+LINE_INTERVAL = 5.0  # seconds between progress lines where stderr is not a terminal (a log file, CI, `| tee`)
+_STARTED = time.monotonic()  # about when the command started: its imports come first
+
+
+def _terminal() -> bool:
+    return sys.stderr.isatty()
+
+
+class ProgressLines:
+    """Progress for a log, where a bar cannot redraw: a line when a phase starts and then every
+    LINE_INTERVAL seconds from a thread, whatever the work is doing (a long step, a compilation):
+    the command's time so far, the phase, how far it is, what it reported last and its ETA."""
+
+    def __init__(self, interval: float = LINE_INTERVAL):
+        self.state = None  # (label, phase start, fraction done, text)
+        self.stopped = threading.Event()
+        self.thread = threading.Thread(target=self._run, args=(interval,), name="tomgs-progress", daemon=True)
+        self.thread.start()
+
+    def update(self, label: str, fraction: float, text: str | None = None) -> None:
+        now = time.monotonic()
+        new = self.state is None or self.state[0] != label
+        self.state = (label, now if new else self.state[1], min(max(fraction, 0.0), 1.0), text)
+        if new:
+            self._line()
+
+    def close(self) -> None:
+        self.stopped.set()
+        self.thread.join()
+
+    def _line(self) -> None:
+        label, began, fraction, text = self.state
+        now = time.monotonic()
+        eta = ""
+        if 0.02 <= fraction < 1.0:
+            eta = f", ETA {_seconds((now - began) * (1 - fraction) / fraction)}"
+        click.echo(f"[{_seconds(now - _STARTED):>7s}] {label.strip()} {fraction:.0%}"
+                   + (f": {text}" if text else "") + eta, err=True)
+
+    def _run(self, interval: float) -> None:
+        while not self.stopped.wait(interval):
+            if self.state is not None:
+                self._line()
+
+
+def _seconds(value: float) -> str:
+    return f"{value:.0f} s" if value < 120 else f"{value / 60:.1f} min"
+
+
 @contextlib.contextmanager
 def progress_bar(length: int, label: str, **options):
-    """A progress bar with rate and ETA on stderr (stdout carries results only), none with -q;
-    yields progress(done, item=None)."""
+    """A progress bar with rate and ETA on stderr (stdout carries results only), lines for a log
+    where stderr is not a terminal (ProgressLines), none with -q; yields progress(done, item=None)."""
     if _VERBOSITY["level"] == 0:
         yield lambda done, item=None: None
+        return
+    if not _terminal():
+        lines = ProgressLines()
+        try:
+            yield lambda done, item=None: lines.update(label, done / max(length, 1), f"{done}/{length}")
+        finally:
+            lines.close()
         return
     with click.progressbar(length=length, label=label, file=sys.stderr, show_eta=True, show_percent=True,
                            **options) as bar:
@@ -190,46 +246,63 @@ def progress_bar(length: int, label: str, **options):
 
 
 STEPS = 1000  # a phase bar's length: phases count frames, iterations or seconds, shown as a fraction
-PHASE_LABELS = {"read": "reading", "poses": "poses", "init": "initialising", "train": "training", "save": "saving"}
+PHASE_LABELS = {"read": "reading", "poses": "poses", "compile": "compiling", "init": "initialising",
+                "train": "training", "save": "saving"}
 
 
 @contextlib.contextmanager
 def phase_bars(min_interval: float = 0.25):
-    """One progress bar per phase on stderr, each with rate and ETA (none with -q); yields
-    update(phase, done, total, text=None): a new phase name closes the previous bar and opens its
-    own; redraws at most every `min_interval` seconds, so a caller may tick every step."""
+    """One progress bar per phase on stderr, each with rate and ETA (lines for a log where stderr is
+    not a terminal: ProgressLines; none with -q); yields update(phase, done, total, text=None): a
+    new phase name ends the previous bar at 100% (it is done) and opens its own; redraws at most
+    every `min_interval` seconds, so a caller may tick every step."""
     if _VERBOSITY["level"] == 0:
         yield lambda phase, done, total, text=None: None
         return
-    state = dict(phase=None, bar=None, shown=0.0)
+    if not _terminal():
+        lines = ProgressLines()
+        try:
+            yield lambda phase, done, total, text=None: lines.update(
+                PHASE_LABELS.get(phase, phase), done / total if total > 0 else 0.0, text)
+        finally:
+            lines.close()
+        return
+    state = dict(phase=None, bar=None, shown=0.0, text=None)
 
-    def close():
+    def close(done: bool):
         if state["bar"] is not None:
+            if done:  # the phase ended: its bar says so, wherever its estimate of the work had it
+                state["bar"].update(STEPS - state["bar"].pos, state["text"])
             state["bar"].__exit__(None, None, None)
             state["bar"] = None
 
     def update(phase, done, total, text=None):
         now = time.monotonic()
         if phase != state["phase"]:
-            close()
+            close(done=True)
             label = f"{PHASE_LABELS.get(phase, phase):12s}"
             bar = click.progressbar(length=STEPS, label=label, file=sys.stderr, show_eta=True, show_percent=True,
                                     item_show_func=lambda item: item)
             state.update(phase=phase, bar=bar.__enter__(), shown=0.0)
+        state["text"] = text
         bar = state["bar"]
         if done < total and now - state["shown"] < min_interval:
             return
         state["shown"] = now
         bar.update(round(STEPS * min(done / total, 1.0)) - bar.pos if total > 0 else 0, text)
 
+    finished = False
     try:
         yield update
+        finished = True
     finally:
-        close()
+        close(done=finished)
 
 
 def render_planned(scene, gaussians, plan, fps, layers=()) -> None:
     """Run a planned render (tomgs.render.jobs) with a progress bar and print its report."""
+    from tomgs.render.jobs import run_render
+
     with progress_bar(len(plan.positions), "render") as progress:
         report = run_render(plan, scene, gaussians, fps, layers, progress=progress)
     click.echo(report.summary())
@@ -256,17 +329,23 @@ def _set_verbosity(ctx, param, value) -> None:
     _VERBOSITY["level"] = 0 if param.name == "quiet" else 2
 
 
+VERBOSE_COMMANDS = ("fit",)  # the commands that train: -v shows their log rows
+
+
 def _verbosity_options(group: click.Group) -> None:
-    """-q and -v after the command too (`tomgs render ... -q` as well as `tomgs -q render ...`)."""
-    for command in group.commands.values():
+    """-q after the command too (`tomgs render ... -q` as well as `tomgs -q render ...`), and -v
+    after the commands that train (VERBOSE_COMMANDS)."""
+    for name, command in group.commands.items():
         if isinstance(command, click.Group):
             _verbosity_options(command)
             continue
-        command.params += [
+        command.params.append(
             click.Option(["-q", "--quiet"], is_flag=True, expose_value=False, callback=_set_verbosity,
-                         help="no progress bars or notes on stderr: results and errors only"),
-            click.Option(["-v", "--verbose"], is_flag=True, expose_value=False, callback=_set_verbosity,
-                         help="also every training log row on stderr")]
+                         help="no progress bars or notes on stderr: results and errors only"))
+        if name in VERBOSE_COMMANDS:
+            command.params.append(
+                click.Option(["-v", "--verbose"], is_flag=True, expose_value=False, callback=_set_verbosity,
+                             help="also every training log row on stderr"))
 
 
 _verbosity_options(main)

@@ -6,14 +6,13 @@ import click
 
 from tomgs.cli import device_option, main, overwrite_option, progress_bar, user_errors
 from tomgs.cli.params import Number, Size
-from tomgs.render.jobs import render_frames
 
 
 @main.command()
 @click.option("-o", "--output", default="demo.mp4", show_default=True, type=click.Path(path_type=str),
               help="an .mp4/.avi/.mov/.mkv file, or a folder (no suffix) for PNG frames")
 @click.option("--frames", "num_frames", default=48, show_default=True,
-              type=Number(1, 10000, integer=True, what="frames"))
+              type=Number(1, 10000, integer=True, what="frames"), help="how many frames to render")
 @click.option("--size", type=Size(), default="320x180", show_default=True, help="WIDTHxHEIGHT in pixels")
 @device_option
 @overwrite_option
@@ -27,12 +26,17 @@ def demo(output, num_frames, size, device, overwrite):
       tomgs demo                        # demo.mp4, 48 frames at 320x180
       tomgs demo -o frames/ --size 854x480 --device cuda
     """
-    from tomgs.demo import demo_scene
     from tomgs.io.writer import check_output
-    from tomgs.runtime import resolve_device
+    from tomgs.preflight import check_device
 
     width, height = size
+    check_device(device)
     check_output(output, overwrite)
+
+    from tomgs.demo import demo_scene
+    from tomgs.render.jobs import render_frames
+    from tomgs.runtime import resolve_device
+
     dev = resolve_device(device)
     gaussians, cams = demo_scene(num_frames, width, height)
     with progress_bar(num_frames, "render") as progress:
@@ -51,7 +55,7 @@ def example(names):
     \b
     Examples:
       tomgs example                                       # what is bundled
-      tomgs fit "$(tomgs example bunny.mp4)" -o bunny.ply --budget 240
+      tomgs fit "$(tomgs example ball.mp4)" -o ball.ply --budget 240
     """
     from tomgs.demo import EXAMPLE_FILES, example_file
 

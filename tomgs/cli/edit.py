@@ -17,7 +17,7 @@ from tomgs.cli import (
     user_errors,
 )
 from tomgs.cli.params import COORDINATES, SCALES, Number, Numbers
-from tomgs.render.jobs import plan_render
+from tomgs.text import counted
 
 
 @main.command()
@@ -57,9 +57,8 @@ def edit(scene, output, selectors, translate, rotate, scale, centre, duplicate, 
       tomgs edit scene.ply -o spin.mp4 --select sphere:0,0,3,0.5 --keyframes spin.json
       tomgs edit fg.ply -o big.ply --scale 1.3 --render big.mp4 --over bg.ply
     """
-    from tomgs.edit.transforms import edit_scene, keyframed_clouds, load_keyframes
-    from tomgs.io.scene import load_scene, save_scene
     from tomgs.outputs import check_distinct, check_file_output
+    from tomgs.preflight import check_existing, check_render, check_scene, check_selectors
 
     check_distinct({"-o": output, "--render": render_out},
                    {"SCENE": scene, "--keyframes": keyframes, "--over": over, "--select": selector_paths(selectors)})
@@ -78,10 +77,21 @@ def edit(scene, output, selectors, translate, rotate, scale, centre, duplicate, 
         raise UsageError("--render goes with a scene output (.ply or .tsog); -o already renders")
     if over and not (render_out or keyframes):
         raise UsageError("--over is what the render goes over: give --render (or --keyframes with a video -o)")
-    if not keyframes:
+    cameras, _ = check_scene(scene)
+    check_selectors(selectors)
+    if keyframes:
+        check_existing(keyframes, "--keyframes: file")
+    else:
         check_file_output(output, overwrite, what="edited scene")
-    loaded = load_scene(scene)
     video = output if keyframes else render_out
+    if video:
+        check_render(video, cameras, frames, overwrite, over=over, device=device)
+
+    from tomgs.edit.transforms import edit_scene, keyframed_clouds, load_keyframes
+    from tomgs.io.scene import load_scene, save_scene
+    from tomgs.render.jobs import plan_render
+
+    loaded = load_scene(scene)
     plan = plan_render(video, loaded.cameras, frames, device, background, overwrite, over=over,
                        name=scene) if video else None
     keys = load_keyframes(keyframes, loaded.cameras) if keyframes else None
@@ -92,6 +102,6 @@ def edit(scene, output, selectors, translate, rotate, scale, centre, duplicate, 
     save_scene(output, edited.model, edited.cameras, edited.info)
     what = "removed" if remove else ("duplicated" if move["duplicate"] else "edited")
     click.echo(f"{output}: {edited.info['edits'][-1]['selected']:,} Gaussians {what}; {len(edited.model):,} "
-               f"Gaussians, {len(edited.cameras)} frames")
+               f"Gaussians, {counted(len(edited.cameras), 'frame')}")
     if plan is not None:
         render_planned(edited, edited.model.render_inputs(), plan, fps)

@@ -4,20 +4,25 @@ from __future__ import annotations
 
 import click
 
-from tomgs.cli import check_json, device_option, main, overwrite_option, user_errors, write_json
+from tomgs.cli import check_json, device_option, main, overwrite_option, say, user_errors, write_json
 
 
 @main.command("eval")
 @click.argument("scene", type=click.Path(path_type=str))
 @click.argument("video", type=click.Path(path_type=str))
 @click.option("--lpips", "lpips_weights", type=click.Path(path_type=str), default=None,
-              help="LPIPS AlexNet weights (.npz); default $TOMGS_LPIPS_WEIGHTS, else LPIPS is left out")
+              help="LPIPS v0.1 AlexNet weights as one .npz, made from torchvision's AlexNet and the lpips "
+                   "package's alex.pth (docs/fitting.md shows how); default $TOMGS_LPIPS_WEIGHTS, else LPIPS is "
+                   "left out")
 @click.option("--json", "json_out", type=click.Path(path_type=str), default=None,
               help="also write per-frame and mean metrics as JSON to this file ('-' for stdout)")
+@click.option("--force", is_flag=True,
+              help="compare even when VIDEO is not the clip SCENE was fitted on (another frame count, size or "
+                   "picture), saying what differs")
 @device_option
 @overwrite_option
 @user_errors
-def evaluate_command(scene, video, lpips_weights, json_out, device, overwrite):
+def evaluate_command(scene, video, lpips_weights, json_out, force, device, overwrite):
     """Compare SCENE, rendered at every frame it was fitted on, with VIDEO: PSNR and SSIM per frame
     and on average, as the peers compute them (float renders, 11x11 Gaussian SSIM); LPIPS when its
     weights are given.
@@ -27,19 +32,28 @@ def evaluate_command(scene, video, lpips_weights, json_out, device, overwrite):
       tomgs eval scene.ply clip.mp4
       tomgs eval scene.ply frames/ --lpips alexnet-lpips-v0.1.npz --json metrics.json
       tomgs eval scene.ply clip.mp4 --json - | jq .mean     # JSON alone on stdout
+      tomgs eval scene.ply other.mp4 --force                # another clip, deliberately
     """
+    from tomgs.preflight import check_device, check_eval_video, check_existing, check_scene, refuse_or_note
+
+    to_stdout = check_json(json_out, overwrite)
+    check_device(device)
+    cameras, info = check_scene(scene)
+    notes = check_eval_video(video, scene, cameras, info, force)
+    if lpips_weights is not None:
+        check_existing(lpips_weights, "--lpips: weights file")
 
     from tomgs.io.scene import load_scene
-    from tomgs.io.video import read_video_for
+    from tomgs.io.video import frame_differences, read_video_for
     from tomgs.metrics import LPIPS, default_lpips_weights, evaluate
     from tomgs.outputs import check_distinct
     from tomgs.runtime import resolve_device
 
     check_distinct({"--json": json_out}, {"SCENE": scene, "VIDEO": video, "--lpips": lpips_weights})
-    to_stdout = check_json(json_out, overwrite)
     dev = resolve_device(device)
     loaded = load_scene(scene, device=dev)
     frames = read_video_for(video, loaded.cameras)
+    notes += refuse_or_note(video, scene, frame_differences(video, frames, loaded.info.get("clip")), force)
     weights = lpips_weights or default_lpips_weights()
     lpips = LPIPS(weights, device=dev) if weights else None
     report = evaluate(loaded.model, loaded.cameras, frames, lpips=lpips, device=dev)
@@ -48,4 +62,6 @@ def evaluate_command(scene, video, lpips_weights, json_out, device, overwrite):
                    err=to_stdout)
     click.echo(f"{scene}: {report.summary()}" + ("" if lpips else " (LPIPS left out: no weights given)"),
                err=to_stdout)
+    for note in notes:
+        say(f"  note: {note}")
     write_json(json_out, report.to_dict())  # a perfect frame's PSNR is inf: null

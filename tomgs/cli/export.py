@@ -42,17 +42,23 @@ def export(scene, output, frame, clip_time, sh_degree, layer_paths, cameras_out,
       tomgs export bg.ply --layer fg.ply --frame 10 -o both.spz
       tomgs export scene.ply --cameras-out cams/                # COLMAP + transforms.json only
     """
+    from tomgs.outputs import check_distinct, check_file_output, check_folder_output
+    from tomgs.preflight import check_scene
+
+    if output is None and cameras_out is None:
+        raise UsageError("give -o OUT (.ply, .splat, .spz or .sog) for the static scene, --cameras-out DIR, or both")
+    check_scene(scene, cameras=cameras_path)
+    for path in layer_paths:
+        check_scene(path)
+
     from tomgs.edit.export import CAMERA_FILES, moment_with_layers, pick_moment, write_cameras
     from tomgs.io.scene import load_scene
     from tomgs.io.splats import FORMATS, write_static
-    from tomgs.outputs import check_distinct, check_file_output, check_folder_output
 
     check_distinct({"-o": output, "--cameras-out": cameras_out,
                     "a file --cameras-out writes": [] if cameras_out is None else
                     [str(Path(cameras_out) / name) for name in CAMERA_FILES]},
                    {"SCENE": scene, "--layer": list(layer_paths), "--cameras": cameras_path})
-    if output is None and cameras_out is None:
-        raise UsageError("give -o OUT (.ply, .splat, .spz or .sog) for the static scene, --cameras-out DIR, or both")
     if output is not None:
         if Path(output).suffix.lower() not in FORMATS:
             raise UsageError(f"-o {output}: unknown format {Path(output).suffix or '(no extension)'!r}; the static "

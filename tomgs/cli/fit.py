@@ -20,6 +20,7 @@ from tomgs.cli import (
     write_json,
 )
 from tomgs.cli.params import SEED, SH_DEGREE, Number
+from tomgs.text import counted
 
 
 @main.command()
@@ -40,7 +41,9 @@ from tomgs.cli.params import SEED, SH_DEGREE, Number
 @click.option("--budget", "max_seconds", type=Number(1.0, 1e7, what="seconds"), default=None,
               help="the whole command's wall time in seconds, reading, poses and saving included (schedules follow "
                    "it); default: none on a GPU, chosen where the iterations would take longer (10 min on a CPU)")
-@click.option("--sampling", type=click.Choice(["inverse_psnr", "uniform"]), default=None)
+@click.option("--sampling", type=click.Choice(["inverse_psnr", "uniform"]), default=None,
+              help="how training picks its next frame: inverse_psnr (default) favours the frames it renders worst; "
+                   "uniform picks any alike (ablation)")
 @click.option("--static", "static_3dgs", is_flag=True, help="ablation: no temporal opacity (static 3DGS)")
 @click.option("--opacity-reset", type=Number(0, 10**7, integer=True, what="iterations"), default=None,
               help="ablation: reset opacities every N")
@@ -48,7 +51,9 @@ from tomgs.cli.params import SEED, SH_DEGREE, Number
 @click.option("--compact", "compact_pixels", type=Number(0.0, 1e6, what="pixels"), default=None,
               help="at the end, leave out the Gaussians that give no frame this many pixels' worth of colour "
                    "(default 0.01; 0 keeps every Gaussian)")
-@click.option("--seed", type=SEED, default=None, help="the random draws' seed (default: the preset's)")
+@click.option("--seed", type=SEED, default=None,
+              help="seed of the random start and frame choices (default 0): a CPU fit of set --iterations with "
+                   "the same seed repeats exactly")
 @click.option("--resume", is_flag=True, help="continue from the checkpoint beside OUTPUT")
 @click.option("--layer", type=click.Choice(["background", "foreground"]), default=None,
               help="fit one layer (needs --masks): the pixels outside the masks, or the masked object on a plane")
@@ -76,10 +81,18 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
       tomgs fit long.mp4 -o scene.ply --gpus 2          # two GPUs, one stretch of the clip each
       torchrun --nproc_per_node 8 -m tomgs.cli fit long.mp4 -o scene.ply
     """
+    from tomgs.outputs import check_fit_outputs
+    from tomgs.preflight import check_clip, check_device, check_poses
     from tomgs.train.multigpu import pool as rank_pool
 
     if gpus is not None and gpus > 1 and not rank_pool.under_torchrun():  # a host that cannot run them starts none
         rank_pool.check_world(gpus, device, rank_pool.visible_gpus(), cores=os.cpu_count())
+    if gpus in (None, 1) and not rank_pool.under_torchrun():  # a sharded fit checks its ranks' files itself
+        check_fit_outputs(output, resume=resume, overwrite=overwrite)
+    to_stdout = check_json(json_out, overwrite)
+    check_device(device)
+    check_clip(video, frames, max_side, masks, layer)
+    check_poses(poses)
     if gpus is not None:  # the ranks import while this process does (tomgs.train.multigpu.pool)
         rank_pool.start(gpus)
     from tomgs.outputs import check_distinct, existing_path
@@ -101,30 +114,19 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
     if static_3dgs:
         overrides["temporal"] = False
     config = make_config(preset, **overrides)
-    to_stdout = check_json(json_out, overwrite)
-    last = {}
-
-    def row_text(row):
-        psnr = f"{row['train_psnr']} dB" if row["train_psnr"] != "" else "-"  # none heard yet: the first steps
-        return (f"PSNR {psnr}, {row['gaussians']:,} Gaussians, "
-                f"{row['iteration'] / max(row['wall_s'], 1e-9):.1f} it/s")
 
     def on_row(row):
-        last["row"] = row
+        psnr = f"{row['train_psnr']} dB" if row["train_psnr"] != "" else "-"  # none heard yet: the first steps
         covers = f" over {row['clip_frames']} frames" if row.get("clip_frames") else ""
         clip = f"{row['clip_psnr']} dB{covers}" if row["clip_psnr"] != "" else "-"
-        say(f"  iteration {row['iteration']}: {row['wall_s']:.1f} s, {row_text(row)}, clip PSNR {clip}", level=2)
+        say(f"  iteration {row['iteration']}: {row['wall_s']:.1f} s, PSNR {psnr}, {row['gaussians']:,} Gaussians, "
+            f"{row['iteration'] / max(row['wall_s'], 1e-9):.1f} it/s, clip PSNR {clip}", level=2)
 
     try:
         with phase_bars() as bars:
-            def on_phase(phase, done, total, text):
-                if phase == "train" and "row" in last:
-                    text = "; ".join(filter(None, (text, row_text(last["row"]))))
-                bars(phase, done, total, text)
-
             result = fit_scene(video, output, config, masks=masks, frames=frames, max_side=max_side, poses=poses,
                                focal=focal, device=device, resume=resume, overwrite=overwrite, progress=on_row,
-                               layer=layer, mask_dilation=mask_dilation, phases=on_phase,
+                               layer=layer, mask_dilation=mask_dilation, phases=bars,
                                on_plan=lambda plan: say(plan.summary()), auto_budget=iterations is None,
                                started=started, gpus=gpus)
     except FitInterrupted as e:
@@ -143,9 +145,12 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
     nbytes = Path(output).stat().st_size
     bpp = bits_per_pixel(nbytes, result.cameras)
     if not to_stdout:
-        click.echo(f"{output}: {len(result.model):,} Gaussians, {result.iterations} iterations in "
-                   f"{result.seconds:.1f} s, full-clip PSNR {result.clip_psnr:.2f} dB")
-        click.echo(f"  {nbytes:,} bytes, {bpp:.3f} bits per pixel of the clip ({len(result.cameras)} frames of "
+        frames = len(result.cameras)
+        covered = "full-clip PSNR" if result.clip_frames in (0, frames) else \
+            f"clip PSNR over {result.clip_frames} of {frames} frames"
+        click.echo(f"{output}: {len(result.model):,} Gaussians, {result.iterations:,} iterations in "
+                   f"{result.seconds:.1f} s, {covered} {result.clip_psnr:.2f} dB")
+        click.echo(f"  {nbytes:,} bytes, {bpp:.3f} bits per pixel of the clip ({counted(frames, 'frame')} of "
                    f"{result.cameras.width}x{result.cameras.height})")
         click.echo(f"  {result.wall_seconds:.1f} s in all ({phase_text(result.phase_seconds)}), {memory}")
         click.echo(f"  error against run time: {paths['csv']} and {paths['plot']}")
@@ -156,6 +161,7 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
                                phase_seconds=result.phase_seconds, eta_seconds=result.plan.eta,
                                peak_host_mb=result.peak_host_mb, peak_gpu_mb=result.peak_gpu_mb,
                                peak_host_mb_by_phase=result.peak_host_mb_by_phase,
-                               clip_psnr=result.clip_psnr, scene_bytes=nbytes, bits_per_pixel=bpp,
+                               clip_psnr=result.clip_psnr, clip_frames=result.clip_frames or len(result.cameras),
+                               scene_bytes=nbytes, bits_per_pixel=bpp,
                                csv=str(paths["csv"]), plot=str(paths["plot"]),
                                notes=list(result.notes), shards=getattr(result, "shards", None)))

@@ -27,18 +27,17 @@ def info(scene, plot, as_json, cameras_path, overwrite):
     """
     import json
 
-    from tomgs.io.scene import load_scene
-    from tomgs.outputs import check_distinct, check_file_output
-    from tomgs.io.summary import (
-        check_png_path,
-        format_summary,
-        plot_temporal_scales,
-        summarize,
-    )
+    from tomgs.outputs import check_distinct, check_file_output, check_png_path
+    from tomgs.preflight import check_scene
 
     check_distinct({"--plot": plot}, {"SCENE": scene, "--cameras": cameras_path})
     if plot is not None:
         check_file_output(check_png_path(plot), overwrite, what="plot")
+    check_scene(scene, cameras=cameras_path)
+
+    from tomgs.io.scene import load_scene
+    from tomgs.io.summary import format_summary, plot_temporal_scales, summarize
+
     loaded = load_scene(scene, cameras=cameras_path)
     summary = summarize(loaded, scene)
     if plot is not None:

@@ -12,7 +12,6 @@ from tomgs.cli import (
     scene_cameras_option,
     user_errors,
 )
-from tomgs.render.jobs import plan_render
 
 
 @main.command()
@@ -34,8 +33,16 @@ def render(scene, frames, output, device, background, fps, layer_paths, overwrit
       tomgs render bg.ply --layer fg.ply -o out.mp4     # foreground over background
       tomgs render edited.ply --cameras cams/cameras.json -o out.mp4   # re-saved by SuperSplat
     """
+    from tomgs.preflight import check_render, check_scene
+
+    cameras, _ = check_scene(scene, cameras=cameras_path)
+    for path in layer_paths:
+        check_scene(path)
+    check_render(output, cameras, frames, overwrite, device=device)
+
     from tomgs.io.scene import load_scene
     from tomgs.outputs import check_distinct
+    from tomgs.render.jobs import plan_render
     from tomgs.render.layers import check_layers
 
     check_distinct({"-o": output}, {"SCENE": scene, "--layer": list(layer_paths), "--cameras": cameras_path})

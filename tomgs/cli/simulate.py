@@ -18,7 +18,7 @@ from tomgs.cli import (
 )
 from tomgs.cli.params import CELL, COORDINATES, FPS, Colour, Number, Numbers
 from tomgs.errors import InputError
-from tomgs.render.jobs import plan_render
+from tomgs.text import counted
 
 
 @main.command()
@@ -64,14 +64,8 @@ def simulate(scene, output, selectors, render_out, over, drop, spin, velocity, s
       tomgs tets import scene.ply toss.cage.ply toss.npz -o toss.mp4
       tomgs simulate fg.ply --drop 0.25 -o drop.npz --render drop.mp4 --over bg.ply
     """
-    from tomgs.edit.cage import shot_config, simulate_selection
-    from tomgs.edit.selection import select
-    from tomgs.edit.transforms import sequence_clouds
-    from tomgs.io.scene import load_scene
-    from tomgs.io.tets import save_sequence, save_tets
-    from tomgs.render.jobs import render_defaults
     from tomgs.outputs import check_distinct, check_file_output
-    from tomgs.runtime import resolve_device
+    from tomgs.preflight import check_device, check_render, check_scene, check_selectors
 
     if not output.lower().endswith(".npz"):
         raise UsageError(f"-o {output}: the shot is a vertex sequence, an .npz")
@@ -82,6 +76,20 @@ def simulate(scene, output, selectors, render_out, over, drop, spin, velocity, s
                    {"SCENE": scene, "--over": over, "--select": selector_paths(selectors)})
     check_file_output(output, overwrite, what="vertex sequence")
     check_file_output(cage_path, overwrite, what="cage")
+    check_device(device)
+    cameras, _ = check_scene(scene)
+    check_selectors(selectors)
+    if render_out:
+        check_render(render_out, cameras, None, overwrite, over=over)
+
+    from tomgs.edit.cage import shot_config, simulate_selection
+    from tomgs.edit.selection import select
+    from tomgs.edit.transforms import sequence_clouds
+    from tomgs.io.scene import load_scene
+    from tomgs.io.tets import save_sequence, save_tets
+    from tomgs.render.jobs import plan_render, render_defaults
+    from tomgs.runtime import resolve_device
+
     dev = resolve_device(device)
     loaded = load_scene(scene)
     cams = loaded.cameras
@@ -97,8 +105,8 @@ def simulate(scene, output, selectors, render_out, over, drop, spin, velocity, s
     cage, vertices = simulate_selection(loaded.model, indices, config, cell, device=str(dev))
     save_tets(cage_path, cage)
     save_sequence(output, vertices, frames=cams.frame_indices[:frames])
-    click.echo(f"{output}: {len(vertices)} frames of {len(indices):,} Gaussians on a cage of {len(cage.tets):,} "
-               f"tets ({cage_path})")
+    click.echo(f"{output}: {counted(len(vertices), 'frame')} of {len(indices):,} Gaussians on a cage of "
+               f"{len(cage.tets):,} tets ({cage_path})")
     if plan is not None:
         clouds = sequence_clouds(loaded.model, cage, vertices, {k: k for k in range(frames)})
         render_planned(loaded, clouds, plan, fps)

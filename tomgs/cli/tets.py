@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import click
 
 from tomgs.cli import (
@@ -19,7 +21,6 @@ from tomgs.cli import (
 )
 from tomgs.cli.params import CELL
 from tomgs.errors import InputError
-from tomgs.render.jobs import plan_render
 
 
 @main.group()
@@ -47,11 +48,8 @@ def tets_export(scene, output, selectors, cage, cell, overwrite):
       tomgs tets export scene.ply -o tets.ply --select sphere:0,0,3,0.5
       tomgs tets export scene.ply -o cage.ply --select mask:camel_masks/ --cage --cell 0.05
     """
-    from tomgs.edit.cage import make_tets
-    from tomgs.edit.selection import select
-    from tomgs.io.scene import load_scene
-    from tomgs.io.tets import save_tets
     from tomgs.outputs import check_distinct, check_file_output
+    from tomgs.preflight import check_scene, check_selectors
 
     check_distinct({"-o": output}, {"SCENE": scene, "--select": selector_paths(selectors)})
     if cell is not None and not cage:
@@ -59,6 +57,14 @@ def tets_export(scene, output, selectors, cage, cell, overwrite):
     if not output.lower().endswith(".ply"):
         raise UsageError(f"-o {output}: a tets file is a .ply")
     check_file_output(output, overwrite, what="tets file")
+    check_scene(scene)
+    check_selectors(selectors)
+
+    from tomgs.edit.cage import make_tets
+    from tomgs.edit.selection import select
+    from tomgs.io.scene import load_scene
+    from tomgs.io.tets import save_tets
+
     loaded = load_scene(scene)
     indices = select(loaded.model, loaded.cameras, selectors)
     mesh = make_tets(loaded.model, indices, "cage" if cage else "gaussian", cell)
@@ -88,6 +94,20 @@ def tets_import(scene, tets_file, sequence, output, over, frames, device, backgr
       tomgs tets import scene.ply tets.ply moved.ply -o edited.ply
       tomgs tets import fg.ply cage.ply sim.npz -o shot.mp4 --over bg.ply
     """
+    from tomgs.outputs import check_distinct, check_file_output
+    from tomgs.preflight import check_existing, check_render, check_scene
+
+    check_distinct({"-o": output}, {"SCENE": scene, "TETS": tets_file, "SEQUENCE": sequence, "--over": over})
+    cameras, _ = check_scene(scene)
+    check_existing(tets_file, "tets file")
+    if not Path(sequence).exists():
+        raise InputError(f"{sequence} does not exist: give the moved vertices (an .npz, a folder of PLY frames or one "
+                         "PLY)")
+    if is_scene_path(output):
+        check_file_output(output, overwrite, what="scene")
+    else:
+        check_render(output, cameras, frames, overwrite, over=over, device=device)
+
     from tomgs.edit.transforms import (
         check_bound,
         deformed_model,
@@ -96,11 +116,8 @@ def tets_import(scene, tets_file, sequence, output, over, frames, device, backgr
     )
     from tomgs.io.scene import load_scene, save_scene
     from tomgs.io.tets import load_sequence, load_tets
-    from tomgs.outputs import check_distinct, check_file_output
+    from tomgs.render.jobs import plan_render
 
-    check_distinct({"-o": output}, {"SCENE": scene, "TETS": tets_file, "SEQUENCE": sequence, "--over": over})
-    if is_scene_path(output):
-        check_file_output(output, overwrite, what="scene")
     loaded = load_scene(scene)
     mesh = load_tets(tets_file)
     check_bound(loaded.model, mesh, tets_file)

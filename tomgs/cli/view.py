@@ -29,6 +29,12 @@ def view(scene, layer_paths, host, port, device):
       tomgs view scene.ply                     # then open the printed URL
       tomgs view bg.ply --layer fg.ply --port 8081
     """
+    from tomgs.preflight import check_device, check_scene
+
+    check_device(device)
+    for path in (scene, *layer_paths):
+        check_scene(path)
+
     from tomgs.viewer.server import open_viewer
 
     viewer = open_viewer(scene, layer_paths, host=host, port=port, device=device, echo=click.echo)

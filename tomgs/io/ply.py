@@ -26,10 +26,12 @@ _PLY_SIZES = {name: size for size, names in ((1, "char uchar int8 uint8"), (2, "
 class PlyLayout:
     """What a PLY header declares: `elements` [(name, row count)] in file order, and `data_end`, the
     byte offset where their rows end when every row has a fixed size (binary, no list properties),
-    else None. Bytes after `data_end` are not part of the PLY data; readers stop before them."""
+    else None. Bytes after `data_end` are not part of the PLY data; readers stop before them.
+    `comments`: the header's comment lines, in order, without the word `comment`."""
 
     elements: list[tuple[str, int]]
     data_end: int | None
+    comments: list[str]
 
 
 def ply_layout(path: Path, what: str = "PLY file", fix: str = "") -> PlyLayout:
@@ -56,8 +58,11 @@ def ply_layout(path: Path, what: str = "PLY file", fix: str = "") -> PlyLayout:
     ascii_format = False
     elements: list[list] = []  # [name, count, least bytes per row]
     fixed_rows = True  # every row's size is known from the header alone
+    comments = []
     for line in head[:end.start()].decode("latin-1").splitlines()[1:]:
         words = line.split()
+        if words[:1] == ["comment"]:
+            comments.append(line.split(None, 1)[1] if len(words) > 1 else "")
         if not words or words[0] in ("comment", "obj_info"):
             continue
         if words[0] == "format":
@@ -77,7 +82,7 @@ def ply_layout(path: Path, what: str = "PLY file", fix: str = "") -> PlyLayout:
                              f"at least {least:,} bytes, but only {body:,} bytes are left for it{fix}")
         body -= least
     data_end = end.end() + sum(count * row for _, count, row in elements) if fixed_rows else None
-    return PlyLayout([(name, count) for name, count, _ in elements], data_end)
+    return PlyLayout([(name, count) for name, count, _ in elements], data_end, comments)
 
 
 def read_ply(path, what: str = "PLY file", fix: str = "", known_list_len=None):

@@ -18,11 +18,14 @@ from __future__ import annotations
 
 import io
 import warnings
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 
 from tomgs.errors import InputError
+
+if TYPE_CHECKING:
+    import torch
 
 WEBP_MAX_SIDE = 16383  # the most pixels a WebP image has on a side (libwebp's limit)
 CODEBOOK_SIZE = 256
@@ -157,6 +160,8 @@ def palette(vectors: np.ndarray, size: int, steps: int = 6, sample: int = 1 << 1
     N) centroids from a random sample of at most `sample` rows refined `steps` Lloyd steps on that
     sample, then every row labelled with its nearest centroid (`_nearest`: past 256 centroids, the
     nearest of the centroids in the two groups of them nearest the row, of about sqrt(K) groups)."""
+    import torch  # only here: reading a file with no palette loads no torch
+
     x = torch.from_numpy(np.ascontiguousarray(vectors, np.float32))
     n = x.shape[0]
     k = max(1, min(size, n))
@@ -176,6 +181,8 @@ def _nearest(x: torch.Tensor, centroids: torch.Tensor, probes: int = 2) -> torch
     distance); past that, the centroids are grouped by k-means into about sqrt(K) groups and a row
     takes the nearest centroid of its `probes` nearest groups': (1 + probes) sqrt(K) distances a row,
     not K (4,096 centroids: 192), now and then a second-best for a row far from every group centre."""
+    import torch
+
     k = centroids.shape[0]
     if k <= 256:
         return _nearest_of_all(x, centroids)[0]
@@ -211,6 +218,8 @@ def _nearest_of_all(x: torch.Tensor, centroids: torch.Tensor,
                     chunk: int = 1 << 12) -> tuple[torch.Tensor, torch.Tensor]:
     """(int64 [N] the nearest of all `centroids` [K, D] to each row of `x` [N, D], its squared
     distance [N] less the row's own squared norm), in chunks of rows: memory O(chunk x K)."""
+    import torch
+
     norms = centroids.square().sum(1)
     label = torch.empty(x.shape[0], dtype=torch.int64)
     distance = torch.empty(x.shape[0], dtype=x.dtype)

@@ -61,11 +61,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 
 from tomgs.cameras import Cameras, short_repr
 from tomgs.errors import InputError
 from tomgs.io import tsog
+from tomgs.io.video import VIDEO_EXTS
 from tomgs.outputs import atomic_file
 
 if TYPE_CHECKING:  # for the annotation only; load_scene imports the model when it builds one
@@ -140,6 +140,8 @@ def save_scene(path, model, cameras: Cameras, info: dict | None = None, *, means
     if len(cameras) == 0:
         raise ValueError("a scene needs at least one camera")
 
+    import torch
+
     n, degree = len(model), model.max_sh_degree
     with torch.no_grad():  # where the model lives: rows go to the host a chunk at a time (below)
         params = {name: getattr(model, name).detach() for name in
@@ -197,13 +199,12 @@ def load_scene(path, device="cpu", cameras=None) -> Scene:
     or `tomgs poses`) replaces the file's own, and gives a scene back its cameras after a tool that
     re-saved the PLY (SuperSplat, splat-transform) dropped them. Raises `tomgs.InputError` naming the
     file and the fix when it is missing or malformed."""
+    import torch
+
     from tomgs.model import GaussianModel
 
-    path = Path(path)
-    fix = "write scenes with `tomgs fit` or tomgs.save_scene"
-    if not path.is_file():
-        raise InputError(f"scene file {path} does not exist" + (" (it is a folder)" if path.is_dir() else "")
-                         + f": give the path of a .ply or .tsog scene ({fix})")
+    path = check_scene_path(path)
+    fix = FIX
     given = _given_cameras(cameras)
     if tsog.is_tsog(path):
         header, stored, arrays = tsog.read_tsog(path, CAMERA_RECORD, lambda clip: _checked_clip(clip, path, fix))
@@ -218,14 +219,7 @@ def load_scene(path, device="cpu", cameras=None) -> Scene:
                          + ", ".join(f"{name} of {count} Gaussians" for name, count in bad.items())
                          + ": the file is corrupt or came from a diverged fit; refit or remove those Gaussians")
 
-    if given is not None:
-        scene_cameras = given
-    else:
-        try:  # Cameras checks sizes, poses, K, times and frame numbers
-            scene_cameras = Cameras(stored["c2w"].reshape(-1, 4, 4), np.asarray(header["K"], dtype=np.float64),
-                                    header["width"], header["height"], stored["time"], stored["index"])
-        except (ValueError, TypeError, OverflowError) as e:  # InputError from Cameras, or a K it cannot hold
-            raise InputError(f"{path}: bad cameras ({str(e).removeprefix('Cameras: ')}): {fix}") from None
+    scene_cameras = given if given is not None else _cameras(header, stored, path)
 
     tensors = {name: torch.from_numpy(np.ascontiguousarray(a)).to(device) for name, a in arrays.items()}
     model = GaussianModel(**tensors, sh_degree=header["sh_degree"])
@@ -238,6 +232,7 @@ def _read_ply_scene(path: Path, given: Cameras | None, fix: str) -> tuple[dict, 
 
     # header read with a byte cap, element counts checked against the file's size, then memory-mapped:
     # each column is copied out once below
+    fix = FIX
     layout = ply_layout(path, "scene file", fix)
     ply = read_ply(path, "scene file", fix)
     names = [e.name for e in ply.elements]
@@ -292,6 +287,64 @@ def _read_ply_scene(path: Path, given: Cameras | None, fix: str) -> tuple[dict, 
         "log_t_scales": col(["t_log_sigma"])[:, 0],
     }
     return header, stored, arrays
+
+
+FIX = "write scenes with `tomgs fit` or tomgs.save_scene"
+
+
+def check_scene_path(path) -> Path:
+    """`path` as a Path once it names an existing file; InputError saying what to give otherwise (a
+    video in a scene's place is named as such)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"scene file {path} does not exist" + (" (it is a folder)" if path.is_dir() else "")
+                         + f": give the path of a .ply or .tsog scene ({FIX})")
+    if path.suffix.lower() in VIDEO_EXTS:
+        raise InputError(f"{path} is a video, not a scene: give the .ply that `tomgs fit {path.name} -o scene.ply` "
+                         f"writes")
+    return path
+
+
+def read_scene_clip(path, cameras=None) -> tuple[Cameras, dict]:
+    """(cameras, info) of the scene file `path` without reading its Gaussians (nor importing torch):
+    what a command checks its other arguments against before any work. `cameras` as `load_scene`
+    takes it replaces the file's own. InputError as `load_scene` raises it for the header and the
+    clip's data; the Gaussians themselves are checked when they are loaded."""
+    from tomgs.io.ply import ply_layout, read_ply
+
+    path = check_scene_path(path)
+    given = _given_cameras(cameras)
+    if tsog.is_tsog(path):
+        header, stored = tsog.read_tsog_clip(path, CAMERA_RECORD, lambda clip: _checked_clip(clip, path, FIX))
+        return (given if given is not None else _cameras(header, stored, path)), header["info"]
+    layout = ply_layout(path, "scene file", FIX)
+    if not layout.elements or layout.elements[0][0] != "vertex":
+        names = [name for name, _ in layout.elements]
+        raise InputError(f"{path} has elements {names}; a scene's Gaussians are its first element, 'vertex': {FIX}")
+    version = _version(layout.comments, path, FIX)
+    if version == 2:
+        header, stored = _read_trailer(path, layout.data_end, FIX)
+    elif version == 1:
+        ply = read_ply(path, "scene file", FIX)
+        header, stored = _read_version_1(ply, layout.comments, path, FIX)
+    else:
+        header, stored = {"info": {}}, None
+    if given is not None:
+        return given, header["info"]
+    if stored is None:
+        raise InputError(f"{path} holds no cameras or frame times (a static 3DGS file, or a scene that another tool "
+                         "re-saved): give them back with --cameras cameras.json; `tomgs export SCENE --cameras-out "
+                         "DIR` writes that file from the original scene")
+    return _cameras(header, stored, path), header["info"]
+
+
+def _cameras(header: dict, stored: np.ndarray, path: Path) -> Cameras:
+    """The Cameras of a scene's header and camera records (InputError naming the file when bad)."""
+    try:  # Cameras checks sizes, poses, K, times and frame numbers
+        return Cameras(stored["c2w"].reshape(-1, 4, 4), np.asarray(header["K"], dtype=np.float64),
+                       header["width"], header["height"], stored["time"], stored["index"])
+    except (ValueError, TypeError, OverflowError) as e:  # InputError from Cameras, or a K it cannot hold
+        raise InputError(f"{path}: bad cameras ({str(e).removeprefix('Cameras: ')}): {FIX}") from None
 
 
 def _given_cameras(cameras) -> Cameras | None:

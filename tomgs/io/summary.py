@@ -11,9 +11,9 @@ import torch
 
 from tomgs.cameras import Cameras
 from tomgs.constants import ALPHA_MIN
-from tomgs.errors import InputError
 from tomgs.io.scene import Scene, bits_per_pixel
 from tomgs.io.tsog import image_sizes, is_tsog
+from tomgs.outputs import check_png_path
 from tomgs.temporal import alive_at, clip_time_to_frames, peak_opacity
 
 
@@ -53,6 +53,28 @@ def log_histogram(values: np.ndarray, per_octave: int = 1, max_bins: int = 24) -
     edges = 2.0 ** (np.arange(lo, hi + 1) / per_octave)
     counts = np.histogram(np.clip(values, edges[0], edges[-1]), bins=edges)[0]
     return edges, counts
+
+
+BOUNDS_SHARE = 0.98  # the inner bounds hold this share of the means on each axis (outliers left out)
+
+
+def bounds(points: np.ndarray, inner: bool = True) -> dict:
+    """{"min": [x, y, z], "max": [...]} of `points` [N,3] (world axes), and with `inner` the bounds of
+    the middle BOUNDS_SHARE of them on each axis ("inner_min", "inner_max"): where to aim a box; None
+    values for no points."""
+    if len(points) == 0:
+        return {"min": None, "max": None, **({"inner_min": None, "inner_max": None} if inner else {})}
+    out = {"min": points.min(axis=0).tolist(), "max": points.max(axis=0).tolist()}
+    if inner:
+        tail = 100 * (1 - BOUNDS_SHARE) / 2
+        out["inner_min"] = np.percentile(points, tail, axis=0).tolist()
+        out["inner_max"] = np.percentile(points, 100 - tail, axis=0).tolist()
+    return out
+
+
+def _box(low, high) -> str:
+    return ", ".join(f"{axis} {round(lo, 2) + 0.0:.2f}..{round(hi, 2) + 0.0:.2f}"  # + 0.0: no "-0.00"
+                     for axis, lo, hi in zip("xyz", low, high))
 
 
 def summarize(scene: Scene, path=None) -> dict:
@@ -97,6 +119,8 @@ def summarize(scene: Scene, path=None) -> dict:
                                   "edges": edges.tolist(), "counts": hist.tolist()},
         "opacity": {**stats(opac), "below_1_255": int((opac < ALPHA_MIN).sum())},
         "peak_opacity_in_clip": {**stats(peak), "below_1_255": int((peak < ALPHA_MIN).sum())},
+        "bounds": bounds(model.means.detach().cpu().double().numpy()),
+        "camera_bounds": bounds(cams.c2w[:, :3, 3], inner=False),
         "info": scene.info,
     }
     return out
@@ -119,6 +143,11 @@ def format_summary(s: dict, width: int = 40) -> str:
     lines.append(f"alive per frame: min {a['min']:,.0f} (frame {a['min_frame']}), mean {a['mean']:,.0f}, median "
                  f"{a['median']:,.0f}, max {a['max']:,.0f} (frame {a['max_frame']}); never alive in any frame: "
                  f"{s['never_alive']:,}")
+    b, c = s["bounds"], s["camera_bounds"]
+    if s["gaussians"]:
+        lines.append(f"where the Gaussians are (world axes: x right, y down, z forward): {_box(b['min'], b['max'])}; "
+                     f"{BOUNDS_SHARE:.0%} of them: {_box(b['inner_min'], b['inner_max'])}")
+    lines.append(f"cameras: {_box(c['min'], c['max'])}, frame 0 at the origin looking along +z")
     o, p = s["opacity"], s["peak_opacity_in_clip"]
     if s["gaussians"]:
         lines.append(f"opacity (base): min {o['min']:.3f}, median {o['median']:.3f}, mean {o['mean']:.3f}, "
@@ -145,13 +174,3 @@ def plot_temporal_scales(scene: Scene, path) -> Path:
     unit = "frames" if len(scene.cameras) > 1 else "clip time"
     title = f"temporal sigma of {len(sigma):,} Gaussians, {len(scene.cameras)} frames"
     return histogram_png(path, sigma, bins=40, log_x=True, xlabel=f"sigma ({unit})", title=title)
-
-
-def check_png_path(path) -> Path:
-    """The plot's path, checked before any work: a .png in an existing folder, else InputError."""
-    path = Path(path)
-    if path.suffix.lower() != ".png":
-        raise InputError(f"{path}: the plot is a PNG; give a path ending in .png")
-    if not path.parent.exists():
-        raise InputError(f"{path}: folder {path.parent} does not exist; create it or choose another path")
-    return path

@@ -47,7 +47,6 @@ from tomgs.cameras import short_repr
 from tomgs.errors import InputError
 from tomgs.io import quantise
 from tomgs.outputs import atomic_file
-from tomgs.render.sh import sh_degree_of
 
 MAGIC = b"\x89TSOG\r\n\x1a\n"  # PNG's pattern: a high byte, the name, CRLF and LF to catch text-mode copies
 FORMAT = "tomgs-tsog"
@@ -95,6 +94,8 @@ def encode_gaussians(arrays: dict, means_bits: int = MEANS_BITS,
     if not (1 <= means_bits <= 16 and 1 <= t_bits <= 16):
         raise ValueError(f"means_bits and t_bits must be 1..16, got {means_bits} and {t_bits}")
     n = len(arrays["means"])
+    from tomgs.render.sh import sh_degree_of
+
     degree = sh_degree_of(arrays["sh_rest"].shape[1] + 1)
     f64 = {name: np.asarray(value, np.float64).reshape(n, int(np.prod(np.shape(value)[1:])))
            for name, value in arrays.items()}
@@ -222,6 +223,8 @@ def write_tsog(path, arrays: dict, clip: dict, records: np.ndarray, means_bits: 
     `records` (tomgs.io.scene.CAMERA_RECORD [T])."""
     path = Path(path)
     header, images, _ = encode_gaussians(arrays, means_bits, t_bits)
+    from tomgs.render.sh import sh_degree_of
+
     degree = sh_degree_of(arrays["sh_rest"].shape[1] + 1)
     header = {"format": FORMAT, "version": VERSION, **header,
               "images": [{"name": name, "channels": channels, "bytes": len(data)}
@@ -238,6 +241,20 @@ def write_tsog(path, arrays: dict, clip: dict, records: np.ndarray, means_bits: 
             f.write(data)
         f.write(np.ascontiguousarray(records).tobytes())
     return path
+
+
+def read_tsog_clip(path, record_dtype: np.dtype, check_clip) -> tuple[dict, np.ndarray]:
+    """(clip JSON object, camera records [T] of `record_dtype`) of the .tsog file `path`, its images
+    skipped, not decoded: what a command checks its other arguments against before any work. InputError
+    as `read_tsog` raises it for the header and the records."""
+    path = Path(path)
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        text = _header_text(f, size, path)
+        header = _checked_header(text, size, f.tell(), record_dtype.itemsize, path, check_clip)
+        f.seek(sum(entry["bytes"] for entry in header["images"]), 1)
+        records = np.frombuffer(f.read(), dtype=record_dtype).copy()
+    return header["clip"], records
 
 
 def read_tsog(path, record_dtype: np.dtype, check_clip) -> tuple[dict, np.ndarray, dict]:

@@ -29,6 +29,8 @@ class Video:
     path:    where the clip came from.
     decoded: frames the decoder produced to read it (a folder: images read); frames before the
              keyframe preceding the first selected one, and after the last, are never decoded.
+    source_frames, source_size: the frames in the source and their (height, width) as stored,
+             before any selection or resizing (0 and None for a clip made in memory).
     """
 
     frames: np.ndarray
@@ -37,6 +39,8 @@ class Video:
     indices: np.ndarray
     path: Path
     decoded: int = 0
+    source_frames: int = 0
+    source_size: tuple[int, int] | None = None
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -324,44 +328,91 @@ def read_video(path, frames=None, max_side: int | None = None, masks=None, progr
 
     h, w = kept.size
     nh, nw = kept.array.shape[1:3]
-    mask_arr = None if masks is None else _read_masks(Path(masks), total, idx, h, w, (nh, nw))
-    return Video(kept.frames(), mask_arr, fps, np.asarray(idx, dtype=np.int64), path, decoded)
+    mask_arr = None if masks is None else _read_masks(Path(masks), Source(path, total, h, w), idx, (nh, nw))
+    return Video(kept.frames(), mask_arr, fps, np.asarray(idx, dtype=np.int64), path, decoded, total, (h, w))
 
 
-def probe_clip(path, frames=None, max_side: int | None = None) -> tuple[int, int, int, int]:
-    """(selected frames, height, width, source pixels per frame) of a clip, from a video's index and
-    header or a folder's listing and first image, without decoding the frames: what a fit plans
-    with before it reads. Raises InputError as `read_video` does for a missing path or bad range."""
+@dataclass
+class Source:
+    """What a clip's source holds, read from a video's index and header or a folder's listing and
+    first image, without decoding: `frames` in it, each `height` x `width` as shown (a display
+    rotation applied)."""
+
+    path: Path
+    frames: int
+    height: int
+    width: int
+
+
+def probe_source(path) -> Source:
+    """The `Source` of a video file or a folder of frames. InputError as `read_video` raises it for a
+    missing path, an unknown extension, no frames, or a header past MAX_SIDE."""
+    from tomgs.constants import MAX_SIDE
+
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path} does not exist: give a video file or a folder of frames")
-    sel = parse_frames(frames)
     if path.is_dir():
         files = list_images(path)
         if not files:
             raise InputError(f"{path} holds no jpg/png frames: point at a folder of images or a video file")
-        idx = _select(len(files), sel, frames, path)
-        w, h = _check_image(files[idx[0]])[:2]
-        count = len(idx)
-    else:
-        import av
+        w, h = _check_image(files[0])[:2]
+        return Source(path, len(files), h, w)
+    if path.suffix.lower() not in VIDEO_EXTS:
+        raise InputError(f"{path} is neither a video ({', '.join(sorted(VIDEO_EXTS))}) nor a folder of frames")
+    import av
 
-        try:
-            with _open_av(path) as container:
-                if not container.streams.video or container.streams.video[0].codec_context is None:
-                    raise InputError(f"cannot open video {path}: no decodable video stream")
-                stream = container.streams.video[0]
-                w, h = stream.codec_context.width, stream.codec_context.height
-                count = len(range(len(_video_index(container, stream, path)[0]))[sel])
-                container.seek(0)
-                first = next(container.decode(stream), None)  # one frame: the display rotation
-                if first is not None and round((first.rotation or 0) / 90) % 2:
-                    w, h = h, w
-        except (av.error.FFmpegError, UnicodeDecodeError, ValueError) as e:
-            raise InputError(f"cannot open video {path} ({str(e).strip()[:200]}): the file is unreadable or "
-                             "corrupt") from None
-    nh, nw = _resized_size(h, w, max_side)
-    return count, nh, nw, h * w
+    try:
+        with _open_av(path) as container:
+            if not container.streams.video or container.streams.video[0].codec_context is None:
+                raise InputError(f"cannot open video {path}: no decodable video stream")
+            stream = container.streams.video[0]
+            w, h = stream.codec_context.width, stream.codec_context.height
+            if not (1 <= w <= MAX_SIDE and 1 <= h <= MAX_SIDE):
+                raise InputError(f"video {path} declares {w}x{h} frames; frames are 1..{MAX_SIDE} pixels a side: "
+                                 "the file is corrupt, or resize it")
+            count = len(_video_index(container, stream, path)[0])
+            if count == 0:
+                raise InputError(f"video {path} has zero readable frames: the file is empty or corrupt")
+            container.seek(0)
+            first = next(container.decode(stream), None)  # one frame: the display rotation
+            if first is not None and round((first.rotation or 0) / 90) % 2:
+                w, h = h, w
+    except (av.error.FFmpegError, UnicodeDecodeError, ValueError) as e:
+        raise InputError(f"cannot open video {path} ({str(e).strip()[:200]}): the file is unreadable or "
+                         "corrupt") from None
+    return Source(path, count, h, w)
+
+
+def probe_clip(path, frames=None, max_side: int | None = None) -> tuple[int, int, int, int]:
+    """(selected frames, height, width, source pixels per frame) of a clip, from `probe_source`
+    without decoding the frames: what a fit plans with before it reads. Raises InputError as
+    `read_video` does for a missing path or a bad or empty range, and for selected frames that would
+    take more than half of this machine's memory."""
+    sel = parse_frames(frames)
+    source = probe_source(path)
+    count = len(_select(source.frames, sel, frames, source.path))
+    nh, nw = _resized_size(source.height, source.width, max_side)
+    _check_budget(source.path, count, nh, nw)
+    return count, nh, nw, source.height * source.width
+
+
+def check_masks(folder, source: Source) -> Path:
+    """`folder` once it holds one mask image per frame of `source`, the first of the source's size
+    (read from its header); InputError saying what to give otherwise."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(f"mask folder {folder} does not exist" + (" (it is a file)" if folder.exists() else "")
+                         + ": give a folder with one mask image per frame")
+    files = list_images(folder)
+    if len(files) != source.frames:
+        raise InputError(f"{folder} holds {len(files)} masks but the clip has {source.frames} frames: "
+                         "give exactly one mask per source frame, in the same order")
+    found = image_size(files[0])
+    if found is not None and (found[1], found[0]) != (source.height, source.width):
+        raise InputError(f"mask {files[0]} is {found[0]}x{found[1]} but the frames are {source.width}x"
+                         f"{source.height}: masks must have the size of the source frames")
+    return folder
 
 
 def _video_index(container, stream, path) -> tuple[list, list]:
@@ -484,17 +535,13 @@ def _upright(image: np.ndarray, frame) -> np.ndarray:
     return np.ascontiguousarray(np.rot90(image, turns)) if turns else image
 
 
-def _read_masks(folder: Path, total: int, idx, h: int, w: int, size: tuple[int, int]) -> np.ndarray:
-    """bool [len(idx), *size] from a folder with one mask per source frame (h x w, as the source frames),
-    each resized (nearest) to `size` as it is read."""
+def _read_masks(folder: Path, source: Source, idx, size: tuple[int, int]) -> np.ndarray:
+    """bool [len(idx), *size] from a folder with one mask per frame of `source` (of its size), each
+    resized (nearest) to `size` as it is read."""
     import cv2
 
-    if not folder.is_dir():
-        raise InputError(f"mask folder {folder} does not exist: give a folder with one mask image per frame")
-    files = list_images(folder)
-    if len(files) != total:
-        raise InputError(f"{folder} holds {len(files)} masks but the clip has {total} frames: "
-                         "give exactly one mask per source frame, in the same order")
+    files = list_images(check_masks(folder, source))
+    h, w = source.height, source.width
     out = np.empty((len(idx), *size), dtype=bool)
     for k, i in enumerate(idx):
         m = _read_image(files[i], cv2.IMREAD_GRAYSCALE)
@@ -530,6 +577,97 @@ def read_video_for(path, cameras) -> np.ndarray:
         raise InputError(f"{path} gives {frames.shape[2]}x{frames.shape[1]} frames but the scene is "
                          f"{cameras.width}x{cameras.height}; give the video the scene was fitted on")
     return frames
+
+
+THUMB = 4  # frames and masks are compared (a resume, an eval) as THUMB x THUMB area averages
+THUMB_TOLERANCE = 2.0  # grey levels: decoders differ by less, another video or crop by more
+
+
+def thumbnails(images) -> np.ndarray:
+    """uint8 [T, THUMB * THUMB * C]: each image (uint8 or bool [T,H,W(,C)]) as area averages, what
+    identifies a clip's frames."""
+    import cv2
+
+    out = []
+    for image in images:
+        image = np.asarray(image, dtype=np.uint8) * (255 if image.dtype == bool else 1)
+        out.append(np.asarray(cv2.resize(image, (THUMB, THUMB), interpolation=cv2.INTER_AREA)).reshape(-1))
+    return np.stack(out) if out else np.zeros((0, THUMB * THUMB * 3), np.uint8)
+
+
+def differing_thumbnails(a: np.ndarray, b: np.ndarray) -> int:
+    """How many rows of thumbnails `b` differ from `a`'s by more than THUMB_TOLERANCE (all of them
+    when their shapes differ)."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    if a.shape != b.shape:
+        return len(b)
+    return int(np.sum(np.abs(a - b).max(axis=1, initial=0.0) > THUMB_TOLERANCE))
+
+
+def clip_record(clip: Video) -> dict:
+    """What a scene keeps of the clip it was fitted on (its info's "clip", JSON), so that `tomgs eval`
+    knows its video again: the source's frame count and size, and each fitted frame's thumbnail
+    (base64 of uint8 [T, THUMB * THUMB * 3])."""
+    import base64
+
+    record = {"thumbnails": base64.b64encode(thumbnails(clip.frames).tobytes()).decode("ascii")}
+    if clip.source_frames:
+        record["source_frames"] = int(clip.source_frames)
+    if clip.source_size is not None:
+        record["source_size"] = [int(clip.source_size[1]), int(clip.source_size[0])]  # width, height
+    return record
+
+
+def video_differences(path, cameras, record: dict | None) -> tuple[list[str], list[str]]:
+    """(what makes a comparison impossible, what else differs) between the video `path` and the clip
+    that a scene with `cameras` and clip record `record` (`clip_record`, None for a scene without
+    one) was fitted on, read from the video's index and header (`probe_source`) without decoding:
+    frame count and size as recorded; the aspect and the frame numbers the cameras need."""
+    source = probe_source(path)
+    record = record or {}
+    impossible, differ = [], []
+    name = Path(path).name
+    last = int(np.max(cameras.frame_indices)) if len(cameras) else -1
+    if last >= source.frames:
+        impossible.append(f"{name} has {source.frames} frame{'s' if source.frames != 1 else ''}, the scene was "
+                          f"fitted on source frame {last}")
+    h, w = _resized_size(source.height, source.width, max(cameras.width, cameras.height))
+    if (h, w) != (cameras.height, cameras.width):
+        impossible.append(f"{name}'s frames are {source.width}x{source.height} (width / height "
+                          f"{source.width / source.height:.3f}), the scene's {cameras.width}x{cameras.height} "
+                          f"({cameras.width / cameras.height:.3f})")
+    frames = record.get("source_frames")
+    if isinstance(frames, int) and frames != source.frames and not impossible:
+        differ.append(f"{name} has {source.frames} frame{'s' if source.frames != 1 else ''}, the scene's clip "
+                      f"had {frames}")
+    size = record.get("source_size")
+    if isinstance(size, list) and size != [source.width, source.height] and not impossible:
+        differ.append(f"{name} is {source.width}x{source.height}, the scene's clip was {size[0]}x{size[1]}")
+    return impossible, differ
+
+
+def frame_differences(path, frames: np.ndarray, record: dict | None) -> list[str]:
+    """What differs between `frames` (uint8 [T,H,W,3], read from `path` for a scene by
+    `read_video_for`) and the thumbnails of the scene's clip record (`clip_record`): nothing for a
+    scene without them."""
+    import base64
+    import binascii
+
+    text = (record or {}).get("thumbnails")
+    if not isinstance(text, str):
+        return []
+    try:
+        stored = np.frombuffer(base64.b64decode(text, validate=True), np.uint8)
+    except (binascii.Error, ValueError):
+        return []
+    row = THUMB * THUMB * 3
+    if stored.size != len(frames) * row:
+        return []
+    differ = differing_thumbnails(stored.reshape(-1, row), thumbnails(frames))
+    if not differ:
+        return []
+    return [f"{differ} of the scene's {len(frames)} frames differ from {Path(path).name}'s (another clip, crop or "
+            "grade)"]
 
 
 def _open_av(path):

@@ -80,7 +80,7 @@ def static_frames(clip: WorkingFrames, notes: list):
     if waiting is not None:
         yield (*waiting, static_of(flow.finish()))
     if bad:
-        notes.append(f"{bad} frame(s) masked over 85%: their masks were ignored")
+        notes.append(f"{bad} frame{'s' if bad != 1 else ''} masked over 85%: their masks were ignored")
 
 
 def is_fixed_camera(gray: dict, static0: np.ndarray, thresh_px: float = 0.3) -> bool:
@@ -269,7 +269,7 @@ class Tracker:
         self.keys = select_keyframes(all_tracks, T, self.side)
         self.tracks, self.key_obs = all_tracks.subset(self.keys)
         self.T = len(self.keys)
-        self.notes.append(f"{self.T} keyframes of {T} frames solved in the bundle, the others registered to them")
+        self.notes.append(f"{self.T} of {T} frames solved together as keyframes, the others placed against them")
         t0 = self._tick("tracks", t0)
         j, general = self._init_pair()
         if not self.focal_given:
@@ -278,7 +278,8 @@ class Tracker:
                 f = self._focal_trials(j)
                 general = f is not None
                 self.focal = f if general else self._focal_search(j, False)
-            self.notes.append(f"focal search: {self.focal / self.scale:.1f} px before the final adjustment")
+            self.notes.append(f"focal length first guessed at {self.focal / self.scale:.1f} px from the first frames, "
+                              "then solved with the cameras")
         t0 = self._tick("focal", t0)
         pts = self._solve_general(j) if general else None
         mode = "general"
@@ -333,7 +334,8 @@ class Tracker:
                 best_j, best_par = j, par
             if par >= need:
                 return j, True
-        self.notes.append(f"parallax after a homography at most {max(best_par, 0):.2f} px (need {need:.2f})")
+        self.notes.append(f"little parallax: near and far points shift apart by at most {max(best_par, 0):.2f} px "
+                          f"between frames ({need:.2f} px tells a camera's movement from its turning)")
         return best_j, best_par >= 0.5 * need and best_par > 0.75
 
     def _pairs(self, gap: int, n: int = 8) -> list[tuple[int, int]]:
@@ -709,7 +711,9 @@ class Tracker:
         """Cameras that only rotate (t = 0); points are directions placed at distance 1. Returns
         the track ids with points."""
         T, tr = self.T, self.tracks
-        self.notes.append("rotation-only cameras: no parallax to recover translation")
+        self.notes.append("the cameras only turn (rotation cameras): without parallax neither their movement nor "
+                          "the scene's depth can be measured, so depth is a guess (a 3D box picks by direction, "
+                          "not by distance)")
         self.Rw = np.tile(np.eye(3), (T, 1, 1))
         self.tw = np.zeros((T, 3))
         self.reg = np.zeros(T, bool)

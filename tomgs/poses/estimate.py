@@ -10,6 +10,7 @@ import numpy as np
 
 from tomgs.cameras import Cameras, intrinsics
 from tomgs.errors import InputError
+from tomgs.text import counted
 
 METHODS = ("auto", "identity", "a .json/.npy pose file, a COLMAP text folder, or an .onnx model")
 
@@ -48,7 +49,7 @@ class PoseReport:
     def summary(self) -> str:
         err = "n/a" if not np.isfinite(self.reproj_px) else f"{self.reproj_px:.2f} px"
         f = f"{self.focal:.1f} px" + (" (estimated)" if self.focal_estimated else "")
-        return (f"{self.frames} frames, {self.mode} cameras ({self.method}), focal {f}, "
+        return (f"{counted(self.frames, 'frame')}, {self.mode} cameras ({self.method}), focal {f}, "
                 f"reprojection error {err}, {self.points} points, {self.seconds:.1f} s")
 
 

@@ -18,6 +18,7 @@ import numpy as np
 from tomgs.cameras import Cameras
 from tomgs.errors import InputError
 from tomgs.io.writer import FPS_RANGE
+from tomgs.text import counted
 
 
 @dataclass
@@ -48,7 +49,7 @@ class RenderReport:
         fps = self.frames / max(self.seconds, 1e-9)
         low, high = self.gaussians
         total = f"{low:,}" if low == high else f"{low:,}..{high:,}"
-        return (f"{self.output}: {self.frames} frames {self.what} on {self.device} in {self.seconds:.1f} s "
+        return (f"{self.output}: {counted(self.frames, 'frame')} {self.what} on {self.device} in {self.seconds:.1f} s "
                 f"({fps:.1f} fps)\n  {total} Gaussians; alive per frame {self.alive[0]:,}..{self.alive[1]:,}: only "
                 f"those alive near each frame's time were projected")
 

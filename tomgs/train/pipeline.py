@@ -39,48 +39,15 @@ import numpy as np
 import torch
 
 from tomgs.errors import InputError
-from tomgs.outputs import check_distinct, check_file_output, existing_path, output_lock, remove_stale_temporaries
+from tomgs.outputs import check_distinct, existing_path, output_lock, remove_stale_temporaries
+from tomgs.outputs import check_fit_outputs as check_outputs
+from tomgs.outputs import fit_output_paths as output_paths
+from tomgs.text import counted
 from tomgs.train.checkpoint import START_OVER, FitInterrupted, StopSignals, check_same_settings, read_checkpoint
 from tomgs.train.config import TrainConfig
 from tomgs.train.trainer import FitResult, Trainer, write_csv
 
-THUMB = 4  # frames and masks are compared on resume as THUMB x THUMB area averages
-THUMB_TOLERANCE = 2.0  # grey levels: decoders differ by less, another video or crop by more
-
-
-def output_paths(scene_path) -> dict[str, Path]:
-    scene = Path(scene_path)
-    stem = scene.with_suffix("")
-    return dict(scene=scene, csv=Path(f"{stem}.csv"), plot=Path(f"{stem}.psnr.png"), checkpoint=Path(f"{stem}.ckpt"))
-
-
-def check_outputs(output, resume: bool = False, overwrite: bool = False) -> dict[str, Path]:
-    """output_paths(output) once every one can be written: InputError saying how to proceed
-    otherwise. Without `overwrite` an existing scene, log or plot is refused; a checkpoint is
-    expected with `resume` (and the log may exist then), and refused without it."""
-    paths = output_paths(output)
-    if paths["scene"].suffix.lower() not in (".ply", ".tsog"):
-        raise InputError(f"{output}: a scene is written as .ply (or .tsog, compressed); name the output like "
-                         f"scene.ply or scene.tsog")
-    check_file_output(paths["scene"], overwrite, "scene")
-    check_file_output(paths["plot"], overwrite, "PSNR plot")
-    checkpoint = paths["checkpoint"]
-    if resume:
-        if not checkpoint.is_file():
-            raise InputError(f"{checkpoint}: no checkpoint to resume from; run without --resume")
-        check_file_output(checkpoint, True, "checkpoint")
-        check_file_output(paths["csv"], True, "log")
-    else:
-        if (checkpoint.exists() or checkpoint.is_symlink()) and not overwrite:
-            raise InputError(f"{checkpoint} holds an interrupted fit of {paths['scene'].name}: pass --resume to "
-                             f"continue it, or --overwrite (-y) to start over (Python: resume=True or "
-                             f"overwrite=True)")
-        check_file_output(checkpoint, overwrite, "checkpoint")
-        check_file_output(paths["csv"], overwrite, "log")
-    return paths
-
-
-PHASES = ("read", "poses", "init", "train", "save")
+PHASES = ("read", "poses", "compile", "init", "train", "save")  # "compile": a first run's kernels, on a CPU
 
 
 def fit(video, output, config: TrainConfig | None = None, *, masks=None, frames=None, max_side=None,
@@ -159,6 +126,7 @@ def _plan(video, config, device, saved, *, frames, max_side, poses, layer, auto_
     """The plan of a fit (tomgs.train.plan.make_plan) from the clip's index, before decoding."""
     from tomgs.io import Video
     from tomgs.io.video import probe_clip
+    from tomgs.runtime import kernels_compiled
     from tomgs.train.plan import make_plan
 
     if isinstance(video, Video):
@@ -172,7 +140,8 @@ def _plan(video, config, device, saved, *, frames, max_side, poses, layer, auto_
         free = torch.cuda.mem_get_info(device)[0] - views * height * width * 3
     estimated = layer != "foreground" and str(poses) == "auto" and not (saved and saved["clip"].get("cameras"))
     return make_plan(config, views, height, width, source * views // max(count, 1), device.type,
-                     poses_estimated=estimated, auto_budget=auto_budget, free_bytes=free)
+                     poses_estimated=estimated, auto_budget=auto_budget, free_bytes=free,
+                     compiles=not kernels_compiled(device.type))
 
 
 def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses, focal, device, progress,
@@ -180,8 +149,10 @@ def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses
     from tomgs.cameras import Cameras
     from tomgs.io import Video, read_video
     from tomgs.io.scene import save_scene
+    from tomgs.io.video import clip_record
     from tomgs.poses import estimate_cameras
-    from tomgs.train.warm import WarmUp, pays_on
+    from tomgs.runtime import mark_kernels_compiled
+    from tomgs.train.warm import WarmUp, pays_on, warm_up
 
     plan, config = _plan(video, config, device, saved, frames=frames, max_side=max_side, poses=poses, layer=layer,
                          auto_budget=auto_budget)
@@ -204,6 +175,7 @@ def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses
         video, frames=frames, max_side=max_side, masks=masks,
         progress=lambda done, total: phases("read", done, total, None))
     identity = _clip_identity(clip)
+    record = clip_record(clip)  # kept in the scene, for `tomgs eval` to know its video again
     if saved is not None:
         _check_clip(saved["clip"], identity, options, paths["checkpoint"])
     inputs = _layer_inputs(clip, layer, config, mask_dilation, masks, device)  # checks the masks before any work
@@ -228,6 +200,12 @@ def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses
         pose_seconds = float(saved["clip"].get("pose_seconds", pose_seconds))
 
     phases("poses", 1, 1, None)
+    if "compile" in plan.phases and warming is None:  # a first run on a CPU: the kernels compile here, said so
+        phases("compile", 0, 1, "compiling kernels, first run only")
+        warm_up(config, device)
+        mark_kernels_compiled(device.type)
+        phases("compile", 1, 1, None)
+        lap("compile")
     phases("init", 0, 1, None)
     if warming is not None:
         warming.join()  # before the seed: the warm-up forked the RNG, and its steps queue on the device
@@ -254,13 +232,15 @@ def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses
         time_limit = trainer.elapsed + max(left, 1.0)
     result = trainer.run(checkpoint=paths["checkpoint"], log_csv=paths["csv"], progress=progress,
                          time_limit=time_limit, tick=_train_ticks(phases, config.iterations, time_limit))
+    phases("train", 1, 1, f"all {result.iterations:,} iterations" if result.iterations >= config.iterations else
+           f"{result.iterations:,} of {config.iterations:,} iterations: the budget's end")
     lap("train")
 
     info = dict(source=str(getattr(video, "path", video)) if not isinstance(video, Video) else "<Video>",
                 iterations=result.iterations, train_seconds=round(result.seconds, 2),
                 pose_seconds=round(pose_seconds, 2), clip_psnr=round(result.clip_psnr, 3), extent=trainer.extent,
                 fps=fps, background=[0.0, 0.0, 0.0],
-                config={k: v for k, v in vars(config).items()}, notes=result.notes)
+                config={k: v for k, v in vars(config).items()}, notes=result.notes, clip=record)
     if layer is not None:
         info["layer"] = layer
     result.cameras = cameras
@@ -280,6 +260,7 @@ def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses
                             f"holds its numbers")
     phases("save", 2, 2, None)
     paths["checkpoint"].unlink(missing_ok=True)
+    mark_kernels_compiled(device.type)  # the next fit's plan counts no compilation
     for path in paths.values():  # a kill just before a resume left some too fresh to remove at its start
         remove_stale_temporaries(path)
     lap("save")
@@ -330,8 +311,9 @@ def peak_memory(device) -> tuple[float, float | None]:
 def _train_ticks(phases, iterations: int, time_limit: float):
     """The trainer's tick as the "train" phase: iterations done, or seconds under a time limit."""
     def tick(iteration, seconds, text):
+        text = text or f"iteration {iteration:,}"
         if time_limit > 0:
-            phases("train", min(seconds, time_limit), time_limit, text or f"iteration {iteration:,}")
+            phases("train", min(seconds, time_limit), time_limit, text)
         else:
             phases("train", iteration, iterations, text)
     return tick
@@ -348,22 +330,14 @@ def _poses_key(poses) -> str:
     return f"<{type(poses).__name__}>"
 
 
-def _thumbnails(images) -> torch.Tensor:
-    """uint8 [T, THUMB * THUMB * C]: each image (uint8 or bool [T,H,W(,C)]) as area averages."""
-    import cv2
-
-    out = []
-    for image in images:
-        image = np.asarray(image, dtype=np.uint8) * (255 if image.dtype == bool else 1)
-        out.append(np.asarray(cv2.resize(image, (THUMB, THUMB), interpolation=cv2.INTER_AREA)).reshape(-1))
-    return torch.from_numpy(np.stack(out))
-
-
 def _clip_identity(clip) -> dict:
-    """What a resume must find again: source frame numbers, frame size, thumbnails of frames and masks."""
+    """What a resume must find again: source frame numbers, frame size, thumbnails of frames and masks
+    (tomgs.io.video.thumbnails, as uint8 tensors)."""
+    from tomgs.io.video import thumbnails
+
     return dict(frame_indices=[int(i) for i in clip.indices], size=[int(s) for s in clip.frames.shape[1:3]],
-                thumbnails=_thumbnails(clip.frames),
-                mask_thumbnails=None if clip.masks is None else _thumbnails(clip.masks))
+                thumbnails=torch.from_numpy(thumbnails(clip.frames)),
+                mask_thumbnails=None if clip.masks is None else torch.from_numpy(thumbnails(clip.masks)))
 
 
 def _describe(indices: list[int]) -> str:
@@ -372,7 +346,7 @@ def _describe(indices: list[int]) -> str:
     step = indices[1] - indices[0] if len(indices) > 1 else 1
     regular = all(b - a == step for a, b in zip(indices, indices[1:]))
     span = f"{indices[0]}..{indices[-1]}" + (f" step {step}" if regular and step != 1 else "" if regular else ", irregular")
-    return f"source frames {span} ({len(indices)} frames)"
+    return f"source frames {span} ({counted(len(indices), 'frame')})"
 
 
 def _refuse(checkpoint, what: str, option: str) -> InputError:
@@ -396,6 +370,8 @@ def _check_options(saved: dict, options: dict, config: TrainConfig, checkpoint) 
 
 def _check_clip(was: dict, now: dict, options: dict, checkpoint) -> None:
     """After decoding, before the poses: the same source frames, size and content as the checkpoint's."""
+    from tomgs.io.video import differing_thumbnails
+
     given = was.get("options", {})
     if "frame_indices" in was and was["frame_indices"] != now["frame_indices"]:
         raise _refuse(checkpoint, f"was fitted on {_describe(was['frame_indices'])} (--frames "
@@ -411,10 +387,10 @@ def _check_clip(was: dict, now: dict, options: dict, checkpoint) -> None:
             continue
         if not torch.is_tensor(was[key]):
             continue
-        a, b = was[key].double().numpy(), now[key].double().numpy()
-        if a.shape != b.shape or np.abs(a - b).max() > THUMB_TOLERANCE:
-            differ = int(np.sum(np.abs(a - b).max(axis=1) > THUMB_TOLERANCE)) if a.shape == b.shape else len(b)
-            raise _refuse(checkpoint, f"was fitted on other {what}: {differ} of this run's {len(b)} differ", option)
+        differ = differing_thumbnails(was[key].numpy(), now[key].numpy())
+        if differ:
+            raise _refuse(checkpoint, f"was fitted on other {what}: {differ} of this run's {len(now[key])} differ",
+                          option)
 
 
 def _show(value) -> str:

@@ -20,6 +20,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from tomgs.text import counted
+
 # seconds per training step (render, loss, backward, Adam): a + b * Gaussians + c * pixels
 # (cuda: the H100's, from benchmarks/results/phone_*.json and camel_fit.json: 10-16 ms a step at 0.4-2 Mpx)
 STEP_COST = {"cpu": (0.03, 3.5e-6, 4e-6), "cuda": (6e-3, 0.6e-9, 2.5e-9)}
@@ -27,6 +29,9 @@ STEP_COST = {"cpu": (0.03, 3.5e-6, 4e-6), "cuda": (6e-3, 0.6e-9, 2.5e-9)}
 RENDER_COST = {"cpu": (0.005, 1.7e-6, 1e-6), "cuda": (1e-3, 0.5e-9, 2e-9)}
 DECODE_COST = 10e-9  # seconds per source pixel decoded and converted (H.264, 2 cores)
 POSE_COST = {"cpu": 1e-6, "cuda": 7e-9}  # seconds per fitted pixel of the built-in tracker (H100: 900 x 1080p in 12.7 s)
+# seconds of a first run's kernel compilation (Warp compiles each module at its first launch and caches it; a
+# fresh 2-core CPU spent ~54 s; the GPU's is a first guess)
+COMPILE_COST = {"cpu": 60.0, "cuda": 30.0}
 SETUP_COST = {"cpu": 0.5, "cuda": 5.0}  # seconds each for the tracker's and the trainer's start (H100: kernels load)
 # seconds to write the scene and plot: a + b * Gaussians (H100, DAVIS fits: 0.7-1.5 s for 4.0-4.8M; the
 # 0.3e-6 before left ~0.8 s of every 1-minute fit unused)
@@ -84,7 +89,10 @@ class FitPlan:
                 if self.budget > 0 else f"{self.iterations:,} iterations")
         chosen = " (budget chosen for this device: --budget or --iterations to change)" if self.budget_chosen else ""
         eta = _duration(self.eta) if self.budget > 0 else f"~{_duration(self.eta)} (estimated)"
-        return (f"plan: {self.frames} frames of {self.width}x{self.height} on {self.device}, {work}{chosen}; "
+        compiling = (f"; compiling kernels first (first run only, ~{_duration(self.phases['compile'])})"
+                     if self.phases.get("compile") else "")
+        return (f"plan: {counted(self.frames, 'frame')} of {self.width}x{self.height} on {self.device}, "
+                f"{work}{chosen}{compiling}; "
                 f"start from {self.points_per_frame * self.frames:,} Gaussians, cap {self.cap:,}; ETA {eta}")
 
 
@@ -100,30 +108,36 @@ def auto_cap(frames: int, pixels: int, device_type: str, free_bytes: int | None 
     """(cap, why): REFERENCE_CAP scaled by the square root of the clip's pixels, at least MIN_CAP;
     on a GPU at most what `free_bytes` (after the frames) holds."""
     cap = max(MIN_CAP, int(REFERENCE_CAP * math.sqrt(frames * pixels / REFERENCE_PIXELS)))
-    why = f"cap {cap:,} for {frames} frames of {pixels:,} pixels (10M for 90 frames at 854x480, by square root)"
+    why = (f"at most {cap:,} Gaussians for {frames} frame{'s' if frames != 1 else ''} of {pixels:,} pixels (10M for "
+           f"90 frames at 854x480, by the square root of the pixels; --cap to change)")
     if free_bytes is not None:
         fits = int(GPU_MEMORY_SHARE * max(free_bytes, 0) / GAUSSIAN_BYTES)
         if fits < cap:
             cap = max(fits, MIN_CAP)
-            why = f"cap {cap:,}: what {free_bytes / 2**30:.1f} GiB of free GPU memory holds"
+            why = (f"at most {cap:,} Gaussians: what {free_bytes / 2**30:.1f} GiB of free GPU memory holds (--cap to "
+                   "change)")
     return cap, why
 
 
 def make_plan(config, frames: int, height: int, width: int, source_pixels: int, device_type: str, *,
               poses_estimated: bool = True, auto_budget: bool = True,
-              free_bytes: int | None = None) -> tuple[FitPlan, object]:
+              free_bytes: int | None = None, compiles: bool = False) -> tuple[FitPlan, object]:
     """(FitPlan, the TrainConfig to train with: its cap and initial points resolved).
 
     config: TrainConfig (max_seconds: the whole fit's budget, 0: none; max_gaussians and
     init_points_per_frame None: chosen here). source_pixels: pixels of a frame as decoded.
     poses_estimated: the built-in tracker will run. auto_budget: pick DEFAULT_BUDGET where the
-    iterations would take longer on this device. free_bytes: a GPU's free memory after the frames."""
+    iterations would take longer on this device. free_bytes: a GPU's free memory after the frames.
+    compiles: the kernels are not compiled yet for this device (tomgs.runtime.kernels_compiled):
+    the first steps will compile them, a phase of its own in the estimates and the budget."""
     pixels = height * width
     setup = SETUP_COST.get(device_type, SETUP_COST["cpu"])
     phases = dict(read=DECODE_COST * frames * source_pixels,
                   poses=setup + POSE_COST.get(device_type, POSE_COST["cpu"]) * frames * pixels if poses_estimated
                   else 0.0,
                   init=setup + 2e-4 * frames)
+    if compiles:
+        phases["compile"] = COMPILE_COST.get(device_type, COMPILE_COST["cpu"])
     budget, chosen = float(config.max_seconds), False
     reasons = []
     cap, cap_why = (config.max_gaussians, f"cap {config.max_gaussians:,} as asked") \
@@ -158,12 +172,15 @@ def make_plan(config, frames: int, height: int, width: int, source_pixels: int, 
             steppable = max(int((train / MIN_STEPS - a - c * pixels) / b), int(a / b), frames)
             if start > steppable:
                 per_frame = max(steppable // frames, 1)
-                reasons.append(f"{per_frame * frames:,} starting Gaussians ({per_frame} per frame): what "
-                               f"{_duration(train)} of training on the CPU steps {MIN_STEPS} times")
+                reasons.append(f"starts from {per_frame * frames:,} Gaussians ({per_frame} per frame): more would "
+                               f"slow each CPU step so much that {_duration(train)} of training takes fewer than "
+                               f"{MIN_STEPS} steps")
                 start = per_frame * frames
             if config.max_gaussians is None and cap > CAP_OVER_START * max(start, steppable):
                 cap = CAP_OVER_START * max(start, steppable)
-                cap_why = f"cap {cap:,}: {CAP_OVER_START} x what the time left can step {MIN_STEPS} times"
+                cap_why = (f"at most {cap:,} Gaussians, {CAP_OVER_START} times the start: a CPU step slows with every "
+                           f"Gaussian, and {_duration(train)} of training should take {MIN_STEPS} steps or more "
+                           f"(--cap to change)")
         train = max(budget - sum(phases.values()) - save(start), 0.1 * budget)  # the cloud may have shrunk
         phases["train"] = min(train, train_estimate(start))  # the iterations may end first
     else:

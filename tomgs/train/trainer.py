@@ -43,6 +43,7 @@ from tomgs.render.frame import blend_weights, render_frame
 from tomgs.render.sequence import IssuedFrame, issue_in_order
 from tomgs.temporal import frames_to_clip_time
 from tomgs.errors import InputError
+from tomgs.text import counted
 from tomgs.outputs import write_text
 from tomgs.train.checkpoint import (FORMAT, LOG_FIELDS, START_OVER, VERSION, CheckpointWriter, FitInterrupted,
                                     StopSignals, check_same_settings, config_from, config_to_dict, own_copies,
@@ -71,6 +72,10 @@ MIN_EVAL_FRAMES = 8
 # the compaction at a run's end costs per frame what this many frames of a clip PSNR cost (a forward and
 # a backward: camel's 1-minute scene on the H100, 0.5 s for 90 frames, ~5.6 ms a frame against ~2)
 COMPACT_SHARE = 3.0
+# A budget's end (the compaction and the last clip PSNR) keeps at most this share of the training time: when
+# they would cost more (a busy machine, slow first steps, a long clip), the compaction is left out and the
+# last measurement covers evenly spaced frames, so that the budget goes to training
+END_SHARE = 0.1
 RENDER_SHARE = 0.5  # a forward render's time over a training step's (CPU, the bundled clip: 0.11 / 0.22 s)
 # a clip PSNR reads a frame's counts this many frames after issuing it: late enough that the read does not
 # wait, and few, since each frame in flight holds its image until then (all 90 of camel's in flight, each with
@@ -90,7 +95,7 @@ STATIC_T_SCALE = 1e3  # temporal sigma of every Gaussian of a static fit (clip t
 class FitResult:
     model: GaussianModel
     cameras: Cameras
-    clip_psnr: float  # mean over frames of the final full-clip PSNR
+    clip_psnr: float  # mean over frames of the final clip PSNR
     iterations: int
     seconds: float
     history: list[dict] = field(default_factory=list)  # the CSV rows
@@ -102,6 +107,7 @@ class FitResult:
     peak_host_mb: float = 0.0
     peak_gpu_mb: float | None = None
     peak_host_mb_by_phase: dict = field(default_factory=dict)  # the peak so far at the end of each phase
+    clip_frames: int = 0  # the frames the final clip PSNR covers (all of them, unless a budget's end was short)
 
 
 class Trainer:
@@ -248,7 +254,8 @@ class Trainer:
         if c.sh_degree > 0:
             model.sh_degree = c.sh_degree
         else:
-            self.notes.append("SH degree 0: view-dependent colour left out (ask for it with sh_degree)")
+            self.notes.append("SH degree 0: view-dependent colour left out (--sh-degree 1..3 fits it; Python: "
+                              "sh_degree=)")
         return model.to(self.device), float(np.median(depth))
 
     def _tracked_windows(self, count: int, min_sigma: float) -> tuple[np.ndarray, np.ndarray]:
@@ -524,7 +531,7 @@ class Trainer:
             for i, (k, image, _) in enumerate(issue_in_order(frames, issue, EVAL_AHEAD)):
                 out.append(self._psnr(k, image))
                 if tick is not None:
-                    tick(f"clip PSNR {i + 1}/{len(frames)}" + ("" if len(frames) == self.num_frames else " frames"))
+                    tick(f"measuring the clip PSNR: frame {i + 1} of {len(frames)}")
         return torch.stack(out).tolist() if out else []
 
     def compact(self, tick=None) -> int:
@@ -544,7 +551,7 @@ class Trainer:
                                     height=self.height, t=self.times[k], rows=rows)
             torch.maximum(largest, weights, out=largest)
             if tick is not None:
-                tick(f"leaving out unused Gaussians {k + 1}/{self.num_frames}")
+                tick(f"finding the Gaussians no frame shows: frame {k + 1} of {self.num_frames}")
         if len(self.model) and bool((largest < threshold).all()):  # an empty scene helps nobody: say so instead
             self.notes.append(f"compact_pixels {threshold:g} would leave out every Gaussian (the most any gives a "
                               f"frame is {float(largest.max()):.3g} of a pixel's colour): all kept; give a smaller "
@@ -571,10 +578,12 @@ class Trainer:
     def run(self, checkpoint: Path | None = None, log_csv: Path | None = None, progress=None, *,
             time_limit: float | None = None, tick=None) -> FitResult:
         """Train to `config.iterations`, or for `time_limit` seconds of training (default
-        `config.max_seconds`; 0: no limit), stopping early enough that the last full-clip PSNR ends
-        by then. `progress(dict)` is called with every CSV row (a KeyboardInterrupt it raises stops
-        the run like Ctrl-C); `tick(iteration, seconds, text)` after every step and every frame of
-        a full-clip measurement, a display's heartbeat. With `checkpoint`, the state is saved there
+        `config.max_seconds`; 0: no limit), stopping early enough that the run's end (the compaction
+        and the last clip PSNR) ends by then; the end keeps at most END_SHARE of the limit, and one
+        that would cost more leaves the compaction out and measures evenly spaced frames (`_end`).
+        `progress(dict)` is called with every CSV row (a KeyboardInterrupt it raises stops the run
+        like Ctrl-C); `tick(iteration, seconds, text)` after every step (text: `status()`) and every
+        frame of a clip measurement, a display's heartbeat. With `checkpoint`, the state is saved there
         on the schedule above and on SIGINT / SIGTERM, which then raise FitInterrupted.
 
         The clip PSNR is measured every `eval_interval_s` (further apart when a measurement is slow,
@@ -627,16 +636,16 @@ class Trainer:
                 now = time.perf_counter() - start
                 if self.iteration > 1:
                     step_seconds = now - before if step_seconds is None else 0.9 * step_seconds + 0.1 * (now - before)
-                tick(self.iteration, now, None)
+                tick(self.iteration, now, self.status())
                 # until one is measured, a frame of the clip PSNR costs what RENDER_SHARE of a step costs
                 frame_seconds = self.eval_frame_seconds or RENDER_SHARE * (step_seconds or 0.0)
-                # the last measurement covers every frame, after the compaction's pass over them
-                ending = frame_seconds * self.num_frames * (1 + (COMPACT_SHARE if c.compact_pixels > 0 else 0))
-                out_of_time = 0 < limit <= now + ending
+                ending = self._ending(frame_seconds)
+                out_of_time = 0 < limit <= now + min(sum(ending), END_SHARE * limit)
                 last = self.iteration == c.iterations or out_of_time
+                count = self.eval_frames(now, frame_seconds)
                 if last:
-                    self.compact(lambda text: tick(self.iteration, now, text))
-                count = self.num_frames if last else self.eval_frames(now, frame_seconds)
+                    count = self._end(limit - now if limit > 0 else math.inf, frame_seconds,
+                                      lambda text: tick(self.iteration, now, text))
                 settled = self.iteration - self.densifier.changed_at >= settle
                 measure = last or (now >= next_eval and count > 0 and settled)
                 if self.iteration % c.log_interval == 0 or measure:
@@ -672,7 +681,7 @@ class Trainer:
                 if out_of_time:
                     this_run = f"{limit - began_at:.0f} s of training in this run, {limit:.0f} s in all" \
                         if began_at > 0 else f"{limit:.0f} s"
-                    self.notes.append(f"training stopped after {self.iteration} iterations at its time limit "
+                    self.notes.append(f"training stopped after {counted(self.iteration, 'iteration')} at its time limit "
                                       f"({this_run})")
                     break
         self._count_failed(writer, failures, lambda text: tick(self.iteration, self.elapsed, text))
@@ -690,10 +699,44 @@ class Trainer:
                 self.notes.append(f"{self.captured.dropped} of {self.captured.steps} captured steps updated nothing "
                                   "(their frames needed more tile keys than captured; captured again larger)")
         ended = self.history[-1] if self.history else {}
-        final = ended["clip_psnr"] if ended.get("clip_psnr", "") != "" and ended.get("clip_frames") == self.num_frames \
-            else float(np.mean(self.clip_psnr()))
+        if ended.get("clip_psnr", "") != "" and ended.get("iteration") == self.iteration:
+            final, covered = ended["clip_psnr"], int(ended["clip_frames"])
+        else:  # nothing measured at this step (a resume of a finished run): every frame now
+            final, covered = float(np.mean(self.clip_psnr())), self.num_frames
         return FitResult(self.model, self.cameras, float(final), self.iteration, self.elapsed, self.history,
-                         list(self.notes))
+                         list(self.notes), clip_frames=covered)
+
+    def _ending(self, frame_seconds: float) -> tuple[float, float]:
+        """(the compaction's, the last full clip PSNR's) estimated seconds, a frame of the clip PSNR
+        taking `frame_seconds`."""
+        full = frame_seconds * self.num_frames
+        return (COMPACT_SHARE * full if self.config.compact_pixels > 0 else 0.0), full
+
+    def _end(self, left: float, frame_seconds: float, tick) -> int:
+        """The end of a run with `left` seconds of its limit (inf: none): the compaction, when it fits
+        with a clip PSNR of MIN_EVAL_FRAMES frames beside it, then the frames the last clip PSNR can
+        cover in what remains (every frame when it fits, else evenly spaced ones); what was cut short is
+        said in `notes`. Returns that frame count."""
+        compact, full = self._ending(frame_seconds)
+        if compact and compact + frame_seconds * min(MIN_EVAL_FRAMES, self.num_frames) <= left:
+            self.compact(tick)
+            left -= compact
+        elif compact:
+            self.notes.append(f"kept every Gaussian: leaving out those that no frame shows (~{compact:.0f} s) did not "
+                              f"fit in the {max(left, 0):.0f} s the budget left")
+        if full <= left:
+            return self.num_frames
+        count = min(max(int(left / max(frame_seconds, 1e-9)), 1), self.num_frames)
+        self.notes.append(f"the final clip PSNR covers {counted(count, 'evenly spaced frame')} of {self.num_frames}: "
+                          f"the budget left {max(left, 0):.0f} s for it (`tomgs eval` measures every frame)")
+        return count
+
+    def status(self) -> str:
+        """'iteration N, PSNR x dB, G Gaussians': where training is, for a display (the PSNR of the
+        training frames as the sampler has heard it, left out before it has)."""
+        seen = self.sampler.psnr[self.sampler.psnr > 0]
+        psnr = f", PSNR {float(seen.mean()):.2f} dB" if len(seen) else ""
+        return f"iteration {self.iteration:,}{psnr}, {len(self.model):,} Gaussians"
 
     def _row(self, now: float, clip: tuple[float, int] | None) -> dict:
         """The CSV row at `now` seconds; clip: (clip PSNR, the frames it covers) or None. Its train PSNR

@@ -1,0 +1,121 @@
+"""Mistakes are answered at the door: the common ones get one line and exit 2 before torch or Warp is
+imported (each command runs in a process where importing them fails), and `tomgs eval` refuses a
+video that is not its scene's, naming what differs, unless asked to compare anyway."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from scenes import object_scene
+from tomgs.cli import main
+from tomgs.demo import example_file
+from tomgs.io.scene import save_scene
+from tomgs.io.video import clip_record, read_video
+from tomgs.io.writer import write_frames
+
+ROOT = Path(__file__).resolve().parents[1]
+# the CLI in a process where importing torch or Warp raises: a check that needs them fails with a traceback
+GUARDED = """
+import sys
+
+class Refuse:
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in ("torch", "warp"):
+            raise ImportError(f"{name} imported before the inputs were checked")
+
+sys.meta_path.insert(0, Refuse())
+sys.argv[0] = "tomgs"
+from tomgs.cli import main
+main()
+"""
+
+
+def at_the_door(*args, cwd):
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, (str(ROOT), os.environ.get("PYTHONPATH")))),
+           "CUDA_VISIBLE_DEVICES": ""}  # no GPU visible, whatever the machine has
+    return subprocess.run([sys.executable, "-c", GUARDED, *map(str, args)], cwd=cwd, env=env, capture_output=True,
+                          text=True, timeout=120)
+
+
+def frames_of(kind: str, count: int, width: int, height: int) -> np.ndarray:
+    """uint8 [count, height, width, 3]: smooth frames that a video codec keeps ("ramp", or its mirror "flipped")."""
+    y, x = np.meshgrid(np.linspace(0, 1, height), np.linspace(0, 1, width), indexing="ij")
+    out = []
+    for k in range(count):
+        image = np.stack([x, y, np.full_like(x, k / count)], axis=2) * 200 + 20
+        out.append(image[:, ::-1] if kind == "flipped" else image)
+    return np.stack(out).astype(np.uint8)
+
+
+@pytest.fixture(scope="module")
+def clips(tmp_path_factory):
+    """A scene fitted (as far as eval can tell) on clip a.mp4, and clips that are not a.mp4."""
+    folder = tmp_path_factory.mktemp("door")
+    clips = {"a": ("ramp", 6, 32, 24), "longer": ("ramp", 8, 32, 24), "larger": ("ramp", 6, 64, 48),
+             "other": ("flipped", 6, 32, 24), "wide": ("ramp", 6, 48, 24)}
+    for name, (kind, count, width, height) in clips.items():
+        write_frames(frames_of(kind, count, width, height), folder / f"{name}.mp4", fps=10.0)
+    model, cams, _ = object_scene(frames=6)
+    save_scene(folder / "scene.ply", model, cams, {"clip": clip_record(read_video(folder / "a.mp4"))})
+    (folder / "taken.ply").write_bytes(b"the user's")
+    return folder
+
+
+MISTAKES = {
+    "path typo": (["fit", "clip.mpp4", "-o", "s.ply"], "clip.mpp4 does not exist"),
+    "wrong type": (["render", "{clip}", "-o", "out.mp4"], "is a video, not a scene"),
+    "missing -o": (["fit", "{clip}"], "Missing option '-o'"),
+    "existing output": (["fit", "{clip}", "-o", "taken.ply"], "taken.ply exists"),
+    "bad range": (["fit", "{clip}", "-o", "s.ply", "--frames", "0:x"], "bad frame range '0:x'"),
+    "0-frame range": (["fit", "{clip}", "-o", "s.ply", "--frames", "40:50"], "selects no frames"),
+    "wrong video for eval": (["eval", "scene.ply", "longer.mp4"], "longer.mp4 has 8 frames, the scene's clip had 6"),
+    "cuda without a GPU": (["fit", "{clip}", "-o", "s.ply", "--device", "cuda"], "no CUDA GPU"),
+    "bad select": (["edit", "scene.ply", "-o", "e.ply", "--select", "box:1,2", "--remove"], "box takes 6"),
+    "unknown extension": (["render", "scene.ply", "-o", "out.xyz"], "unknown output type '.xyz'"),
+}
+
+
+@pytest.mark.parametrize("mistake", list(MISTAKES))
+def test_a_mistake_is_one_line_and_exit_2_before_torch_is_imported(mistake, clips):
+    args, message = MISTAKES[mistake]
+    args = [a.replace("{clip}", str(example_file("ball.mp4"))) for a in args]
+    before = sorted(p.name for p in clips.iterdir())
+    done = at_the_door(*args, cwd=clips)
+    assert done.returncode == 2, done.stderr
+    error = [line for line in done.stderr.splitlines() if line.startswith("Error:")]
+    assert len(error) == 1 and message in error[0], done.stderr
+    assert done.stdout == "" and sorted(p.name for p in clips.iterdir()) == before
+
+
+def run(*args):
+    return CliRunner().invoke(main, [str(a) for a in args])
+
+
+@pytest.mark.parametrize("video, differs", [
+    ("longer.mp4", "longer.mp4 has 8 frames, the scene's clip had 6"),
+    ("larger.mp4", "larger.mp4 is 64x48, the scene's clip was 32x24"),
+    ("other.mp4", "6 of the scene's 6 frames differ from other.mp4's"),
+])
+def test_eval_refuses_another_clip_naming_what_differs_unless_forced(clips, video, differs):
+    refused = run("eval", clips / "scene.ply", clips / video, "--device", "cpu")
+    assert refused.exit_code == 2 and differs in refused.output and "--force" in refused.output, refused.output
+    forced = run("eval", clips / "scene.ply", clips / video, "--device", "cpu", "--force")
+    assert forced.exit_code == 0 and f"compared anyway (--force): {differs}" in forced.output, forced.output
+
+
+def test_eval_of_the_scene_s_own_clip_says_nothing_of_differences(clips):
+    result = run("eval", clips / "scene.ply", clips / "a.mp4", "--device", "cpu")
+    assert result.exit_code == 0 and "compared anyway" not in result.output, result.output
+
+
+def test_eval_cannot_compare_frames_of_another_shape_even_forced(clips):
+    result = run("eval", clips / "scene.ply", clips / "wide.mp4", "--device", "cpu", "--force")
+    assert result.exit_code == 2 and "cannot be compared" in result.output and "48x24" in result.output, \
+        result.output

@@ -1,0 +1,51 @@
+"""The README's quick start runs as written (the commands that assets/example/make.py runs for the
+README's pictures), each fit cut to a few iterations so the test stays short, and every edit it
+renders changes the frames."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from tomgs.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+SHORT_FIT = ["--preset", "quick", "--iterations", "30"]
+
+
+def quick_start(fit_args=None) -> list[list[str]]:
+    spec = importlib.util.spec_from_file_location("make_example", ROOT / "assets" / "example" / "make.py")
+    make = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(make)
+    return make.quick_start((ROOT / "README.md").read_text(), fit_args)
+
+
+def test_the_readme_quick_start_fits_the_bundled_clip_and_edits_it():
+    commands = quick_start()
+    kinds = [c[0] for c in commands]
+    assert kinds.count("fit") >= 1 and kinds.count("edit") >= 3, commands
+    assert any("--remove" in c for c in commands) and any("--duplicate" in c for c in commands)
+    assert any("--layer" in c for c in commands)
+
+
+@pytest.mark.slow  # three short fits and their renders
+def test_the_quick_start_runs_and_every_edit_changes_the_frames(tmp_path, monkeypatch):
+    import cv2
+
+    monkeypatch.chdir(tmp_path)
+    commands = quick_start(SHORT_FIT)
+    for args in commands:
+        result = CliRunner().invoke(main, args)
+        assert result.exit_code == 0, (args, result.output)
+    folders = {p.name: sorted(p.glob("*.png")) for p in tmp_path.iterdir() if p.is_dir()}
+    before = folders.pop("before")
+    assert before and folders, sorted(folders)
+    for name, after in folders.items():
+        assert [p.name for p in after] == [p.name for p in before], name
+        change = np.mean([np.abs(cv2.imread(str(a)).astype(float) - cv2.imread(str(b)).astype(float)).mean()
+                          for a, b in zip(after, before)])
+        assert change > 0.5, (name, change)  # grey levels over whole frames: the edit shows
