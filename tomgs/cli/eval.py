@@ -34,8 +34,10 @@ def evaluate_command(scene, video, lpips_weights, json_out, force, device, overw
       tomgs eval scene.ply clip.mp4 --json - | jq .mean     # JSON alone on stdout
       tomgs eval scene.ply other.mp4 --force                # another clip, deliberately
     """
+    from tomgs.outputs import check_distinct
     from tomgs.preflight import check_device, check_eval_video, check_existing, check_scene, refuse_or_note
 
+    check_distinct({"--json": json_out}, {"SCENE": scene, "VIDEO": video, "--lpips": lpips_weights})
     to_stdout = check_json(json_out, overwrite)
     check_device(device)
     cameras, info = check_scene(scene)
@@ -46,10 +48,8 @@ def evaluate_command(scene, video, lpips_weights, json_out, force, device, overw
     from tomgs.io.scene import load_scene
     from tomgs.io.video import frame_differences, read_video_for
     from tomgs.metrics import LPIPS, default_lpips_weights, evaluate
-    from tomgs.outputs import check_distinct
     from tomgs.runtime import resolve_device
 
-    check_distinct({"--json": json_out}, {"SCENE": scene, "VIDEO": video, "--lpips": lpips_weights})
     dev = resolve_device(device)
     loaded = load_scene(scene, device=dev)
     frames = read_video_for(video, loaded.cameras)

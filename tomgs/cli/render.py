@@ -33,7 +33,10 @@ def render(scene, frames, output, device, background, fps, layer_paths, overwrit
       tomgs render bg.ply --layer fg.ply -o out.mp4     # foreground over background
       tomgs render edited.ply --cameras cams/cameras.json -o out.mp4   # re-saved by SuperSplat
     """
+    from tomgs.outputs import check_distinct
     from tomgs.preflight import check_render, check_scene
+
+    check_distinct({"-o": output}, {"SCENE": scene, "--layer": list(layer_paths), "--cameras": cameras_path})
 
     cameras, _ = check_scene(scene, cameras=cameras_path)
     for path in layer_paths:
@@ -41,11 +44,9 @@ def render(scene, frames, output, device, background, fps, layer_paths, overwrit
     check_render(output, cameras, frames, overwrite, device=device)
 
     from tomgs.io.scene import load_scene
-    from tomgs.outputs import check_distinct
     from tomgs.render.jobs import plan_render
     from tomgs.render.layers import check_layers
 
-    check_distinct({"-o": output}, {"SCENE": scene, "--layer": list(layer_paths), "--cameras": cameras_path})
     loaded = load_scene(scene, cameras=cameras_path)
     layers = [load_scene(path) for path in layer_paths]
     check_layers(loaded.cameras, [layer.cameras for layer in layers], list(layer_paths))
