@@ -48,6 +48,12 @@ def _show(x: float, integer: bool = False) -> str:
     return f"{x:g}".replace("e+0", "e").replace("e+", "e").replace("e-0", "e-")
 
 
+def _printable(value) -> str:
+    """`value` as a message shows it: quoted when it holds what a terminal would not print as is."""
+    text = str(value)
+    return text if text.isprintable() and text.strip() == text and text else repr(text)
+
+
 def _number(text, integer: bool):
     """`text` (or a number) as a float or int; ValueError when it is not one."""
     if isinstance(text, bool):
@@ -97,7 +103,7 @@ class Number(click.ParamType):
     def check(self, value, name: str, whole=None):
         """`value` as a number in range, else ParamFailure naming `name` (and `whole`, the option's
         text, when `value` is one part of it)."""
-        said = f"{name} {value}:" if whole is None else f"{name} {whole}: {value}"
+        said = f"{name} {_printable(value)}:" if whole is None else f"{name} {_printable(whole)}: {_printable(value)}"
         try:
             number = _number(value, self.integer)
         except (ValueError, TypeError, OverflowError):
@@ -137,8 +143,8 @@ class Numbers(click.ParamType):
         parts = str(value).split(",")
         if len(parts) not in self.counts:
             counts = " or ".join(map(str, self.counts))
-            raise ParamFailure(f"{name} {value}: give {counts} comma-separated numbers ({self.shape}), each "
-                               f"{self.each.range_text()}")
+            raise ParamFailure(f"{name} {_printable(value)}: give {counts} comma-separated numbers ({self.shape}), "
+                               f"each {self.each.range_text()}")
         return tuple(float(self.each.check(part, name, value)) for part in parts)
 
 
@@ -163,7 +169,8 @@ class Size(click.ParamType):
         name, side = _name(param), Number(1, MAX_SIDE, integer=True, what="pixels")
         parts = str(value).lower().split("x")
         if len(parts) != 2:
-            raise ParamFailure(f"{name} {value}: give WIDTHxHEIGHT like 320x180, each side {side.range_text()}")
+            raise ParamFailure(f"{name} {_printable(value)}: give WIDTHxHEIGHT like 320x180, each side "
+                               f"{side.range_text()}")
         return tuple(side.check(part, name, value) for part in parts)
 
 

@@ -18,9 +18,11 @@ import itertools
 
 import numpy as np
 
+from tomgs.errors import InputError
 from tomgs.io.tets import Tets
 
 CELLS_PER_EXTENT = 8  # default cell size: the selection's largest extent / 8
+MIN_CELL = 1e-6  # the finest cell: this share of the selection's size or distance from the origin
 CHUNK = 4_000_000  # points x cells per batch in the nearest-cell search of points outside the cage
 
 
@@ -56,6 +58,11 @@ def build_cage(gaussian_tets, means, gaussians, cell: float | None = None) -> Te
     if not np.isfinite(h) or h <= 0:
         raise ValueError(f"cell size must be positive, got {cell}")
     origin = means.min(0)
+    # a grid point is origin + k h in float32 (the tets file): h must stay above its resolution there
+    finest = MIN_CELL * max(float(np.abs(means).max()) if len(means) else 0.0, default_cell(means), 1.0)
+    if h < finest:
+        raise InputError(f"--cell {cell:g}: a cage cell under {finest:.3g} scene units cannot be told apart from "
+                         f"its neighbour where the selection lies (float32); give a larger --cell, or leave it out")
     top = np.maximum(np.ceil((means.max(0) - origin) / h).astype(np.int64) - 1, 0)  # the far faces close the grid
     cells = np.unique(np.minimum(np.floor((means - origin) / h).astype(np.int64), top), axis=0)  # [M,3] sorted
     corners = cells[:, None, None, :] + KUHN[None]  # [M,6,4,3] integer grid points
