@@ -141,7 +141,7 @@ def run_case(spec_path: Path) -> None:
     import torch
 
     from tomgs.train import fit, preset
-    from tomgs.train.pipeline import process_started
+    from tomgs.train.phases import process_started
 
     started = process_started()
     folder = Path(spec["folder"])
@@ -155,7 +155,7 @@ def run_case(spec_path: Path) -> None:
                   overwrite=True, started=started)
     scene = folder / "scene.ply"
     if spec["gpus"]:
-        from tomgs.train.multigpu.rank import fit_shards
+        from tomgs.train.multigpu.launch import fit_shards
 
         extra = {k: spec[key] for k, key in (("refine_fraction", "refine"), ("overlap", "overlap"),
                                              ("carry_adam", "carry_adam")) if key in spec}

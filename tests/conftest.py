@@ -51,6 +51,6 @@ def fresh_bounds(monkeypatch):
     other tests."""
     from tomgs.render import frame as render
 
-    bounds = render._Bounds()
-    monkeypatch.setattr(render, "_bounds", bounds)
+    bounds = render.KeyBounds()
+    monkeypatch.setattr(render, "key_bounds", bounds)
     return bounds

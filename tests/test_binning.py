@@ -192,7 +192,7 @@ def write_keys(inputs, touched: torch.Tensor, width: int, height: int, capacity:
     `size` slots filled with `sentinel`: (keys, ids). `inline_lanes` 33: every warp lists its visible
     Gaussians, which write_tile_keys_listed writes."""
     from tomgs.kernels import binning
-    from tomgs.render.frame import _Frame, _WorkLists, _pass_args
+    from tomgs.render.frame import Frame, _WorkLists, _pass_args
     from tomgs.runtime import launch, scope, wrap
     import warp as wp
 
@@ -200,7 +200,7 @@ def write_keys(inputs, touched: torch.Tensor, width: int, height: int, capacity:
     ends = torch.cumsum(touched, 0, dtype=torch.int64) if ends is None else ends
     keys = torch.full((size,), sentinel, dtype=torch.int64, device=means2d.device)
     ids = torch.full((size,), sentinel, dtype=torch.int32, device=means2d.device)
-    frame = _Frame(width, height, 0.0, 0.0, 0.01, 1e10, "cpu")
+    frame = Frame(width, height, 0.0, 0.0, 0.01, 1e10, "cpu")
     lists = _WorkLists(len(means2d), 1, inline_lanes, means2d.device) if inline_lanes > 1 else None
     assert inline_lanes in (1, 33)
     with scope(means2d.device) as device:

@@ -187,7 +187,7 @@ def test_keys_every_frame_fits_are_not_captured_again(device, fresh_bounds):
 @pytest.mark.parametrize("device", DEVICES)
 def test_the_keys_shrink_with_the_bound(device, fresh_bounds):
     cloud, twin, graph, (viewmat, K, t) = graph_at_bound(device, fresh_bounds, 100_000)  # far above its ~1000
-    for _ in range(render._Bounds.FRAMES + 1):  # until the large total has left the bound's frames
+    for _ in range(render.KeyBounds.FRAMES + 1):  # until the large total has left the bound's frames
         first = graph.capacity
         image, alpha, counts = graph(viewmat, K, t)
         (image.sum() + alpha.sum()).backward()
@@ -213,7 +213,7 @@ def test_keys_made_not_to_shrink_only_grow(device, fresh_bounds):
     still = {name: tensor.detach() for name, tensor in cloud.items()}
     graph = FrameGraph(**still, width=45, height=37, shrink_keys=False)
     fresh_bounds.remember(graph._frame, 5_000)  # far above the frames' ~1000
-    for _ in range(render._Bounds.FRAMES + 1):
+    for _ in range(render.KeyBounds.FRAMES + 1):
         image, _, counts = graph(*frames[0])
         assert not counts.overflowed
     assert graph.capacity > 5_000 and fresh_bounds.capacity(graph._frame) < 2_000 and graph.captures == 1

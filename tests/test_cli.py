@@ -121,7 +121,7 @@ def test_progress_lines_keep_coming_while_the_work_is_silent(capsys):
     """Where stderr is not a terminal (a log, CI, `| tee`) progress is a line a phase starts and then one
     every interval from a thread, even while the work reports nothing (a long step, a compilation):
     the time so far, the phase, how far it is, what it said last and an ETA."""
-    from tomgs.cli import ProgressLines
+    from tomgs.cli.common import ProgressLines
 
     lines = ProgressLines(interval=0.01)
     lines.update("training", 0.5, "iteration 5, PSNR 20.00 dB, 1,000 Gaussians")

@@ -40,7 +40,7 @@ def limited(body: str, headroom_mb: int = 768, timeout: float = 120) -> str:
     code = textwrap.dedent("""
         import resource, sys
         import numpy, torch, cv2, plyfile, zipfile, json
-        import tomgs.cli, tomgs.io.scene, tomgs.io.tets, tomgs.cameras, tomgs.metrics, tomgs.edit.transforms
+        import tomgs.cli.app, tomgs.io.scene, tomgs.io.tets, tomgs.cameras, tomgs.metrics, tomgs.edit.transforms
         size = next(int(l.split()[1]) for l in open("/proc/self/status") if l.startswith("VmSize")) * 1024
         resource.setrlimit(resource.RLIMIT_AS, (size + HEADROOM, size + HEADROOM))
     """).replace("HEADROOM", str(headroom_mb << 20)) + textwrap.dedent(body)

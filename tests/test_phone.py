@@ -201,7 +201,7 @@ def test_a_long_clip_has_a_clip_psnr_early_over_evenly_spaced_frames(monkeypatch
 
     from tomgs.cameras import Cameras, intrinsics
     from tomgs.train import Trainer
-    from tomgs.train.pipeline import _plot
+    from tomgs.train.trainer import write_plot
 
     from test_train import small_config
 
@@ -241,7 +241,7 @@ def test_a_long_clip_has_a_clip_psnr_early_over_evenly_spaced_frames(monkeypatch
         logged = list(csv.DictReader(f))
     assert {r["clip_frames"] for r in logged if r["clip_psnr"] == ""} == {""}
     assert [int(r["clip_frames"]) for r in logged if r["clip_psnr"] != ""] == [r["clip_frames"] for r in rows]
-    _plot(tmp_path / "log.psnr.png", logged)  # the plot reads the log's rows (strings) as they are written
+    write_plot(tmp_path / "log.psnr.png", logged)  # the plot reads the log's rows (strings) as they are written
     assert (tmp_path / "log.psnr.png").stat().st_size > 1000
 
 

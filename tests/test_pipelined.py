@@ -13,6 +13,7 @@ import tomgs
 from tomgs.render import frame as render
 from tomgs.cameras import Cameras
 from tomgs.render.inputs import RenderError
+from tomgs.render.sequence import render_sequence
 from scenes import devices, random_scene
 
 DEVICES = devices()
@@ -45,7 +46,7 @@ def test_a_frame_of_a_size_not_counted_yet_waits(device, fresh_bounds):
     _, gaussians, camera = scene_on(device)
     image, _, meta, counts = render.render_frame(**gaussians, **camera, t=0.5, defer=True)
     assert counts is None and meta["n_intersections"] > 0
-    assert fresh_bounds.capacity(render._Frame(45, 37, 0, 0, 0.01, 1e10, "cpu" if device == "cpu" else
+    assert fresh_bounds.capacity(render.Frame(45, 37, 0, 0, 0.01, 1e10, "cpu" if device == "cpu" else
                                                f"cuda:{torch.device(device).index or 0}")) > 0
 
 
@@ -59,7 +60,7 @@ def test_a_frame_past_its_bound_says_so(device, fresh_bounds):
     image, _, _, counts = render.render_frame(**gaussians, **camera, t=0.5, defer=True)
     assert counts.overflowed and counts.read()["n_intersections"] == total
     assert not torch.equal(image, want)  # the last Gaussians' entries were not written
-    assert fresh_bounds.capacity(render._Frame(45, 37, 0, 0, 0.01, 1e10, key[0])) > total  # and the bound grew
+    assert fresh_bounds.capacity(render.Frame(45, 37, 0, 0, 0.01, 1e10, key[0])) > total  # and the bound grew
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -114,7 +115,7 @@ def test_pipelined_sequences_yield_what_waiting_ones_do(device, to_cpu, fresh_bo
                 fresh_bounds._recent[key].clear()
             source = gaussians
         got = [(k, image, meta) for k, image, meta in
-               render.render_sequence(source, cams, order, device=device, to_cpu=to_cpu, pipelined=True)]
+               render_sequence(source, cams, order, device=device, to_cpu=to_cpu, pipelined=True)]
         assert [k for k, _, _ in got] == order
         for k, image, meta in got:
             assert image.device.type == ("cpu" if to_cpu else torch.device(device).type)
@@ -129,7 +130,7 @@ def test_a_pipelined_sequence_raises_before_yielding_a_bad_frame(device, fresh_b
     bad = dict(gaussians, scales=gaussians["scales"].clone())
     bad["scales"][:, 0] = -1.0  # every Gaussian, so that those alive at any frame include some
     good_first = lambda k: gaussians if k == 0 else bad  # noqa: E731
-    frames = render.render_sequence(good_first, cams, [0, 0, 1, 2], device=device, pipelined=True)
+    frames = render_sequence(good_first, cams, [0, 0, 1, 2], device=device, pipelined=True)
     assert next(frames)[0] == 0 and next(frames)[0] == 0
     with pytest.raises(RenderError, match="scales must be >= 0"):
         next(frames)

@@ -204,9 +204,9 @@ def test_alpha_at_the_skip_threshold(batched, monkeypatch):
     alpha lies just above 1/255 are composited, those just below are not, as in the float64
     reference. The kernels skip an entry past POWER_SKIP without its exp; a threshold below
     ln(255), by 1e-3 or more, would drop pixels of the first ring."""
-    from tomgs.render.frame import _Rasterize
+    from tomgs.render.frame import kernel_choices
 
-    monkeypatch.setattr(_Rasterize, "batched", batched)
+    monkeypatch.setattr(kernel_choices, "batched", batched)
     one = dict(means=torch.tensor([[0.0123, 0.0071, 2.0]], dtype=torch.float64),
                quats=torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64),
                scales=torch.full((1, 3), 0.47, dtype=torch.float64), opacities=torch.ones(1, dtype=torch.float64),
@@ -290,8 +290,8 @@ def test_long_paths_inline_or_listed_give_the_same(device, with_rows, monkeypatc
     rows = torch.tensor([*range(0, 400, 3), 5, 5], dtype=torch.int32, device=device) if with_rows else None
     results = []
     for inline_lanes in (1, 33):  # every thread inline; every warp (at most 32 lanes) listed
-        monkeypatch.setattr(render, "inline_lanes", inline_lanes)
-        monkeypatch.setattr(render, "_bounds", render._Bounds())  # keys after the sync, then before it
+        monkeypatch.setattr(render.kernel_choices, "inline_lanes", inline_lanes)
+        monkeypatch.setattr(render, "key_bounds", render.KeyBounds())  # keys after the sync, then before it
         for _ in range(2):
             inputs, rest = split({k: (v.float() if isinstance(v, torch.Tensor) else v) for k, v in scene.items()},
                                  device)
@@ -414,7 +414,7 @@ def batched_on_cpu(request, monkeypatch):
     each thread stages whole batches itself) or of cooperative fibers, 256 forward and 128 backward
     (`enable_cpu_blocks`: barriers, shared batches and block reductions as on a GPU, so a missing
     barrier shows)."""
-    from tomgs.render.frame import _Rasterize
+    from tomgs.render.frame import kernel_choices
 
     if request.param == "cooperative_blocks":
         import warp as wp
@@ -422,7 +422,7 @@ def batched_on_cpu(request, monkeypatch):
         # record the other stages' launches first, so that only the raster kernels run as fibers
         render_both(random_scene(0, n=20, width=16, height=16), "cpu")[0][0].sum().backward()
         monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
-    monkeypatch.setattr(_Rasterize, "batched", True)
+    monkeypatch.setattr(kernel_choices, "batched", True)
     return request.param
 
 
@@ -452,16 +452,16 @@ def assert_batched_matches(scene: dict) -> dict:
     and against the per-pixel pair: the same arithmetic per pixel, so the same image to 1e-6, and the
     same gradients to float32 sums taken in another order (the batched backward adds a thread's two
     pixels before its atomics): 1e-4, ten times inside the oracle's tolerance."""
-    from tomgs.render.frame import _Rasterize
+    from tomgs.render.frame import kernel_choices
 
     meta = assert_matches_reference(scene, "cpu")
     (image, alpha, _), _, ins, _ = render_both(scene, "cpu")
-    batched = _Rasterize.batched
+    batched = kernel_choices.batched
     try:
-        _Rasterize.batched = False
+        kernel_choices.batched = False
         (pp_image, pp_alpha, _), _, pp_ins, _ = render_both(scene, "cpu")
     finally:
-        _Rasterize.batched = batched
+        kernel_choices.batched = batched
     assert (image - pp_image).abs().max() <= 1e-6 and (alpha - pp_alpha).abs().max() <= 1e-6
     w = torch.rand(image.shape, generator=torch.Generator().manual_seed(3)) - 0.3
     grads = torch.autograd.grad((image * w).sum() + alpha.sum(), ins[:5])
@@ -557,13 +557,13 @@ def test_tiles_taken_longest_first_give_the_same_frame(batched, monkeypatch):
     """Blocks that take the tiles in order of list length (the CUDA default) composite the same
     image as blocks in tile order, with either kernel pair, and the same gradients to float32
     rounding (the tiles add into each Gaussian's sums in another order)."""
-    from tomgs.render.frame import _Rasterize
+    from tomgs.render.frame import kernel_choices
 
-    monkeypatch.setattr(_Rasterize, "batched", batched)
+    monkeypatch.setattr(kernel_choices, "batched", batched)
     scene = random_scene(31, n=150, width=70, height=41)  # 5x3 tiles, lists of many lengths
     outs = []
     for ordered in (False, True):
-        monkeypatch.setattr(_Rasterize, "ordered_tiles", ordered)
+        monkeypatch.setattr(kernel_choices, "ordered_tiles", ordered)
         (image, alpha, meta), _, ins, _ = render_both(scene, "cpu")
         if ordered:  # the blocks did take the tiles out of tile order
             order = raster_node(alpha).tile_order
@@ -605,11 +605,11 @@ def test_frame_counts_come_with_the_sync(cooperative, monkeypatch):
 
 @pytest.fixture
 def write_capacities(monkeypatch):
-    """Fresh bounds (tomgs.render.frame._bounds) for the test, and the list of the capacities that
+    """Fresh bounds (tomgs.render.frame.key_bounds) for the test, and the list of the capacities that
     rasterize's calls of render._write_keys ask for, in order."""
     from tomgs.render import frame as render
 
-    monkeypatch.setattr(render, "_bounds", render._Bounds())
+    monkeypatch.setattr(render, "key_bounds", render.KeyBounds())
     asked = []
     write = render._write_keys
 
@@ -624,11 +624,11 @@ def write_capacities(monkeypatch):
 def test_the_kept_bound_follows_how_much_the_totals_move():
     """Frames that repeat keep almost no headroom (memory: 24 bytes a slot); frames whose totals
     move keep twice their spread, at most an eighth; the bound holds the last 16 frames' largest."""
-    from tomgs.render.frame import MAX_INTERSECTIONS, _Bounds, _Frame
+    from tomgs.render.frame import MAX_INTERSECTIONS, KeyBounds, Frame
 
-    frame = _Frame(64, 48, 0.0, 0.0, 0.01, 1e10, "cpu")
-    other = _Frame(48, 64, 0.0, 0.0, 0.01, 1e10, "cpu")
-    bounds = _Bounds()
+    frame = Frame(64, 48, 0.0, 0.0, 0.01, 1e10, "cpu")
+    other = Frame(48, 64, 0.0, 0.0, 0.01, 1e10, "cpu")
+    bounds = KeyBounds()
     assert bounds.capacity(frame) == 0  # a size not seen yet: keys after the sync
     for _ in range(3):
         bounds.remember(frame, 1_000_000)
@@ -638,7 +638,7 @@ def test_the_kept_bound_follows_how_much_the_totals_move():
     bounds.remember(frame, 500_000)  # spread 500,000: an eighth at most
     assert bounds.capacity(frame) == 1_000_000 + 125_000 + 1_000_000 // 256 + 256
     assert bounds.capacity(other) == 0  # per frame size
-    for _ in range(_Bounds.FRAMES):
+    for _ in range(KeyBounds.FRAMES):
         bounds.remember(frame, 2_000)  # the large totals leave the window
     assert bounds.capacity(frame) == 2_000 + 2_000 // 256 + 256
     bounds.remember(frame, MAX_INTERSECTIONS)
@@ -663,7 +663,7 @@ def test_frames_past_the_kept_bound_write_their_keys_again(write_capacities, dev
     served the first write."""
     from tomgs.render import frame as render
 
-    monkeypatch.setattr(render, "inline_lanes", inline_lanes)
+    monkeypatch.setattr(render.kernel_choices, "inline_lanes", inline_lanes)
     width, height = 96, 80
     # (1500 left two pixels of a float32 render 8e-4 from the float64 reference on the H100, the same
     # before tile keys moved before the sync: a scene at the float32 edge, not this path)

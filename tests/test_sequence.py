@@ -84,12 +84,12 @@ def test_a_frame_past_its_keys_is_rendered_again(device, fresh_bounds, monkeypat
 
 
 def _frame_of(renderer: ClipRenderer):
-    """A _Frame of the renderer's size (whose bound its frames share)."""
-    from tomgs.render.frame import _Frame
+    """A Frame of the renderer's size (whose bound its frames share)."""
+    from tomgs.render.frame import Frame
     from tomgs.runtime import scope
 
     with scope(renderer.device) as wp_device:
-        return _Frame(renderer.cameras.width, renderer.cameras.height, 0.0, 0.0, 0.01, 1e10, wp_device)
+        return Frame(renderer.cameras.width, renderer.cameras.height, 0.0, 0.0, 0.01, 1e10, wp_device)
 
 
 @pytest.mark.parametrize("device", DEVICES)

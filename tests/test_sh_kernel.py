@@ -19,7 +19,8 @@ import pytest
 import torch
 
 import tomgs
-from tomgs.render.sh import DIR_EPS, eval_sh, fused_sh_to_colors, sh_to_colors
+from tomgs.constants import SH_C0, SH_DIR_EPS as DIR_EPS
+from tomgs.render.sh import eval_sh, fused_sh_to_colors, sh_to_colors
 from scenes import INPUT_NAMES, SEED_BASE, devices, look_at, random_scene, rel_l2
 
 DEVICES = devices()
@@ -161,7 +162,7 @@ def test_gaussians_at_and_near_the_camera_centre(degree, device):
     sh = torch.randn(len(dists), (degree + 1) ** 2, 3, generator=g, dtype=torch.float64)
     check_against_oracle(sh, means, viewmat, device, seed=degree)
     colors = fused_sh_to_colors(sh[:1].to(device), means[:1].to(device), viewmat.to(device)).cpu()
-    dc = torch.clamp_min(tomgs.render.sh._C0 * _f32(sh[0, 0]) + 0.5, 0.0)
+    dc = torch.clamp_min(SH_C0 * _f32(sh[0, 0]) + 0.5, 0.0)
     assert torch.allclose(colors[0].double(), dc, rtol=1e-6, atol=1e-7)
 
 
@@ -207,7 +208,7 @@ def test_clamp_passes_gradient_only_above_zero_and_keeps_nan(device):
     colors.sum().backward()
     passed = (ins[0].grad[:, 0] != 0).cpu()
     assert passed.sum() == 9  # torch.clamp_min's mask, on the value before the clamp: NaN and below 0 get nothing
-    assert torch.equal(passed, tomgs.render.sh._C0 * sh[:, 0].float() + 0.5 >= 0)
+    assert torch.equal(passed, SH_C0 * sh[:, 0].float() + 0.5 >= 0)
 
 
 @pytest.mark.parametrize("device", DEVICES)

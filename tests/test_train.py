@@ -21,6 +21,7 @@ from tomgs.render.sequence import render_sequence
 from tomgs.train import Trainer, preset
 from tomgs.train.checkpoint import read_checkpoint
 from tomgs.train.densify import Densifier
+from tomgs.train.init import initial_model
 from tomgs.train.optim import SeenAdam
 from tomgs.train.sampler import FrameSampler
 from scenes import devices
@@ -677,7 +678,7 @@ def test_per_frame_points_start_on_the_surface_the_tracked_points_lie_on():
 
 
 def test_a_depth_grid_samples_a_linear_function_exactly():
-    from tomgs.train.trainer import sample_grid
+    from tomgs.train.init import sample_grid
 
     gh, gw, width, height = 7, 11, 100.0, 60.0
     ys, xs = torch.meshgrid(torch.linspace(0, height, gh, dtype=torch.float64),
@@ -703,7 +704,8 @@ def test_initial_cloud_is_built_a_frame_at_a_time_not_on_the_host():
     trainer = Trainer(images, cams, points, np.full((200, 3), 0.5, np.float32), config, CPU)
     tracemalloc.start()
     try:
-        model, _ = trainer._initial_model(points, np.full((200, 3), 0.5, np.float32), lambda done, total: None)
+        model, _, _ = initial_model(trainer.frames, cams, trainer.config, CPU, points,
+                                    np.full((200, 3), 0.5, np.float32))
         _, peak = tracemalloc.get_traced_memory()
     finally:
         tracemalloc.stop()

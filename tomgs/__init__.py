@@ -10,7 +10,7 @@ from tomgs._lazy import lazy_exports
 
 __version__ = "0.1.0"
 
-# public name -> owning module (one module owns each concept; see DESIGN.md)
+# public name -> owning module (one module owns each concept; docs/design.md)
 _EXPORTS = {
     "rasterize": "tomgs.render",
     "FrameGraph": "tomgs.render.captured",

@@ -1,6 +1,6 @@
 """Per-frame cameras of a clip: poses, intrinsics, image size and frame times.
 
-Conventions (DESIGN.md): OpenCV axes (x right, y down, z forward); `c2w` maps camera to world;
+Conventions (docs/design.md): OpenCV axes (x right, y down, z forward); `c2w` maps camera to world;
 frame 0 is the identity pose; K in pixels with pixel centres at +0.5 (pixel (i, j) is centred at
 x = j + 0.5, y = i + 0.5); time t in [0, 1], frame k of n at t = k / (n - 1).
 

@@ -1,4 +1,4 @@
-"""Rasterizer constants shared by the Warp kernels and the torch reference (REFERENCES.md)."""
+"""Rasterizer constants shared by the Warp kernels and the torch reference (3DGS's values, docs/design.md)."""
 
 TILE_SIZE = 16  # pixels per tile side; one tile is one CUDA block of 256 threads
 ALPHA_MIN = 1.0 / 255.0  # a Gaussian below this opacity (temporal or per pixel) is skipped
@@ -32,3 +32,19 @@ MAX_SIDE = 16384
 file or a scene header bounds these numbers, and renders allocate width x height x 3 floats (a
 65536 side asks for 51 GB): 16384 (16K) is above what video codecs encode (H.264 and HEVC levels
 stop at 8192) and what GPUs take as a texture side, and one float RGB frame of it is 3.2 GB."""
+
+# the spherical-harmonics basis of degree 0..3 (3DGS's constants; tomgs.render.sh and tomgs.kernels.sh)
+SH_C0 = 0.28209479177387814
+SH_C1 = 0.4886025119029199
+SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+SH_C3 = (
+    -0.5900435899266435,
+    2.890611442640554,
+    -0.4570457994644658,
+    0.3731763325901154,
+    -0.4570457994644658,
+    1.445305721320277,
+    -0.5900435899266435,
+)
+# a view direction is (mean - centre) / max(|mean - centre|, SH_DIR_EPS): torch's normalize, its default eps
+SH_DIR_EPS = 1e-12

@@ -148,7 +148,7 @@ def write_example(folder) -> dict[str, Path]:
     """Render the bundled clip into `folder` (created): ball.mp4 (H.264) and ball_masks/NNNNN.png
     (white where the ball's alpha passes 1/2), what tomgs/data ships. Returns the paths by name."""
     from tomgs.io.writer import write_frames
-    from tomgs.sequence import render_sequence
+    from tomgs.render.sequence import render_sequence
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from tomgs.text import counted
+from tomgs.errors import counted
 
 SSIM_WINDOW = 11
 SSIM_SIGMA = 1.5

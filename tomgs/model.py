@@ -5,7 +5,7 @@ Stored (unconstrained, what the optimiser sees), per Gaussian:
     sh_dc [N,1,3]  sh_rest [N,K-1,3] (K = (max_degree + 1)^2)  t_means [N]  log_t_scales [N]
 Activated (what the renderer takes): scales = exp(log_scales), opacities = sigmoid(logits),
 t_scales = exp(log_t_scales), SH truncated to the active degree. Optimising log(sigma) keeps
-the temporal window's gradient bounded (DESIGN.md: d o / d log sigma = o z^2 <= 2a/e).
+the temporal window's gradient bounded (docs/design.md: d o / d log sigma = o z^2 <= 2a/e).
 
 The activations and their inverses (`activated_*`, `stored_*`) live here and nowhere else: code
 that holds raw parameters (densification, edits writing geometry back) goes through them; the
@@ -20,8 +20,8 @@ import numpy as np
 import torch
 
 from tomgs import temporal
-from tomgs.constants import ALPHA_MIN
-from tomgs.render.sh import _C0, sh_degree_of
+from tomgs.constants import ALPHA_MIN, SH_C0
+from tomgs.render.sh import sh_degree_of
 
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest", "t_means", "log_t_scales")
 RENDER_INPUTS = ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales")  # `render_inputs` keys
@@ -72,7 +72,7 @@ def _sh_coefficients(sh_dc: torch.Tensor, sh_rest: torch.Tensor, degree: int) ->
 
 def rgb_to_sh_dc(rgb: torch.Tensor) -> torch.Tensor:
     """DC coefficient [N,1,3] whose colour (C0 * dc + 0.5) is `rgb` [N,3]."""
-    return ((rgb - 0.5) / _C0)[:, None, :]
+    return ((rgb - 0.5) / SH_C0)[:, None, :]
 
 
 class GaussianModel(torch.nn.Module):

@@ -1,4 +1,4 @@
-"""Temporal opacity: the one formula (DESIGN.md "The representation"), and its alive window.
+"""Temporal opacity: the one formula (docs/design.md "The representation"), and its alive window.
 
 Gaussian i with base opacity a, temporal mean m and temporal scale sigma has, at clip time t,
 

@@ -1,5 +1,5 @@
 """`python -m tomgs.cli`: the `tomgs` command."""
 
-from tomgs.cli import main
+from tomgs.cli.app import main
 
 main()

@@ -7,11 +7,11 @@ from pathlib import Path
 
 import click
 
-from tomgs.cli import UsageError, is_scene_path, main, overwrite_option, scene_cameras_option, user_errors
+from tomgs.cli.common import UsageError, is_scene_path, overwrite_option, scene_cameras_option, user_errors
 from tomgs.cli.params import Number
 
 
-@main.command()
+@click.command()
 @click.argument("scene", type=click.Path(path_type=str))
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=str),
               help="the compressed scene (.tsog); a .ply writes a PLY scene back")

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import click
 
-from tomgs.cli import device_option, main, overwrite_option, progress_bar, user_errors
+from tomgs.cli.common import device_option, overwrite_option, progress_bar, user_errors
 from tomgs.cli.params import Number, Size
 
 
-@main.command()
+@click.command()
 @click.option("-o", "--output", default="demo.mp4", show_default=True, type=click.Path(path_type=str),
               help="an .mp4/.avi/.mov/.mkv file, or a folder (no suffix) for PNG frames")
 @click.option("--frames", "num_frames", default=48, show_default=True,
@@ -27,7 +27,7 @@ def demo(output, num_frames, size, device, overwrite):
       tomgs demo -o frames/ --size 854x480 --device cuda
     """
     from tomgs.io.writer import check_output
-    from tomgs.preflight import check_device
+    from tomgs.cli.preflight import check_device
 
     width, height = size
     check_device(device)
@@ -46,7 +46,7 @@ def demo(output, num_frames, size, device, overwrite):
     click.echo(report.summary())
 
 
-@main.command()
+@click.command()
 @click.argument("names", nargs=-1, metavar="[NAME]...")
 @user_errors
 def example(names):

@@ -4,23 +4,22 @@ from __future__ import annotations
 
 import click
 
-from tomgs.cli import (
+from tomgs.cli.common import (
     OUTPUT_HELP,
     OVER_HELP,
     SELECT_HELP,
     UsageError,
     is_scene_path,
-    main,
     render_options,
     render_planned,
     selector_paths,
     user_errors,
 )
 from tomgs.cli.params import COORDINATES, SCALES, Number, Numbers
-from tomgs.text import counted
+from tomgs.errors import counted
 
 
-@main.command()
+@click.command()
 @click.argument("scene", type=click.Path(path_type=str))
 @click.option("-o", "--output", required=True, type=click.Path(path_type=str),
               help="the edited scene (.ply, or .tsog compressed), or a video / PNG folder to render the edit to")
@@ -58,7 +57,7 @@ def edit(scene, output, selectors, translate, rotate, scale, centre, duplicate, 
       tomgs edit fg.ply -o big.ply --scale 1.3 --render big.mp4 --over bg.ply
     """
     from tomgs.outputs import check_distinct, check_file_output
-    from tomgs.preflight import check_existing, check_render, check_scene, check_selectors
+    from tomgs.cli.preflight import check_existing, check_render, check_scene, check_selectors
 
     check_distinct({"-o": output, "--render": render_out},
                    {"SCENE": scene, "--keyframes": keyframes, "--over": over, "--select": selector_paths(selectors)})

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import click
 
-from tomgs.cli import check_json, device_option, main, overwrite_option, say, user_errors, write_json
+from tomgs.cli.common import check_json, device_option, overwrite_option, say, user_errors, write_json
 
 
-@main.command("eval")
+@click.command("eval")
 @click.argument("scene", type=click.Path(path_type=str))
 @click.argument("video", type=click.Path(path_type=str))
 @click.option("--lpips", "lpips_weights", type=click.Path(path_type=str), default=None,
@@ -35,7 +35,7 @@ def evaluate_command(scene, video, lpips_weights, json_out, force, device, overw
       tomgs eval scene.ply other.mp4 --force                # another clip, deliberately
     """
     from tomgs.outputs import check_distinct
-    from tomgs.preflight import check_device, check_eval_video, check_existing, check_scene, refuse_or_note
+    from tomgs.cli.preflight import check_device, check_eval_video, check_existing, check_scene, refuse_or_note
 
     check_distinct({"--json": json_out}, {"SCENE": scene, "VIDEO": video, "--lpips": lpips_weights})
     to_stdout = check_json(json_out, overwrite)

@@ -6,11 +6,11 @@ from pathlib import Path
 
 import click
 
-from tomgs.cli import UsageError, main, overwrite_option, scene_cameras_option, user_errors
+from tomgs.cli.common import UsageError, overwrite_option, scene_cameras_option, user_errors
 from tomgs.cli.params import SH_DEGREE, Number
 
 
-@main.command()
+@click.command()
 @click.argument("scene", type=click.Path(path_type=str))
 @click.option("-o", "--output", type=click.Path(path_type=str), default=None,
               help="the static scene: .ply (INRIA 3DGS), .splat (antimatter15), .spz (Niantic) or .sog (PlayCanvas)")
@@ -43,7 +43,7 @@ def export(scene, output, frame, clip_time, sh_degree, layer_paths, cameras_out,
       tomgs export scene.ply --cameras-out cams/                # COLMAP + transforms.json only
     """
     from tomgs.outputs import check_distinct, check_file_output, check_folder_output
-    from tomgs.preflight import check_scene
+    from tomgs.cli.preflight import check_scene
 
     if output is None and cameras_out is None:
         raise UsageError("give -o OUT (.ply, .splat, .spz or .sog) for the static scene, --cameras-out DIR, or both")

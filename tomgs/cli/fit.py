@@ -7,12 +7,11 @@ from pathlib import Path
 
 import click
 
-from tomgs.cli import (
+from tomgs.cli.common import (
     check_json,
     clip_options,
     device_option,
     json_option,
-    main,
     overwrite_option,
     phase_bars,
     say,
@@ -20,10 +19,10 @@ from tomgs.cli import (
     write_json,
 )
 from tomgs.cli.params import SEED, SH_DEGREE, Number
-from tomgs.text import counted
+from tomgs.errors import counted
 
 
-@main.command()
+@click.command()
 @click.argument("video", type=click.Path(path_type=str))
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=str),
               help="scene file to write (.ply, or .tsog compressed); a .csv log and a .psnr.png plot are written "
@@ -82,7 +81,7 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
       torchrun --nproc_per_node 8 -m tomgs.cli fit long.mp4 -o scene.ply
     """
     from tomgs.outputs import check_fit_outputs
-    from tomgs.preflight import check_clip, check_device, check_poses
+    from tomgs.cli.preflight import check_clip, check_device, check_poses
     from tomgs.train.multigpu import pool as rank_pool
 
     if gpus is not None and gpus > 1 and not rank_pool.under_torchrun():  # a host that cannot run them starts none
@@ -100,8 +99,9 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
     from tomgs.train import FitInterrupted, output_paths
     from tomgs.train import fit as fit_scene
     from tomgs.train import preset as make_config
-    from tomgs.train.pipeline import phase_text, process_started
-    from tomgs.train.multigpu.rank import ShardFailed, is_leader
+    from tomgs.train.multigpu.launch import ShardFailed
+    from tomgs.train.multigpu.pool import is_leader
+    from tomgs.train.phases import phase_text, process_started
 
     beside = {f"the fit's {what}": path for what, path in output_paths(output).items() if what != "scene"}
     check_distinct({"-o": output, **beside, "--json": json_out},
@@ -164,4 +164,4 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
                                clip_psnr=result.clip_psnr, clip_frames=result.clip_frames or len(result.cameras),
                                scene_bytes=nbytes, bits_per_pixel=bpp,
                                csv=str(paths["csv"]), plot=str(paths["plot"]),
-                               notes=list(result.notes), shards=getattr(result, "shards", None)))
+                               notes=list(result.notes), shards=result.shards))

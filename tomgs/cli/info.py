@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import click
 
-from tomgs.cli import main, overwrite_option, scene_cameras_option, user_errors
+from tomgs.cli.common import overwrite_option, scene_cameras_option, user_errors
 
 
-@main.command()
+@click.command()
 @click.argument("scene", type=click.Path(path_type=str))
 @click.option("--plot", type=click.Path(dir_okay=False, path_type=str), default=None,
               help="write a PNG histogram of temporal scales (log axis) here")
@@ -28,7 +28,7 @@ def info(scene, plot, as_json, cameras_path, overwrite):
     import json
 
     from tomgs.outputs import check_distinct, check_file_output, check_png_path
-    from tomgs.preflight import check_scene
+    from tomgs.cli.preflight import check_scene
 
     check_distinct({"--plot": plot}, {"SCENE": scene, "--cameras": cameras_path})
     if plot is not None:

@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import click
 
-from tomgs.cli import (
+from tomgs.cli.common import (
     UsageError,
     check_json,
     clip_options,
     json_option,
-    main,
     overwrite_option,
     phase_bars,
     say,
@@ -18,7 +17,7 @@ from tomgs.cli import (
 )
 
 
-@main.command()
+@click.command()
 @click.argument("video", type=click.Path(path_type=str))
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=str, allow_dash=True),
               help="cameras JSON to write (schema in tomgs.cameras); '-' for stdout")
@@ -40,7 +39,7 @@ def poses(video, output, masks, frames, method, focal, max_side, json_out, overw
       tomgs fit clip.mp4 -o scene.ply --poses cameras.json
     """
     from tomgs.outputs import check_distinct, check_file_output, existing_path
-    from tomgs.preflight import check_clip, check_poses
+    from tomgs.cli.preflight import check_clip, check_poses
 
     check_distinct({"-o": None if output == "-" else output, "--json": json_out},
                    {"VIDEO": video, "--masks": masks, "--method": existing_path(method)})

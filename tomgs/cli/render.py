@@ -4,17 +4,10 @@ from __future__ import annotations
 
 import click
 
-from tomgs.cli import (
-    OUTPUT_HELP,
-    main,
-    render_options,
-    render_planned,
-    scene_cameras_option,
-    user_errors,
-)
+from tomgs.cli.common import OUTPUT_HELP, render_options, render_planned, scene_cameras_option, user_errors
 
 
-@main.command()
+@click.command()
 @click.argument("scene", type=click.Path(path_type=str))
 @click.option("-o", "--output", required=True, type=click.Path(path_type=str), help=OUTPUT_HELP)
 @click.option("--layer", "layer_paths", multiple=True, type=click.Path(path_type=str),
@@ -34,7 +27,7 @@ def render(scene, frames, output, device, background, fps, layer_paths, overwrit
       tomgs render edited.ply --cameras cams/cameras.json -o out.mp4   # re-saved by SuperSplat
     """
     from tomgs.outputs import check_distinct
-    from tomgs.preflight import check_render, check_scene
+    from tomgs.cli.preflight import check_render, check_scene
 
     check_distinct({"-o": output}, {"SCENE": scene, "--layer": list(layer_paths), "--cameras": cameras_path})
 

@@ -4,24 +4,22 @@ from __future__ import annotations
 
 import click
 
-from tomgs.cli import (
+from tomgs.cli.common import (
     OUTPUT_HELP,
     OVER_HELP,
     SELECT_HELP,
     UsageError,
     device_option,
-    main,
     overwrite_option,
     render_planned,
     selector_paths,
     user_errors,
 )
 from tomgs.cli.params import CELL, COORDINATES, FPS, Colour, Number, Numbers
-from tomgs.errors import InputError
-from tomgs.text import counted
+from tomgs.errors import InputError, counted
 
 
-@main.command()
+@click.command()
 @click.argument("scene", type=click.Path(path_type=str))
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=str),
               help="vertex sequence to write (.npz); its cage is written beside it as NAME.cage.ply")
@@ -65,7 +63,7 @@ def simulate(scene, output, selectors, render_out, over, drop, spin, velocity, s
       tomgs simulate fg.ply --drop 0.25 -o drop.npz --render drop.mp4 --over bg.ply
     """
     from tomgs.outputs import check_distinct, check_file_output
-    from tomgs.preflight import check_device, check_render, check_scene, check_selectors
+    from tomgs.cli.preflight import check_device, check_render, check_scene, check_selectors
 
     if not output.lower().endswith(".npz"):
         raise UsageError(f"-o {output}: the shot is a vertex sequence, an .npz")

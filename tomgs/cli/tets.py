@@ -6,13 +6,12 @@ from pathlib import Path
 
 import click
 
-from tomgs.cli import (
+from tomgs.cli.common import (
     OUTPUT_HELP,
     OVER_HELP,
     SELECT_HELP,
     UsageError,
     is_scene_path,
-    main,
     overwrite_option,
     render_options,
     render_planned,
@@ -23,7 +22,7 @@ from tomgs.cli.params import CELL
 from tomgs.errors import InputError
 
 
-@main.group()
+@click.group()
 def tets():
     """Gaussians as tetrahedra: export them (for Blender or a simulator), import moved vertices."""
 
@@ -49,7 +48,7 @@ def tets_export(scene, output, selectors, cage, cell, overwrite):
       tomgs tets export scene.ply -o cage.ply --select mask:camel_masks/ --cage --cell 0.05
     """
     from tomgs.outputs import check_distinct, check_file_output
-    from tomgs.preflight import check_scene, check_selectors
+    from tomgs.cli.preflight import check_scene, check_selectors
 
     check_distinct({"-o": output}, {"SCENE": scene, "--select": selector_paths(selectors)})
     if cell is not None and not cage:
@@ -95,7 +94,7 @@ def tets_import(scene, tets_file, sequence, output, over, frames, device, backgr
       tomgs tets import fg.ply cage.ply sim.npz -o shot.mp4 --over bg.ply
     """
     from tomgs.outputs import check_distinct, check_file_output
-    from tomgs.preflight import check_existing, check_render, check_scene
+    from tomgs.cli.preflight import check_existing, check_render, check_scene
 
     check_distinct({"-o": output}, {"SCENE": scene, "TETS": tets_file, "SEQUENCE": sequence, "--over": over})
     cameras, _ = check_scene(scene)

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import click
 
-from tomgs.cli import device_option, main, user_errors
+from tomgs.cli.common import device_option, user_errors
 from tomgs.cli.params import Number
 
 
-@main.command()
+@click.command()
 @click.argument("scene", type=click.Path(path_type=str))
 @click.option("--layer", "layer_paths", multiple=True, type=click.Path(path_type=str),
               help="a scene shown over SCENE as `tomgs render --layer` composites it; repeat for more, the last "
@@ -29,7 +29,7 @@ def view(scene, layer_paths, host, port, device):
       tomgs view scene.ply                     # then open the printed URL
       tomgs view bg.ply --layer fg.ply --port 8081
     """
-    from tomgs.preflight import check_device, check_scene
+    from tomgs.cli.preflight import check_device, check_scene
 
     check_device(device)
     for path in (scene, *layer_paths):

@@ -119,7 +119,7 @@ def read_masks(folder: Path, cameras) -> np.ndarray:
     one per scene frame, or one per source frame (then picked by the scene's frame numbers)."""
     import cv2
 
-    from tomgs.io.video import _read_image, list_images
+    from tomgs.io.video import read_image, list_images
 
     if not folder.is_dir():
         raise InputError(f"mask folder {folder} does not exist: give a folder with one mask image per frame")
@@ -134,7 +134,7 @@ def read_masks(folder: Path, cameras) -> np.ndarray:
                          f"{int(numbers.min())}..{int(numbers.max())}: give one mask per scene frame or per source frame")
     out = np.empty((T, cameras.height, cameras.width), dtype=bool)
     for k, f in enumerate(picked):  # masks of the source frames may be larger than a --max-side fit
-        m = _read_image(f, cv2.IMREAD_GRAYSCALE)
+        m = read_image(f, cv2.IMREAD_GRAYSCALE)
         out[k] = cv2.resize(m, (cameras.width, cameras.height), interpolation=cv2.INTER_NEAREST) > 127
     return out
 

@@ -1,4 +1,4 @@
-"""Gaussians <-> tetrahedra, exact both ways (REFERENCES.md "Gaussians <-> tetrahedra").
+"""Gaussians <-> tetrahedra, exact both ways.
 
 Gaussian i (mean mu, rotation R, scales S) becomes the regular tetrahedron x_k = mu + c R S v_k,
 k = 0..3, with v_k the rows of `DIRECTIONS` and c = `TET_SIZE`. Because sum v_k = 0 and

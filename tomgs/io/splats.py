@@ -2,7 +2,7 @@
 PlayCanvas's `.sog` (tomgs.io.sog).
 
 Each writer takes one `StaticGaussians` (what `tomgs.edit.export.static_moment` makes of a moment of a
-clip) and writes atomically. The layouts, as the readers expect them (REFERENCES.md, "Files"):
+clip) and writes atomically. The layouts, as the readers expect them:
 
     .ply    one `vertex` element of float32: x y z nx ny nz f_dc_0..2 f_rest_* (channel-major)
             opacity (logit) scale_0..2 (log) rot_0..3 (w x y z); no comment, no other element,
@@ -30,9 +30,10 @@ from pathlib import Path
 
 import numpy as np
 
+from tomgs.constants import SH_C0
 from tomgs.io.sog import sog_bytes
 from tomgs.outputs import atomic_file
-from tomgs.render.sh import _C0, sh_degree_of
+from tomgs.render.sh import sh_degree_of
 
 FORMATS = (".ply", ".splat", ".spz", ".sog")
 FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")  # StaticGaussians' arrays
@@ -122,7 +123,7 @@ def _splat_bytes(g: StaticGaussians) -> bytes:
     rows = np.zeros(n, dtype=[("position", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4), ("rotation", "u1", 4)])
     rows["position"] = g.means
     rows["scale"] = np.exp(g.log_scales.astype(np.float64))
-    rows["rgba"][:, :3] = _bytes((0.5 + _C0 * g.sh_dc.astype(np.float64)) * 255.0)
+    rows["rgba"][:, :3] = _bytes((0.5 + SH_C0 * g.sh_dc.astype(np.float64)) * 255.0)
     rows["rgba"][:, 3] = _bytes(opacity * 255.0)
     rows["rotation"] = _bytes(_unit_quats(g.quats) * 128.0 + 128.0)
     return rows[order].tobytes()

@@ -204,7 +204,7 @@ def _check_image(path: Path) -> tuple[int, int, str, int]:
     return found
 
 
-def _read_image(path: Path, flags: int) -> np.ndarray:
+def read_image(path: Path, flags: int) -> np.ndarray:
     import cv2
 
     _check_image(path)
@@ -318,7 +318,7 @@ def read_video(path, frames=None, max_side: int | None = None, masks=None, progr
         idx = _select(total, sel, frames, path)
         kept = _Frames(path, max_side, len(idx))
         for n, i in enumerate(idx):
-            kept.add(_read_image(files[i], cv2.IMREAD_COLOR), str(files[i]))
+            kept.add(read_image(files[i], cv2.IMREAD_COLOR), str(files[i]))
             report(n + 1, len(idx))
         decoded = len(idx)
     else:
@@ -544,7 +544,7 @@ def _read_masks(folder: Path, source: Source, idx, size: tuple[int, int]) -> np.
     h, w = source.height, source.width
     out = np.empty((len(idx), *size), dtype=bool)
     for k, i in enumerate(idx):
-        m = _read_image(files[i], cv2.IMREAD_GRAYSCALE)
+        m = read_image(files[i], cv2.IMREAD_GRAYSCALE)
         if m.shape != (h, w):
             raise InputError(f"mask {files[i]} is {m.shape[1]}x{m.shape[0]} but the frames are {w}x{h}: "
                              "masks must have the size of the source frames")

@@ -3,9 +3,9 @@
     colors = max(eval_sh(sh, normalize(mean - camera centre)) + 0.5, 0)      (tomgs.render.sh.sh_to_colors)
 
 One thread per Gaussian reads its K x 3 coefficients, its mean and the camera once; the torch
-formula it replaces runs ~40 elementwise kernels forward and more backward. The basis, its
-constants and the direction's rules are tomgs.render.sh's (the oracle): a mean component that is not
-finite counts as 0 (and gets no gradient); the direction is (mean - centre) / max(|mean - centre|,
+formula it replaces runs ~40 elementwise kernels forward and more backward. The basis and the
+direction's rules are tomgs.render.sh's (the oracle; the constants are tomgs.constants'): a mean
+component that is not finite counts as 0 (and gets no gradient); the direction is (mean - centre) / max(|mean - centre|,
 DIR_EPS), as torch's normalize, so a Gaussian at the camera centre sees direction 0 (its colour is
 the DC term) and its mean's gradient is the direction's divided by DIR_EPS. The clamp passes the
 gradient where value + 0.5 >= 0 and keeps NaN, as torch.clamp_min. float32; degree 0..3.
@@ -13,26 +13,26 @@ gradient where value + 0.5 >= 0 and keeps NaN, as torch.clamp_min. float32; degr
 
 import warp as wp
 
-from tomgs.render import sh as basis
+from tomgs import constants
 from tomgs.kernels.rows import put
 
 wp.set_module_options({"enable_backward": False})
 
-C0 = wp.constant(basis._C0)
-C1 = wp.constant(basis._C1)
-C2_0 = wp.constant(basis._C2[0])
-C2_1 = wp.constant(basis._C2[1])
-C2_2 = wp.constant(basis._C2[2])
-C2_3 = wp.constant(basis._C2[3])
-C2_4 = wp.constant(basis._C2[4])
-C3_0 = wp.constant(basis._C3[0])
-C3_1 = wp.constant(basis._C3[1])
-C3_2 = wp.constant(basis._C3[2])
-C3_3 = wp.constant(basis._C3[3])
-C3_4 = wp.constant(basis._C3[4])
-C3_5 = wp.constant(basis._C3[5])
-C3_6 = wp.constant(basis._C3[6])
-DIR_EPS = wp.constant(basis.DIR_EPS)
+C0 = wp.constant(constants.SH_C0)
+C1 = wp.constant(constants.SH_C1)
+C2_0 = wp.constant(constants.SH_C2[0])
+C2_1 = wp.constant(constants.SH_C2[1])
+C2_2 = wp.constant(constants.SH_C2[2])
+C2_3 = wp.constant(constants.SH_C2[3])
+C2_4 = wp.constant(constants.SH_C2[4])
+C3_0 = wp.constant(constants.SH_C3[0])
+C3_1 = wp.constant(constants.SH_C3[1])
+C3_2 = wp.constant(constants.SH_C3[2])
+C3_3 = wp.constant(constants.SH_C3[3])
+C3_4 = wp.constant(constants.SH_C3[4])
+C3_5 = wp.constant(constants.SH_C3[5])
+C3_6 = wp.constant(constants.SH_C3[6])
+DIR_EPS = wp.constant(constants.SH_DIR_EPS)
 
 
 @wp.func

@@ -1,4 +1,4 @@
-"""The built-in, weight-free camera tracker (REFERENCES.md, "Camera poses").
+"""The built-in, weight-free camera tracker.
 
 frames (+ moving masks), read once, one at a time, into small copies at a working resolution
 (tracks.WorkingFrames) -> static-region masks -> KLT tracks, in one pass that keeps the tracks and

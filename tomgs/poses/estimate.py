@@ -9,8 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from tomgs.cameras import Cameras, intrinsics
-from tomgs.errors import InputError
-from tomgs.text import counted
+from tomgs.errors import InputError, counted
 
 METHODS = ("auto", "identity", "a .json/.npy pose file, a COLMAP text folder, or an .onnx model")
 

@@ -1,5 +1,5 @@
 """The alive index: which Gaussians may be alive at each frame, so that a frame's work follows what
-lives in it rather than the whole cloud (DESIGN.md "Principles": no work for the dead).
+lives in it rather than the whole cloud (docs/design.md "Principles": no work for the dead).
 
 Frames, in time order, are grouped into buckets of F consecutive frames; bucket b lists every
 Gaussian whose alive window (tomgs.temporal.alive_window, widened by GATHER_SLACK so that float32

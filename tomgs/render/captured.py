@@ -44,10 +44,10 @@ import torch
 import warp as wp
 
 from tomgs.errors import RenderError
-from tomgs.render.inputs import _check_rows, prepare_inputs
 from tomgs.kernels import project
-from tomgs.render import frame as render
-from tomgs.render.frame import FrameCounts, _check_scalars, _check_time, _Frame, issue_frame
+from tomgs.render import frame as frame_layer
+from tomgs.render.frame import Frame, FrameCounts, check_scalars, check_time, issue_frame
+from tomgs.render.inputs import check_rows, prepare_inputs
 from tomgs.runtime import NO_ARRAY, launch, scope, torch_stream, warp_device, wrap
 
 
@@ -74,7 +74,7 @@ class FrameGraph:
                  shrink_keys: bool = True):
         self.cloud = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
                           t_means=t_means, t_scales=t_scales)
-        _check_scalars(width, height, 0.0, near, far)
+        check_scalars(width, height, 0.0, near, far)
         device = means.device if isinstance(means, torch.Tensor) else torch.device("cpu")
         f32 = dict(device=device, dtype=torch.float32)
         if rows_capacity and any(isinstance(x, torch.Tensor) and x.requires_grad for x in self.cloud.values()):
@@ -125,7 +125,7 @@ class FrameGraph:
         time t, as `rasterize` gives them (differentiable in the cloud's tensors that require grad);
         counts a tomgs.render.FrameCounts: read it (after the backward) before trusting the image.
         `rows` (int [M], made with rows_capacity, and then required): render those Gaussians only."""
-        t_hi, t_lo = _check_time(t)  # the size and planes were checked when it was made
+        t_hi, t_lo = check_time(t)  # the size and planes were checked when it was made
         viewmat, K = self._camera(viewmat, "viewmat", (4, 4)), self._camera(K, "K", (3, 3))
         count = self._take_rows(rows)
         storage = self._storage_of_cloud()
@@ -164,7 +164,7 @@ class FrameGraph:
             return 0
         if rows is None:
             raise RenderError("this FrameGraph renders rows (made with rows_capacity): pass the rows of each frame")
-        rows = _check_rows(rows, self.device)
+        rows = check_rows(rows, self.device)
         if len(rows) > len(self._rows):  # the capture reads the old buffer: capture again for the new one
             self._rows = self._scalars["rows"] = torch.zeros(len(rows), device=self.device, dtype=torch.int32)
             self.capacity = 0
@@ -191,15 +191,15 @@ class FrameGraph:
         along it, and a capacity that followed them captured camel's 90 frames 9 times in 6 passes);
         captured again at each change (two eager frames and the capture: 7-12 ms on an H100 at
         854x480). `frame`: set_frame's arguments, for the frames run here; `count`: the frame's rows."""
-        bound = render._bounds.capacity(self._frame)
-        if self.capacity and render._bounds.largest(self._frame) <= self.capacity and (
+        bound = frame_layer.key_bounds.capacity(self._frame)
+        if self.capacity and frame_layer.key_bounds.largest(self._frame) <= self.capacity and (
                 not self._shrink_keys or self.capacity <= bound + bound // 16):
             return
         launch(project.set_frame, 1, device=wp_device, args=frame)
         if not bound:  # a first frame of this size: counted (the bound learns it)
             with torch.no_grad():
                 issue_frame(self._prepare(count), self._frame, 0, wait=True)
-        self.capacity = render._bounds.capacity(self._frame)
+        self.capacity = frame_layer.key_bounds.capacity(self._frame)
         self.captures += 1
         if self._captured:
             with torch.cuda.device(self.device):  # torch.cuda.graph captures on the current device
@@ -346,24 +346,24 @@ def timed_frame(width: int, height: int, near: float, far: float, device: torch.
     (float32 [2], t_hi and t_lo: device memory written before each replay, as `time_table`'s rows) and,
     with `row_count` (a descriptor of int32 [1]), whose rows are that many of those given."""
     with scope(device) as wp_device:
-        return _Frame(width, height, 0.0, 0.0, near, far, wp_device, times=wrap(times), row_count=row_count)
+        return Frame(width, height, 0.0, 0.0, near, far, wp_device, times=wrap(times), row_count=row_count)
 
 
 def time_table(times, device: torch.device) -> torch.Tensor:
     """float32 [T,2] (t_hi, t_lo) of each time t in `times` (t = t_hi + t_lo to ~48 bits, as a replayed
     frame reads it): a captured step picks its frame's row on the device."""
-    return torch.tensor([_check_time(t) for t in times], dtype=torch.float32, device=device).reshape(-1, 2)
+    return torch.tensor([check_time(t) for t in times], dtype=torch.float32, device=device).reshape(-1, 2)
 
 
 def key_bound(frame) -> tuple[int, int]:
     """(the tile keys a frame of `frame`'s size holds without waiting for its count: tomgs.render.frame's bound
     of recent frames of that size, the largest total among them); (0, 0) before one was counted."""
-    return render._bounds.capacity(frame), render._bounds.largest(frame)
+    return frame_layer.key_bounds.capacity(frame), frame_layer.key_bounds.largest(frame)
 
 
 def remember_total(frame, total: int) -> None:
     """A frame of `frame`'s size needed `total` tile keys (read after it ran): the bound learns it."""
-    render._bounds.remember(frame, total)
+    frame_layer.key_bounds.remember(frame, total)
 
 
 @contextlib.contextmanager

@@ -27,14 +27,14 @@ MAX_INTERSECTIONS = 2**30
 MAX_THREADS = 2**31 - 1
 
 
-def _check_scalars(width, height, t, near, far) -> tuple[float, float]:
+def check_scalars(width, height, t, near, far) -> tuple[float, float]:
     """Refuse non-finite or non-integer sizes and a non-finite time or plane; return t as float32
     (t_hi, t_lo) with t_hi + t_lo = t to ~48 bits, so (t - m) keeps the precision of a float64 t."""
     for name, value in (("width", width), ("height", height)):
         ok = isinstance(value, (int, float)) and not isinstance(value, bool) or hasattr(value, "__index__")
         if not ok or not math.isfinite(value) or value != int(value) or value < 1:
             raise RenderError(f"{name} must be a positive integer, got {value!r}")
-    t_hi, t_lo = _check_time(t)
+    t_hi, t_lo = check_time(t)
     for name, value in (("near", near), ("far", far)):
         try:
             value = float(value)
@@ -45,7 +45,7 @@ def _check_scalars(width, height, t, near, far) -> tuple[float, float]:
     return t_hi, t_lo
 
 
-def _check_time(t) -> tuple[float, float]:
+def check_time(t) -> tuple[float, float]:
     """t as float32 (t_hi, t_lo), t_hi + t_lo = t to ~48 bits; RenderError for a time that is not a finite
     number within float32's range."""
     try:
@@ -92,7 +92,9 @@ def _contract_error(stats: list[int], p) -> RenderError:
 
 
 @dataclass(frozen=True)
-class _Frame:
+class Frame:
+    """What the stages of one frame share: its size, its time, its planes and the Warp device they run on."""
+
     width: int
     height: int
     t_hi: float  # t = t_hi + t_lo: t rounded to float32, and the rest rounded to float32
@@ -143,16 +145,42 @@ class _Frame:
 # between frames). What each of these saved: docs/notes/rasterizer.md ("Host path").
 
 
-# Visible (or alive) lanes from which a warp runs a stage's long path itself rather than listing its rows
-# for a pass in full warps (tomgs/kernels/lanes.py). None: lanes.INLINE_LANES on CUDA, 1 on a CPU (every
-# thread runs alone: lists would only add passes). Set it to compare the two paths in one process (tests).
-inline_lanes: int | None = None
+@dataclass
+class KernelChoices:
+    """Which kernel paths a frame takes; None picks by device. Set a field of the process's
+    `kernel_choices` to compare two paths in one process (tests, A/B timings).
+
+    inline_lanes   visible (or alive) lanes from which a warp runs a stage's long path itself rather
+                   than listing its rows for a pass in full warps (tomgs/kernels/lanes.py). None:
+                   lanes.INLINE_LANES on CUDA, 1 on a CPU (every thread runs alone: lists would only
+                   add passes)
+    batched        which kernel pair composites: True the batched pair (raster_batched: a block stages
+                   each batch of its tile's list in shared memory), False the per-pixel pair (raster:
+                   every thread loads every entry). None: batched on CUDA; a CPU runs one thread at a
+                   time, where staging only adds copies, so it keeps the per-pixel pair
+    ordered_tiles  blocks take the tiles longest list first, forward and backward. None: on CUDA, where
+                   blocks run at once and a long tile started last runs alone at the end; a CPU runs
+                   the tiles one by one, in any order alike
+    """
+
+    inline_lanes: int | None = None
+    batched: bool | None = None
+    ordered_tiles: bool | None = None
+
+    def lanes_on(self, device: torch.device) -> int:
+        if self.inline_lanes is not None:
+            return self.inline_lanes
+        return lanes.INLINE_LANES if device.type == "cuda" else 1
+
+    def batched_on(self, device: torch.device) -> bool:
+        return device.type == "cuda" if self.batched is None else self.batched
+
+    def ordered_on(self, device: torch.device) -> bool:
+        return device.type == "cuda" if self.ordered_tiles is None else self.ordered_tiles
 
 
-def _inline_lanes(device: torch.device) -> int:
-    if inline_lanes is not None:
-        return inline_lanes
-    return lanes.INLINE_LANES if device.type == "cuda" else 1
+# the process's choices (not thread-safe, like key_bounds and tomgs.runtime.launch)
+kernel_choices = KernelChoices()
 
 
 class _WorkLists:
@@ -173,8 +201,8 @@ class _WorkLists:
 
     @staticmethod
     def of(m: int, passes: int, device: torch.device) -> _WorkLists | None:
-        """Lists for M rows, or None where every lane runs inline (`_inline_lanes` 1: nothing is listed)."""
-        inline = _inline_lanes(device)
+        """Lists for M rows, or None where every lane runs inline (inline lanes 1: nothing is listed)."""
+        inline = kernel_choices.lanes_on(device)
         return _WorkLists(m, passes, inline, device) if inline > 1 else None
 
     def take(self, k: int) -> list | None:
@@ -195,7 +223,7 @@ def _pass_args(lists: _WorkLists | None, k: int) -> list:
 
 class _Project(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means, quats, scales, opacities, t_means, t_scales, viewmat, K, flags, frame: _Frame,
+    def forward(ctx, means, quats, scales, opacities, t_means, t_scales, viewmat, K, flags, frame: Frame,
                 wrapped: dict, rows: torch.Tensor | None, lists: _WorkLists | None):
         """Outputs (means2d [M,2], conics [M,3], depths [M], radii [M,2] int32, opacities_t [M],
         tiles_touched [M] int32) of Gaussians `rows` (int32 [M]; None: all, M = N); their
@@ -280,7 +308,7 @@ class _Project(torch.autograd.Function):
                 None)
 
 
-class _Bounds:
+class KeyBounds:
     """Upper bounds on a frame's intersection count, kept between frames per (Warp device, width,
     height), so that a frame's keys are written before its host sync (`_write_keys`): the largest
     total of the last FRAMES frames of that size, plus twice their spread (largest - smallest) but
@@ -297,17 +325,17 @@ class _Bounds:
         self._capacity: dict[tuple, int] = {}
 
     @staticmethod
-    def _key(frame: _Frame) -> tuple:
+    def _key(frame: Frame) -> tuple:
         return frame.device, frame.width, frame.height
 
-    def capacity(self, frame: _Frame) -> int:
+    def capacity(self, frame: Frame) -> int:
         return self._capacity.get(self._key(frame), 0)
 
-    def largest(self, frame: _Frame) -> int:
+    def largest(self, frame: Frame) -> int:
         """The largest total of the last FRAMES frames of this size (0: none counted)."""
         return max(self._recent.get(self._key(frame), ()), default=0)
 
-    def remember(self, frame: _Frame, total: int) -> None:
+    def remember(self, frame: Frame, total: int) -> None:
         key = self._key(frame)
         recent = self._recent.setdefault(key, deque(maxlen=self.FRAMES))
         recent.append(total)
@@ -317,10 +345,10 @@ class _Bounds:
 
 
 # the process's bounds (not thread-safe, like tomgs.runtime.launch)
-_bounds = _Bounds()
+key_bounds = KeyBounds()
 
 
-def _write_keys(wrapped: dict, n: int, ends: torch.Tensor, frame: _Frame, capacity: int,
+def _write_keys(wrapped: dict, n: int, ends: torch.Tensor, frame: Frame, capacity: int,
                 lists: _WorkLists | None = None):
     """Stage 2's list, unsorted, in buffers of `capacity` pairs plus the sort's scratch: (keys [2 capacity]
     int64 `tile << 32 | depth bits`, ids [2 capacity] int32 the Gaussian of each), Gaussian i in slots
@@ -346,7 +374,7 @@ def _write_keys(wrapped: dict, n: int, ends: torch.Tensor, frame: _Frame, capaci
     return keys, ids
 
 
-def _bin(wrapped: dict, n: int, ends: torch.Tensor, frame: _Frame, total: int,
+def _bin(wrapped: dict, n: int, ends: torch.Tensor, frame: Frame, total: int,
          written: tuple[torch.Tensor, torch.Tensor] | None = None, lists: _WorkLists | None = None):
     """Stage 2 after the host sync: (ids [>= total] int32 Gaussian per intersection, keys [>= total] int64
     `tile << 32 | depth bits`, sorted; the first `total` entries are the list), and the ranges [tiles, 2]
@@ -365,7 +393,7 @@ def _bin(wrapped: dict, n: int, ends: torch.Tensor, frame: _Frame, total: int,
     return _sort_and_range(wrapped, written, total, frame)
 
 
-def _bin_padded(wrapped: dict, n: int, ends: torch.Tensor, frame: _Frame, written: tuple[torch.Tensor, torch.Tensor]):
+def _bin_padded(wrapped: dict, n: int, ends: torch.Tensor, frame: Frame, written: tuple[torch.Tensor, torch.Tensor]):
     """Stage 2 without the intersection count (a frame that does not wait for it): the keys written
     before the sync (`_write_keys`, its capacity > 0) are padded from the total to their capacity and
     sorted whole, so the list comes first and `tile_ranges` skips the padding. A total past the
@@ -377,7 +405,7 @@ def _bin_padded(wrapped: dict, n: int, ends: torch.Tensor, frame: _Frame, writte
     return _sort_and_range(wrapped, written, capacity, frame)
 
 
-def _sort_and_range(wrapped: dict, written: tuple[torch.Tensor, torch.Tensor], count: int, frame: _Frame):
+def _sort_and_range(wrapped: dict, written: tuple[torch.Tensor, torch.Tensor], count: int, frame: Frame):
     """Sort the first `count` pairs of `written` (keys, ids) and fill `wrapped`'s ranges from them."""
     keys, ids = written
     sort_pairs(keys, ids, count, frame.key_bits, frame.sort_low_bit)
@@ -391,7 +419,7 @@ class _Image:
     intersection count): color [H,W,3], trans [H,W,1] (transmittance), end [H,W] int32 (one past each
     pixel's last composited list entry), with their descriptors."""
 
-    def __init__(self, frame: _Frame, device: torch.device):
+    def __init__(self, frame: Frame, device: torch.device):
         self.color = torch.empty(frame.height, frame.width, 3, device=device, dtype=torch.float32)
         self.trans = torch.empty(frame.height, frame.width, 1, device=device, dtype=torch.float32)
         self.end = torch.empty(frame.height, frame.width, device=device, dtype=torch.int32)
@@ -399,22 +427,11 @@ class _Image:
 
 
 class _Rasterize(torch.autograd.Function):
-    # Which kernel pair composites: None picks by device, True the batched pair (raster_batched: a
-    # block stages each batch of its tile's list in shared memory), False the per-pixel pair
-    # (raster: every thread loads every entry). The batched pair is made for a GPU; a CPU runs one
-    # thread at a time, where staging only adds copies, so it keeps the per-pixel pair.
-    # Set it to compare the two in one process (tests, A/B timings).
-    batched: bool | None = None
-    # Blocks take the tiles longest list first, forward and backward (None: on CUDA, where blocks run
-    # at once and a long tile started last runs alone at the end; a CPU runs the tiles one by one, in
-    # any order alike).
-    ordered_tiles: bool | None = None
-
     @staticmethod
     def _kernels(device: torch.device) -> tuple:
         """(forward, backward) for a frame on `device`, each (kernel, threads a tile, block width)."""
         pixels = TILE_SIZE * TILE_SIZE
-        if not (device.type == "cuda" if _Rasterize.batched is None else _Rasterize.batched):
+        if not kernel_choices.batched_on(device):
             return (raster.raster_forward, pixels, pixels), (raster.raster_backward, pixels, pixels)
         # a CPU block is one thread unless Warp runs cooperative blocks (wp.config.enable_cpu_blocks);
         # the width is passed as it will run, so each width gets its own recorded launch. The batched
@@ -425,13 +442,12 @@ class _Rasterize(torch.autograd.Function):
                 (raster_batched.raster_backward_batched, pairs, pairs if blocks else 1))
 
     @staticmethod
-    def forward(ctx, means2d, conics, opacities_t, colors, ranges, ids, frame: _Frame, wrapped: dict, image: _Image):
+    def forward(ctx, means2d, conics, opacities_t, colors, ranges, ids, frame: Frame, wrapped: dict, image: _Image):
         """(color [H,W,3], trans [H,W,1]) of `image`, composited; `wrapped` holds the descriptors of
         means2d, conics, opacities_t, colors, ranges and ids (built before the frame's host sync)."""
         # the list, the per-Gaussian inputs and the per-pixel state, shared with the backward
         order = NO_ARRAY
-        longest_first = means2d.device.type == "cuda" if _Rasterize.ordered_tiles is None else _Rasterize.ordered_tiles
-        if longest_first:
+        if kernel_choices.ordered_on(means2d.device):
             tile_order = torch.argsort(ranges[:, 0] - ranges[:, 1]).to(torch.int32)  # [tiles], the longest first
             order = wrap(tile_order)
             ctx.tile_order = tile_order  # alive while the backward's launch reads it
@@ -470,7 +486,7 @@ class _Rasterize(torch.autograd.Function):
         return v_means2d, v_conics, v_opacities_t, v_colors, None, None, None, None, None
 
 
-def _project_frame(p: RasterInputs, frame: _Frame, wrapped: dict):
+def _project_frame(p: RasterInputs, frame: Frame, wrapped: dict):
     """Stage 1, launched, and the buffers the frame's one host sync reads: ((means2d, conics, depths, radii,
     opacities_t, tiles_touched), ends [N] int64 the inclusive scan of tiles touched, flags
     [project.NUM_FLAGS] int64 for `_read_flags`, the work lists of projection (pass 0) and binning
@@ -515,7 +531,7 @@ class FrameCounts:
     frame needed more intersections than its keys held (its image then lacks some; render it again
     waiting for its counts: the bound has grown)."""
 
-    def __init__(self, flags: torch.Tensor, p: RasterInputs, frame: _Frame, capacity: int):
+    def __init__(self, flags: torch.Tensor, p: RasterInputs, frame: Frame, capacity: int):
         self._event = None
         if flags.is_cuda:
             flags = flags.to("cpu", non_blocking=True)  # pinned: the copy is queued, nothing waits
@@ -531,7 +547,7 @@ class FrameCounts:
                 self._event.synchronize()
             stats = _read_flags(self._flags, self._inputs)
             self._inputs = None  # only its error messages needed them
-            _bounds.remember(self._frame, stats[project.FLAG_TOTAL])
+            key_bounds.remember(self._frame, stats[project.FLAG_TOTAL])
             self._counts = _counts(stats)
         return self._counts
 
@@ -611,17 +627,17 @@ def render_frame(means, quats, scales, opacities, colors, t_means, t_scales, vie
     device still projects, meta lacks the counts and `counts` (FrameCounts) reads them, raising
     RenderError for inputs outside the contract; read them before trusting the image or its
     gradients (`counts.overflowed`: render again). Else counts is None and meta has them."""
-    t_hi, t_lo = _check_scalars(width, height, t, near, far)
+    t_hi, t_lo = check_scalars(width, height, t, near, far)
     p = prepare_inputs(means, quats, scales, opacities, colors, t_means, t_scales, viewmat, K, width, height, t,
                        background, near, far, torch.float32, fused_sh=True, rows=rows)
     with scope(p.means.device) as wp_device:
-        frame = _Frame(p.width, p.height, t_hi, t_lo, p.near, p.far, wp_device)
-        capacity = _bounds.capacity(frame)
+        frame = Frame(p.width, p.height, t_hi, t_lo, p.near, p.far, wp_device)
+        capacity = key_bounds.capacity(frame)
         image, alpha, meta, _, counts = issue_frame(p, frame, capacity, wait=not (defer and capacity))
     return image, alpha, meta, counts
 
 
-def issue_frame(p: RasterInputs, frame: _Frame, capacity: int, wait: bool, queue_counts: bool = True):
+def issue_frame(p: RasterInputs, frame: Frame, capacity: int, wait: bool, queue_counts: bool = True):
     """A frame of prepared inputs `p` (float32, colours evaluated) issued on `frame.device`, inside its
     runtime.scope: (image [H,W,3] over p's background, alpha [H,W,1], meta, flags [project.NUM_FLAGS]
     int64 on the device, counts).
@@ -661,7 +677,7 @@ def issue_frame(p: RasterInputs, frame: _Frame, capacity: int, wait: bool, queue
     meta = dict(radii=radii, means2d=means2d, depths=depths, conics=conics, opacities_t=opacities_t,
                 tile_size=TILE_SIZE, width=frame.width, height=frame.height)
     if wait:
-        _bounds.remember(frame, total)
+        key_bounds.remember(frame, total)
         meta.update(_counts(stats))
     return image, 1.0 - trans, meta, flags, counts
 
@@ -687,12 +703,12 @@ def project_stage(
     `tiles_touched` [N] int32; a culled Gaussian has zero means2d, conics, radii and tiles touched
     (depths and opacities_t are written for all). means2d, conics and opacities_t are differentiable;
     a culled Gaussian gets zero gradient. See tomgs.render.reference.project_reference."""
-    t_hi, t_lo = _check_scalars(width, height, t, near, far)
+    t_hi, t_lo = check_scalars(width, height, t, near, far)
     zeros = torch.zeros_like(means) if isinstance(means, torch.Tensor) else means  # projection reads no colour
     p = prepare_inputs(means, quats, scales, opacities, zeros, t_means, t_scales, viewmat, K, width, height, t,
                        None, near, far, torch.float32)
     with scope(p.means.device) as wp_device:
-        frame = _Frame(p.width, p.height, t_hi, t_lo, p.near, p.far, wp_device)
+        frame = Frame(p.width, p.height, t_hi, t_lo, p.near, p.far, wp_device)
         outputs, _, flags, _ = _project_frame(p, frame, {})
         _read_flags(flags, p)
     return dict(zip(("means2d", "conics", "depths", "radii", "opacities_t", "tiles_touched"), outputs))
@@ -711,7 +727,7 @@ def bin_stage(
     """Stage 2 alone, as `rasterize` runs it, for tests and tools: `keys` [M] int64 `tile << 32 | float32
     depth bits` sorted, `ids` [M] int32 the Gaussian of each, `ranges` [tiles, 2] int32 each tile's
     [start, end) in them ((0, 0) for an empty tile). See tomgs.render.reference.bin_reference."""
-    _check_scalars(width, height, 0.0, 0.01, 1e10)
+    check_scalars(width, height, 0.0, 0.01, 1e10)
     ends = torch.cumsum(tiles_touched, 0, dtype=torch.int64)
     total = int(ends[-1]) if ends.numel() else 0
     # named: a descriptor does not keep a contiguous copy alive
@@ -720,19 +736,9 @@ def bin_stage(
     wrapped = dict(means2d=wrap(means2d, wp.vec2), conics=wrap(conics, wp.vec3), opacities_t=wrap(opacities_t),
                    radii=wrap(radii, wp.vec2i), depths=wrap(depths))
     with scope(means2d.device) as wp_device:
-        frame = _Frame(int(width), int(height), 0.0, 0.0, 0.01, 1e10, wp_device)
+        frame = Frame(int(width), int(height), 0.0, 0.0, 0.01, 1e10, wp_device)
         ranges = torch.zeros(frame.num_tiles, 2, device=means2d.device, dtype=torch.int32)
         wrapped["ranges"] = wrap(ranges)
         ids, keys = _bin(wrapped, means2d.shape[0], ends, frame, total)
     ids, keys = ids[:total], keys[:total]
     return dict(keys=keys, ids=ids, ranges=ranges)
-
-
-def __getattr__(name: str):
-    """`render_sequence` lives in tomgs.render.sequence (it replays captured frames, whose module imports this
-    one); `from tomgs.render import render_sequence` still finds it."""
-    if name == "render_sequence":
-        from tomgs.render.sequence import render_sequence
-
-        return render_sequence
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -30,7 +30,7 @@ class RasterInputs:
     rows: torch.Tensor | None = None  # int32 [M]: the Gaussians rendered (None: all N)
 
 
-def _check_rows(rows, device: torch.device) -> torch.Tensor | None:
+def check_rows(rows, device: torch.device) -> torch.Tensor | None:
     """`rows` as int32 [M] contiguous on `device`, or None; RenderError for what is not an integer
     index vector there (values are checked in projection, with the other per-Gaussian checks)."""
     if rows is None:
@@ -86,7 +86,7 @@ def prepare_inputs(
         raise RenderError(f"width and height must be positive integers, got {width}x{height}")
     if not (0.0 < near < far):
         raise RenderError(f"need 0 < near < far, got near={near}, far={far}")
-    rows = _check_rows(rows, means.device)
+    rows = check_rows(rows, means.device)
     if rows is not None and not fused_sh:
         raise RenderError("rows are rendered by the Warp renderer only")
     if colors.dim() == 3:

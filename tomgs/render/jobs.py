@@ -16,9 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from tomgs.cameras import Cameras
-from tomgs.errors import InputError
+from tomgs.errors import InputError, counted
 from tomgs.io.writer import FPS_RANGE
-from tomgs.text import counted
 
 
 @dataclass

@@ -6,7 +6,7 @@
                                          the same in one Warp kernel forward and one backward, float32
                                          (the renderer: ~40 torch kernels per direction become one)
 
-tomgs.kernels.sh takes its constants from here.
+The basis's constants live in tomgs.constants, where tomgs.kernels.sh reads them too.
 """
 
 from __future__ import annotations
@@ -15,20 +15,7 @@ import math
 
 import torch
 
-_C0 = 0.28209479177387814
-_C1 = 0.4886025119029199
-_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
-_C3 = (
-    -0.5900435899266435,
-    2.890611442640554,
-    -0.4570457994644658,
-    0.3731763325901154,
-    -0.4570457994644658,
-    1.445305721320277,
-    -0.5900435899266435,
-)
-# a view direction is (mean - centre) / max(|mean - centre|, DIR_EPS): torch's normalize, its default eps
-DIR_EPS = 1e-12
+from tomgs.constants import SH_C0, SH_C1, SH_C2, SH_C3, SH_DIR_EPS
 
 
 def sh_degree_of(num_coeffs: int) -> int:
@@ -42,33 +29,33 @@ def sh_degree_of(num_coeffs: int) -> int:
 def eval_sh(sh: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
     """Raw SH value (no +0.5 offset) of `sh` [N,K,3] along unit directions `dirs` [N,3] -> [N,3]."""
     degree = sh_degree_of(sh.shape[-2])
-    out = _C0 * sh[:, 0]
+    out = SH_C0 * sh[:, 0]
     if degree == 0:
         return out
     x, y, z = dirs[:, 0:1], dirs[:, 1:2], dirs[:, 2:3]
-    out = out - _C1 * y * sh[:, 1] + _C1 * z * sh[:, 2] - _C1 * x * sh[:, 3]
+    out = out - SH_C1 * y * sh[:, 1] + SH_C1 * z * sh[:, 2] - SH_C1 * x * sh[:, 3]
     if degree == 1:
         return out
     xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
     out = (
         out
-        + _C2[0] * xy * sh[:, 4]
-        + _C2[1] * yz * sh[:, 5]
-        + _C2[2] * (2.0 * zz - xx - yy) * sh[:, 6]
-        + _C2[3] * xz * sh[:, 7]
-        + _C2[4] * (xx - yy) * sh[:, 8]
+        + SH_C2[0] * xy * sh[:, 4]
+        + SH_C2[1] * yz * sh[:, 5]
+        + SH_C2[2] * (2.0 * zz - xx - yy) * sh[:, 6]
+        + SH_C2[3] * xz * sh[:, 7]
+        + SH_C2[4] * (xx - yy) * sh[:, 8]
     )
     if degree == 2:
         return out
     return (
         out
-        + _C3[0] * y * (3.0 * xx - yy) * sh[:, 9]
-        + _C3[1] * xy * z * sh[:, 10]
-        + _C3[2] * y * (4.0 * zz - xx - yy) * sh[:, 11]
-        + _C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * sh[:, 12]
-        + _C3[4] * x * (4.0 * zz - xx - yy) * sh[:, 13]
-        + _C3[5] * z * (xx - yy) * sh[:, 14]
-        + _C3[6] * x * (xx - 3.0 * yy) * sh[:, 15]
+        + SH_C3[0] * y * (3.0 * xx - yy) * sh[:, 9]
+        + SH_C3[1] * xy * z * sh[:, 10]
+        + SH_C3[2] * y * (4.0 * zz - xx - yy) * sh[:, 11]
+        + SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * sh[:, 12]
+        + SH_C3[4] * x * (4.0 * zz - xx - yy) * sh[:, 13]
+        + SH_C3[5] * z * (xx - yy) * sh[:, 14]
+        + SH_C3[6] * x * (xx - 3.0 * yy) * sh[:, 15]
     )
 
 
@@ -78,14 +65,14 @@ def sh_to_colors(sh: torch.Tensor, means: torch.Tensor, viewmat: torch.Tensor) -
     Follows 3DGS: value + 0.5, clamped at 0 from below. Degree 0 needs no view direction. A mean
     component that is not finite counts as 0 (and gets no gradient): such a Gaussian is culled by
     the renderer anyway, and its NaN view direction would reach every gradient of means and viewmat
-    through the backward (0 * NaN). A Gaussian at the camera centre sees direction 0 (DIR_EPS).
+    through the backward (0 * NaN). A Gaussian at the camera centre sees direction 0 (SH_DIR_EPS).
     """
     if sh.shape[-2] == 1:
-        return torch.clamp_min(_C0 * sh[:, 0] + 0.5, 0.0)
+        return torch.clamp_min(SH_C0 * sh[:, 0] + 0.5, 0.0)
     means = torch.where(torch.isfinite(means), means, torch.zeros_like(means))
     rot, trans = viewmat[:3, :3], viewmat[:3, 3]
     cam_center = -rot.T @ trans
-    dirs = torch.nn.functional.normalize(means - cam_center, dim=-1, eps=DIR_EPS)
+    dirs = torch.nn.functional.normalize(means - cam_center, dim=-1, eps=SH_DIR_EPS)
     return torch.clamp_min(eval_sh(sh, dirs) + 0.5, 0.0)
 
 

@@ -1,11 +1,15 @@
 """Training: the TOM-GS trainer, frame sampler, densification, presets, and `fit`.
 
     pipeline    `fit`: a clip in, a scene file out (one process; dispatches to multigpu for shards)
-    trainer     the training loop (Trainer, FitResult)
+    clip        what a checkpoint records of the clip and options, a resume's checks; phases: the
+                phases' names, ticks, start and peak memory
+    init        the Gaussians a fit starts from
+    trainer     the training loop (Trainer, FitResult), its log and plot; captured_step: a step as one
+                CUDA graph
     config      TrainConfig and its presets; plan: the budget's plan of a fit
     densify     the densification strategy; optim: Adam; sampler: which frame trains next
     checkpoint  checkpoints, stop signals, resume; warm: the kernels' warm-up beside the poses
-    multigpu/   the sharded fit over several GPUs (pool, rank, shards)
+    multigpu/   the sharded fit over several GPUs (pool, launch, rank, shards)
 
 Public names are resolved lazily, as in `tomgs`: importing the package (and so
 tomgs.train.multigpu.pool) loads no torch.

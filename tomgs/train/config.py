@@ -28,7 +28,7 @@ INIT_DEPTHS = ("tracks", "median")  # TrainConfig.init_depth
 @dataclass
 class TrainConfig:
     iterations: int = 12_000
-    # densification (3DGS defaults, REFERENCES.md) inside a window of the run's progress (the
+    # densification (3DGS defaults) inside a window of the run's progress (the
     # iteration fraction or the wall-clock fraction of a budget, whichever is further), so a run
     # under a time budget densifies however few iterations fit; it also stops at the cap
     densify_start_fraction: float = 0.04  # 3DGS: from iteration 500 of 12k
@@ -152,7 +152,7 @@ class TrainConfig:
 
 
 PRESETS = {
-    # tuned to reach the paper's quality sooner (issue 4): fewer iterations, earlier densification stop
+    # tuned to reach the paper's quality sooner: fewer iterations, earlier densification stop
     "default": TrainConfig(),
     # the paper's schedule: 80k iterations, densification until 60k, cap 10M
     "paper": TrainConfig(iterations=80_000, densify_start_fraction=500 / 80_000, densify_stop_fraction=0.75,

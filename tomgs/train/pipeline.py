@@ -30,10 +30,8 @@ None when there is none yet.
 from __future__ import annotations
 
 import contextlib
-import os
 import signal
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -42,12 +40,11 @@ from tomgs.errors import InputError
 from tomgs.outputs import check_distinct, existing_path, output_lock, remove_stale_temporaries
 from tomgs.outputs import check_fit_outputs as check_outputs
 from tomgs.outputs import fit_output_paths as output_paths
-from tomgs.text import counted
-from tomgs.train.checkpoint import START_OVER, FitInterrupted, StopSignals, check_same_settings, read_checkpoint
+from tomgs.train.checkpoint import FitInterrupted, StopSignals, read_checkpoint
+from tomgs.train.clip import check_clip, check_options, clip_fps, clip_identity, fit_options
 from tomgs.train.config import TrainConfig
-from tomgs.train.trainer import FitResult, Trainer, write_csv
-
-PHASES = ("read", "poses", "compile", "init", "train", "save")  # "compile": a first run's kernels, on a CPU
+from tomgs.train.phases import peak_memory, phase_text, train_ticks
+from tomgs.train.trainer import FitResult, Trainer, write_csv, write_plot
 
 
 def fit(video, output, config: TrainConfig | None = None, *, masks=None, frames=None, max_side=None,
@@ -69,22 +66,25 @@ def fit(video, output, config: TrainConfig | None = None, *, masks=None, frames=
     fit's wall-clock budget from `started` (a time.perf_counter() value, default the call), reading,
     poses and saving included; without one and with `auto_budget`, a budget is picked where the
     iterations would run longer than the device's DEFAULT_BUDGET. `on_plan(FitPlan)` hears the plan
-    first; `phases(name, done, total, text)` follows each phase of PHASES (train counts iterations,
-    or seconds of training under a budget; text: the latest log, or None); `progress(row)` hears
-    each CSV row and `pose_progress(done, total)` the poses (default: through `phases`).
+    first; `phases(name, done, total, text)` follows each phase of tomgs.train.phases.PHASES (train
+    counts iterations, or seconds of training under a budget; text: the latest log, or None);
+    `progress(row)` hears each CSV row and `pose_progress(done, total)` the poses (default: through
+    `phases`).
 
     gpus: N > 1 fits the clip in N temporal stretches, one process (GPU) each, merged into one scene
     (tomgs.train.multigpu.shards; per-rank checkpoints and CSVs beside the output); under torchrun, the ranks
     torchrun started. None or 1: this process alone.
     """
     from tomgs.runtime import resolve_device
-    from tomgs.train.multigpu.rank import fit_shards, is_leader, wants_shards
+    from tomgs.train.multigpu.pool import is_leader, wants_shards
 
     check_distinct({f"the fit's {what}": path for what, path in output_paths(output).items()},
                    {"the video": existing_path(video), "the masks": existing_path(masks),
                     "the poses": existing_path(poses)})
     with output_lock(output) if is_leader() else contextlib.nullcontext():  # one fit of an output at a time
         if wants_shards(gpus):
+            from tomgs.train.multigpu.launch import fit_shards
+
             return fit_shards(video, output, config, gpus=gpus, masks=masks, frames=frames, max_side=max_side,
                               poses=poses, focal=focal, device=device, resume=resume, overwrite=overwrite,
                               progress=progress, pose_progress=pose_progress, layer=layer,
@@ -95,15 +95,12 @@ def fit(video, output, config: TrainConfig | None = None, *, masks=None, frames=
         config = config or TrainConfig()
         paths = check_outputs(output, resume=resume, overwrite=overwrite)
         device = resolve_device(device)
-        options = dict(frames=None if frames is None else str(frames),
-                       max_side=None if max_side is None else int(max_side), layer=layer,
-                       mask_dilation=int(mask_dilation) if layer == "background" else None,
-                       masks=masks is not None or (getattr(video, "masks", None) is not None), poses=_poses_key(poses),
-                       focal=None if focal is None else float(focal))
+        options = fit_options(video, frames=frames, max_side=max_side, masks=masks, poses=poses, focal=focal,
+                              layer=layer, mask_dilation=mask_dilation)
         saved = None
         if resume:
             saved = read_checkpoint(paths["checkpoint"])
-            _check_options(saved, options, config, paths["checkpoint"])
+            check_options(saved, options, config, paths["checkpoint"])
         for path in paths.values():
             remove_stale_temporaries(path)
 
@@ -174,10 +171,10 @@ def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses
     clip = video if isinstance(video, Video) else read_video(
         video, frames=frames, max_side=max_side, masks=masks,
         progress=lambda done, total: phases("read", done, total, None))
-    identity = _clip_identity(clip)
+    identity = clip_identity(clip)
     record = clip_record(clip)  # kept in the scene, for `tomgs eval` to know its video again
     if saved is not None:
-        _check_clip(saved["clip"], identity, options, paths["checkpoint"])
+        check_clip(saved["clip"], identity, options, paths["checkpoint"])
     inputs = _layer_inputs(clip, layer, config, mask_dilation, masks, device)  # checks the masks before any work
     phases("read", 1, 1, None)
     lap("read")
@@ -221,7 +218,7 @@ def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses
     trainer.clip = dict(identity, options=options, pose_seconds=round(pose_seconds, 3),
                         cameras=None if estimated is None else estimated.to_dict(),
                         source=str(getattr(video, "path", video)))
-    fps = _fps(clip)
+    fps = clip_fps(clip)
     if _own_copy(trainer.frames, inputs.frames):  # on a GPU: the host's frames go (1.7 GiB for 1080p x 300)
         clip = inputs = None
     phases("init", 1, 1, None)
@@ -231,7 +228,7 @@ def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses
         left = plan.budget - (time.perf_counter() - started) - plan.phases["save"]
         time_limit = trainer.elapsed + max(left, 1.0)
     result = trainer.run(checkpoint=paths["checkpoint"], log_csv=paths["csv"], progress=progress,
-                         time_limit=time_limit, tick=_train_ticks(phases, config.iterations, time_limit))
+                         time_limit=time_limit, tick=train_ticks(phases, config.iterations, time_limit))
     phases("train", 1, 1, f"all {result.iterations:,} iterations" if result.iterations >= config.iterations else
            f"{result.iterations:,} of {config.iterations:,} iterations: the budget's end")
     lap("train")
@@ -254,7 +251,7 @@ def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses
         raise OSError(e.errno, f"{e.strerror}; {kept}", e.filename) from None
     phases("save", 1, 2, None)
     try:
-        _plot(paths["plot"], result.history)
+        write_plot(paths["plot"], result.history)
     except OSError as e:  # the scene and its log are written: the plot is drawn from the log
         result.notes.append(f"the PSNR plot could not be written ({e.filename}: {e.strerror}); {paths['csv']} "
                             f"holds its numbers")
@@ -280,133 +277,6 @@ def _own_copy(tensor: torch.Tensor, array: np.ndarray) -> bool:
     return tensor.device.type != "cpu" or tensor.data_ptr() != array.__array_interface__["data"][0]
 
 
-def process_started() -> float:
-    """The time.perf_counter() value at which this process started (Linux: from /proc; elsewhere
-    now), so a command's budget counts its start-up too."""
-    try:
-        ticks = os.sysconf("SC_CLK_TCK")
-        with open("/proc/self/stat") as f:
-            began = int(f.read().rsplit(")", 1)[1].split()[19]) / ticks  # field 22: start, ticks after boot
-        with open("/proc/uptime") as f:
-            age = float(f.read().split()[0]) - began
-        return time.perf_counter() - min(max(age, 0.0), 60.0)
-    except (OSError, ValueError, IndexError):
-        return time.perf_counter()
-
-
-def phase_text(seconds: dict) -> str:
-    """'read 1.2 s, poses 3.4 s, ...' in PHASES order."""
-    return ", ".join(f"{name} {seconds[name]:.1f} s" for name in PHASES if name in seconds)
-
-
-def peak_memory(device) -> tuple[float, float | None]:
-    """(peak resident host memory of this process, peak GPU memory allocated by torch or None), MiB."""
-    import resource
-
-    host = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux
-    gpu = torch.cuda.max_memory_allocated(device) / 2**20 if device.type == "cuda" else None
-    return host, gpu
-
-
-def _train_ticks(phases, iterations: int, time_limit: float):
-    """The trainer's tick as the "train" phase: iterations done, or seconds under a time limit."""
-    def tick(iteration, seconds, text):
-        text = text or f"iteration {iteration:,}"
-        if time_limit > 0:
-            phases("train", min(seconds, time_limit), time_limit, text)
-        else:
-            phases("train", iteration, iterations, text)
-    return tick
-
-
-# -- what a checkpoint's clip is -----------------------------------------------------------------------
-
-
-def _poses_key(poses) -> str:
-    """The poses option as recorded: a method name, a file's absolute path, or '<type>' for an object."""
-    if isinstance(poses, (str, os.PathLike)):
-        text = str(poses)
-        return str(Path(text).resolve()) if Path(text).exists() else text
-    return f"<{type(poses).__name__}>"
-
-
-def _clip_identity(clip) -> dict:
-    """What a resume must find again: source frame numbers, frame size, thumbnails of frames and masks
-    (tomgs.io.video.thumbnails, as uint8 tensors)."""
-    from tomgs.io.video import thumbnails
-
-    return dict(frame_indices=[int(i) for i in clip.indices], size=[int(s) for s in clip.frames.shape[1:3]],
-                thumbnails=torch.from_numpy(thumbnails(clip.frames)),
-                mask_thumbnails=None if clip.masks is None else torch.from_numpy(thumbnails(clip.masks)))
-
-
-def _describe(indices: list[int]) -> str:
-    if not indices:
-        return "no frames"
-    step = indices[1] - indices[0] if len(indices) > 1 else 1
-    regular = all(b - a == step for a, b in zip(indices, indices[1:]))
-    span = f"{indices[0]}..{indices[-1]}" + (f" step {step}" if regular and step != 1 else "" if regular else ", irregular")
-    return f"source frames {span} ({counted(len(indices), 'frame')})"
-
-
-def _refuse(checkpoint, what: str, option: str) -> InputError:
-    return InputError(f"{checkpoint} {what}: resume with the {option} it was started with, or {START_OVER}")
-
-
-def _check_options(saved: dict, options: dict, config: TrainConfig, checkpoint) -> None:
-    """Before any work: the options a resume must repeat (layer, masks, poses, SH degree, temporal)."""
-    was = saved["clip"].get("options", {})
-    for key, option in (("layer", "--layer"), ("masks", "--masks"), ("mask_dilation", "--mask-dilation"),
-                        ("focal", "--focal")):
-        if key in was and was[key] != options[key]:
-            raise _refuse(checkpoint, f"was fitted with {option} {_show(was[key])}, this run gives "
-                                      f"{_show(options[key])}", option)
-    objects = "<" in str(was.get("poses")) + options["poses"]  # poses given as Python objects: not comparable
-    if "poses" in was and was["poses"] != options["poses"] and not objects:
-        raise _refuse(checkpoint, f"was fitted with --poses {was['poses']}, this run gives {options['poses']}",
-                      "--poses")
-    check_same_settings(saved["config"], config, checkpoint)
-
-
-def _check_clip(was: dict, now: dict, options: dict, checkpoint) -> None:
-    """After decoding, before the poses: the same source frames, size and content as the checkpoint's."""
-    from tomgs.io.video import differing_thumbnails
-
-    given = was.get("options", {})
-    if "frame_indices" in was and was["frame_indices"] != now["frame_indices"]:
-        raise _refuse(checkpoint, f"was fitted on {_describe(was['frame_indices'])} (--frames "
-                                  f"{given.get('frames') or 'all'}), this run selects {_describe(now['frame_indices'])} "
-                                  f"(--frames {options['frames'] or 'all'})", "--frames")
-    if "size" in was and was["size"] != now["size"]:
-        (h0, w0), (h1, w1) = was["size"], now["size"]
-        raise _refuse(checkpoint, f"was fitted on frames of {w0}x{h0} (--max-side {given.get('max_side') or 'none'}), "
-                                  f"this run reads {w1}x{h1} (--max-side {options['max_side'] or 'none'})",
-                      "--max-side")
-    for key, what, option in (("thumbnails", "frames", "video"), ("mask_thumbnails", "masks", "--masks")):
-        if was.get(key) is None or now.get(key) is None:
-            continue
-        if not torch.is_tensor(was[key]):
-            continue
-        differ = differing_thumbnails(was[key].numpy(), now[key].numpy())
-        if differ:
-            raise _refuse(checkpoint, f"was fitted on other {what}: {differ} of this run's {len(now[key])} differ",
-                          option)
-
-
-def _show(value) -> str:
-    return "none" if value is None or value is False else "given" if value is True else str(value)
-
-
-def _fps(clip) -> float:
-    """The fitted frames' rate: the source's (25 when unknown) over the step between them, so a fit on
-    every k-th frame plays at the source's speed."""
-    fps = clip.fps or 25.0
-    steps = np.diff(np.asarray(clip.indices))
-    if len(steps) and steps[0] > 1 and np.all(steps == steps[0]):
-        fps /= int(steps[0])
-    return float(fps)
-
-
 def _layer_inputs(clip, layer, config, mask_dilation, masks_path, device):
     """tomgs.render.layers.LayerInputs for `layer`; for None, the whole clip with estimated cameras."""
     if layer is None:
@@ -422,20 +292,3 @@ def _layer_inputs(clip, layer, config, mask_dilation, masks_path, device):
     raise InputError(f"unknown layer {layer!r}: use background or foreground")
 
 
-def _plot(path: Path, history: list[dict]) -> None:
-    from tomgs.io.plots import line_plot_png
-
-    train = [(r["wall_s"], r["train_psnr"]) for r in history if r["train_psnr"] != ""]
-    clip = [r for r in history if r["clip_psnr"] != ""]
-    every = max((int(r.get("clip_frames") or 0) for r in clip), default=0)  # the last covers every frame
-    full = [(r["wall_s"], r["clip_psnr"]) for r in clip if int(r.get("clip_frames") or every) == every]
-    part = [(r["wall_s"], r["clip_psnr"]) for r in clip if int(r.get("clip_frames") or every) < every]
-    series = {}
-    if train:
-        series["training frames (running)"] = tuple(np.array(v, dtype=float) for v in zip(*train))
-    if part:
-        series["clip, evenly spaced frames"] = tuple(np.array(v, dtype=float) for v in zip(*part))
-    if full:
-        series["full clip"] = tuple(np.array(v, dtype=float) for v in zip(*full))
-    if series:
-        line_plot_png(path, series, xlabel="wall-clock seconds", ylabel="PSNR (dB)", title="PSNR against run time")

@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from tomgs.text import counted
+from tomgs.errors import counted
 
 # seconds per training step (render, loss, backward, Adam): a + b * Gaussians + c * pixels
 # (cuda: the H100's, from benchmarks/results/phone_*.json and camel_fit.json: 10-16 ms a step at 0.4-2 Mpx)
@@ -85,18 +85,19 @@ class FitPlan:
 
     def summary(self) -> str:
         """One line: what the fit will do and when it ends."""
-        work = (f"{self.iterations:,} iterations or {_duration(self.budget)}, whichever comes first"
+        work = (f"{self.iterations:,} iterations or {duration(self.budget)}, whichever comes first"
                 if self.budget > 0 else f"{self.iterations:,} iterations")
         chosen = " (budget chosen for this device: --budget or --iterations to change)" if self.budget_chosen else ""
-        eta = _duration(self.eta) if self.budget > 0 else f"~{_duration(self.eta)} (estimated)"
-        compiling = (f"; compiling kernels first (first run only, ~{_duration(self.phases['compile'])})"
+        eta = duration(self.eta) if self.budget > 0 else f"~{duration(self.eta)} (estimated)"
+        compiling = (f"; compiling kernels first (first run only, ~{duration(self.phases['compile'])})"
                      if self.phases.get("compile") else "")
         return (f"plan: {counted(self.frames, 'frame')} of {self.width}x{self.height} on {self.device}, "
                 f"{work}{chosen}{compiling}; "
                 f"start from {self.points_per_frame * self.frames:,} Gaussians, cap {self.cap:,}; ETA {eta}")
 
 
-def _duration(seconds: float) -> str:
+def duration(seconds: float) -> str:
+    """A duration as a plan prints it: '45 s', '12.5 min', '3.2 h'."""
     if seconds < 120:
         return f"{seconds:.0f} s"
     if seconds < 7200:
@@ -158,14 +159,14 @@ def make_plan(config, frames: int, height: int, width: int, source_pixels: int, 
         limit = DEFAULT_BUDGET.get(device_type, DEFAULT_BUDGET["cpu"])
         if needed > limit:
             budget, chosen = limit, True
-            reasons.append(f"budget {_duration(limit)}: {config.iterations:,} iterations would take about "
-                           f"{_duration(needed)} on {device_type}")
+            reasons.append(f"budget {duration(limit)}: {config.iterations:,} iterations would take about "
+                           f"{duration(needed)} on {device_type}")
     if budget > 0:
         before = sum(phases.values()) + save(start)
         train = max(budget - before, 0.1 * budget)
         if before > 0.5 * budget:
-            reasons.append(f"reading, poses and saving are estimated at {_duration(before)} of the "
-                           f"{_duration(budget)} budget: training gets what they leave (the fit may run over)")
+            reasons.append(f"reading, poses and saving are estimated at {duration(before)} of the "
+                           f"{duration(budget)} budget: training gets what they leave (the fit may run over)")
         if device_type == "cpu" and config.init_points_per_frame is None:
             a, b, c = STEP_COST["cpu"]
             # never below the cloud whose cost matches a step's fixed cost: fewer saves little time
@@ -173,13 +174,13 @@ def make_plan(config, frames: int, height: int, width: int, source_pixels: int, 
             if start > steppable:
                 per_frame = max(steppable // frames, 1)
                 reasons.append(f"starts from {per_frame * frames:,} Gaussians ({per_frame} per frame): more would "
-                               f"slow each CPU step so much that {_duration(train)} of training takes fewer than "
+                               f"slow each CPU step so much that {duration(train)} of training takes fewer than "
                                f"{MIN_STEPS} steps")
                 start = per_frame * frames
             if config.max_gaussians is None and cap > CAP_OVER_START * max(start, steppable):
                 cap = CAP_OVER_START * max(start, steppable)
                 cap_why = (f"at most {cap:,} Gaussians, {CAP_OVER_START} times the start: a CPU step slows with every "
-                           f"Gaussian, and {_duration(train)} of training should take {MIN_STEPS} steps or more "
+                           f"Gaussian, and {duration(train)} of training should take {MIN_STEPS} steps or more "
                            f"(--cap to change)")
         train = max(budget - sum(phases.values()) - save(start), 0.1 * budget)  # the cloud may have shrunk
         phases["train"] = min(train, train_estimate(start))  # the iterations may end first

@@ -38,12 +38,10 @@ import torch
 from tomgs.render.alive import TrainingIndex, pays_on
 from tomgs.cameras import Cameras
 from tomgs.metrics import l1_dssim_and_psnr, psnr, ssim_map
-from tomgs.model import GaussianModel, nearest_neighbour_distance
+from tomgs.model import GaussianModel
 from tomgs.render.frame import blend_weights, render_frame
 from tomgs.render.sequence import IssuedFrame, issue_in_order
-from tomgs.temporal import frames_to_clip_time
-from tomgs.errors import InputError
-from tomgs.text import counted
+from tomgs.errors import InputError, counted
 from tomgs.outputs import write_text
 from tomgs.train.checkpoint import (FORMAT, LOG_FIELDS, START_OVER, VERSION, CheckpointWriter, FitInterrupted,
                                     StopSignals, check_same_settings, config_from, config_to_dict, own_copies,
@@ -51,6 +49,7 @@ from tomgs.train.checkpoint import (FORMAT, LOG_FIELDS, START_OVER, VERSION, Che
 from tomgs.train.captured_step import CapturedStep, unsupported
 from tomgs.train.config import TrainConfig
 from tomgs.train.densify import Densifier
+from tomgs.train.init import initial_model
 from tomgs.train.optim import make_adam, uses_seen_adam
 from tomgs.train.sampler import FrameSampler
 
@@ -81,14 +80,6 @@ RENDER_SHARE = 0.5  # a forward render's time over a training step's (CPU, the b
 # wait, and few, since each frame in flight holds its image until then (all 90 of camel's in flight, each with
 # its own activated parameters and buffers, raised a 5M-Gaussian fit's peak GPU memory from 2.9 to 16.2 GB)
 EVAL_AHEAD = 4
-# the initial per-frame points' depth (config.init_depth "tracks"): a grid of about this many nodes a frame,
-# each the mean log depth of its nearest tracked points (tracks are sparse: camel's 937 for 854x480 frames);
-# a frame with fewer in view takes its median depth
-DEPTH_GRID_NODES = 2048
-DEPTH_NEIGHBOURS = 4
-MIN_DEPTH_POINTS = 3
-DEPTH_GRID_CHUNK = 1 << 22  # node-point pairs of the frames computed at once (their [c,G,P,2] float32: 32 MB)
-STATIC_T_SCALE = 1e3  # temporal sigma of every Gaussian of a static fit (clip time: alive throughout)
 
 
 @dataclass
@@ -100,7 +91,8 @@ class FitResult:
     seconds: float
     history: list[dict] = field(default_factory=list)  # the CSV rows
     notes: list[str] = field(default_factory=list)  # what was left out or assumed
-    # filled by tomgs.train.pipeline: the plan, wall seconds per phase and in all, peak memory (MiB)
+    # filled by tomgs.train.pipeline (one process) or tomgs.train.multigpu.launch (shards): the plan, wall
+    # seconds per phase and in all, peak memory (MiB)
     plan: object = None
     phase_seconds: dict = field(default_factory=dict)
     wall_seconds: float = 0.0
@@ -108,6 +100,10 @@ class FitResult:
     peak_gpu_mb: float | None = None
     peak_host_mb_by_phase: dict = field(default_factory=dict)  # the peak so far at the end of each phase
     clip_frames: int = 0  # the frames the final clip PSNR covers (all of them, unless a budget's end was short)
+    # a sharded fit's: each process's phases ({"parent" | "rankN": [{phase, start, end}]}, seconds since the
+    # command started: tomgs.train.multigpu.rank.Timeline) and its report (ranks, merge, refinement, PSNRs)
+    timeline: dict | None = None
+    shards: dict | None = None
 
 
 class Trainer:
@@ -142,7 +138,7 @@ class Trainer:
         self.cameras = cameras
         # uint8, converted per step; on the device unless they would crowd out the Gaussians (then
         # each step copies its frame over)
-        self.store = _frame_store(frames.nbytes * (1 + (weights is not None) / 3 + (alpha_targets is not None) / 3),
+        self.store = frame_store(frames.nbytes * (1 + (weights is not None) / 3 + (alpha_targets is not None) / 3),
                                   device)
         self.frames = torch.as_tensor(frames, device=self.store)
         self.weights, self.alpha_targets = (None if a is None else _as_uint8(a, frames.shape[:3], name, self.store)
@@ -151,13 +147,12 @@ class Trainer:
         self.K = torch.as_tensor(cameras.K, dtype=torch.float32, device=device)
         self.times = [float(t) for t in cameras.times]
         self.notes: list[str] = []
-        self.wide_fraction = float(wide_fraction)
-        self.point_frames = None if point_frames is None else np.asarray(point_frames, dtype=np.int64).reshape(-1, 2)
         self.sparse_adam = uses_seen_adam(config, device)
         if initial is None:
-            self.model, self.extent = self._initial_model(np.asarray(points, dtype=np.float64).reshape(-1, 3),
-                                                          np.asarray(colors, dtype=np.float32).reshape(-1, 3),
-                                                          init_progress or (lambda done, total: None))
+            self.model, self.extent, notes = initial_model(
+                self.frames, cameras, self.config, device, points, colors, weights=self.weights,
+                point_frames=point_frames, wide_fraction=wide_fraction, progress=init_progress)
+            self.notes += notes
         else:
             self.model, self.extent = initial[0].to(device), float(initial[1])
         self.optimizer = self._optimizer()
@@ -173,7 +168,7 @@ class Trainer:
         self.captured = self._captured_step()
         self.iteration = 0
         self.progress = 0.0  # fraction of the run done: iterations or wall-clock budget, whichever is further
-        self.elapsed = 0.0  # wall seconds of earlier sessions of a resumed run
+        self.elapsed = 0.0  # wall seconds of a resumed run's earlier runs
         self.history: list[dict] = []
         self.clip: dict = {}  # what identifies the clip, saved with checkpoints (tomgs.train.pipeline fills it)
         self._measured: list[tuple[int, torch.Tensor]] = []  # (frame, PSNR) not yet given to the sampler
@@ -181,162 +176,6 @@ class Trainer:
         self.eval_frame_seconds = 0.0  # seconds a frame of the last clip PSNR took
 
     # -- set-up --------------------------------------------------------------------------------
-
-    def _initial_model(self, points: np.ndarray, colors: np.ndarray, progress) -> tuple[GaussianModel, float]:
-        """Tracked points (alive over the frames that saw them, or the whole clip) plus points
-        unprojected from every frame at the scene depth, each alive around its frame's time
-        (`wide_fraction` of them over the whole clip). progress(done, total) after each frame."""
-        c = self.config
-        g = torch.Generator().manual_seed(c.seed)
-        w2c = self.cameras.viewmats()
-        depth = self._median_depth(points, w2c)
-        per_frame = c.points_per_frame(self.width * self.height, self.num_frames, self.device.type)
-        fx, fy, cx, cy = self.cameras.K[0, 0], self.cameras.K[1, 1], self.cameras.K[0, 2], self.cameras.K[1, 2]
-        frame_sigma = frames_to_clip_time(c.init_t_scale_frames, self.num_frames)
-        wide = int(round(self.wide_fraction * per_frame))  # the first `wide` of each frame's points (random)
-        tracked_means, tracked_sigma = self._tracked_windows(len(points), frame_sigma)
-        # sizes: tracked points from their neighbours (few), per-frame points from one sample's
-        # share of the image at their depth (many: a neighbour search over them would be quadratic)
-        sample_pixels = math.sqrt(self.width * self.height / per_frame) / float(fx)
-        pixel_size = max(float(np.median(depth)) * sample_pixels, 1e-6)
-        # float32 arrays on the training device, filled a frame at a time: the host holds one frame's
-        # points, never the whole cloud (7.2M points, ~1.8 GB with their SH, for 900 frames on a GPU)
-        P, total = len(points), len(points) + self.num_frames * per_frame
-        dev = dict(dtype=torch.float32, device=self.device)
-        all_points, all_colors = torch.empty(total, 3, **dev), torch.empty(total, 3, **dev)
-        t_means, start_t_scales = torch.empty(total, **dev), torch.empty(total, **dev)
-        sizes = torch.full((total,), pixel_size, **dev)
-        if P:
-            all_points[:P] = torch.as_tensor(points, dtype=torch.float32)
-            all_colors[:P] = torch.as_tensor(colors, dtype=torch.float32)
-            t_means[:P] = torch.as_tensor(tracked_means, dtype=torch.float32)
-            start_t_scales[:P] = torch.as_tensor(tracked_sigma, dtype=torch.float32)
-            sizes[:P] = nearest_neighbour_distance(torch.as_tensor(points, dtype=torch.float32)).to(self.device)
-        if c.init_depth == "tracks":
-            grids, known = self._log_depth_grids(points, w2c)
-        else:
-            grids, known = None, torch.zeros(self.num_frames, dtype=torch.bool)
-        n = P
-        for k in range(self.num_frames):
-            u, v = self._initial_pixels(k, per_frame, g)
-            if known[k]:
-                z = torch.exp(sample_grid(grids[k], u, v, self.width, self.height))
-            else:
-                z = torch.full_like(u, depth[k])
-            z = z * torch.exp(c.init_depth_jitter * torch.randn(len(u), generator=g, dtype=torch.float64))
-            cam = torch.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], -1).numpy()
-            c2w = self.cameras.c2w[k]
-            m = len(u)
-            all_points[n:n + m] = torch.from_numpy(cam @ c2w[:3, :3].T + c2w[:3, 3]).float()
-            pix = self.frames[k, v.long().clamp(max=self.height - 1).to(self.store),
-                              u.long().clamp(max=self.width - 1).to(self.store)]
-            all_colors[n:n + m] = pix.float().to(self.device) / 255.0
-            if known[k]:
-                sizes[n:n + m] = (z * sample_pixels).clamp_min(1e-6).float().to(self.device)
-            early = torch.arange(m, device=self.device) < wide
-            t_means[n:n + m] = torch.where(early, 0.5, float(np.float32(self.times[k])))
-            start_t_scales[n:n + m] = torch.where(early, 1.0, float(np.float32(frame_sigma)))
-            n += m
-            progress(k + 1, self.num_frames)
-        if n < total:  # frames with no allowed pixel gave none
-            all_points, all_colors, t_means, start_t_scales, sizes = (
-                a[:n].clone() for a in (all_points, all_colors, t_means, start_t_scales, sizes))
-        if n > c.max_gaussians:  # the tracked points and a point a frame outnumber a small cap: a random share
-            keep = torch.randperm(n, generator=g)[:c.max_gaussians].sort().values.to(self.device)
-            all_points, all_colors, t_means, start_t_scales, sizes = (
-                a[keep] for a in (all_points, all_colors, t_means, start_t_scales, sizes))
-            self.notes.append(f"{c.max_gaussians:,} of the {n:,} starting points kept: the cap")
-        t_scales = start_t_scales if c.temporal else STATIC_T_SCALE
-        del start_t_scales
-        model = GaussianModel.from_points(all_points, all_colors, t_means, t_scales, max_sh_degree=c.sh_degree,
-                                          sizes=sizes)
-        del all_points, all_colors, t_means, t_scales, sizes
-        if c.sh_degree > 0:
-            model.sh_degree = c.sh_degree
-        else:
-            self.notes.append("SH degree 0: view-dependent colour left out (--sh-degree 1..3 fits it; Python: "
-                              "sh_degree=)")
-        return model.to(self.device), float(np.median(depth))
-
-    def _tracked_windows(self, count: int, min_sigma: float) -> tuple[np.ndarray, np.ndarray]:
-        """(t_means [P], t_scales [P]) of the tracked points: centred on the frames that saw each one,
-        sigma half their time span (at least `min_sigma`); the whole clip without `point_frames`."""
-        if self.point_frames is None or len(self.point_frames) != count:
-            return np.full(count, 0.5), np.full(count, 1.0)
-        times = np.asarray(self.times)
-        first, last = times[self.point_frames[:, 0]], times[self.point_frames[:, 1]]
-        return (first + last) / 2, np.maximum((last - first) / 2, min_sigma)
-
-    def _initial_pixels(self, k: int, n: int, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-        """n pixel positions (u, v) float64 [n] in frame k: uniform, or only where the weight is > 0."""
-        if self.weights is None:
-            return (torch.rand(n, generator=g, dtype=torch.float64) * self.width,
-                    torch.rand(n, generator=g, dtype=torch.float64) * self.height)
-        allowed = (self.weights[k] > 0).flatten().double().cpu()
-        if not allowed.any():
-            return torch.zeros(0, dtype=torch.float64), torch.zeros(0, dtype=torch.float64)
-        pixel = torch.multinomial(allowed, n, replacement=True, generator=g)
-        jitter = torch.rand(2, n, generator=g, dtype=torch.float64)
-        return (pixel % self.width).double() + jitter[0], (pixel // self.width).double() + jitter[1]
-
-    def _log_depth_grids(self, points: np.ndarray, w2c: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
-        """Each frame's log depth at grid nodes spread evenly over the image (corners included, about
-        DEPTH_GRID_NODES): (float64 [T, gh, gw], bool [T] whether frame k's grid is known), on the host. A
-        node's value is the inverse-squared-distance mean of the log depths of the DEPTH_NEIGHBOURS nearest
-        tracked points seen in the frame (`point_frames`; without it, every point in front of the camera) as
-        they project into the image; a frame with fewer than MIN_DEPTH_POINTS there has none. The frames go
-        a chunk at a time through the training device, which copies the grids back once. points: float64
-        [P,3] world; w2c: [T,4,4]."""
-        T = self.num_frames
-        cell = math.sqrt(self.width * self.height / DEPTH_GRID_NODES)
-        gw, gh = math.ceil(self.width / cell) + 1, math.ceil(self.height / cell) + 1
-        if len(points) == 0:
-            return torch.zeros(T, gh, gw, dtype=torch.float64), torch.zeros(T, dtype=torch.bool)
-        dev = self.device
-        ys, xs = torch.meshgrid(torch.linspace(0, self.height, gh, device=dev),
-                                torch.linspace(0, self.width, gw, device=dev), indexing="ij")
-        nodes = torch.stack([xs.flatten(), ys.flatten()], -1)  # [G,2] pixels
-        world = torch.as_tensor(points, dtype=torch.float64, device=dev)
-        w2c = torch.as_tensor(w2c, dtype=torch.float64, device=dev)
-        K = torch.as_tensor(self.cameras.K, dtype=torch.float64, device=dev)
-        size = torch.tensor([self.width, self.height], dtype=torch.float64, device=dev)
-        frames = torch.arange(T, device=dev)
-        if self.point_frames is not None and len(self.point_frames) == len(points):
-            spans = torch.as_tensor(self.point_frames, device=dev)
-            seen = (spans[:, 0] <= frames[:, None]) & (frames[:, None] <= spans[:, 1])  # [T,P]
-        else:
-            seen = torch.ones(T, len(points), dtype=torch.bool, device=dev)
-        near = min(DEPTH_NEIGHBOURS, len(points))
-        grids = torch.empty(T, gh * gw, dtype=torch.float64, device=dev)
-        known = torch.empty(T, dtype=torch.bool, device=dev)
-        chunk = max(1, DEPTH_GRID_CHUNK // (len(nodes) * len(points)))
-        for a in range(0, T, chunk):
-            b = min(a + chunk, T)
-            cam = torch.einsum("tij,pj->tpi", w2c[a:b, :3, :3], world) + w2c[a:b, None, :3, 3]  # [c,P,3]
-            z = cam[..., 2]
-            uv = cam[..., :2] / z.clamp_min(1e-12)[..., None] * K.diagonal()[:2] + K[:2, 2]
-            ok = seen[a:b] & (z > 1e-6) & ((uv >= 0) & (uv <= size)).all(-1)
-            d2 = ((nodes[None, :, None, :] - uv[:, None].float()) ** 2).sum(-1)  # [c,G,P]
-            d2, nearest = d2.masked_fill(~ok[:, None], float("inf")).topk(near, dim=-1, largest=False)
-            # 0 for the points not seen; the cell's square keeps a node on a point from taking only its depth
-            weights = 1.0 / (d2.double() + cell * cell)
-            log_z = z.clamp_min(1e-12).log()[:, None].expand(-1, len(nodes), -1)
-            grids[a:b] = (weights * log_z.gather(-1, nearest)).sum(-1) / weights.sum(-1).clamp_min(1e-300)
-            known[a:b] = ok.sum(-1) >= MIN_DEPTH_POINTS
-        return grids.reshape(T, gh, gw).cpu(), known.cpu()
-
-    @staticmethod
-    def _median_depth(points: np.ndarray, w2c: np.ndarray) -> np.ndarray:
-        """Median depth [T] of the tracked points in each camera (1.0 where none is in front)."""
-        out = np.ones(len(w2c))
-        if len(points) == 0:
-            return out
-        for k, m in enumerate(w2c):
-            z = points @ m[2, :3] + m[2, 3]
-            z = z[z > 1e-6]
-            if len(z):
-                out[k] = float(np.median(z))
-        return out
 
     def _optimizer(self) -> torch.optim.Optimizer:
         c = self.config
@@ -875,7 +714,7 @@ class Trainer:
 FRAME_MEMORY_SHARE = 0.25  # of the free GPU memory: frames beyond it stay on the host
 
 
-def _frame_store(nbytes: float, device: torch.device) -> torch.device:
+def frame_store(nbytes: float, device: torch.device) -> torch.device:
     """Where the clip's uint8 frames live: on `device`, or on the host when they would take more than
     FRAME_MEMORY_SHARE of a GPU's free memory (each step then copies one frame over)."""
     if device.type != "cuda":
@@ -900,19 +739,6 @@ def spread(total: int, count: int) -> np.ndarray:
     return np.unique(np.linspace(0, total - 1, count).round().astype(np.int64))
 
 
-def sample_grid(grid: torch.Tensor, u: torch.Tensor, v: torch.Tensor, width: int, height: int) -> torch.Tensor:
-    """Bilinear samples [n] of `grid` [gh, gw], whose nodes span the image (node (0, 0) at pixel (0, 0),
-    (gh-1, gw-1) at (width, height)), at pixel positions u, v [n] (clamped to the image)."""
-    gh, gw = grid.shape
-    x = (u * ((gw - 1) / width)).clamp(0, gw - 1)
-    y = (v * ((gh - 1) / height)).clamp(0, gh - 1)
-    x0, y0 = x.floor().long().clamp(max=gw - 2), y.floor().long().clamp(max=gh - 2)
-    a, b = (x - x0).to(grid.dtype), (y - y0).to(grid.dtype)
-    top = grid[y0, x0] * (1 - a) + grid[y0, x0 + 1] * a
-    bottom = grid[y0 + 1, x0] * (1 - a) + grid[y0 + 1, x0 + 1] * a
-    return top * (1 - b) + bottom * b
-
-
 def log_memory_mb(device: torch.device) -> float:
     """The log's memory column: peak MiB allocated by torch on a GPU, peak resident host memory on a CPU."""
     if device.type == "cuda":
@@ -929,3 +755,23 @@ def write_csv(path: Path, rows: list[dict]) -> None:
     writer.writeheader()
     writer.writerows(rows)
     write_text(path, out.getvalue())
+
+
+def write_plot(path: Path, history: list[dict]) -> None:
+    """The PSNR plot of a fit's log rows (`history`): training frames, evenly spaced clip frames, the full clip."""
+    from tomgs.io.plots import line_plot_png
+
+    train = [(r["wall_s"], r["train_psnr"]) for r in history if r["train_psnr"] != ""]
+    clip = [r for r in history if r["clip_psnr"] != ""]
+    every = max((int(r.get("clip_frames") or 0) for r in clip), default=0)  # the last covers every frame
+    full = [(r["wall_s"], r["clip_psnr"]) for r in clip if int(r.get("clip_frames") or every) == every]
+    part = [(r["wall_s"], r["clip_psnr"]) for r in clip if int(r.get("clip_frames") or every) < every]
+    series = {}
+    if train:
+        series["training frames (running)"] = tuple(np.array(v, dtype=float) for v in zip(*train))
+    if part:
+        series["clip, evenly spaced frames"] = tuple(np.array(v, dtype=float) for v in zip(*part))
+    if full:
+        series["full clip"] = tuple(np.array(v, dtype=float) for v in zip(*full))
+    if series:
+        line_plot_png(path, series, xlabel="wall-clock seconds", ylabel="PSNR (dB)", title="PSNR against run time")

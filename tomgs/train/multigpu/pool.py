@@ -1,15 +1,16 @@
 """A sharded fit's rank processes, started before the parent's own imports.
 
 A spawned rank begins with Python's and torch's imports (~3 s on the GPU hosts), and so does the
-parent before it can check the inputs and plan the run: spawned only then (tomgs.train.multigpu.rank), every
+parent before it can check the inputs and plan the run: spawned only then (tomgs.train.multigpu.launch), every
 rank's start-up came after the parent's, ~3 s of the budget that no rank trained in. A command that
 knows it fits in shards (the CLI's `fit --gpus N`) calls `start(N)` first thing: its ranks import
 tomgs.train.multigpu.rank while the parent imports and plans, then wait for their Job. The parent's
-`take(N)` (tomgs.train.multigpu.rank, when it would spawn) hands them over; a pool nobody takes (the parent
+`take(N)` (tomgs.train.multigpu.launch, when it would spawn) hands them over; a pool nobody takes (the parent
 refused its inputs, or failed) is sent away when the parent exits, and a rank whose parent dies
-gets SIGTERM (Linux). This module imports nothing heavy: it runs before torch is imported; so
-`check_world` refuses a count of ranks the host cannot run (more than its GPUs, counted without
-torch by `visible_gpus`, or than its cores for CPU ranks) before `start` spawns any.
+gets SIGTERM (Linux). It also says where a process stands (torchrun's environment, whether a fit runs
+in shards, whether this process speaks for the run). This module imports nothing heavy: it runs before
+torch is imported; so `check_world` refuses a count of ranks the host cannot run (more than its GPUs,
+counted without torch by `visible_gpus`, or than its cores for CPU ranks) before `start` spawns any.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from tomgs.errors import InputError
 class Pool:
     """N waiting ranks: `procs` (multiprocessing Processes), `jobs` (the parent's ends of the pipes each
     waits on: send it (rank, job), or None to send it away) and `reports` (the parent's ends of the pipes
-    it reports on once it runs, as a rank spawned by tomgs.train.multigpu.rank does)."""
+    it reports on once it runs, as a rank spawned by tomgs.train.multigpu.launch does)."""
 
     procs: list
     jobs: list
@@ -98,6 +99,29 @@ def check_world(world: int, device, gpus: int | None, local: int | None = None, 
                          f"(CUDA_VISIBLE_DEVICES={os.environ.get('CUDA_VISIBLE_DEVICES', 'unset')}); give --gpus "
                          f"{gpus} or fewer, or spread the ranks over hosts with torchrun")
     return text
+
+
+def torchrun_env() -> tuple[int, int, int, int] | None:
+    """(rank, world size, local rank, local world size) when torchrun (or any launcher that sets
+    RANK, WORLD_SIZE and LOCAL_RANK) started this process with WORLD_SIZE > 1, else None."""
+    try:
+        rank, world, local = (int(os.environ[k]) for k in ("RANK", "WORLD_SIZE", "LOCAL_RANK"))
+    except (KeyError, ValueError):
+        return None
+    if world <= 1:
+        return None
+    return rank, world, local, int(os.environ.get("LOCAL_WORLD_SIZE", world))
+
+
+def wants_shards(gpus: int | None) -> bool:
+    """Whether a fit runs in temporal shards: --gpus above 1, or started by torchrun."""
+    return (gpus is not None and gpus != 1) or torchrun_env() is not None
+
+
+def is_leader() -> bool:
+    """False in a torchrun rank other than 0 (that rank prints nothing: rank 0 speaks for the run)."""
+    env = torchrun_env()
+    return env is None or env[0] == 0
 
 
 def start(world: int) -> None:
@@ -178,6 +202,15 @@ def leave_terminal() -> None:
             pass
 
 
+def run_spawned(rank: int, job, reports) -> None:
+    """A rank spawned with its job (no pool): its imports, then out of the terminal's process group, then
+    its run (tomgs.train.multigpu.rank.spawned), reported on `reports`."""
+    from tomgs.train.multigpu import rank as ranks
+
+    leave_terminal()
+    ranks.spawned(rank, job, reports)
+
+
 def _waiting(jobs, reports) -> None:
     """A waiting rank: import what a rank runs, then run the (rank, job) the parent sends (None, or the
     parent gone: leave without a word)."""
@@ -197,4 +230,5 @@ def _waiting(jobs, reports) -> None:
     ranks.spawned(rank, job, reports, imported=imported)
 
 
-__all__ = ["Pool", "check_world", "dismiss", "leave_terminal", "start", "take", "under_torchrun", "visible_gpus"]
+__all__ = ["Pool", "check_world", "dismiss", "is_leader", "leave_terminal", "run_spawned", "start", "take",
+           "torchrun_env", "under_torchrun", "visible_gpus", "wants_shards"]

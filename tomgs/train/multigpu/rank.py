@@ -1,49 +1,27 @@
-"""The processes of a sharded fit (tomgs.train.multigpu.shards): how they start, what each does, how they stop.
-
-Start: `fit(..., gpus=N)` (the CLI's --gpus N) checks the inputs and every output, hands the plan to
-`on_plan`, and spawns N processes on this host (spawn, not fork: CUDA and Warp start clean in each),
-one per GPU (cuda:0 .. cuda:N-1; NCCL between them) or, with device cpu, N CPU processes (gloo). The
-CLI starts them before its own imports (tomgs.train.multigpu.pool) and the fit hands them their job instead.
-Under torchrun (RANK, WORLD_SIZE and LOCAL_RANK in the environment, WORLD_SIZE > 1) every process
-torchrun started is one rank and `fit` runs that rank: `torchrun --nnodes 2 --nproc_per_node 8 ...
--m tomgs.cli fit ...` fits on two hosts (each host's ranks write their checkpoints and CSVs on that
-host, rank 0 the scene).
+"""What one rank of a sharded fit does (tomgs.train.multigpu.shards; how the ranks start and stop:
+tomgs.train.multigpu.launch).
 
 Each rank, in order: joins the process group; rank 0 reads the clip and estimates the cameras (or
 takes them from a checkpoint) and broadcasts them, the others meanwhile read their stretch and warm
-up (tomgs.train.warm, in a thread); every rank
-checks its checkpoint on resume, and all refuse together when one refuses (before anything is
-written); phase 1 (its Trainer); the merge, the joint refinement and the measurement of its frames
-(tomgs.train.multigpu.shards), the refinement ending by what follows it as measured (Rank.merge); rank 0
-writes the scene, the merged CSV and plot; every rank removes its checkpoint and, spawned, leaves
-by os._exit. Each process records its phases (Timeline; FitResult.timeline).
+up (tomgs.train.warm, in a thread); every rank checks its checkpoint on resume, and all refuse
+together when one refuses (before anything is written); phase 1 (its Trainer); the merge, the joint
+refinement and the measurement of its frames (tomgs.train.multigpu.shards), the refinement ending by
+what follows it as measured (Rank.merge); rank 0 writes the scene, the merged CSV and plot; every
+rank removes its checkpoint and, spawned, leaves by os._exit. Each process records its phases
+(Timeline; FitResult.timeline).
 
-Faults: a rank that raises or dies stops the run. A spawned run's parent then sends SIGTERM to the
-other ranks, which save a checkpoint at their next step boundary as an interrupted fit does
-(tomgs.train.checkpoint.StopSignals), waits for them (SIGKILL after STOP_GRACE_S: a rank blocked in
-a collective with a dead peer never reaches one), and raises ShardFailed naming the rank, its error
-and every checkpoint kept; an InputError when the rank's error was one (a bad input that a rank
-found: a corrupt frame in its stretch, a checkpoint of other options). torchrun's agent stops the
-other ranks the same way (SIGTERM). SIGINT and SIGTERM to the parent go on to every rank (the ranks
-leave the terminal's process group, so that one Ctrl-C is one signal to each), which save and stop;
-the parent raises ShardsInterrupted (a FitInterrupted) naming the checkpoints. Every rank's last
-checkpoint is kept; `resume=True` continues all of them (a rank killed before its first checkpoint
-starts its stretch again).
-
-Python callers: the spawned processes import the caller's main module again, so a script that calls
-fit(..., gpus=N) keeps that call under `if __name__ == "__main__":`.
+A rank reuses the one-process fit's pieces: the options and the clip's identity a checkpoint records
+and the checks a resume makes (tomgs.train.clip), the outputs' paths (tomgs.outputs), the phases' ticks
+and memory (tomgs.train.phases), the plan (tomgs.train.plan) and the Trainer with its log and plot.
 """
 
 from __future__ import annotations
 
-import math
 import os
-import signal
 import sys
-import threading
 import time
 import traceback
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
 from types import SimpleNamespace
@@ -51,15 +29,22 @@ from types import SimpleNamespace
 import numpy as np
 import torch
 
+from tomgs.cameras import Cameras
 from tomgs.errors import InputError
-from tomgs.train.multigpu import pool as rank_pool
+from tomgs.io import Video, read_video
+from tomgs.io.video import parse_frames, probe_clip, read_video_for
 from tomgs.train.checkpoint import START_OVER, FitInterrupted, StopSignals, read_checkpoint
+from tomgs.train.clip import check_clip, check_options, clip_fps, clip_identity
+from tomgs.train.multigpu.shards import (REFINE_FRACTION, assemble, boundary_psnr, default_overlap, frame_psnr,
+                                         gather_union, halo, local_cameras, log_row, merged_history, model_of,
+                                         plan_stretches, rank_paths, refine, stretch_points)
+from tomgs.outputs import fit_output_paths
+from tomgs.train.phases import peak_memory, process_started, train_ticks
+from tomgs.train.plan import SAVE_COST, make_plan, render_seconds
+from tomgs.train.trainer import Trainer, frame_store, write_csv, write_plot
 from tomgs.train.warm import WarmUp
-from tomgs.train.multigpu.shards import REFINE_FRACTION, default_overlap, plan_stretches, rank_paths
-from tomgs.train import pipeline, trainer  # noqa: F401  (what a rank runs: imported while a pooled rank waits)
 
 GROUP_TIMEOUT = timedelta(hours=1)  # a collective waits this long (rank 0's poses on a long clip come first)
-STOP_GRACE_S = 120.0  # after SIGTERM, a rank's time to save before SIGKILL
 PHASE_MESSAGES_PER_S = 5.0  # progress relayed from rank 0 to the parent at most this often
 # after the refinement's last step, beside what the ranks measure (the final measurement, the gather,
 # the scene's write and read back): the ranks leaving the group and exiting (os._exit: ~0.02 s), the
@@ -69,37 +54,7 @@ SAMPLE_IO_SHARE = 1 / 16  # rank 0 times the scene's write and read back on this
 MIN_SAMPLE_IO = 20_000  # ... and on at least this many Gaussians
 
 
-class ShardFailed(RuntimeError):
-    """A rank of a sharded fit failed: `rank`, its error (`error`), and the checkpoints kept
-    (`checkpoints`: rank -> path of the ones on disk)."""
-
-    def __init__(self, message: str, rank: int, error: str, checkpoints: dict[int, Path]):
-        super().__init__(message)
-        self.rank, self.error, self.checkpoints = rank, error, checkpoints
-
-
-class ShardsInterrupted(FitInterrupted):
-    """A sharded fit stopped by SIGINT or SIGTERM; `checkpoints`: rank -> checkpoint kept."""
-
-    def __init__(self, checkpoints: dict[int, Path], signum: int, iterations: dict[int, int] | None = None):
-        self.checkpoints = dict(checkpoints)
-        self.iterations = dict(iterations or {})
-        super().__init__(next(iter(self.checkpoints.values()), None), signum)
-
-    def message(self) -> str:
-        try:
-            name = signal.Signals(self.signum).name
-        except ValueError:
-            name = f"signal {self.signum}"
-        if not self.checkpoints:
-            return f"interrupted ({name}) before the first checkpoint: nothing to resume; run the fit again"
-        kept = ", ".join(f"{path}" + (f" (iteration {self.iterations[r]})" if r in self.iterations else "")
-                         for r, path in sorted(self.checkpoints.items()))
-        return f"interrupted ({name}): checkpoints {kept}; continue with --resume"
-
-
 # -- when each phase ran -----------------------------------------------------------------------------
-
 
 class Timeline:
     """A process's phases as {phase, start, end}: seconds since the command started (`origin`, a
@@ -128,36 +83,8 @@ class Timeline:
 
 
 def process_start_epoch() -> float:
-    """time.time() at which this process started (tomgs.train.pipeline.process_started: Linux's /proc)."""
-    from tomgs.train.pipeline import process_started
-
+    """time.time() at which this process started (tomgs.train.phases.process_started: Linux's /proc)."""
     return time.time() - (time.perf_counter() - process_started())
-
-
-# -- where we are ------------------------------------------------------------------------------------
-
-
-def torchrun_env() -> tuple[int, int, int, int] | None:
-    """(rank, world size, local rank, local world size) when torchrun (or any launcher that sets
-    RANK, WORLD_SIZE and LOCAL_RANK) started this process with WORLD_SIZE > 1, else None."""
-    try:
-        rank, world, local = (int(os.environ[k]) for k in ("RANK", "WORLD_SIZE", "LOCAL_RANK"))
-    except (KeyError, ValueError):
-        return None
-    if world <= 1:
-        return None
-    return rank, world, local, int(os.environ.get("LOCAL_WORLD_SIZE", world))
-
-
-def wants_shards(gpus: int | None) -> bool:
-    """Whether a fit runs in temporal shards: --gpus above 1, or started by torchrun."""
-    return (gpus is not None and gpus != 1) or torchrun_env() is not None
-
-
-def is_leader() -> bool:
-    """False in a torchrun rank other than 0 (that rank prints nothing: rank 0 speaks for the run)."""
-    env = torchrun_env()
-    return env is None or env[0] == 0
 
 
 @dataclass
@@ -169,7 +96,7 @@ class Job:
     config: object  # TrainConfig
     world: int
     device_type: str  # "cuda" or "cpu"
-    options: dict  # what a checkpoint records of the options (tomgs.train.pipeline)
+    options: dict  # what a checkpoint records of the options (tomgs.train.clip.fit_options)
     masks: object = None
     frames: object = None
     max_side: int | None = None
@@ -185,376 +112,23 @@ class Job:
     store: str | None = None  # init_method of a spawned run (a file:// store); None: env:// (torchrun)
 
 
-# -- the parent: checks, spawn, watch ----------------------------------------------------------------
-
-
-def fit_shards(video, output, config, *, gpus=None, masks=None, frames=None, max_side=None, poses="auto",
-               focal=None, device=None, resume=False, overwrite=False, progress=None, pose_progress=None,
-               layer=None, mask_dilation=2, phases=None, on_plan=None, auto_budget=True, started=None,
-               overlap: int | None = None, refine_fraction: float = REFINE_FRACTION, carry_adam: bool = True):
-    """`tomgs.train.pipeline` in temporal shards (this module's docstring): the same arguments, with `gpus`
-    ranks (None: torchrun's WORLD_SIZE), `overlap` frames into each neighbour (None: default) and
-    `refine_fraction` of the training time for the joint refinement (0: none, the union as merged);
-    `carry_adam=False` starts the refinement from a fresh Adam instead of each Gaussian's phase-1
-    state (a comparison: docs/multi-gpu.md)."""
-    from tomgs.train.pipeline import _poses_key
-
-    entered = time.time()
-    # as a one-GPU fit: the budget counts from the call unless told (the CLI: from the process's start)
-    started = time.perf_counter() if started is None else started
-    env = torchrun_env()
-    if env is not None and gpus not in (None, env[1]):
-        raise InputError(f"--gpus {gpus} under torchrun with WORLD_SIZE {env[1]}: leave --gpus out (torchrun's "
-                         f"--nnodes x --nproc_per_node picks the ranks)")
-    world = env[1] if env is not None else int(gpus)
-    if world < 1:
-        raise InputError(f"--gpus {gpus}: give 1 or more")
-    if layer is not None:
-        raise InputError(f"--layer {layer} with --gpus {world}: layers are fitted on one GPU (leave --gpus out)")
-    if not 0.0 <= float(refine_fraction) < 1.0:
-        raise InputError(f"refine_fraction {refine_fraction}: give a share of the training time in [0, 1)")
-    device_type = _device_type(device, world, env)
-    from tomgs.train.config import TrainConfig
-
-    config = config or TrainConfig()
-    options = dict(frames=None if frames is None else str(frames), max_side=None if max_side is None else int(max_side),
-                   layer=None, mask_dilation=None,
-                   masks=masks is not None or (getattr(video, "masks", None) is not None), poses=_poses_key(poses),
-                   focal=None if focal is None else float(focal))
-    job = Job(video=video if not isinstance(video, (str, os.PathLike)) else str(video), output=str(output),
-              config=config, world=world, device_type=device_type, options=options, masks=masks, frames=frames,
-              max_side=max_side, poses=poses, focal=focal, resume=resume, overwrite=overwrite,
-              auto_budget=auto_budget, start_time=time.time() - (time.perf_counter() - started), overlap=overlap,
-              refine_fraction=float(refine_fraction), carry_adam=bool(carry_adam))
-    if env is not None:  # torchrun: this process is one rank
-        rank, _, local_rank, _ = env
-        check_shard_outputs(output, world, resume, overwrite, tidy=rank == 0)
-        plan = _parent_plan(job)
-        if on_plan is not None and rank == 0:
-            on_plan(plan)
-        phases = phases or (lambda *a: None)
-        report = _local_report(rank, progress, phases, pose_progress)
-        summary = run_rank(job, rank, local_rank, report, entered=entered)
-        result = _result(summary, output, started, rank == 0)
-        result.plan = plan
-        result.timeline = summary.get("timelines")  # every rank's phases, to the scene written
-        return result
-
-    timeline = Timeline(job.start_time)  # the parent's phases; the ranks' come with their summaries
-    timeline.add("start-up", job.start_time, entered)  # the process, Python, imports, the CLI
-    paths = check_shard_outputs(output, world, resume, overwrite, tidy=True)
-    plan = _parent_plan(job)
-    if on_plan is not None:
-        on_plan(plan)
-    import tempfile
-
-    timeline.add("plan", entered)
-    with tempfile.TemporaryDirectory(prefix="tomgs-ranks-") as folder:
-        job.store = "file://" + str(Path(folder) / "store")
-        summary = _spawn_and_watch(job, paths, progress, phases or (lambda *a: None), pose_progress, timeline)
-    with timeline.span("read back"):
-        result = _result(summary, output, started, True)
-    result.plan = plan
-    result.timeline = dict(summary.get("timeline") or {}, parent=timeline.events)
-    return result
-
-
-def _device_type(device, world: int, env) -> str:
-    """"cuda" or "cpu" for a run of `world` ranks; InputError for a device it cannot use
-    (tomgs.train.multigpu.pool.check_world, with the GPUs torch sees)."""
-    gpus = torch.cuda.device_count() if torch.cuda.is_available() else 0
-    return rank_pool.check_world(world, device, gpus, local=env[3] if env is not None else None)
-
-
-def check_shard_outputs(output, world: int, resume: bool, overwrite: bool, tidy: bool = False) -> dict:
-    """The outputs of a sharded fit (tomgs.train.pipeline.output_paths plus each rank's checkpoint and CSV)
-    once every one can be written, else InputError saying how to proceed. Resume expects the ranks'
-    checkpoints (at least one) and refuses those of another number of ranks, or a one-GPU fit's
-    checkpoint; without resume, any checkpoint is refused unless `overwrite`. `tidy`: remove, with
-    overwrite, the checkpoints that this run replaces (a one-GPU fit's, other ranks'), and stale
-    temporaries."""
-    import re
-
-    from tomgs.outputs import check_file_output, remove_stale_temporaries
-    from tomgs.train.pipeline import output_paths
-
-    paths = output_paths(output)
-    if paths["scene"].suffix.lower() != ".ply":
-        raise InputError(f"{output}: a scene is written as .ply; name the output like scene.ply")
-    ranks = rank_paths(output, world)
-    check_file_output(paths["scene"], overwrite, "scene")
-    check_file_output(paths["plot"], overwrite, "PSNR plot")
-    check_file_output(paths["csv"], overwrite or resume, "log")
-    stem = paths["scene"].with_suffix("").name
-    pattern = re.compile(re.escape(stem) + r"\.rank(\d+)\.ckpt$")
-    others = sorted((int(m.group(1)), p) for p in paths["scene"].parent.glob(f"{stem}.rank*.ckpt")
-                    if (m := pattern.match(p.name)) and int(m.group(1)) >= world)
-    single = paths["checkpoint"]
-    have = [r["checkpoint"] for r in ranks if r["checkpoint"].is_file()]
-    if resume:
-        if single.is_file():
-            raise InputError(f"{single} holds an interrupted one-GPU fit of {paths['scene'].name}: resume it without "
-                             f"--gpus, or {START_OVER}")
-        if others:
-            raise InputError(f"{others[0][1]} belongs to a fit of {others[-1][0] + 1} or more ranks: resume with the "
-                             f"--gpus it was started with, or {START_OVER}")
-        if not have:
-            names = ", ".join(str(r["checkpoint"].name) for r in ranks)
-            raise InputError(f"no checkpoint of a {world}-rank fit beside {output} ({names}) to resume from; run "
-                             f"without --resume")
-    elif (have or others or single.is_file()) and not overwrite:
-        found = (have + [p for _, p in others] + ([single] if single.is_file() else []))[0]
-        raise InputError(f"{found} holds an interrupted fit of {paths['scene'].name}: pass --resume to continue it "
-                         f"(with the --gpus it was started with), or --overwrite (-y) to start over (Python: "
-                         f"resume=True or overwrite=True)")
-    for r in ranks:
-        check_file_output(r["checkpoint"], True, "checkpoint")
-        check_file_output(r["csv"], overwrite or resume, "log")
-    if tidy:
-        if overwrite and not resume:
-            for path in [p for _, p in others] + [single]:
-                path.unlink(missing_ok=True)
-        for path in [*paths.values(), *(p for r in ranks for p in r.values())]:
-            remove_stale_temporaries(path)
-    return dict(paths, ranks=ranks)
-
-
-@dataclass
-class ShardPlan:
-    """A sharded fit's plan: one rank's (tomgs.train.plan.FitPlan, for its stretch) and the stretches."""
-
-    rank_plan: object
-    frames: int
-    world: int
-    device: str
-    stretches: list = field(default_factory=list)
-    refine_fraction: float = REFINE_FRACTION
-
-    def __getattr__(self, name):  # budget, eta, phases, reasons, ...: the rank's plan's
-        if name == "rank_plan":
-            raise AttributeError(name)
-        return getattr(self.rank_plan, name)
-
-    def summary(self) -> str:
-        p = self.rank_plan
-        sizes = sorted({s.frames for s in self.stretches})
-        each = "-".join(str(n) for n in (sizes[0], sizes[-1])) if len(sizes) > 1 else str(sizes[0])
-        work = (f"{p.iterations:,} iterations or {_duration(p.budget)}, whichever comes first"
-                if p.budget > 0 else f"{p.iterations:,} iterations")
-        return (f"plan: {self.frames} frames of {p.width}x{p.height} on {self.world} x {self.device}, a stretch of "
-                f"{each} frames each, {work}, the last {self.refine_fraction:.0%} of training joint; start from "
-                f"{p.points_per_frame * self.frames:,} Gaussians, cap {p.cap:,} per rank; ETA {_duration(p.eta)}")
-
-
-def _duration(seconds: float) -> str:
-    from tomgs.train.plan import _duration as duration
-
-    return duration(seconds)
-
-
-def _rank_plan(config, frames: int, height: int, width: int, source: int, device_type: str, auto_budget: bool,
-               free=None):
-    from tomgs.train.plan import make_plan
-
+def rank_plan(config, frames: int, height: int, width: int, source: int, device_type: str, auto_budget: bool,
+              free=None):
+    """(FitPlan, config) of one rank's stretch of `frames` frames (tomgs.train.plan.make_plan; its cameras
+    come from rank 0, so none are estimated in its time)."""
     return make_plan(config, frames, height, width, source, device_type, poses_estimated=False,
                      auto_budget=auto_budget, free_bytes=free)
 
 
-def _parent_plan(job: Job) -> ShardPlan:
-    """The plan printed before the ranks start: the largest stretch's, from the clip's index."""
-    from tomgs.io import Video
-    from tomgs.io.video import probe_clip
-
-    if isinstance(job.video, Video):
-        count, height, width = job.video.frames.shape[:3]
-        source = height * width
-    else:
-        count, height, width, source = probe_clip(job.video, job.frames, job.max_side)
-    overlap = default_overlap(count, job.world) if job.overlap is None else job.overlap
-    stretches = plan_stretches(count, job.world, overlap)
-    largest = max(s.frames for s in stretches)
-    plan, _ = _rank_plan(job.config, largest, height, width, source, job.device_type, job.auto_budget)
-    return ShardPlan(plan, count, job.world, job.device_type, stretches, job.refine_fraction)
-
-
-def _spawn_and_watch(job: Job, paths: dict, progress, phases, pose_progress, timeline=None) -> dict:
-    """Start the ranks, relay their progress, stop them all when one fails or a signal arrives, and
-    return rank 0's summary (or raise ShardFailed, InputError, ShardsInterrupted). `timeline` (a
-    Timeline) hears the spawn and the wait for the ranks; the summary's "timeline" is then every
-    rank's own phases, each with its end seen from here ("exit": its report to its process gone)."""
-    import multiprocessing as mp
-    from multiprocessing.connection import wait
-
-    pool = rank_pool.take(job.world)  # ranks the caller started before its imports (tomgs.train.multigpu.pool)
-    if pool is None:
-        ctx = mp.get_context("spawn")
-        pipes = [ctx.Pipe(duplex=False) for _ in range(job.world)]
-        procs = [ctx.Process(target=spawned, args=(rank, job, pipes[rank][1]), name=f"tomgs-rank{rank}", daemon=False)
-                 for rank in range(job.world)]
-        report_pipes = [reader for reader, _ in pipes]
-    else:
-        procs, report_pipes = pool.procs, pool.reports
-    readers = {report_pipes[r]: r for r in range(job.world)}
-    outcome: dict[int, tuple[str, dict]] = {}  # rank -> (done | interrupted | failed, payload)
-    died: dict[int, int] = {}  # rank -> exit code, for a rank that ended without a report
-    first_fault: list[int] = []  # ranks in the order their fault was seen
-    signals: list[int] = []
-    stopping = {"at": None}
-
-    def send(signum) -> None:
-        for p in procs:
-            if p.is_alive():
-                try:
-                    os.kill(p.pid, signum)
-                except OSError:
-                    pass
-
-    def forward(signum, frame):  # the parent's SIGINT / SIGTERM: every rank saves and stops
-        signals.append(signum)
-        stopping["at"] = stopping["at"] or time.monotonic()
-        send(signum)
-
-    previous = {}
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            if signal.getsignal(sig) not in (signal.SIG_IGN, None):
-                previous[sig] = signal.signal(sig, forward)
-    reported: dict[int, float] = {}  # rank -> when its last report arrived (time.time())
-    ended: dict[int, float] = {}  # rank -> when its process was seen gone
-    try:
-        spawning = time.time()
-        if pool is None:
-            for p in procs:
-                p.start()
-            for _, writer in pipes:
-                writer.close()  # the parent's copy: a rank's end of file is its own pipe closing
-        else:  # started and imported already: each is told its rank and the job
-            for rank, conn in enumerate(pool.jobs):
-                conn.send((rank, job))
-                conn.close()
-        if timeline is not None:
-            timeline.add("spawn" if pool is None else "hand the job to the ranks", spawning)
-        running = time.time()
-        while any(p.is_alive() for p in procs) or readers:
-            ready = wait(list(readers) + [p.sentinel for p in procs if p.is_alive()], timeout=0.5)
-            for conn in [c for c in ready if c in readers]:
-                rank = readers[conn]
-                try:
-                    kind, payload = conn.recv()
-                except (EOFError, OSError):
-                    del readers[conn]
-                    continue
-                if kind in ("done", "interrupted", "failed"):
-                    outcome[rank] = (kind, payload)
-                    reported[rank] = time.time()
-                    if kind == "failed":
-                        first_fault.append(rank)
-                elif kind == "phase" and rank == 0:
-                    phases(*payload)
-                elif kind == "poses" and rank == 0 and pose_progress is not None:
-                    pose_progress(*payload)
-                elif kind == "row" and rank == 0 and progress is not None:
-                    try:
-                        progress(payload)
-                    except KeyboardInterrupt:  # the caller's Ctrl-C, as in a one-GPU fit
-                        forward(signal.SIGINT, None)
-            for rank, p in enumerate(procs):
-                if rank not in ended and not p.is_alive():
-                    ended[rank] = time.time()
-                if not p.is_alive() and p.exitcode is not None and rank not in outcome and rank not in died \
-                        and not _pending(report_pipes[rank], readers):
-                    died[rank] = p.exitcode
-                    first_fault.append(rank)
-            if first_fault and not stopping.get("faulted"):
-                stopping.update(at=stopping["at"] or time.monotonic(), faulted=True)
-                send(signal.SIGTERM)
-            if stopping["at"] is not None and time.monotonic() - stopping["at"] > STOP_GRACE_S:
-                send(signal.SIGKILL)  # blocked in a collective with a dead peer: it keeps its last checkpoint
-        for rank, p in enumerate(procs):
-            p.join()
-            ended.setdefault(rank, time.time())  # gone between the loop's last look and its end
-        if timeline is not None:
-            timeline.add("ranks", running)
-    except BaseException:  # the parent's own failure (a callback's error): no rank outlives it
-        send(signal.SIGTERM)
-        for p in procs:
-            p.join(STOP_GRACE_S)
-        send(signal.SIGKILL)
-        raise
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-    summary = _verdict(job, paths, procs, outcome, died, first_fault, signals)
-    if timeline is not None:  # each rank's own phases (its summary's), and its exit as seen from here
-        ranks = {}
-        for rank, (kind, payload) in sorted(outcome.items()):
-            events = list(payload.get("own_timeline") or []) if kind == "done" else []
-            if rank in reported and rank in ended:
-                events.append(dict(phase="exit", start=round(reported[rank] - timeline.origin, 3),
-                                   end=round(max(ended[rank], reported[rank]) - timeline.origin, 3)))
-            ranks[f"rank{rank}"] = events
-        summary = dict(summary, timeline=ranks)
-    return summary
-
-
-def _pending(conn, readers) -> bool:
-    """Whether a rank's pipe still holds unread messages (its report arrives after its exit)."""
-    return conn in readers and conn.poll()
-
-
-def _verdict(job: Job, paths: dict, procs, outcome, died, first_fault, signals) -> dict:
-    kept = {r: p["checkpoint"] for r, p in enumerate(paths["ranks"]) if p["checkpoint"].is_file()}
-    if not first_fault and all(outcome.get(r, ("",))[0] == "done" for r in range(job.world)):
-        return outcome[0][1]
-    if signals or not first_fault:  # stopped by a signal (a rank in a collective may fail instead of saving)
-        iterations = {r: payload["iteration"] for r, (kind, payload) in outcome.items()
-                      if kind == "interrupted" and payload.get("iteration") is not None}
-        raise ShardsInterrupted(kept, signals[0] if signals else signal.SIGTERM, iterations)
-    rank = first_fault[0]
-    if rank in died:
-        code = died[rank]
-        names = {int(s): s.name for s in signal.Signals}
-        error = f"was killed by {names[-code]}" if code < 0 and -code in names else f"exited with code {code}"
-        error += f" (pid {procs[rank].pid})"
-    else:
-        payload = outcome[rank][1]
-        inputs = [outcome[r][1]["message"] for r in first_fault
-                  if r in outcome and outcome[r][0] == "failed" and outcome[r][1]["kind"] == "input"]
-        if payload["kind"] == "input":
-            message = payload["message"]
-            raise InputError(message if all(m == message for m in inputs) else f"rank {rank}: {message}")
-        error = f"failed: {payload['kind']}: {payload['message']}"
-        if payload.get("traceback"):
-            sys.stderr.write(f"rank {rank}'s traceback:\n{payload['traceback']}")
-    others = []
-    for r in range(job.world):
-        if r == rank:
-            continue
-        kind, payload = outcome.get(r, ("", {}))
-        if kind == "interrupted":
-            at = f" at iteration {payload['iteration']}" if payload.get("iteration") is not None else ""
-            others.append(f"rank {r} stopped{at}")
-        elif r in died:
-            others.append(f"rank {r} exited ({died[r]})")
-        elif kind == "failed":
-            others.append(f"rank {r} stopped ({payload['kind']})")
-        elif kind == "done":
-            others.append(f"rank {r} finished")
-    keep = ", ".join(f"{path} (rank {r})" for r, path in sorted(kept.items())) or "none yet"
-    message = (f"rank {rank} of {job.world} {error}; the run stopped"
-               + (f" ({'; '.join(others)})" if others else "") + f". Checkpoints kept: {keep}"
-               + ("; continue with --resume" if kept else "; run the fit again"))
-    raise ShardFailed(message, rank, error, kept)
-
+# -- one rank ---------------------------------------------------------------------------------------
 
 def spawned(rank: int, job: Job, conn, imported: float | None = None) -> None:
     """A spawned rank: run it, and report how it ended to the parent (`conn`). A rank of a
     tomgs.train.multigpu.pool passes `imported`: time.time() when its imports were done and it began waiting
     for the job."""
     received = time.time()
-    if imported is None:  # spawned with its job: this is its first line, after its imports
+    if imported is None:  # spawned with its job (tomgs.train.multigpu.pool.run_spawned): its imports are done
         imported = received
-        rank_pool.leave_terminal()
     last = {"phase": 0.0}
 
     def report(kind, payload):
@@ -587,43 +161,6 @@ def spawned(rank: int, job: Job, conn, imported: float | None = None) -> None:
         conn.close()
 
 
-def _local_report(rank: int, progress, phases, pose_progress):
-    """torchrun: rank 0 reports to this process's callbacks; the others stay quiet."""
-    def report(kind, payload):
-        if rank != 0:
-            return
-        if kind == "phase":
-            phases(*payload)
-        elif kind == "poses" and pose_progress is not None:
-            pose_progress(*payload)
-        elif kind == "row" and progress is not None:
-            progress(payload)
-    return report
-
-
-def _result(summary: dict, output, started: float, leader: bool):
-    """A FitResult from rank 0's summary; its model read back from the scene written."""
-    from tomgs.io.scene import load_scene
-    from tomgs.train.trainer import FitResult
-
-    scene = load_scene(output) if leader else None
-    result = FitResult(model=scene.model if scene else None, cameras=scene.cameras if scene else None,
-                       clip_psnr=float(summary.get("clip_psnr", math.nan)),
-                       iterations=int(summary.get("iterations", 0)),
-                       seconds=float(summary.get("seconds", 0.0)), history=list(summary.get("history", [])),
-                       notes=list(summary.get("notes", [])))
-    result.phase_seconds = dict(summary.get("phase_seconds", {}))
-    result.wall_seconds = time.perf_counter() - started
-    result.peak_host_mb = float(summary.get("peak_host_mb", 0.0))
-    result.peak_gpu_mb = summary.get("peak_gpu_mb")
-    result.peak_host_mb_by_phase = dict(summary.get("peak_host_mb_by_phase", {}))
-    result.shards = summary.get("shards")
-    return result
-
-
-# -- one rank ---------------------------------------------------------------------------------------
-
-
 def _init_group(job: Job, rank: int, device: torch.device):
     """Join the run's process group (NCCL on GPUs, gloo on CPUs); a gloo group for objects beside
     NCCL. Returns the group for objects."""
@@ -640,11 +177,13 @@ def _init_group(job: Job, rank: int, device: torch.device):
 
 
 def run_rank(job: Job, rank: int, local_rank: int, report, entered: float | None = None,
-             waited: tuple[float, float] | None = None) -> dict:
+             waited: tuple[float, float] | None = None, local_world: int | None = None) -> dict:
     """What rank `rank` of `job` does (this module's docstring). `report(kind, payload)` hears
     ('started', {...}), ('phase', (name, done, total, text)), ('poses', (done, total)) and ('row', row)
     as they happen. `entered`: time.time() when the process's imports were done (its start-up ends
-    there); `waited`: (from, to), a rank of a tomgs.train.multigpu.pool's wait for its job. Returns its summary (rank 0's describes the run); "own_timeline" is its phases (Timeline)."""
+    there); `waited`: (from, to), a rank of a tomgs.train.multigpu.pool's wait for its job; `local_world`:
+    the ranks on this host (None: all of them, as spawned). Returns its summary (rank 0's describes the
+    run); "own_timeline" is its phases (Timeline)."""
     import torch.distributed as dist
 
     timeline = Timeline(job.start_time)
@@ -658,8 +197,7 @@ def run_rank(job: Job, rank: int, local_rank: int, report, entered: float | None
         timeline.add("wait for the job", max(waited[0], job.start_time), waited[1])
     device = torch.device(f"cuda:{local_rank}") if job.device_type == "cuda" else torch.device("cpu")
     if device.type == "cpu":
-        local_world = torchrun_env()[3] if torchrun_env() else job.world
-        torch.set_num_threads(max(1, (os.cpu_count() or 1) // local_world))  # the ranks share the cores
+        torch.set_num_threads(max(1, (os.cpu_count() or 1) // (local_world or job.world)))  # the ranks share the cores
     with timeline.span("join group"):  # from the first line: importing tomgs' modules, NCCL's start
         control = _init_group(job, rank, device)
     checkpoint = rank_paths(job.output, job.world)[rank]["checkpoint"]
@@ -679,13 +217,11 @@ class Rank:
     `phase1` (its Trainer), `merge` (the union and its joint refinement), `finish` (the outputs)."""
 
     def __init__(self, job: Job, rank: int, device: torch.device, control, report, timeline: Timeline | None = None):
-        from tomgs.train.pipeline import output_paths
-
         self.job, self.rank, self.device, self.control, self.report = job, rank, device, control, report
         self.timeline = timeline or Timeline(job.start_time)
         self.world = job.world
         self.paths = rank_paths(job.output, job.world)[rank]
-        self.outputs = output_paths(job.output)
+        self.outputs = fit_output_paths(job.output)
         self.seconds: dict[str, float] = {}
         self.peaks: dict[str, float] = {}
         self._mark = time.perf_counter()
@@ -699,8 +235,6 @@ class Rank:
     # -- bookkeeping ---------------------------------------------------------------------------
 
     def lap(self, name: str) -> None:
-        from tomgs.train.pipeline import peak_memory
-
         now = time.perf_counter()
         self.seconds[name] = self.seconds.get(name, 0.0) + now - self._mark
         self.peaks[name] = peak_memory(self.device)[0]
@@ -724,8 +258,6 @@ class Rank:
         refuses together, before anything is written, when one refuses."""
         import torch.distributed as dist
 
-        from tomgs.cameras import Cameras
-        from tomgs.train.pipeline import _check_options
 
         job, rank = self.job, self.rank
         self.report("started", dict(rank=rank, pid=os.getpid(), device=str(self.device)))
@@ -733,7 +265,7 @@ class Rank:
         if job.resume and self.paths["checkpoint"].is_file():
             try:
                 saved = read_checkpoint(self.paths["checkpoint"])
-                _check_options(saved, job.options, job.config, self.paths["checkpoint"])
+                check_options(saved, job.options, job.config, self.paths["checkpoint"])
             except InputError as e:
                 errors.append(str(e))
         # while rank 0 estimates the cameras, the others read their frames and pay their first steps'
@@ -784,9 +316,7 @@ class Rank:
             self.frames, self.identity = self._own_frames(clip, early)
             clip = None  # rank 0: the rest of the clip goes now
             if saved is not None and not errors:
-                from tomgs.train.pipeline import _check_clip
-
-                _check_clip(saved["clip"], self.identity, job.options, self.paths["checkpoint"])
+                check_clip(saved["clip"], self.identity, job.options, self.paths["checkpoint"])
         except InputError as e:
             errors.append(str(e))
         refused = [e for e in self.gather(errors[0] if errors else None) if e is not None]
@@ -801,8 +331,6 @@ class Rank:
 
     def _own_frames(self, clip, early):
         """(uint8 [F,H,W,3] of the stretch, what identifies them for a checkpoint)."""
-        from tomgs.train.pipeline import _clip_identity
-
         s, numbers = self.stretch, self.cameras.frame_indices[self.stretch.lo:self.stretch.hi]
         if clip is not None:
             frames = np.ascontiguousarray(clip.frames[s.lo:s.hi]).copy()
@@ -813,15 +341,12 @@ class Rank:
                 return frames, self.early_identity
         else:
             frames = _read_stretch(self.job, self.cameras, s)
-        identity = _clip_identity(SimpleNamespace(indices=numbers, frames=frames, masks=None))
+        identity = clip_identity(SimpleNamespace(indices=numbers, frames=frames, masks=None))
         return frames, identity
 
     def phase1(self) -> None:
         """An ordinary Trainer on the stretch, in the stretch's own time, to the end of phase 1 (or
         its iterations), with its checkpoints and log beside the output."""
-        from tomgs.train.multigpu.shards import local_cameras, stretch_points
-        from tomgs.train.trainer import Trainer, write_csv
-
         job, stretch, payload, frames = self.job, self.stretch, self.payload, self.frames
         if getattr(self, "warming", None) is not None:
             waiting = time.time()
@@ -835,7 +360,7 @@ class Rank:
         free = None
         if self.device.type == "cuda":
             free = torch.cuda.mem_get_info(self.device)[0] - frames.nbytes
-        _, config = _rank_plan(job.config, stretch.frames, height, width, height * width, self.device.type,
+        _, config = rank_plan(job.config, stretch.frames, height, width, height * width, self.device.type,
                                job.auto_budget, free)
         self.config = config = config.replace(seed=config.seed + self.rank)  # the ranks draw differently
         points, colors, point_frames = stretch_points(payload["points"], payload["colors"], payload["point_frames"],
@@ -861,11 +386,9 @@ class Rank:
         # a resume trains on as a one-GPU resume does: to its iterations, or for this command's budget
         end = payload["times"]["phase1_end"]
         limit = 0.0 if end is None else trainer.elapsed + max(end - time.time(), 1.0)
-        from tomgs.train.pipeline import _train_ticks
-
         trainer.run(checkpoint=self.paths["checkpoint"], log_csv=self.paths["csv"],
                     progress=lambda row: self.report("row", row), time_limit=limit,
-                    tick=_train_ticks(self.phase, config.iterations, limit))
+                    tick=train_ticks(self.phase, config.iterations, limit))
         self.lap("train")
         self.timeline.add("phase 1", training)
         measured = [row["clip_psnr"] for row in trainer.history if row["clip_psnr"] != ""]
@@ -884,9 +407,6 @@ class Rank:
         measured here (`_after_refinement`): the measurement of the rank's frames (timed before the
         refinement), the gather (timed on the union's), rank 0's scene written and read back (timed
         on a sample of the union), and EXIT_S for the processes' ends."""
-        from tomgs.train.multigpu.shards import assemble, frame_psnr, gather_union, halo, model_of, refine
-        from tomgs.train.trainer import write_csv
-
         job, stretch, device, alone, timeline = self.job, self.stretch, self.device, self.alone, self.timeline
         began = time.time()
         # the union, with each row's Adam state from the rank that fitted it (the refinement goes on from it)
@@ -907,10 +427,8 @@ class Rank:
             if self.rank == 0 and self.payload["times"]["deadline"] is not None else 0.0
         del union  # a rank keeps its part only
         own = slice(stretch.own_lo - stretch.lo, stretch.own_hi - stretch.lo)
-        from tomgs.train.trainer import _frame_store
-
         # the trainer's rule: frames stay on the GPU when they take at most a share of its free memory
-        keep = _frame_store(self.frames[own].nbytes, device).type == "cuda"
+        keep = frame_store(self.frames[own].nbytes, device).type == "cuda"
         frames = torch.as_tensor(self.frames[own], device=device if keep else "cpu")
         del self.frames
         cameras = self.cameras[stretch.own_lo:stretch.own_hi]
@@ -961,8 +479,6 @@ class Rank:
         """Rank 0 writes the scene, the merged log and plot; then every rank removes its checkpoint."""
         import torch.distributed as dist
 
-        from tomgs.train.pipeline import peak_memory
-
         alone, refined, stretch = self.alone, self.refined, self.stretch
         steps, seconds = (refined.steps, refined.seconds) if refined is not None else (0, 0.0)
         host, gpu = peak_memory(self.device)
@@ -1011,8 +527,6 @@ def _time_scene_io(union: torch.Tensor, sh: tuple, cameras, scene: Path, history
     (SAMPLE_IO_SHARE of them, at least MIN_SAMPLE_IO) written beside the scene and removed; the
     per-Gaussian time scaled to the whole union (so the sample's fixed costs count several times)."""
     from tomgs.io.scene import load_scene, save_scene
-    from tomgs.train.pipeline import _plot as plot
-    from tomgs.train.multigpu.shards import model_of
 
     n = len(union)
     if n == 0:
@@ -1027,7 +541,7 @@ def _time_scene_io(union: torch.Tensor, sh: tuple, cameras, scene: Path, history
         load_scene(path)
         io = (time.perf_counter() - began) * n / len(sample)
         began = time.perf_counter()
-        plot(figure, history)  # matplotlib's import and a figure like the run's
+        write_plot(figure, history)  # matplotlib's import and a figure like the run's
         return io + time.perf_counter() - began
     finally:
         path.unlink(missing_ok=True)
@@ -1037,9 +551,6 @@ def _time_scene_io(union: torch.Tensor, sh: tuple, cameras, scene: Path, history
 def _write_outputs(job, everyone, stretches, cameras, payload, final, refine_rows, outputs, config, extent) -> dict:
     """Rank 0: the scene, the merged CSV and plot; the run's summary."""
     from tomgs.io.scene import save_scene
-    from tomgs.train.pipeline import _plot as plot
-    from tomgs.train.multigpu.shards import boundary_psnr, log_row, merged_history
-    from tomgs.train.trainer import write_csv
 
     frame_psnr = [p for rank in everyone for p in rank["frame_psnr"]]
     merged_before = [p for rank in everyone for p in rank["merged_psnr"]]
@@ -1085,7 +596,7 @@ def _write_outputs(job, everyone, stretches, cameras, payload, final, refine_row
                 config={k: v for k, v in vars(config).items()}, notes=notes, shards=shards)
     save_scene(outputs["scene"], final, cameras, info)
     write_csv(outputs["csv"], history)
-    plot(outputs["plot"], history)
+    write_plot(outputs["plot"], history)
     return dict(clip_psnr=clip_psnr, iterations=info["iterations"], seconds=info["train_seconds"], history=history,
                 notes=notes, shards=shards, peak_host_mb=max(r["peak_host_mb"] for r in everyone),
                 peak_gpu_mb=(max(r["peak_gpu_mb"] for r in everyone) if everyone[0]["peak_gpu_mb"] is not None
@@ -1093,20 +604,14 @@ def _write_outputs(job, everyone, stretches, cameras, payload, final, refine_row
 
 
 def _identity_of(video) -> dict:
-    """tomgs.train.pipeline._clip_identity of frames read without masks (a rank's stretch)."""
-    from tomgs.train.pipeline import _clip_identity
-
-    return _clip_identity(SimpleNamespace(indices=video.indices, frames=video.frames, masks=None))
+    """tomgs.train.clip.clip_identity of frames read without masks (a rank's stretch)."""
+    return clip_identity(SimpleNamespace(indices=video.indices, frames=video.frames, masks=None))
 
 
 def _shared_setup(job: Job, device, saved, phase, report, timeline: Timeline | None = None):
     """Rank 0: read the clip, estimate its cameras (or take them from a checkpoint of this run), and
     fix the budget's wall-clock times. Returns (payload for every rank, the clip)."""
-    from tomgs.cameras import Cameras
-    from tomgs.io import Video, read_video
     from tomgs.poses import estimate_cameras
-    from tomgs.train.pipeline import _fps
-    from tomgs.train.plan import render_seconds, SAVE_COST
 
     timeline = timeline or Timeline(job.start_time)
     phase("read", 0, 1)
@@ -1146,7 +651,7 @@ def _shared_setup(job: Job, device, saved, phase, report, timeline: Timeline | N
     overlap = default_overlap(len(clip), job.world) if job.overlap is None else job.overlap
     stretches = plan_stretches(len(clip), job.world, overlap)
     largest = max(s.frames for s in stretches)
-    plan, config = _rank_plan(job.config, largest, height, width, height * width, device.type, job.auto_budget)
+    plan, config = rank_plan(job.config, largest, height, width, height * width, device.type, job.auto_budget)
     times = dict(deadline=None, phase1_end=None, refine_end=None)
     if plan.budget > 0:
         now = time.time()
@@ -1167,7 +672,7 @@ def _shared_setup(job: Job, device, saved, phase, report, timeline: Timeline | N
     payload = dict(cameras=cameras.to_dict(), points=np.asarray(points, dtype=np.float64).reshape(-1, 3),
                    colors=np.asarray(colors, dtype=np.float32).reshape(-1, 3),
                    point_frames=None if point_frames is None else np.asarray(point_frames, np.int64).reshape(-1, 2),
-                   notes=notes, pose_seconds=round(pose_seconds, 3), pose_seconds_run=spent, fps=_fps(clip),
+                   notes=notes, pose_seconds=round(pose_seconds, 3), pose_seconds_run=spent, fps=clip_fps(clip),
                    source=str(getattr(job.video, "path", job.video)), times=times)
     return payload, clip
 
@@ -1176,9 +681,6 @@ def _read_early(job: Job, rank: int):
     """A rank's frames read before rank 0's cameras arrive, when the selection (--frames) names their
     source frame numbers without the source's length (a range from a start >= 0); None otherwise. The
     clip's frame count comes from its index (tomgs.io.video.probe_clip)."""
-    from tomgs.io import Video, read_video
-    from tomgs.io.video import parse_frames, probe_clip
-
     if isinstance(job.video, Video):
         return None
     sel = parse_frames(job.frames)
@@ -1194,9 +696,6 @@ def _read_early(job: Job, rank: int):
 
 def _read_stretch(job: Job, cameras, stretch) -> np.ndarray:
     """uint8 [F,H,W,3]: a rank's frames, read from the clip by their source frame numbers."""
-    from tomgs.io import Video
-    from tomgs.io.video import read_video_for
-
     if isinstance(job.video, Video):
         return np.ascontiguousarray(job.video.frames[stretch.lo:stretch.hi])
     return read_video_for(job.video, cameras[stretch.lo:stretch.hi])
@@ -1216,5 +715,6 @@ def _check_shard(shard, stretch, world: int, checkpoint) -> None:
                          f"was started with, or {START_OVER}")
 
 
-__all__ = ["ShardFailed", "ShardsInterrupted", "check_shard_outputs", "fit_shards", "is_leader", "run_rank",
-           "torchrun_env", "wants_shards"]
+
+
+__all__ = ["Job", "Rank", "Timeline", "rank_plan", "run_rank", "spawned"]

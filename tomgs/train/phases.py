@@ -1,0 +1,50 @@
+"""A fit's phases and what they cost: their names, the progress ticks of training, the process's start
+(a budget counts a command's start-up too) and the peak memory."""
+
+from __future__ import annotations
+
+import os
+import time
+
+import torch
+
+PHASES = ("read", "poses", "compile", "init", "train", "save")  # "compile": a first run's kernels, on a CPU
+
+
+def process_started() -> float:
+    """The time.perf_counter() value at which this process started (Linux: from /proc; elsewhere
+    now), so a command's budget counts its start-up too."""
+    try:
+        ticks = os.sysconf("SC_CLK_TCK")
+        with open("/proc/self/stat") as f:
+            began = int(f.read().rsplit(")", 1)[1].split()[19]) / ticks  # field 22: start, ticks after boot
+        with open("/proc/uptime") as f:
+            age = float(f.read().split()[0]) - began
+        return time.perf_counter() - min(max(age, 0.0), 60.0)
+    except (OSError, ValueError, IndexError):
+        return time.perf_counter()
+
+
+def phase_text(seconds: dict) -> str:
+    """'read 1.2 s, poses 3.4 s, ...' in PHASES order."""
+    return ", ".join(f"{name} {seconds[name]:.1f} s" for name in PHASES if name in seconds)
+
+
+def peak_memory(device) -> tuple[float, float | None]:
+    """(peak resident host memory of this process, peak GPU memory allocated by torch or None), MiB."""
+    import resource
+
+    host = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux
+    gpu = torch.cuda.max_memory_allocated(device) / 2**20 if device.type == "cuda" else None
+    return host, gpu
+
+
+def train_ticks(phases, iterations: int, time_limit: float):
+    """The trainer's tick as the "train" phase: iterations done, or seconds under a time limit."""
+    def tick(iteration, seconds, text):
+        text = text or f"iteration {iteration:,}"
+        if time_limit > 0:
+            phases("train", min(seconds, time_limit), time_limit, text)
+        else:
+            phases("train", iteration, iterations, text)
+    return tick
