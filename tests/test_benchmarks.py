@@ -162,6 +162,16 @@ def check_compress(r):
     assert r["psnr_input"] > 40 and r["psnr_output"] > 35  # the clip is the input's own render
 
 
+def check_safety_trials(r):
+    (row,) = r
+    assert row["command"] == "render" and row["broken"] == [] and sum(row["sigterm"].values()) == 1
+
+
+def check_declared_sizes(r):
+    assert [row["case"] for row in r] == ["png", "jpeg_progressive", "checkpoint"]
+    assert all(row["said"].startswith("refused") and row["grew_mib"] < 64 for row in r)
+
+
 def check_shards_plan(r):
     two = next(row for row in r["rows"] if row["ranks"] == 2)
     assert round(two["gap_db"], 2) == -0.61  # the measured gap of the two-H200 run it models (benchmarks/README.md)

@@ -1,6 +1,6 @@
 """The "safe by default" promises at their edges, one test per defect an adversarial audit found:
 outputs that collide, full disks, signals, crafted sizes and extreme option values. Each test's name
-says which defect it holds to (docs/notes/safety-audit.md lists them)."""
+says which defect it holds to (docs/notes/safety.md lists them)."""
 
 from __future__ import annotations
 
@@ -635,3 +635,23 @@ def test_defect08_a_second_fit_of_an_output_is_refused_while_the_first_runs(clip
     result = run("fit", clip, "-o", out, "--iterations", "3", "--device", "cpu", "--poses", "identity")
     assert result.exit_code == 0, result.output
     assert not (tmp_path / ".s.ply.lock").exists()  # a finished fit leaves no lock
+
+
+def test_defect11_a_scene_far_from_the_origin_says_its_frames_are_off(tmp_path):
+    """A scene 1e5 units from the origin rendered with 5.6% image error in float32, silently."""
+    model = tiny_model()
+    shift = np.array([1e5, 0.0, 0.0])
+    with torch.no_grad():
+        model.means += torch.tensor(shift, dtype=torch.float32)
+    cams = tiny_cameras()
+    c2w = cams.c2w.copy()
+    c2w[:, :3, 3] += shift
+    far = tmp_path / "far.ply"
+    near = Cameras.create(cams.c2w, intrinsics(400.0, W, H), W, H, frame_indices=cams.frame_indices)  # a long lens
+    save_scene(far, model, Cameras.create(c2w, near.K, W, H, frame_indices=cams.frame_indices), {"fps": 12.0})
+    result = run("render", far, "-o", tmp_path / "far.mp4", "--device", "cpu")
+    assert result.exit_code == 0, result.output
+    assert "note: the scene lies 1e+05 units from the world's origin" in result.output, result.output
+    save_scene(tmp_path / "near.ply", tiny_model(), near, {"fps": 12.0})
+    result = run("render", tmp_path / "near.ply", "-o", tmp_path / "near.mp4", "--device", "cpu")
+    assert result.exit_code == 0 and "note:" not in result.output, result.output

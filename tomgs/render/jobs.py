@@ -43,6 +43,7 @@ class RenderReport:
     what: str  # frame numbers and size, e.g. "(0..39) at 320x180"
     gaussians: tuple[int, int]  # fewest, most Gaussians over the clouds rendered (per-frame clouds vary)
     alive: tuple[int, int] = (0, 0)  # fewest, most alive per frame
+    notes: tuple[str, ...] = ()  # what the user should know about the frames (far_from_origin)
 
     def summary(self) -> str:
         fps = self.frames / max(self.seconds, 1e-9)
@@ -50,7 +51,30 @@ class RenderReport:
         total = f"{low:,}" if low == high else f"{low:,}..{high:,}"
         return (f"{self.output}: {counted(self.frames, 'frame')} {self.what} on {self.device} in {self.seconds:.1f} s "
                 f"({fps:.1f} fps)\n  {total} Gaussians; alive per frame {self.alive[0]:,}..{self.alive[1]:,}: only "
-                f"those alive near each frame's time were projected")
+                f"those alive near each frame's time were projected" + "".join(f"\n  note: {n}" for n in self.notes))
+
+
+FLOAT32_EPS = 2.0 ** -24  # float32's relative rounding
+FAR_PIXELS = 0.25  # a projection this far off (pixels) is said
+
+
+def far_from_origin(cams: Cameras, means) -> str | None:
+    """A note when `cams` and the Gaussians at `means` [N,3] lie so far from the world's origin,
+    against the distance between them, that float32 projection (x_cam = R x + t, both terms that
+    large) is off by more than FAR_PIXELS pixels; None otherwise."""
+    means = np.asarray(means.detach().cpu() if hasattr(means, "detach") else means, dtype=np.float64)
+    if len(means) == 0:
+        return None
+    centres = cams.c2w[:, :3, 3]
+    sample = means[:: max(1, len(means) // 4096)]
+    reach = max(float(np.abs(centres).max()), float(np.abs(sample).max()))
+    distance = float(np.median(np.linalg.norm(sample - centres[0], axis=1)))
+    off = FLOAT32_EPS * reach / max(distance, 1e-30) * float(cams.K[0, 0])
+    if not np.isfinite(off) or off <= FAR_PIXELS:
+        return None
+    return (f"the scene lies {reach:.3g} units from the world's origin, {reach / max(distance, 1e-30):.3g} times "
+            f"its distance from the cameras: float32 projection is off by ~{off:.2g} px there; move the scene and its "
+            f"cameras nearer the origin for exact frames")
 
 
 def plan_render(output, cameras, frames=None, device="auto", background=None, overwrite: bool = False, *,
@@ -139,8 +163,9 @@ def render_frames(output, gaussians, cams, positions, background, device, fps: f
                          overwrite=overwrite)
     low = sum(fixed) + sum(min(sizes) for sizes in varying)
     high = sum(fixed) + sum(max(sizes) for sizes in varying)
+    far = None if callable(gaussians) else far_from_origin(cams, gaussians["means"])
     return RenderReport(str(output), count, time.perf_counter() - start, device, what, (low, high),
-                        (min(alive), max(alive)))
+                        (min(alive), max(alive)), tuple(n for n in (far,) if n))
 
 
 # ---- which frames, and the scene's defaults ---------------------------------------------------
