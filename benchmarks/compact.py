@@ -1,150 +1,133 @@
-"""Size beside error: fits of DAVIS clips at each quality level, their Gaussians and scene bytes beside
-PSNR / SSIM / LPIPS and the paper's figures.
+"""Size beside error: DAVIS clips fitted at each quality level (`tomgs fit --quality`), their Gaussians and
+scene bytes beside PSNR / SSIM / LPIPS and the paper's figures.
 
-    python benchmarks/compact.py ../shared/data/davis --clips camel,cows,kite-surf --minutes 2 \
-        --qualities default,max --lpips ../shared/data/lpips --out $OUT
-    python benchmarks/compact.py --smoke --out /tmp/compact_smoke     # CPU: a tiny synthetic clip
+    python -m benchmarks.compact <clips> --clips camel,cows,kite-surf --minutes 2 --qualities default,max \\
+        --lpips <weights> --out <out>
+    python -m benchmarks.compact --smoke        # a tiny synthetic clip on the CPU
 
-For each clip and quality: poses from the built-in tracker with the DAVIS masks and a fit whose whole
-wall time, poses included, is the budget (`tomgs fit --budget`: training takes what the rest leaves;
-`--quality` as given), then over every frame PSNR, SSIM (and LPIPS with --lpips), the Gaussians kept,
-the scene file's bytes, and from the fit's CSV the full-clip PSNR and the Gaussians at each mark
-(MARKS seconds of the whole fit, reading and poses included) and at every round of the quality rule.
-Writes <out>/<clip>-<quality>.ply/.csv/.psnr.png, compact.json and compact.md.
+For each clip and quality: poses from the built-in tracker with the DAVIS masks and a fit whose whole wall
+time, reading and poses included, is the budget (`tomgs fit --budget`: training takes what the rest leaves),
+then over every frame PSNR, SSIM (and LPIPS with --lpips), the Gaussians kept, the scene file's bytes, and
+from the fit's log the full-clip PSNR and the Gaussians at each of MARKS seconds of the whole fit and at
+every full-clip measurement (the quality rule's rounds among them: `curve`). `--rule per_halving,in_all`
+replaces the quality rule of every level but max (a sweep of the rule's price). Writes
+<out>/<clip>-<quality>.ply/.csv/.psnr.png and the table as compact.md and compact.json.
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
 import json
-import sys
-import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+import tomgs
+from tomgs.train import fit, output_paths, preset
+from tomgs.train.sparsify import QUALITY_RULES, QualityRule
 
-from davis import PAPER, psnr_at  # noqa: E402
-from tomgs.io import read_video  # noqa: E402
-from tomgs.metrics import LPIPS, evaluate  # noqa: E402
-from tomgs.train import fit, output_paths, preset  # noqa: E402
-from tomgs.train.sparsify import QUALITY_RULES, QualityRule  # noqa: E402
+if __package__:
+    from .common import PAPER, environment, log_rows, markdown_table, output_folder, psnr_at, smoke_clip_folder, \
+        write_report
+else:  # run as a file (python benchmarks/compact.py): Python puts this folder first on sys.path
+    from common import PAPER, environment, log_rows, markdown_table, output_folder, psnr_at, smoke_clip_folder, \
+        write_report
 
 MARKS = (60, 120, 300)  # seconds of the whole fit at which the curve is read
 
 
-def gaussians_at(csv_path: Path, seconds: float, offset: float = 0.0):
-    """Gaussians of the last CSV row at or before `seconds` of the fit's wall time (training seconds
+def gaussians_at(rows: list[dict], seconds: float, offset: float = 0.0):
+    """Gaussians of the last log row at or before `seconds` of the whole fit (the log's training seconds
     shifted by `offset`); None if none by then."""
     count = None
-    for row in csv.DictReader(open(csv_path)):
+    for row in rows:
         if offset + float(row["wall_s"]) <= seconds:
             count = int(row["gaussians"])
     return count
 
 
-def rounds(csv_path: Path, offset: float = 0.0) -> list[list]:
-    """[[fit seconds, Gaussians, full-clip PSNR], ...]: every full-clip measurement of the CSV (the quality
-    rule's rounds among them), for the curve of PSNR against Gaussians."""
-    rows = list(csv.DictReader(open(csv_path)))
+def curve(rows: list[dict], offset: float = 0.0) -> list[list]:
+    """[[seconds of the whole fit, Gaussians, full-clip PSNR], ...]: every measurement over all the frames."""
     every = max((int(r["clip_frames"] or 0) for r in rows), default=0)
     return [[round(offset + float(r["wall_s"]), 2), int(r["gaussians"]), float(r["clip_psnr"])]
             for r in rows if r["clip_psnr"] and int(r["clip_frames"] or 0) == every]
 
 
-def smoke_clip(root: Path) -> str:
-    """A tiny clip folder under `root` (the demo scene's 6 frames at 64x36 as PNGs, no masks): its name."""
-    import cv2
-
-    from tomgs.demo import demo_scene
-    from tomgs.sequence import render_sequence
-
-    gaussians, cams = demo_scene(num_frames=6, width=64, height=36)
-    images = root / "demo" / "images"
-    images.mkdir(parents=True)
-    for k, (_, image, _) in enumerate(render_sequence(gaussians, cams, background=(0.05, 0.05, 0.08))):
-        rgb = (image.numpy() * 255 + 0.5).clip(0, 255).astype(np.uint8)
-        cv2.imwrite(str(images / f"{k:05d}.png"), rgb[..., ::-1])
-    return "demo"
-
-
-def main(argv=None) -> list[dict]:
+def parse_args(argv=None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("root", type=Path, nargs="?", help="folder holding <clip>/images and <clip>/masks")
     ap.add_argument("--clips", default="camel,cows,kite-surf")
-    ap.add_argument("--qualities", default="default,max", help="TrainConfig.quality levels, comma separated")
+    ap.add_argument("--qualities", default="default,max", help="quality levels, comma separated")
     ap.add_argument("--minutes", type=float, default=2.0, help="wall-clock budget of each fit, poses included")
-    ap.add_argument("--out", type=Path, default=Path("bench_out/compact"))
-    ap.add_argument("--set", action="append", default=[], help="a TrainConfig override, e.g. --set sparsify_rounds=8")
+    ap.add_argument("--out", type=Path, default=None, help="default bench_out/compact")
+    ap.add_argument("--set", action="append", default=[], help="a TrainConfig override, e.g. --set sparsify_rounds=6")
+    ap.add_argument("--rule", help="per_halving,in_all (dB): the price of every level but max (sweeps)")
+    ap.add_argument("--poses", default="auto", help="auto (tracker with the DAVIS masks) or identity")
     ap.add_argument("--tag", default="", help="a name for this run's files (sweeps)")
     ap.add_argument("--lpips", type=Path, help="LPIPS weights (alexnet-lpips-v0.1.npz or its folder)")
-    ap.add_argument("--rule", help="per_halving,in_all (dB): replaces the quality rule of every level but max (sweeps)")
-    ap.add_argument("--device", default="cuda")
-    ap.add_argument("--smoke", action="store_true", help="CPU: a tiny synthetic clip, 20-s fits, identity poses")
+    ap.add_argument("--device", default="cuda", help="cuda; cpu for a dry run")
+    ap.add_argument("--smoke", action="store_true",
+                    help="a 6-frame synthetic clip at 48x27 on the CPU, 12-s fits, identity poses; the table in a "
+                         "temporary folder unless --out")
     args = ap.parse_args(argv)
-    poses = "auto"
     if args.smoke:
-        args.root = Path(tempfile.mkdtemp(prefix="compact_smoke_"))
-        args.clips, args.device, poses = smoke_clip(args.root), "cpu", "identity"
-        args.minutes = min(args.minutes, 1 / 3)  # 20-s fits at most
-    if args.root is None:
-        ap.error("give the clips' folder (or --smoke)")
+        args.device, args.poses, args.clips, args.minutes = "cpu", "identity", "smoke", 0.2
+    elif args.root is None:
+        ap.error("the folder of clips is required (or --smoke)")
+    return args
+
+
+def main(argv=None) -> list[dict]:
+    args = parse_args(argv)
+    out = output_folder(args.out, args.smoke, "compact")
+    if args.smoke:
+        args.root = out / "clips"
+        smoke_clip_folder(args.root, "smoke")
     if args.rule:
         per_halving, in_all = (float(v) for v in args.rule.split(","))
         for name, rule in QUALITY_RULES.items():
             if rule is not None:
                 QUALITY_RULES[name] = QualityRule(per_halving, in_all)
-    args.out.mkdir(parents=True, exist_ok=True)
     device = torch.device(args.device)
     overrides = {k: json.loads(v) for k, v in (s.split("=", 1) for s in args.set)}
-    lpips = LPIPS(args.lpips, device=device) if args.lpips else None
-    rows = []
+    lpips = tomgs.LPIPS(args.lpips, device=device) if args.lpips else None
+    env = environment(device, "compact", argv)
     suffix = f"-{args.tag}" if args.tag else ""
+    rows = []
     for clip in args.clips.split(","):
-        masks = args.root / clip / "masks"
         began = time.perf_counter()
-        video = read_video(args.root / clip / "images", masks=masks if masks.is_dir() else None)
-        read_s = time.perf_counter() - began  # decoding the frames, outside the fit here
+        video = tomgs.read_video(args.root / clip / "images", masks=args.root / clip / "masks")
+        read_s = time.perf_counter() - began
         for quality in args.qualities.split(","):
             # a full-clip PSNR every 10 s (at most 10% of the run: Trainer.run), so the curve is read near each mark
             config = preset("default", **{"quality": quality, "max_seconds": args.minutes * 60, "eval_interval_s": 10.0,
                                           **overrides})
-            scene = args.out / f"{clip}-{quality}{suffix}.ply"
+            scene = out / f"{clip}-{quality}{suffix}.ply"
             started = time.perf_counter() - read_s  # the budget counts the reading, as `tomgs fit` does
-            result = fit(video, scene, config, device=device, poses=poses, overwrite=True, started=started)
-            report = evaluate(result.model, result.cameras, video.frames, device=device, lpips=lpips)
-            paths = output_paths(scene)
+            result = fit(video, scene, config, device=device, poses=args.poses, overwrite=True, started=started)
+            ended = time.perf_counter() - started
+            report = tomgs.evaluate(result.model, result.cameras, video.frames, device=device, lpips=lpips)
+            log = log_rows(output_paths(scene)["csv"])
             before = read_s + sum(v for k, v in result.phase_seconds.items() if k in ("read", "poses", "init"))
             paper = PAPER.get(clip, {})
-            ended = time.perf_counter() - started
-            row = dict(clip=clip, quality=quality, frames=len(video), psnr=report.mean_psnr, ssim=report.mean_ssim,
-                       lpips=report.mean_lpips, gaussians=len(result.model), scene_bytes=scene.stat().st_size,
-                       paper_psnr=paper.get("psnr"), paper_ssim=paper.get("ssim"), paper_lpips=paper.get("lpips"),
-                       wall_s=round(ended, 2), before_train_s=round(before, 2),
-                       iterations=result.iterations, steps_per_s=round(result.iterations / max(result.seconds, 1e-9), 1),
-                       **{f"psnr_{m}s": psnr_at(paths["csv"], m, before) if m <= ended + 1 else None for m in MARKS},
-                       **{f"gaussians_{m}s": gaussians_at(paths["csv"], m, before) if m <= ended + 1 else None
-                          for m in MARKS},
-                       curve=rounds(paths["csv"], before), notes=result.notes)
-            print(json.dumps({k: v for k, v in row.items() if k not in ("curve", "notes")}), flush=True)
+            row = dict(clip=clip, quality=quality, frames=len(video), gaussians=len(result.model),
+                       scene_bytes=scene.stat().st_size, psnr=report.mean_psnr, ssim=report.mean_ssim,
+                       lpips=report.mean_lpips, paper_psnr=paper.get("psnr"), paper_ssim=paper.get("ssim"),
+                       paper_lpips=paper.get("lpips"), wall_s=ended, before_train_s=before,
+                       iterations=result.iterations, steps_per_s=result.iterations / max(result.seconds, 1e-9),
+                       **{f"psnr_{m}s": psnr_at(log, m, before)[0] if m <= ended + 1 else None for m in MARKS},
+                       **{f"gaussians_{m}s": gaussians_at(log, m, before) if m <= ended + 1 else None for m in MARKS},
+                       curve=curve(log, before), notes=result.notes)
+            print(json.dumps({k: v for k, v in row.items() if k not in ("curve", "notes")}, default=str), flush=True)
             rows.append(row)
-            (args.out / f"compact{suffix}.json").write_text(json.dumps(rows, indent=1) + "\n")
             del result, report
             if device.type == "cuda":
                 torch.cuda.empty_cache()
-    fmt = lambda v: "-" if v is None else (f"{v:.3f}" if isinstance(v, float) and v < 1 else  # noqa: E731
-                                          f"{v:.2f}" if isinstance(v, float) else f"{v:,}" if isinstance(v, int) else str(v))
     head = ["clip", "quality", "gaussians", "scene_bytes", "psnr", "paper_psnr", "ssim", "paper_ssim", "lpips",
             "paper_lpips", *(f"psnr_{m}s" for m in MARKS), *(f"gaussians_{m}s" for m in MARKS), "wall_s"]
-    table = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    table += ["| " + " | ".join(fmt(r[h]) for h in head) + " |" for r in rows]
-    text = "\n".join(table)
-    (args.out / f"compact{suffix}.md").write_text(text + "\n")
-    print(text)
+    write_report(out, f"compact{suffix}", "compact: size beside error", env,
+                 markdown_table(head, [[r[h] for h in head] for r in rows]), rows)
     return rows
 
 

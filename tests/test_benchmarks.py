@@ -162,6 +162,14 @@ def check_compress(r):
     assert r["psnr_input"] > 40 and r["psnr_output"] > 35  # the clip is the input's own render
 
 
+def check_compact(r):
+    assert [row["quality"] for row in r] == ["default", "max"]
+    for row in r:
+        assert row["gaussians"] > 0 and row["scene_bytes"] > 0 and row["psnr"] > 10 and 0 < row["ssim"] <= 1
+        assert row["curve"] and row["curve"][-1][1] == row["gaussians"]  # the log's last row is the scene's count
+        assert row["psnr_300s"] is None  # past the fit's end: no figure
+
+
 def check_shards_plan(r):
     two = next(row for row in r["rows"] if row["ranks"] == 2)
     assert round(two["gap_db"], 2) == -0.61  # the measured gap of the two-H200 run it models (benchmarks/README.md)

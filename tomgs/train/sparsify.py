@@ -16,7 +16,7 @@ recovers between rounds: prune, recover, prune. Pricing a prune before training 
 the rule's reading the same however fast the fit still climbs. A clip that loses little when thinned
 goes on down, one that loses much stops early; on DAVIS in 2 minutes the first 30% of camel's and cows'
 10M went for ~0.1 dB and the next 30% cost 1-2 dB, and kite-surf's least important 30% cost 4 dB, so
-all three stopped near 6M (benchmarks/RESULTS.md, "Compactness").
+all three stopped near 6M (benchmarks/README.md, "How many Gaussians a fit keeps").
 
 The same price, per doubling, decides where growth stops: `growth_pays` says whether the last
 doubling of the cloud during densification bought its training PSNR the level's `per_halving`.
