@@ -1,6 +1,6 @@
 """What the benchmark scripts share: where a run's table goes and what it says about the run (command,
 commit, device), timing helpers, the random scene of the rasterizer's benchmarks, tiny synthetic clips
-for the `--smoke` modes, and reading a fit's CSV log.
+for the `--smoke` modes, reading a fit's CSV log, and the paper's DAVIS figures.
 
 Every script of the suite imports this module and no other script of the suite.
 """
@@ -342,6 +342,19 @@ def demo_video(path: Path, frames: int = 6, width: int = 48, height: int = 28, d
 
 
 # ----------------------------------------------------------------------------- a fit's CSV log
+
+
+# The paper's figures for the DAVIS clips (../shared/data/README.md): Table 2 at 480p for camel, cows and
+# kite-surf, with SSIM and LPIPS from its training statistics; Table 3 (DNeRV protocol, 1920x960, so not
+# directly comparable at 480p) for the other three, which give no LPIPS.
+PAPER = {
+    "camel": dict(psnr=35.28, ssim=0.967, lpips=0.035),
+    "cows": dict(psnr=30.28, ssim=0.932, lpips=0.094),
+    "kite-surf": dict(psnr=43.90, ssim=0.987, lpips=0.012),
+    "blackswan": dict(psnr=38.38, ssim=0.968, lpips=None),
+    "dog": dict(psnr=39.84, ssim=0.977, lpips=None),
+    "car-shadow": dict(psnr=36.10, ssim=0.947, lpips=None),
+}
 
 
 def log_rows(path: Path) -> list[dict]:

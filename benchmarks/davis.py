@@ -31,23 +31,12 @@ import tomgs
 from tomgs.train import Trainer, fit, output_paths, preset
 
 if __package__:
-    from .common import environment, kernel_times, log_rows, markdown_table, output_folder, psnr_at, scene_fps, \
-        smoke_clip_folder, sync, time_to, write_report
+    from .common import PAPER, environment, kernel_times, log_rows, markdown_table, output_folder, psnr_at, \
+        scene_fps, smoke_clip_folder, sync, time_to, write_report
 else:  # run as a file (python benchmarks/davis.py): Python puts this folder first on sys.path
-    from common import environment, kernel_times, log_rows, markdown_table, output_folder, psnr_at, scene_fps, \
-        smoke_clip_folder, sync, time_to, write_report
+    from common import PAPER, environment, kernel_times, log_rows, markdown_table, output_folder, psnr_at, \
+        scene_fps, smoke_clip_folder, sync, time_to, write_report
 
-# The paper's figures (../shared/data/README.md): Table 2 at 480p for camel, cows and kite-surf, with
-# SSIM and LPIPS from its training statistics; Table 3 (DNeRV protocol, 1920x960, so not directly
-# comparable at 480p) for the other three, which give no LPIPS.
-PAPER = {
-    "camel": dict(psnr=35.28, ssim=0.967, lpips=0.035),
-    "cows": dict(psnr=30.28, ssim=0.932, lpips=0.094),
-    "kite-surf": dict(psnr=43.90, ssim=0.987, lpips=0.012),
-    "blackswan": dict(psnr=38.38, ssim=0.968, lpips=None),
-    "dog": dict(psnr=39.84, ssim=0.977, lpips=None),
-    "car-shadow": dict(psnr=36.10, ssim=0.947, lpips=None),
-}
 MARKS = (30, 60, 120, 300)  # seconds of the whole fit at which the curve is read
 
 
@@ -93,7 +82,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     args = ap.parse_args(argv)
     if args.smoke:
         args.device, args.poses, args.clips, args.minutes = "cpu", "identity", "smoke", 1.0
-        args.set = [*args.set, "iterations=40", "eval_interval_s=1e9"]
+        args.set = [*args.set, "iterations=40", "stop_at_iterations=true", "eval_interval_s=1e9"]
     elif args.root is None:
         ap.error("the folder of clips is required (or --smoke)")
     return args

@@ -146,8 +146,8 @@ def run_case(spec_path: Path) -> None:
     started = process_started()
     folder = Path(spec["folder"])
     overrides = dict(max_seconds=spec["budget"])
-    if spec.get("iterations"):
-        overrides["iterations"] = spec["iterations"]
+    if spec.get("iterations"):  # beside the budget: whichever comes first
+        overrides.update(iterations=spec["iterations"], stop_at_iterations=True)
     if spec.get("log_interval"):
         overrides["log_interval"] = spec["log_interval"]
     config = preset("default", **overrides)

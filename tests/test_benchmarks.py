@@ -170,6 +170,12 @@ def check_safety_trials(r):
 def check_declared_sizes(r):
     assert [row["case"] for row in r] == ["png", "jpeg_progressive", "checkpoint"]
     assert all(row["said"].startswith("refused") and row["grew_mib"] < 64 for row in r)
+def check_compact(r):
+    assert [row["quality"] for row in r] == ["default", "max"]
+    for row in r:
+        assert row["gaussians"] > 0 and row["scene_bytes"] > 0 and row["psnr"] > 10 and 0 < row["ssim"] <= 1
+        assert row["curve"] and row["curve"][-1][1] == row["gaussians"]  # the log's last row is the scene's count
+        assert row["psnr_300s"] is None  # past the fit's end: no figure
 
 
 def check_shards_plan(r):

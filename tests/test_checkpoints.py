@@ -254,8 +254,10 @@ def test_resume_expects_the_log_and_checkpoint_but_refuses_a_scene(tmp_path):
     out.unlink()
     result = fit_clip(video, out, resume=True)
     assert result.iterations == 60 and not (tmp_path / "scene.ckpt").exists()
-    rows = (tmp_path / "scene.csv").read_text().splitlines()
-    assert [r.split(",")[0] for r in rows[1:]] == ["25", "50", "60"]
+    rows = list(csv.DictReader(open(tmp_path / "scene.csv")))
+    logged = [r["iteration"] for r in rows if int(r["iteration"]) % 25 == 0 or r is rows[-1]]
+    assert logged == ["25", "50", "60"]  # and between them the quality rule's rounds, each with its clip PSNR
+    assert all(r["clip_psnr"] != "" for r in rows if r["iteration"] not in logged)
 
 
 def test_stale_temporaries_are_cleaned_and_fresh_ones_kept(tmp_path):
@@ -313,8 +315,8 @@ def scheduled_saves(monkeypatch, iterations: int, save_seconds: float = 0.0) -> 
     monkeypatch.setattr(Trainer, "step", step)
     monkeypatch.setattr(Trainer, "_checkpoint_in_background", save)  # the periodic checkpoints
     monkeypatch.setattr(Trainer, "clip_psnr",
-                        lambda self, tick=None, frames=None: [20.0] * len(range(self.num_frames) if frames is None
-                                                                          else frames))
+                        lambda self, tick=None, frames=None, hidden=None: [20.0] * len(
+                            range(self.num_frames) if frames is None else frames))
     trainer.run(checkpoint=Path("unused.ckpt"))
     monkeypatch.undo()
     return saves

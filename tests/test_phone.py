@@ -179,15 +179,21 @@ def test_full_clip_psnr_is_not_measured_right_after_a_densification():
 
 
 def test_the_eta_is_when_the_iterations_end_when_that_comes_before_the_budget():
-    """A budget caps the ETA; it is not the ETA: on the H100 a 132-frame 720p fit with --budget 300
-    ended its 12,000 iterations after 129 s while the plan said 300 s."""
+    """With stop_at_iterations (`--iterations` beside `--budget`) a budget caps the ETA; it is not the ETA:
+    on the H100 a 132-frame 720p fit with --budget 300 ended its 12,000 iterations after 129 s while the plan
+    said 300 s. Without it (`--budget` alone) the fit trains for the whole budget."""
     from tomgs.train import preset
-    from tomgs.train.plan import make_plan
+    from tomgs.train.plan import UNTIL_BUDGET, make_plan
 
-    plenty, _ = make_plan(preset("default", max_seconds=3000), 132, 720, 1280, 720 * 1280, "cuda")
-    assert 60 < plenty.eta < 0.5 * plenty.budget and plenty.phases["train"] < 3000
-    tight, _ = make_plan(preset("default", max_seconds=30), 132, 720, 1280, 720 * 1280, "cuda")
+    plenty, config = make_plan(preset("default", max_seconds=3000, stop_at_iterations=True), 132, 720, 1280,
+                               720 * 1280, "cuda")
+    assert 60 < plenty.eta < 0.5 * plenty.budget and plenty.phases["train"] < 3000 and config.iterations == 12_000
+    tight, _ = make_plan(preset("default", max_seconds=30, stop_at_iterations=True), 132, 720, 1280, 720 * 1280,
+                         "cuda")
     assert tight.eta == 30
+    longer, config = make_plan(preset("default", max_seconds=3000), 132, 720, 1280, 720 * 1280, "cuda")
+    assert longer.eta == 3000 and config.iterations == longer.iterations == UNTIL_BUDGET
+    assert "training for 50.0 min in all" in longer.summary()
 
 
 def test_a_long_clip_has_a_clip_psnr_early_over_evenly_spaced_frames(monkeypatch, tmp_path):
@@ -218,7 +224,8 @@ def test_a_long_clip_has_a_clip_psnr_early_over_evenly_spaced_frames(monkeypatch
         return [20.0 + self.iteration / 1000] * len(frames)
 
     cams = Cameras.identity(T, intrinsics(20.0, 16, 9), 16, 9)
-    config = small_config(3000).replace(eval_interval_s=5.0, init_points_per_frame=2)
+    # quality max: the schedule of measurements alone (the quality rule's rounds measure every frame too)
+    config = small_config(3000).replace(eval_interval_s=5.0, init_points_per_frame=2, quality="max")
     trainer = Trainer(np.zeros((T, 9, 16, 3), np.uint8), cams, np.zeros((0, 3)), np.zeros((0, 3)), config, CPU)
     monkeypatch.setattr(time, "perf_counter", lambda: clock[0])
     monkeypatch.setattr(Trainer, "step", step)

@@ -133,11 +133,11 @@ def test_tracked_points_go_to_the_stretches_that_saw_them():
     assert stretch_points(points, colors, None, stretch)[2] is None
 
 
-def row(iteration, wall, train, clip="", gaussians=10, memory=100.0, frames=""):
+def row(iteration, wall, train, clip="", gaussians=10, memory=100.0, frames="", size=760):
     from tomgs.train.multigpu.shards import log_row
 
     return log_row(iteration=iteration, wall_s=wall, train_psnr=train, clip_psnr=clip, gaussians=gaussians,
-                   memory_mb=memory, clip_frames=frames)
+                   memory_mb=memory, clip_frames=frames, scene_bytes=size)
 
 
 def test_the_merged_curve_weights_ranks_by_frames_and_waits_for_every_rank():
@@ -152,7 +152,9 @@ def test_the_merged_curve_weights_ranks_by_frames_and_waits_for_every_rank():
     assert first == dict(iteration=100, wall_s=1.5, train_psnr=27.5, clip_psnr=28.5, gaussians=20, memory_mb=300.0)
     assert merged[1]["iteration"] == 150 and merged[1]["clip_psnr"] == ""  # a row without a new measurement
     assert merged[-1]["clip_psnr"] == pytest.approx((26.0 + 3 * 31.0) / 4)  # each rank's latest
-    assert merged[-1]["iteration"] == 220
+    assert merged[-1]["iteration"] == 220 and merged[-1]["scene_bytes"] == 2 * 760
+    unsized = merged_history([a, [dict(r, scene_bytes="") for r in b]], weights=[1, 3])  # a log from before it
+    assert all(r["scene_bytes"] == "" for r in unsized)
     if "clip_frames" in LOG_FIELDS:
         assert merged[0]["clip_frames"] == 16 and merged[1]["clip_frames"] == ""
 

@@ -30,7 +30,10 @@ from tomgs.errors import counted
 @click.option("--preset", default="default", show_default=True, type=click.Choice(["default", "paper", "quick"]),
               help="default: tuned for speed; paper: 80k iterations, densify to 60k; quick: a few hundred")
 @click.option("--iterations", type=Number(1, 10**7, integer=True, what="iterations"), default=None,
-              help="override the preset's iteration count")
+              help="override the preset's iteration count (with --budget: stop at whichever comes first)")
+@click.option("--quality", type=click.Choice(["compact", "default", "max"]), default=None,
+              help="how many Gaussians the fit keeps: default prunes the least important while a prune costs "
+                   "little PSNR, compact prunes further, max keeps every Gaussian it grew (every dB)")
 @click.option("--poses", default="auto", show_default=True,
               help="auto, identity, or a cameras .json / AnyCam .npy / COLMAP folder / .onnx model")
 @clip_options
@@ -38,8 +41,9 @@ from tomgs.errors import counted
 @click.option("--cap", "max_gaussians", type=Number(1, 10**9, integer=True, what="Gaussians"), default=None,
               help="most Gaussians (default: by the clip's frames x pixels and the device, see the plan line)")
 @click.option("--budget", "max_seconds", type=Number(1.0, 1e7, what="seconds"), default=None,
-              help="the whole command's wall time in seconds, reading, poses and saving included (schedules follow "
-                   "it); default: none on a GPU, chosen where the iterations would take longer (10 min on a CPU)")
+              help="the whole command's wall time in seconds, reading, poses and saving included: training takes "
+                   "what the rest leaves, and a longer budget trains longer; default: none on a GPU, chosen where "
+                   "the iterations would take longer (10 min on a CPU)")
 @click.option("--sampling", type=click.Choice(["inverse_psnr", "uniform"]), default=None,
               help="how training picks its next frame: inverse_psnr (default) favours the frames it renders worst; "
                    "uniform picks any alike (ablation)")
@@ -64,7 +68,7 @@ from tomgs.errors import counted
 @json_option("the fit's summary")
 @overwrite_option
 @user_errors
-def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal, device, max_gaussians, max_seconds,
+def fit(video, output, preset, iterations, quality, frames, max_side, masks, poses, focal, device, max_gaussians, max_seconds,
         sampling, static_3dgs, opacity_reset, sh_degree, compact_pixels, seed, resume, layer, mask_dilation, gpus,
         json_out, overwrite):
     """Fit a TOM-GS scene to VIDEO (a video file or a folder of frames).
@@ -109,7 +113,7 @@ def fit(video, output, preset, iterations, frames, max_side, masks, poses, focal
     started = process_started()
     overrides = dict(iterations=iterations, max_gaussians=max_gaussians, max_seconds=max_seconds, sampling=sampling,
                      opacity_reset_interval=opacity_reset, sh_degree=sh_degree, compact_pixels=compact_pixels,
-                     seed=seed)
+                     seed=seed, quality=quality, stop_at_iterations=iterations is not None or None)
     overrides = {k: v for k, v in overrides.items() if v is not None}
     if static_3dgs:
         overrides["temporal"] = False

@@ -177,6 +177,19 @@ def line_plot_png(path, series: dict, xlabel: str = "", ylabel: str = "", title:
 
     Non-finite points are skipped; a series of one point is drawn as a dot. A legend is drawn when
     there are several series. Returns the path."""
+    return _write_png(path, _line_panel(series, xlabel, ylabel, title, width, height))
+
+
+def line_plots_png(path, panels: list[dict], width: int = WIDTH, height: int = HEIGHT) -> Path:
+    """Line plots stacked top to bottom in one PNG at `path`, each `panels` entry the keyword arguments
+    of `line_plot_png` but the path and size (series, and xlabel, ylabel, title when given), each panel
+    `width` x `height`. Returns the path."""
+    return _write_png(path, np.concatenate([_line_panel(width=width, height=height, **panel) for panel in panels]))
+
+
+def _line_panel(series: dict, xlabel: str = "", ylabel: str = "", title: str = "", width: int = WIDTH,
+                height: int = HEIGHT) -> np.ndarray:
+    """`line_plot_png`'s image: uint8 [height, width, 3] BGR."""
     import cv2
 
     clean = {}
@@ -206,7 +219,7 @@ def line_plot_png(path, series: dict, xlabel: str = "", ylabel: str = "", title:
             cv2.polylines(canvas.img, [pts.reshape(-1, 1, 2)], False, color, 2, cv2.LINE_AA, shift=4)
     if len(clean) > 1:
         canvas.legend(list(clean))
-    return _write_png(path, canvas.img)
+    return canvas.img
 
 
 def histogram_png(path, values, bins: int = 40, log_x: bool = False, xlabel: str = "", title: str = "",
@@ -251,4 +264,4 @@ def histogram_png(path, values, bins: int = 40, log_x: bool = False, xlabel: str
     return _write_png(path, canvas.img)
 
 
-__all__ = ["line_plot_png", "histogram_png", "nice_ticks"]
+__all__ = ["line_plot_png", "line_plots_png", "histogram_png", "nice_ticks"]

@@ -99,6 +99,12 @@ def vertex_properties(max_sh_degree: int) -> list[str]:
     return inria_properties(max_sh_degree) + list(TEMPORAL_PROPERTIES)
 
 
+def vertex_bytes(count: int, max_sh_degree: int) -> int:
+    """The bytes of `count` Gaussians' vertex rows in a scene file (float32 each property): what the
+    scene's size follows (the header and the clip's cameras after the rows are a few kilobytes)."""
+    return 4 * len(vertex_properties(max_sh_degree)) * int(count)
+
+
 def ply_header(names, count: int, comments=()) -> bytes:
     """A binary little-endian PLY header of one `vertex` element of `count` rows of float32
     properties `names`, `comments` after them (so `element vertex` is the third line, where SIBR's

@@ -15,10 +15,14 @@ After loading, its layout is checked (`check_state`) before a tensor of it is us
     optimizer         the optimiser's state_dict (Adam's layout, moments [N, ...])
     sampler           {psnr: float64 [V], generator: uint8 tensor, pending: [[frame, PSNR], ...] the steps'
                       measurements it has not heard yet (absent in checkpoints before it: none)}
-    densifier         {grad_sum: [N], seen: [N], capped: bool, generator: uint8 tensor, changed_at: int}
+    densifier         {grad_sum: [N], seen: [N], capped: bool, generator: uint8 tensor, changed_at: int,
+                      stopped: bool, densified_at: int (the last two absent before growth could stop)}
+    sparsifier        tomgs.train.sparsify.Sparsifier's state: {taken: int, share: float, measured: [[count,
+                      PSNR], ...], priced: [[count, proposed, PSNR, PSNR without them, taken], ...], stopped: str, grown: [count, PSNR]
+                      or None} (absent in checkpoints before it: no round yet)
     history, notes    the CSV rows (dicts of numbers and "") and the fit's notes (str); rows of a
                       checkpoint written before clip_frames was logged get it on reading (their clip
-                      PSNRs covered every frame)
+                      PSNRs covered every frame), and scene_bytes "" (not logged then)
     clip              what identifies the clip for `fit(resume=True)` (tomgs.train.pipeline fills it)
 
 Signals: `StopSignals` turns SIGINT, SIGTERM and SIGHUP into a request that the training loop reads
@@ -52,8 +56,10 @@ from tomgs.outputs import atomic_file
 FORMAT = "tomgs-checkpoint"
 VERSION = 1
 # a history row; clip_frames: the frames its clip_psnr covers ("" without one)
-LOG_FIELDS = ("iteration", "wall_s", "train_psnr", "clip_psnr", "clip_frames", "gaussians", "memory_mb")
-ADDED_LOG_FIELDS = ("clip_frames",)  # absent from the rows of older checkpoints
+# scene_bytes: the scene file's bytes for the Gaussians of the row (tomgs.io.scene.vertex_bytes)
+LOG_FIELDS = ("iteration", "wall_s", "train_psnr", "clip_psnr", "clip_frames", "gaussians", "scene_bytes",
+              "memory_mb")
+ADDED_LOG_FIELDS = ("clip_frames", "scene_bytes")  # absent from the rows of older checkpoints
 START_OVER = "pass --overwrite (-y) to start the fit over (Python: overwrite=True)"
 
 
@@ -295,6 +301,7 @@ def read_checkpoint(path) -> dict:
     check_state(state, path)
     for row in state["history"]:  # an older checkpoint's rows: every clip PSNR covered all the views
         row.setdefault("clip_frames", state["frames"][0] if row["clip_psnr"] != "" else "")
+        row.setdefault("scene_bytes", "")  # not logged then
     return state
 
 
@@ -401,8 +408,23 @@ def check_state(state, path="<checkpoint>", ours: bool = False) -> None:
         if not torch.is_tensor(densifier.get(key)) or tuple(densifier[key].shape) != (n,):
             fail(f"densifier statistics ({key}) do not match the {n} rows")
     if not isinstance(densifier.get("capped"), bool) or not torch.is_tensor(densifier.get("generator")) \
-            or type(densifier.get("changed_at", 0)) is not int:
+            or type(densifier.get("changed_at", 0)) is not int or type(densifier.get("stopped", False)) is not bool \
+            or type(densifier.get("densified_at", 0)) is not int:
         fail("densifier state of another layout")
+    sparsifier = state.get("sparsifier", dict(taken=0, share=0.5, measured=[], priced=[], stopped="", grown=None))
+    if not isinstance(sparsifier, dict) or type(sparsifier.get("taken")) is not int \
+            or type(sparsifier.get("share")) is not float or not isinstance(sparsifier.get("stopped"), str) \
+            or not isinstance(sparsifier.get("measured"), list) or not isinstance(sparsifier.get("priced"), list) \
+            or not all(_count_and_psnr(m) for m in sparsifier["measured"]) \
+            or not all(isinstance(p, list) and len(p) == 5 and _count_and_psnr(p[:3:2]) and type(p[1]) is int
+                       and type(p[3]) is float and type(p[4]) is bool for p in sparsifier["priced"]) \
+            or not (sparsifier.get("grown") is None or _count_and_psnr(sparsifier["grown"])):
+        fail("sparsifier state of another layout")
+
+
+def _count_and_psnr(pair) -> bool:
+    """Whether `pair` is [count, PSNR]: an int and a float."""
+    return isinstance(pair, list) and len(pair) == 2 and type(pair[0]) is int and type(pair[1]) is float
 
 
 def config_from(values: dict, path="<checkpoint>"):

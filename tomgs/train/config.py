@@ -23,6 +23,7 @@ AUTO_POINTS_PER_FRAME = {"cuda": (16000, 48000, 5_000_000), "cpu": (2000, 2000, 
 # every added Gaussian slows each one: 3DGS's 2e-4.
 AUTO_GRAD_THRESHOLD = {"cuda": 1e-4, "cpu": 2e-4}
 INIT_DEPTHS = ("tracks", "median")  # TrainConfig.init_depth
+QUALITIES = ("compact", "default", "max")  # TrainConfig.quality (tomgs.train.sparsify.QUALITY_RULES)
 
 
 @dataclass
@@ -44,6 +45,17 @@ class TrainConfig:
     # 1-minute DAVIS fits (H100): 10% of camel's and kite-surf's 5M Gaussians, -0.001 dB, renders +8%;
     # at 0.05, 22% and -0.10 dB (docs/notes/training.md). 0: keep every Gaussian
     compact_pixels: float = 0.01
+    # how many Gaussians the fit keeps (tomgs.train.sparsify): "max" grows to the cap and keeps what it grew
+    # (every dB); "default" and "compact" then prune the least important Gaussians a share at a time in
+    # [sparsify_start_fraction, sparsify_stop_fraction) of the run, training recovering between rounds,
+    # while a prune costs less clip PSNR than the level allows (compact allows more)
+    quality: str = "default"
+    # after densification (densify_stop_fraction) and the few hundred steps the clip PSNR takes to settle after
+    # its last split (a round measured at once priced a prune against a dip: camel on the H100, -0.5 dB)
+    sparsify_start_fraction: float = 0.55
+    sparsify_stop_fraction: float = 0.85  # the rest of the run recovers from the last prune
+    sparsify_rounds: int = 8  # rounds spread evenly over the window (each: two passes over every frame)
+    sparsify_share: float = 0.3  # of the Gaussians a round offers to remove at first (halved when refused)
     opacity_reset_interval: int = 0  # 0: off (TOM-GS); 3000 reproduces the 3DGS heuristic (ablation)
     # sampling of training frames: "inverse_psnr" (TOM-GS) or "uniform" (ablation)
     sampling: str = "inverse_psnr"
@@ -113,11 +125,20 @@ class TrainConfig:
     # one where the iterations would take longer than tomgs.train.plan.DEFAULT_BUDGET); a Trainer
     # used alone stops its training after this long
     max_seconds: float = 0.0
+    # under a budget (max_seconds) asked for, stop at `iterations` too, whichever comes first; False: `fit`
+    # trains for the whole budget (tomgs.train.plan.UNTIL_BUDGET), however many iterations that holds
+    stop_at_iterations: bool = False
     seed: int = 0
 
     def __post_init__(self):
         if self.init_depth not in INIT_DEPTHS:
             raise ValueError(f"init_depth must be one of {', '.join(INIT_DEPTHS)}, not {self.init_depth!r}")
+        if self.quality not in QUALITIES:
+            raise ValueError(f"quality must be one of {', '.join(QUALITIES)}, not {self.quality!r}")
+        if not 0 < self.sparsify_share < 1:  # NaN fails too
+            raise ValueError(f"sparsify_share must be between 0 and 1, not {self.sparsify_share!r}")
+        if self.sparsify_rounds < 0:
+            raise ValueError(f"sparsify_rounds must be 0 or more, not {self.sparsify_rounds!r}")
         if not 0 <= self.init_depth_jitter <= 1:  # NaN fails too; exp(N(0, 1)) past 1 spans e^2 around the depth
             raise ValueError(f"init_depth_jitter must be between 0 and 1, not {self.init_depth_jitter!r}")
 

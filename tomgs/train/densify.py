@@ -26,7 +26,9 @@ class Densifier:
         self.generator = torch.Generator(device=device).manual_seed(seed + 1)
         self.reset_stats(num_gaussians, device)
         self.capped = False
+        self.stopped = False  # growth ended by the quality rule (tomgs.train.sparsify.Sparsifier.growth_pays)
         self.changed_at = 0  # the iteration of the last densification, prune or opacity reset
+        self.densified_at = 0  # the iteration of the last densification
 
     def reset_stats(self, n: int, device) -> None:
         self.grad_sum = torch.zeros(n, device=device)
@@ -69,8 +71,8 @@ class Densifier:
 
     def collecting(self, progress: float) -> bool:
         """Whether this step's screen-space gradients are wanted: until densification stops
-        (`densify_stop_fraction` of the run) or the cap is reached."""
-        return progress < self.config.densify_stop_fraction and not self.capped
+        (`densify_stop_fraction` of the run), the cap is reached or growth is stopped."""
+        return progress < self.config.densify_stop_fraction and not self.capped and not self.stopped
 
     def may_grow(self, progress: float) -> bool:
         """Whether densification may still add Gaussians: before the end of its window, under the cap."""
@@ -100,9 +102,9 @@ class Densifier:
         """`step_post_backward`'s decisions, once the step's statistics are in (a captured step
         accumulates them on the device): densify, prune, reset opacities when due."""
         c = self.config
-        if self.due(iteration, progress) and not self.capped:
+        if self.due(iteration, progress) and not self.capped and not self.stopped:
             self.step(model, optimizer)
-            self.changed_at = iteration
+            self.changed_at = self.densified_at = iteration
         elif iteration % (10 * c.densify_interval) == 0:
             if self.prune(model, optimizer) and progress < c.densify_stop_fraction \
                     and len(model) < c.max_gaussians:
@@ -191,12 +193,15 @@ class Densifier:
 
     def state_dict(self) -> dict:
         return dict(grad_sum=self.grad_sum, seen=self.seen, capped=self.capped,
-                    generator=self.generator.get_state(), changed_at=self.changed_at)
+                    generator=self.generator.get_state(), changed_at=self.changed_at, stopped=self.stopped,
+                    densified_at=self.densified_at)
 
     def load_state_dict(self, state: dict) -> None:
         self.grad_sum, self.seen, self.capped = state["grad_sum"], state["seen"], state["capped"]
         self.generator.set_state(state["generator"])
         self.changed_at = int(state.get("changed_at", 0))  # checkpoints before it: as if unchanged
+        self.stopped = bool(state.get("stopped", False))  # checkpoints before it: growth never stopped
+        self.densified_at = int(state.get("densified_at", 0))
 
 
 def _limit(clone: torch.Tensor, split: torch.Tensor, room: int, grads: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

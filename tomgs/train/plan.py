@@ -39,6 +39,9 @@ SAVE_COST = (0.5, 0.2e-6)
 # when the preset would run longer than this on the device, the fit stops at this budget instead
 DEFAULT_BUDGET = {"cpu": 600.0, "cuda": 3600.0}
 MIN_STEPS = 500  # a CPU fit must be able to step its starting cloud this many times
+# the iterations of a fit whose budget was asked for (TrainConfig.stop_at_iterations False): more than any
+# budget holds, so the budget alone ends the training and its schedules follow the clock
+UNTIL_BUDGET = 2**31 - 1
 CAP_OVER_START = 3  # time-bound cap: this many times the starting cloud
 REFERENCE_CAP, REFERENCE_PIXELS = 10_000_000, 90 * 854 * 480  # DAVIS clip: the paper's 10M cap
 MIN_CAP = 100_000
@@ -85,7 +88,8 @@ class FitPlan:
 
     def summary(self) -> str:
         """One line: what the fit will do and when it ends."""
-        work = (f"{self.iterations:,} iterations or {duration(self.budget)}, whichever comes first"
+        work = (f"training for {duration(self.budget)} in all" if self.iterations >= UNTIL_BUDGET else
+                f"{self.iterations:,} iterations or {duration(self.budget)}, whichever comes first"
                 if self.budget > 0 else f"{self.iterations:,} iterations")
         chosen = " (budget chosen for this device: --budget or --iterations to change)" if self.budget_chosen else ""
         eta = duration(self.eta) if self.budget > 0 else f"~{duration(self.eta)} (estimated)"
@@ -130,7 +134,9 @@ def make_plan(config, frames: int, height: int, width: int, source_pixels: int, 
     poses_estimated: the built-in tracker will run. auto_budget: pick DEFAULT_BUDGET where the
     iterations would take longer on this device. free_bytes: a GPU's free memory after the frames.
     compiles: the kernels are not compiled yet for this device (tomgs.runtime.kernels_compiled):
-    the first steps will compile them, a phase of its own in the estimates and the budget."""
+    the first steps will compile them, a phase of its own in the estimates and the budget.
+    A budget asked for (max_seconds) is the time training takes: the iterations become UNTIL_BUDGET
+    unless `config.stop_at_iterations`."""
     pixels = height * width
     setup = SETUP_COST.get(device_type, SETUP_COST["cpu"])
     phases = dict(read=DECODE_COST * frames * source_pixels,
@@ -141,6 +147,8 @@ def make_plan(config, frames: int, height: int, width: int, source_pixels: int, 
         phases["compile"] = COMPILE_COST.get(device_type, COMPILE_COST["cpu"])
     budget, chosen = float(config.max_seconds), False
     reasons = []
+    if budget > 0 and not config.stop_at_iterations:  # a longer budget trains longer
+        config = config.replace(iterations=UNTIL_BUDGET)
     cap, cap_why = (config.max_gaussians, f"cap {config.max_gaussians:,} as asked") \
         if config.max_gaussians is not None else auto_cap(frames, pixels, device_type, free_bytes)
     per_frame = config.replace(max_gaussians=cap).points_per_frame(pixels, frames, device_type)

@@ -37,11 +37,13 @@ import torch
 
 from tomgs.render.alive import TrainingIndex, pays_on
 from tomgs.cameras import Cameras
+from tomgs.io.scene import vertex_bytes
 from tomgs.metrics import l1_dssim_and_psnr, psnr, ssim_map
 from tomgs.model import GaussianModel
 from tomgs.render.frame import blend_weights, render_frame
 from tomgs.render.sequence import IssuedFrame, issue_in_order
 from tomgs.errors import InputError, counted
+from tomgs.render.sh import fused_sh_to_colors
 from tomgs.outputs import write_text
 from tomgs.train.checkpoint import (FORMAT, LOG_FIELDS, START_OVER, VERSION, CheckpointWriter, FitInterrupted,
                                     StopSignals, check_same_settings, config_from, config_to_dict, own_copies,
@@ -50,6 +52,7 @@ from tomgs.train.captured_step import CapturedStep, unsupported
 from tomgs.train.config import TrainConfig
 from tomgs.train.densify import Densifier
 from tomgs.train.init import initial_model
+from tomgs.train.sparsify import Sparsifier
 from tomgs.train.optim import make_adam, uses_seen_adam
 from tomgs.train.sampler import FrameSampler
 
@@ -158,6 +161,7 @@ class Trainer:
         self.optimizer = self._optimizer()
         self.sampler = FrameSampler(self.num_frames, config.sampling, config.psnr_momentum, config.seed)
         self.densifier = Densifier(self.config, self.extent, len(self.model), device, config.seed, self.times)
+        self.sparsifier = Sparsifier(self.config, self.height * self.width)
         # which Gaussians each frame renders (rebuilt, not saved: checkpoints leave it out)
         use_index = pays_on(device) if config.alive_index is None else bool(config.alive_index)
         self.alive = TrainingIndex(self.times, dense=not self.sparse_adam, lookahead=device.type == "cuda") \
@@ -348,9 +352,10 @@ class Trainer:
         self._in_flight = (frames, values, copied)
 
     @torch.no_grad()
-    def clip_psnr(self, tick=None, frames=None) -> list[float]:
+    def clip_psnr(self, tick=None, frames=None, hidden: torch.Tensor | None = None) -> list[float]:
         """PSNR of every frame, or of `frames` (frame numbers), of its weighted pixels, rendered at its
-        time: floats, one a frame. tick(text) after each frame (a display's heartbeat on long clips)."""
+        time: floats, one a frame; without the Gaussians `hidden` (bool [N]; their opacity 0: culled as
+        if removed). tick(text) after each frame (a display's heartbeat on long clips)."""
         frames = range(self.num_frames) if frames is None else [int(k) for k in frames]
         bad = [k for k in frames if not 0 <= k < self.num_frames]
         if bad:
@@ -358,6 +363,8 @@ class Trainer:
         out = []
         with torch.no_grad():
             inputs = self.model.render_inputs()  # the activated parameters once, shared by every frame
+            if hidden is not None:
+                inputs["opacities"] = inputs["opacities"].masked_fill(hidden, 0.0)
 
             def issue(position: int, k: int, wait: bool) -> IssuedFrame:
                 image, _, meta = self.render(k, defer=not wait, inputs=inputs)
@@ -372,6 +379,49 @@ class Trainer:
                 if tick is not None:
                     tick(f"measuring the clip PSNR: frame {i + 1} of {len(frames)}")
         return torch.stack(out).tolist() if out else []
+
+    def importance(self, tick=None) -> tuple[torch.Tensor, list[float]]:
+        """(float32 [N]: each Gaussian's importance, the pixels' worth of colour it gives the clip: its
+        blend weights alpha * T, temporal opacity inside, summed over every supervised pixel (times
+        its weight) of every training frame; the PSNR of each frame, floats [T]), from one pass over
+        the frames, each rendered with its RGB colours [N,3] as a leaf, whose gradient of the weighted red
+        channel's sum is that sum (as `tomgs.render.blend_weights`). tick(text) after each frame."""
+        inputs = {k: v.detach() for k, v in self.model.render_inputs().items()}
+        sh = inputs.pop("colors")
+        total = torch.zeros(len(self.model), device=self.device)
+        psnrs, colors = [], None
+        for k in range(self.num_frames):
+            if colors is None or self.model.sh_degree > 0:  # degree 0: one colour for every view
+                colors = fused_sh_to_colors(sh, inputs["means"], self.viewmats[k]).detach().requires_grad_(True)
+            with torch.enable_grad():
+                image, _, _ = self.render(k, inputs=dict(inputs, colors=colors))
+                red = image[..., 0] if self.weights is None else image[..., 0] * self._weight(k)[..., 0]
+                (grad,) = torch.autograd.grad(red.sum(), colors)
+            total += grad[:, 0]
+            psnrs.append(self._psnr(k, image))
+            if tick is not None:
+                tick(f"importance {k + 1}/{self.num_frames}")
+        return total, torch.stack(psnrs).tolist() if psnrs else []
+
+    def sparsify(self, tick=None) -> tuple[float, int] | None:
+        """A round of the quality rule (tomgs.train.sparsify): the clip PSNR and the importance in one pass;
+        the least important Gaussians the rule proposes priced by a second pass without them, and removed
+        when the rule takes the prune. Returns (the clip PSNR before the prune, the frames it covers), or
+        None for an empty cloud."""
+        if len(self.model) == 0:
+            return None
+        importance, psnrs = self.importance(tick)
+        measured = float(np.mean(psnrs))
+        remove = self.sparsifier.propose(len(self.model), measured)
+        if remove:
+            least = torch.zeros(len(self.model), dtype=torch.bool, device=self.device)
+            least[torch.argsort(importance)[:remove]] = True
+            without = float(np.mean(self.clip_psnr(tick, hidden=least)))
+            if self.sparsifier.judge(len(self.model), remove, measured, without):
+                self.densifier.remove(self.model, self.optimizer, least)
+                self.densifier.reset_stats(len(self.model), self.device)
+        self.densifier.changed_at = self.iteration
+        return measured, self.num_frames
 
     def compact(self, tick=None) -> int:
         """Leave out the Gaussians that give no frame of the clip `config.compact_pixels` pixels' worth
@@ -476,6 +526,21 @@ class Trainer:
                 if self.iteration > 1:
                     step_seconds = now - before if step_seconds is None else 0.9 * step_seconds + 0.1 * (now - before)
                 tick(self.iteration, now, self.status())
+                heard = self.train_psnr() if self.densifier.densified_at == self.iteration else None
+                if heard is not None and not self.densifier.stopped and \
+                        not self.sparsifier.growth_pays(len(self.model), heard):
+                    self.densifier.stopped = True
+                    self.notes.append(f"densification stopped at {len(self.model):,} Gaussians: its last doubling "
+                                      f"bought less than the {c.quality} quality asks")
+                rounded = None  # (clip PSNR, frames, Gaussians measured) of a round of the quality rule
+                # a round prices its prune against the clip PSNR, which dips for a few dozen steps after a change
+                if self.iteration - self.densifier.changed_at >= settle and self.sparsifier.due(self.progress):
+                    size = len(self.model)
+                    began = time.perf_counter()
+                    measured = self.sparsify(lambda text: tick(self.iteration, now, text))
+                    if measured is not None:
+                        rounded = (*measured, size)
+                        next_eval = now + max(c.eval_interval_s, (time.perf_counter() - began) / EVAL_OVERHEAD)
                 # until one is measured, a frame of the clip PSNR costs what RENDER_SHARE of a step costs
                 frame_seconds = self.eval_frame_seconds or RENDER_SHARE * (step_seconds or 0.0)
                 ending = self._ending(frame_seconds)
@@ -487,8 +552,10 @@ class Trainer:
                                       lambda text: tick(self.iteration, now, text))
                 settled = self.iteration - self.densifier.changed_at >= settle
                 measure = last or (now >= next_eval and count > 0 and settled)
-                if self.iteration % c.log_interval == 0 or measure:
-                    clip = None
+                if self.iteration % c.log_interval == 0 or measure or rounded:
+                    clip, size = None, None
+                    if rounded and not measure:  # the round's pass measured the clip before its prune
+                        clip, size = rounded[:2], rounded[2]
                     if measure:
                         frames = None if count == self.num_frames else spread(self.num_frames, count)
                         began = time.perf_counter()
@@ -498,7 +565,7 @@ class Trainer:
                         next_eval = now + max(c.eval_interval_s, seconds / EVAL_OVERHEAD)
                     if last:
                         self.flush_measurements()  # no draw follows: the last row has every step's PSNR
-                    row = self._row(now, clip)
+                    row = self._row(now, clip, size)
                     self.history.append(row)
                     if log_csv is not None:
                         log(self.history)
@@ -531,6 +598,8 @@ class Trainer:
                               f"({error.filename}: {error.strerror}): training went on{kept}")
         if stop.signum is not None:  # arrived after the loop's last look: still a step boundary
             stop_here(stop.signum)
+        if self.sparsifier.measured:
+            self.notes.append(self.sparsifier.summary(c.quality))
         self.elapsed = time.perf_counter() - start
         if self.captured is not None:
             self.captured.settle()
@@ -577,15 +646,22 @@ class Trainer:
         psnr = f", PSNR {float(seen.mean()):.2f} dB" if len(seen) else ""
         return f"iteration {self.iteration:,}{psnr}, {len(self.model):,} Gaussians"
 
-    def _row(self, now: float, clip: tuple[float, int] | None) -> dict:
-        """The CSV row at `now` seconds; clip: (clip PSNR, the frames it covers) or None. Its train PSNR
-        is what the sampler has heard: handing it the measurements still on their way would change what
-        it draws next at moments set by the clock, and a seeded run would no longer repeat."""
+    def train_psnr(self) -> float | None:
+        """The mean running PSNR of the frames trained on so far (None before any): what the sampler has
+        heard. Handing it the measurements still on their way would change what it draws next at
+        moments set by the clock, and a seeded run would no longer repeat."""
         seen = self.sampler.psnr[self.sampler.psnr > 0]
+        return float(seen.mean()) if len(seen) else None
+
+    def _row(self, now: float, clip: tuple[float, int] | None, count: int | None = None) -> dict:
+        """The CSV row at `now` seconds; clip: (clip PSNR, the frames it covers) or None; count: the
+        Gaussians that clip PSNR measured (default: the model's now). Its train PSNR is `train_psnr`."""
+        train = self.train_psnr()
+        count = len(self.model) if count is None else int(count)
         return dict(iteration=self.iteration, wall_s=round(now, 3),
-                    train_psnr=round(float(seen.mean()), 3) if len(seen) else "",
+                    train_psnr="" if train is None else round(train, 3),
                     clip_psnr="" if clip is None else round(clip[0], 3), clip_frames="" if clip is None else clip[1],
-                    gaussians=len(self.model),
+                    gaussians=count, scene_bytes=vertex_bytes(count, self.model.max_sh_degree),
                     memory_mb=round(log_memory_mb(self.device), 1))
 
     # -- checkpoints ---------------------------------------------------------------------------
@@ -605,6 +681,7 @@ class Trainer:
             params={k: v.detach() for k, v in self.model.parameters_by_name().items()},
             sh_degree=int(self.model.sh_degree), optimizer=self.optimizer.state_dict(),
             sampler=dict(self.sampler.state_dict(), pending=self._pending()), densifier=densifier,
+            sparsifier=self.sparsifier.state_dict(),
             history=[dict(r) for r in self.history],
             notes=[str(n) for n in self.notes], clip=dict(self.clip),
         )
@@ -701,6 +778,8 @@ class Trainer:
         densifier["grad_sum"] = densifier["grad_sum"].to(self.device)
         densifier["seen"] = densifier["seen"].to(self.device)
         self.densifier.load_state_dict(densifier)
+        if "sparsifier" in state:  # checkpoints before it: no round taken yet
+            self.sparsifier.load_state_dict(state["sparsifier"])
         self.iteration, self.elapsed = state["iteration"], float(state["elapsed"])
         self._restore_pending(state["sampler"].get("pending", []))  # checkpoints before it: none
         self.history, self.notes = list(state["history"]), list(state["notes"])
@@ -758,8 +837,9 @@ def write_csv(path: Path, rows: list[dict]) -> None:
 
 
 def write_plot(path: Path, history: list[dict]) -> None:
-    """The PSNR plot of a fit's log rows (`history`): training frames, evenly spaced clip frames, the full clip."""
-    from tomgs.io.plots import line_plot_png
+    """The plot of a fit's log rows (`history`): PSNR against run time (training frames, evenly spaced clip
+    frames, the full clip), and below it the Gaussians and the scene file's megabytes."""
+    from tomgs.io.plots import line_plots_png
 
     train = [(r["wall_s"], r["train_psnr"]) for r in history if r["train_psnr"] != ""]
     clip = [r for r in history if r["clip_psnr"] != ""]
@@ -773,5 +853,16 @@ def write_plot(path: Path, history: list[dict]) -> None:
         series["clip, evenly spaced frames"] = tuple(np.array(v, dtype=float) for v in zip(*part))
     if full:
         series["full clip"] = tuple(np.array(v, dtype=float) for v in zip(*full))
-    if series:
-        line_plot_png(path, series, xlabel="wall-clock seconds", ylabel="PSNR (dB)", title="PSNR against run time")
+    if not series:
+        return
+    panels = [dict(series=series, xlabel="wall-clock seconds", ylabel="PSNR (dB)", title="PSNR against run time")]
+    sized = [r for r in history if r.get("scene_bytes", "") != ""]
+    if sized:
+        seconds = np.array([float(r["wall_s"]) for r in sized])
+        size = {"Gaussians (millions)": (seconds, np.array([int(r["gaussians"]) / 1e6 for r in sized])),
+                "scene file (100 MB)": (seconds, np.array([int(r["scene_bytes"]) / 1e8 for r in sized]))}
+        last = sized[-1]
+        panels.append(dict(series=size, xlabel="wall-clock seconds", ylabel="size",
+                           title=f"Size against run time: {int(last['gaussians']):,} Gaussians, "
+                                 f"{int(last['scene_bytes']) / 1e6:.1f} MB at the end"))
+    line_plots_png(path, panels)

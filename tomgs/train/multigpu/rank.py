@@ -550,7 +550,7 @@ def _time_scene_io(union: torch.Tensor, sh: tuple, cameras, scene: Path, history
 
 def _write_outputs(job, everyone, stretches, cameras, payload, final, refine_rows, outputs, config, extent) -> dict:
     """Rank 0: the scene, the merged CSV and plot; the run's summary."""
-    from tomgs.io.scene import save_scene
+    from tomgs.io.scene import save_scene, vertex_bytes
 
     frame_psnr = [p for rank in everyone for p in rank["frame_psnr"]]
     merged_before = [p for rank in everyone for p in rank["merged_psnr"]]
@@ -570,6 +570,7 @@ def _write_outputs(job, everyone, stretches, cameras, payload, final, refine_row
                            wall_s=round(start_wall + refine_seconds, 3),
                            train_psnr=history[-1]["train_psnr"] if history else "", clip_psnr=round(clip_psnr, 3),
                            clip_frames=len(frame_psnr), gaussians=len(final),
+                           scene_bytes=vertex_bytes(len(final), final.max_sh_degree),
                            memory_mb=max(float(r["peak_gpu_mb"] or r["peak_host_mb"]) for r in everyone)))
     boundary = boundary_psnr(frame_psnr, stretches)
     shards = dict(ranks=len(everyone), overlap=stretches[0].hi - stretches[0].own_hi if len(stretches) > 1 else 0,

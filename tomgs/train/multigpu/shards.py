@@ -346,6 +346,8 @@ def merged_history(histories: list[list[dict]], weights: list[float]) -> list[di
                          clip_psnr=mean(clip) if complete else "",
                          clip_frames=sum(covered) if complete and None not in covered else "",
                          gaussians=sum(int(x["gaussians"]) for x in latest),
+                         scene_bytes=sum(int(x["scene_bytes"]) for x in latest)
+                         if all(x.get("scene_bytes") not in ("", None) for x in latest) else "",
                          memory_mb=max(float(x["memory_mb"]) for x in latest))
         if out and out[-1]["wall_s"] == merged["wall_s"]:
             if merged["clip_psnr"] == "" and out[-1]["clip_psnr"] != "":
@@ -454,6 +456,7 @@ def refine(model: GaussianModel, part: Halo, frames: torch.Tensor, cameras, conf
     counts, as in Trainer.step."""
     import torch.distributed as dist
 
+    from tomgs.io.scene import vertex_bytes
     from tomgs.metrics import psnr, ssim
     from tomgs.render.frame import render_frame
     from tomgs.train.checkpoint import StopSignals
@@ -529,6 +532,7 @@ def refine(model: GaussianModel, part: Halo, frames: torch.Tensor, cameras, conf
             if log_rows is not None and (out.steps % c.log_interval == 0 or signum or finished):
                 row = log_row(iteration=start_iteration + out.steps, wall_s=round(start_wall + now, 3),
                               train_psnr=round(float(np.mean(recent)), 3), gaussians=n,
+                              scene_bytes=vertex_bytes(n, model.max_sh_degree),
                               memory_mb=round(log_memory_mb(device), 1))
                 recent.clear()
                 out.rows.append(row)

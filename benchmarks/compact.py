@@ -1,0 +1,135 @@
+"""Size beside error: DAVIS clips fitted at each quality level (`tomgs fit --quality`), their Gaussians and
+scene bytes beside PSNR / SSIM / LPIPS and the paper's figures.
+
+    python -m benchmarks.compact <clips> --clips camel,cows,kite-surf --minutes 2 --qualities default,max \\
+        --lpips <weights> --out <out>
+    python -m benchmarks.compact --smoke        # a tiny synthetic clip on the CPU
+
+For each clip and quality: poses from the built-in tracker with the DAVIS masks and a fit whose whole wall
+time, reading and poses included, is the budget (`tomgs fit --budget`: training takes what the rest leaves),
+then over every frame PSNR, SSIM (and LPIPS with --lpips), the Gaussians kept, the scene file's bytes, and
+from the fit's log the full-clip PSNR and the Gaussians at each of MARKS seconds of the whole fit and at
+every full-clip measurement (the quality rule's rounds among them: `curve`). `--rule per_halving,in_all`
+replaces the quality rule of every level but max (a sweep of the rule's price). Writes
+<out>/<clip>-<quality>.ply/.csv/.psnr.png and the table as compact.md and compact.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import torch
+
+import tomgs
+from tomgs.train import fit, output_paths, preset
+from tomgs.train.sparsify import QUALITY_RULES, QualityRule
+
+if __package__:
+    from .common import PAPER, environment, log_rows, markdown_table, output_folder, psnr_at, smoke_clip_folder, \
+        write_report
+else:  # run as a file (python benchmarks/compact.py): Python puts this folder first on sys.path
+    from common import PAPER, environment, log_rows, markdown_table, output_folder, psnr_at, smoke_clip_folder, \
+        write_report
+
+MARKS = (60, 120, 300)  # seconds of the whole fit at which the curve is read
+
+
+def gaussians_at(rows: list[dict], seconds: float, offset: float = 0.0):
+    """Gaussians of the last log row at or before `seconds` of the whole fit (the log's training seconds
+    shifted by `offset`); None if none by then."""
+    count = None
+    for row in rows:
+        if offset + float(row["wall_s"]) <= seconds:
+            count = int(row["gaussians"])
+    return count
+
+
+def curve(rows: list[dict], offset: float = 0.0) -> list[list]:
+    """[[seconds of the whole fit, Gaussians, full-clip PSNR], ...]: every measurement over all the frames."""
+    every = max((int(r["clip_frames"] or 0) for r in rows), default=0)
+    return [[round(offset + float(r["wall_s"]), 2), int(r["gaussians"]), float(r["clip_psnr"])]
+            for r in rows if r["clip_psnr"] and int(r["clip_frames"] or 0) == every]
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("root", type=Path, nargs="?", help="folder holding <clip>/images and <clip>/masks")
+    ap.add_argument("--clips", default="camel,cows,kite-surf")
+    ap.add_argument("--qualities", default="default,max", help="quality levels, comma separated")
+    ap.add_argument("--minutes", type=float, default=2.0, help="wall-clock budget of each fit, poses included")
+    ap.add_argument("--out", type=Path, default=None, help="default bench_out/compact")
+    ap.add_argument("--set", action="append", default=[], help="a TrainConfig override, e.g. --set sparsify_rounds=6")
+    ap.add_argument("--rule", help="per_halving,in_all (dB): the price of every level but max (sweeps)")
+    ap.add_argument("--poses", default="auto", help="auto (tracker with the DAVIS masks) or identity")
+    ap.add_argument("--tag", default="", help="a name for this run's files (sweeps)")
+    ap.add_argument("--lpips", type=Path, help="LPIPS weights (alexnet-lpips-v0.1.npz or its folder)")
+    ap.add_argument("--device", default="cuda", help="cuda; cpu for a dry run")
+    ap.add_argument("--smoke", action="store_true",
+                    help="a 6-frame synthetic clip at 48x27 on the CPU, 12-s fits, identity poses; the table in a "
+                         "temporary folder unless --out")
+    args = ap.parse_args(argv)
+    if args.smoke:
+        args.device, args.poses, args.clips, args.minutes = "cpu", "identity", "smoke", 0.2
+    elif args.root is None:
+        ap.error("the folder of clips is required (or --smoke)")
+    return args
+
+
+def main(argv=None) -> list[dict]:
+    args = parse_args(argv)
+    out = output_folder(args.out, args.smoke, "compact")
+    if args.smoke:
+        args.root = out / "clips"
+        smoke_clip_folder(args.root, "smoke")
+    if args.rule:
+        per_halving, in_all = (float(v) for v in args.rule.split(","))
+        for name, rule in QUALITY_RULES.items():
+            if rule is not None:
+                QUALITY_RULES[name] = QualityRule(per_halving, in_all)
+    device = torch.device(args.device)
+    overrides = {k: json.loads(v) for k, v in (s.split("=", 1) for s in args.set)}
+    lpips = tomgs.LPIPS(args.lpips, device=device) if args.lpips else None
+    env = environment(device, "compact", argv)
+    suffix = f"-{args.tag}" if args.tag else ""
+    rows = []
+    for clip in args.clips.split(","):
+        began = time.perf_counter()
+        video = tomgs.read_video(args.root / clip / "images", masks=args.root / clip / "masks")
+        read_s = time.perf_counter() - began
+        for quality in args.qualities.split(","):
+            # a full-clip PSNR every 10 s (at most 10% of the run: Trainer.run), so the curve is read near each mark
+            config = preset("default", **{"quality": quality, "max_seconds": args.minutes * 60, "eval_interval_s": 10.0,
+                                          **overrides})
+            scene = out / f"{clip}-{quality}{suffix}.ply"
+            started = time.perf_counter() - read_s  # the budget counts the reading, as `tomgs fit` does
+            result = fit(video, scene, config, device=device, poses=args.poses, overwrite=True, started=started)
+            ended = time.perf_counter() - started
+            report = tomgs.evaluate(result.model, result.cameras, video.frames, device=device, lpips=lpips)
+            log = log_rows(output_paths(scene)["csv"])
+            before = read_s + sum(v for k, v in result.phase_seconds.items() if k in ("read", "poses", "init"))
+            paper = PAPER.get(clip, {})
+            row = dict(clip=clip, quality=quality, frames=len(video), gaussians=len(result.model),
+                       scene_bytes=scene.stat().st_size, psnr=report.mean_psnr, ssim=report.mean_ssim,
+                       lpips=report.mean_lpips, paper_psnr=paper.get("psnr"), paper_ssim=paper.get("ssim"),
+                       paper_lpips=paper.get("lpips"), wall_s=ended, before_train_s=before,
+                       iterations=result.iterations, steps_per_s=result.iterations / max(result.seconds, 1e-9),
+                       **{f"psnr_{m}s": psnr_at(log, m, before)[0] if m <= ended + 1 else None for m in MARKS},
+                       **{f"gaussians_{m}s": gaussians_at(log, m, before) if m <= ended + 1 else None for m in MARKS},
+                       curve=curve(log, before), notes=result.notes)
+            print(json.dumps({k: v for k, v in row.items() if k not in ("curve", "notes")}, default=str), flush=True)
+            rows.append(row)
+            del result, report
+            if device.type == "cuda":
+                torch.cuda.empty_cache()
+    head = ["clip", "quality", "gaussians", "scene_bytes", "psnr", "paper_psnr", "ssim", "paper_ssim", "lpips",
+            "paper_lpips", *(f"psnr_{m}s" for m in MARKS), *(f"gaussians_{m}s" for m in MARKS), "wall_s"]
+    write_report(out, f"compact{suffix}", "compact: size beside error", env,
+                 markdown_table(head, [[r[h] for h in head] for r in rows]), rows)
+    return rows
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,148 @@
+"""How many Gaussians a fit keeps: the quality levels and the rule that applies them.
+
+A fit grows its cloud by densification (tomgs.train.densify), then, unless its quality is "max", takes
+it down by importance a share at a time: `TrainConfig.sparsify_rounds` rounds spread evenly over
+[sparsify_start_fraction, sparsify_stop_fraction) of the run. A round measures, in one pass over
+every training frame (`Trainer.importance`), the clip PSNR and each Gaussian's importance, the
+pixels' worth of colour it gives the clip (its blend weights alpha * T summed over every supervised
+pixel of every frame; its temporal opacity is inside alpha, so a Gaussian alive at three frames is
+judged on those three). It proposes the least important share of the cloud (`sparsify_share`), and
+a second pass renders the clip without them (`Trainer.clip_psnr(hidden=...)`): the prune is taken
+when what it costs right away, before any training recovers from it, is within the level's price
+(`QualityRule.per_halving` dB for each halving of the count, and the PSNR no further than
+`QualityRule.in_all` below the best the rounds measured). A prune that costs more is not taken, and
+the share halves for the rounds that follow, down to MIN_SHARE, where the rounds stop. Training
+recovers between rounds: prune, recover, prune. Pricing a prune before training hides its cost keeps
+the rule's reading the same however fast the fit still climbs. A clip that loses little when thinned
+goes on down, one that loses much stops early; on DAVIS in 2 minutes the first 30% of camel's and cows'
+10M went for ~0.1 dB and the next 30% cost 1-2 dB, and kite-surf's least important 30% cost 4 dB, so
+all three stopped near 6M (benchmarks/README.md, "How many Gaussians a fit keeps").
+
+The same price, per doubling, decides where growth stops: `growth_pays` says whether the last
+doubling of the cloud during densification bought its training PSNR the level's `per_halving`.
+
+Decisions are taken at those rounds only, on the host, from numbers the passes already brought back:
+nothing here runs at a training step.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+# A round never takes the cloud below this many Gaussians per pixel of one frame.
+MIN_PER_PIXEL = 1 / 8
+# The share of the cloud below which a round proposes nothing: the rounds stop.
+MIN_SHARE = 1 / 32
+
+
+@dataclass(frozen=True)
+class QualityRule:
+    """What a quality level lets a prune cost in clip PSNR (dB), measured right after it: `per_halving`
+    for each halving of the count, and at most `in_all` below the best PSNR the rounds measured."""
+
+    per_halving: float
+    in_all: float
+
+
+QUALITY_RULES = {
+    "compact": QualityRule(per_halving=2.0, in_all=2.5),  # from the DAVIS prices; no compact fit measured yet
+    "default": QualityRule(per_halving=1.0, in_all=1.0),
+    "max": None,  # no rounds: the cloud densification grew, less what the end's compaction leaves out
+}
+
+
+class Sparsifier:
+    """The rounds of a fit with TrainConfig `config` on frames of `pixels` pixels: `due(progress)`
+    says when one is taken, `propose(count, psnr)` how many Gaussians it offers to remove, and
+    `judge(count, remove, psnr, without)` whether their removal is taken."""
+
+    def __init__(self, config, pixels: int):
+        self.rule = QUALITY_RULES[config.quality]
+        self.start, self.stop = config.sparsify_start_fraction, config.sparsify_stop_fraction
+        self.rounds, self.share = int(config.sparsify_rounds), float(config.sparsify_share)
+        self.floor = max(1, int(pixels * MIN_PER_PIXEL))
+        self.taken = 0  # rounds begun (a round's slot passed while it ran counts as taken)
+        self.measured: list[tuple[int, float]] = []  # (count, clip PSNR) at each round, before its prune
+        self.priced: list[tuple] = []  # (count, proposed, clip PSNR with and without them, taken) of each prune
+        self.stopped = ""  # why the rounds ended early ("" while they go on)
+        self.grown: tuple[int, float] | None = None  # (count, training PSNR) where growth was last priced
+
+    @property
+    def active(self) -> bool:
+        return self.rule is not None and self.rounds > 0 and self.stop > self.start
+
+    def due(self, progress: float) -> bool:
+        """Whether a round is due at `progress` (the run's fraction done): its slot has come, no round
+        has taken it, and the rule has not stopped them. Slots passed while a round ran are skipped,
+        so training always recovers between two prunes."""
+        if not self.active or self.stopped or progress >= self.stop:
+            return False
+        slot = math.floor((progress - self.start) / (self.stop - self.start) * self.rounds + 1e-9)  # 0.6 of [0.5, 0.9)
+        if slot < self.taken:
+            return False
+        self.taken = slot + 1
+        return True
+
+    def propose(self, count: int, psnr: float) -> int:
+        """How many of the `count` Gaussians, the least important first, this round offers to remove,
+        given the clip PSNR `psnr` it measured with all of them; 0 once the rounds have stopped (the
+        share fell below MIN_SHARE, or the floor is reached)."""
+        self.measured.append((int(count), float(psnr)))
+        if self.stopped:
+            return 0
+        remove = min(int(count * self.share), count - self.floor)
+        if remove <= 0:
+            self.stopped = f"{count:,} Gaussians: the floor of {self.floor:,}"
+            return 0
+        return remove
+
+    def judge(self, count: int, remove: int, psnr: float, without: float) -> bool:
+        """Whether removing the `remove` proposed of `count` Gaussians is taken, given the clip PSNR with
+        them (`psnr`) and without them (`without`): its cost within `per_halving` dB a halving and the
+        PSNR within `in_all` of the best round's. A prune not taken halves the share of later rounds."""
+        halvings = math.log2(count / (count - remove))
+        best = max(p for _, p in self.measured)
+        taken = psnr - without <= self.rule.per_halving * halvings and best - without <= self.rule.in_all
+        self.priced.append((int(count), int(remove), float(psnr), float(without), taken))
+        if taken:
+            return True
+        self.share /= 2
+        if self.share < MIN_SHARE:
+            self.stopped = (f"removing {remove:,} of {count:,} would cost {psnr - without:.2f} dB of clip PSNR "
+                            f"({best - without:.2f} below the best round's)")
+        return False
+
+    def summary(self, quality: str) -> str:
+        """One line: the rounds taken, the count they went from and to, each prune priced, why they ended."""
+        priced = ", ".join(f"{remove / count:.0%} of {count:,} {without - psnr:+.2f} dB" + ("" if taken else " refused")
+                           for count, remove, psnr, without, taken in self.priced)
+        return (f"quality {quality}: {len(self.measured)} rounds from {self.measured[0][0]:,} Gaussians; prunes "
+                f"priced: {priced or 'none'}" + (f"; stopped: {self.stopped}" if self.stopped else ""))
+
+    def growth_pays(self, count: int, psnr: float) -> bool:
+        """Whether densification should go on after it grew the cloud to `count` Gaussians with the
+        training PSNR at `psnr`: False once a doubling of the count since the last price bought less
+        than the level's `per_halving` dB. Always True at "max"."""
+        if self.rule is None:
+            return True
+        if self.grown is None:
+            self.grown = (int(count), float(psnr))
+            return True
+        was_count, was_psnr = self.grown
+        if count < 2 * was_count:
+            return True
+        self.grown = (int(count), float(psnr))
+        return psnr - was_psnr >= self.rule.per_halving * math.log2(count / was_count)
+
+    def state_dict(self) -> dict:
+        return dict(taken=self.taken, share=self.share, measured=[[c, p] for c, p in self.measured],
+                    priced=[list(p) for p in self.priced], stopped=self.stopped,
+                    grown=None if self.grown is None else list(self.grown))
+
+    def load_state_dict(self, state: dict) -> None:
+        self.taken, self.share = int(state["taken"]), float(state["share"])
+        self.measured = [(int(c), float(p)) for c, p in state["measured"]]
+        self.priced = [(int(c), int(r), float(p), float(w), bool(t)) for c, r, p, w, t in state["priced"]]
+        self.stopped = str(state["stopped"])
+        self.grown = None if state["grown"] is None else (int(state["grown"][0]), float(state["grown"][1]))
