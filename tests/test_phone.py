@@ -207,7 +207,7 @@ def test_a_long_clip_has_a_clip_psnr_early_over_evenly_spaced_frames(monkeypatch
 
     from tomgs.cameras import Cameras, intrinsics
     from tomgs.train import Trainer
-    from tomgs.train.trainer import write_plot
+    from tomgs.train.log import write_plot
 
     from test_train import small_config
 

@@ -14,7 +14,7 @@ from tomgs.cameras import Cameras
 from tomgs.io.scene import vertex_bytes
 from tomgs.model import GaussianModel, stored_opacities, stored_scales, stored_t_scales
 from tomgs.train import Trainer, preset
-from tomgs.train.sparsify import QUALITY_RULES, Sparsifier
+from tomgs.train.sparsify import QUALITY_RULES, Sparsifier, importance
 from scenes import random_scene
 
 CPU = torch.device("cpu")
@@ -78,7 +78,7 @@ def test_importance_is_the_brute_force_sum_over_frames_and_pixels(seed, alive_in
     config = preset("quick", alive_index=alive_index, sh_degree=sh_degree)
     trainer = Trainer(images, cameras, np.zeros((0, 3)), np.zeros((0, 3), np.float32), config, CPU,
                       initial=(model, 1.0), weights=weights)
-    got, psnrs = trainer.importance()
+    got, psnrs = importance(trainer)
     want = brute_force_importance(trainer.model, cameras, weights)
     assert got.shape == want.shape == (len(model),)
     assert float(want.max()) > 1.0 and int((want == 0).sum()) > 0  # bright ones, and ones never seen
@@ -103,7 +103,7 @@ def test_a_gaussian_is_judged_on_the_frames_it_is_alive_at():
                           log_t_scales=stored_t_scales(one(0.05)))  # dead a third of the clip away
     trainer = Trainer(images, cameras, np.zeros((0, 3)), np.zeros((0, 3), np.float32), preset("quick"), CPU,
                       initial=(model, 1.0))
-    got, _ = trainer.importance()
+    got, _ = importance(trainer)
     # by hand: the camera looks down +z at the mean 2 units ahead; EWA gives sigma_px = fx s / z, +0.3 px dilation
     K = cameras.K
     sx, sy = K[0, 0] * 0.05 / 2.0, K[1, 1] * 0.05 / 2.0

@@ -540,7 +540,7 @@ def test_the_clip_psnr_renders_again_a_frame_that_overflowed_its_keys(monkeypatc
     # read that many frames behind, the activated parameters made once: what is in flight stays bounded
     assert max(unread) == EVAL_AHEAD and len(activations) == 1
     assert max(held) == 0, held  # a frame in flight keeps its image and counts, not the rasterizer's buffers
-    want = [float(trainer._psnr(k, render(trainer, k)[0])) for k in range(trainer.num_frames)]
+    want = [float(trainer.frame_psnr(k, render(trainer, k)[0])) for k in range(trainer.num_frames)]
     assert np.allclose(got, want, rtol=0, atol=1e-4), (got, want)
 
 
@@ -562,7 +562,8 @@ def clocked_run(monkeypatch, limit: float, step_seconds, frame_seconds=None):
         return [20.0] * len(frames)
 
     images, cams, points, colors = synthetic_clip(4, 32, 18)
-    trainer = Trainer(images, cams, points, colors, small_config(100_000), CPU)
+    # quality max: the end's timing alone (the quality rule's rounds would take fake seconds of their own)
+    trainer = Trainer(images, cams, points, colors, small_config(100_000, quality="max"), CPU)
     trainer.eval_frame_seconds = frame_seconds
     monkeypatch.setattr(time, "perf_counter", lambda: clock[0])
     monkeypatch.setattr(Trainer, "step", step)

@@ -44,7 +44,8 @@ from tomgs.train.checkpoint import FitInterrupted, StopSignals, read_checkpoint
 from tomgs.train.clip import check_clip, check_options, clip_fps, clip_identity, fit_options
 from tomgs.train.config import TrainConfig
 from tomgs.train.phases import peak_memory, phase_text, train_ticks
-from tomgs.train.trainer import FitResult, Trainer, write_csv, write_plot
+from tomgs.train.log import write_csv, write_plot
+from tomgs.train.trainer import FitResult, Trainer
 
 
 def fit(video, output, config: TrainConfig | None = None, *, masks=None, frames=None, max_side=None,

@@ -3,7 +3,7 @@
 A fit grows its cloud by densification (tomgs.train.densify), then, unless its quality is "max", takes
 it down by importance a share at a time: `TrainConfig.sparsify_rounds` rounds spread evenly over
 [sparsify_start_fraction, sparsify_stop_fraction) of the run. A round measures, in one pass over
-every training frame (`Trainer.importance`), the clip PSNR and each Gaussian's importance, the
+every training frame (`importance`), the clip PSNR and each Gaussian's importance, the
 pixels' worth of colour it gives the clip (its blend weights alpha * T summed over every supervised
 pixel of every frame; its temporal opacity is inside alpha, so a Gaussian alive at three frames is
 judged on those three). It proposes the least important share of the cloud (`sparsify_share`), and
@@ -21,14 +21,19 @@ all three stopped near 6M (benchmarks/README.md, "How many Gaussians a fit keeps
 The same price, per doubling, decides where growth stops: `growth_pays` says whether the last
 doubling of the cloud during densification bought its training PSNR the level's `per_halving`.
 
-Decisions are taken at those rounds only, on the host, from numbers the passes already brought back:
-nothing here runs at a training step.
+Decisions are taken at those rounds only (`take_round`, which the trainer's loop calls), on the host,
+from numbers the passes already brought back: nothing here runs at a training step.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from tomgs.render.sh import fused_sh_to_colors
 
 # A round never takes the cloud below this many Gaussians per pixel of one frame.
 MIN_PER_PIXEL = 1 / 8
@@ -146,3 +151,50 @@ class Sparsifier:
         self.priced = [(int(c), int(r), float(p), float(w), bool(t)) for c, r, p, w, t in state["priced"]]
         self.stopped = str(state["stopped"])
         self.grown = None if state["grown"] is None else (int(state["grown"][0]), float(state["grown"][1]))
+
+
+def importance(trainer, tick=None) -> tuple[torch.Tensor, list[float]]:
+    """(float32 [N]: each Gaussian of `trainer`'s model's importance, the pixels' worth of colour it gives
+    the clip: its blend weights alpha * T, temporal opacity inside, summed over every supervised pixel
+    (times its loss weight) of every training frame; the PSNR of each frame, floats [T]), from one pass
+    over the frames, each rendered with its RGB colours [N,3] as a leaf, whose gradient of the weighted
+    red channel's sum is that sum (as `tomgs.render.blend_weights`). tick(text) after each frame."""
+    model = trainer.model
+    inputs = {k: v.detach() for k, v in model.render_inputs().items()}
+    sh = inputs.pop("colors")
+    total = torch.zeros(len(model), device=trainer.device)
+    psnrs, colors = [], None
+    for k in range(trainer.num_frames):
+        if colors is None or model.sh_degree > 0:  # degree 0: one colour for every view
+            colors = fused_sh_to_colors(sh, inputs["means"], trainer.viewmats[k]).detach().requires_grad_(True)
+        with torch.enable_grad():
+            image, _, _ = trainer.render(k, inputs=dict(inputs, colors=colors))
+            red = image[..., 0] if trainer.weights is None else image[..., 0] * trainer.weight(k)[..., 0]
+            (grad,) = torch.autograd.grad(red.sum(), colors)
+        total += grad[:, 0]
+        psnrs.append(trainer.frame_psnr(k, image))
+        if tick is not None:
+            tick(f"importance {k + 1}/{trainer.num_frames}")
+    return total, torch.stack(psnrs).tolist() if psnrs else []
+
+
+def take_round(trainer, sparsifier: Sparsifier, tick=None) -> tuple[float, int] | None:
+    """A round of `sparsifier`'s rule on `trainer` (a tomgs.train.Trainer): the clip PSNR and the importance
+    in one pass; the least important Gaussians the rule proposes priced by a second pass without them
+    (`trainer.clip_psnr(hidden=)`), and removed when the rule takes the prune. Returns (the clip PSNR
+    before the prune, the frames it covers), or None for an empty cloud."""
+    model, densifier = trainer.model, trainer.densifier
+    if len(model) == 0:
+        return None
+    scores, psnrs = importance(trainer, tick)
+    measured = float(np.mean(psnrs))
+    remove = sparsifier.propose(len(model), measured)
+    if remove:
+        least = torch.zeros(len(model), dtype=torch.bool, device=trainer.device)
+        least[torch.argsort(scores)[:remove]] = True
+        without = float(np.mean(trainer.clip_psnr(tick, hidden=least)))
+        if sparsifier.judge(len(model), remove, measured, without):
+            densifier.remove(model, trainer.optimizer, least)
+            densifier.reset_stats(len(model), trainer.device)
+    densifier.changed_at = trainer.iteration
+    return measured, trainer.num_frames

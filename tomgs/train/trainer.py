@@ -24,8 +24,6 @@ training goes on; the last complete checkpoint stays the one to resume.
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 import signal
 import time
@@ -43,23 +41,21 @@ from tomgs.model import GaussianModel
 from tomgs.render.frame import blend_weights, render_frame
 from tomgs.render.sequence import IssuedFrame, issue_in_order
 from tomgs.errors import InputError, counted
-from tomgs.render.sh import fused_sh_to_colors
-from tomgs.outputs import write_text
-from tomgs.train.checkpoint import (FORMAT, LOG_FIELDS, START_OVER, VERSION, CheckpointWriter, FitInterrupted,
+from tomgs.train.checkpoint import (FORMAT, START_OVER, VERSION, CheckpointWriter, FitInterrupted,
                                     StopSignals, check_same_settings, config_from, config_to_dict, own_copies,
                                     read_checkpoint, state_bytes, write_checkpoint)
 from tomgs.train.captured_step import CapturedStep, unsupported
 from tomgs.train.config import TrainConfig
 from tomgs.train.densify import Densifier
 from tomgs.train.init import initial_model
-from tomgs.train.sparsify import Sparsifier
+from tomgs.train.log import log_memory_mb, write_csv
+from tomgs.train.sparsify import Sparsifier, take_round
 from tomgs.train.optim import make_adam, uses_seen_adam
 from tomgs.train.sampler import FrameSampler
 
 # The sampler hears each step's PSNR up to this many steps late: reading it back every step made the
 # host wait for the device once more per step than the rasterizer needs.
 SAMPLER_LAG = 8
-CSV_FIELDS = LOG_FIELDS
 # A save may cost at most this fraction of the training time: with slow saves (millions of
 # Gaussians, a slow disk) checkpoints are spaced to 1 / CHECKPOINT_OVERHEAD times a save's duration.
 CHECKPOINT_OVERHEAD = 0.05
@@ -220,10 +216,11 @@ class Trainer:
         target = self.frames[k].to(self.device, non_blocking=True).float() / 255.0
         if self.weights is None or image is None:
             return target
-        w = self._weight(k)
+        w = self.weight(k)
         return w * target + (1 - w) * image.detach()
 
-    def _weight(self, k: int) -> torch.Tensor:
+    def weight(self, k: int) -> torch.Tensor:
+        """Frame k's loss weights [H,W,1] in [0,1] (with `weights` only)."""
         return self.weights[k, :, :, None].to(self.device, non_blocking=True).float() / 255.0  # [H,W,1]
 
     def loss(self, k: int, image: torch.Tensor, alpha: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -239,12 +236,12 @@ class Trainer:
         if self.weights is None:
             loss, measured = l1_dssim_and_psnr(image, target, c.ssim_weight)
         else:
-            w = self._weight(k)
+            w = self.weight(k)
             total = 3 * w.sum().clamp_min(1e-12)
             l1 = (image - target).abs().sum() / total
             similarity = (ssim_map(image[None], target[None])[0] * w.permute(2, 0, 1)).sum() / total
             loss = (1 - c.ssim_weight) * l1 + c.ssim_weight * (1 - similarity)
-            measured = self._psnr(k, image, target)
+            measured = self.frame_psnr(k, image, target)
         if self.alpha_targets is not None:
             alpha_target = self.alpha_targets[k].to(self.device, non_blocking=True).float() / 255.0
             loss = loss + (alpha[..., 0] - alpha_target).abs().mean()
@@ -253,15 +250,15 @@ class Trainer:
     def measure(self, k: int, image: torch.Tensor, target: torch.Tensor | None = None) -> float:
         """PSNR of the render image [H,W,3] against frame k (or its `target`, already made) over its
         weighted pixels."""
-        return float(self._psnr(k, image, target))
+        return float(self.frame_psnr(k, image, target))
 
-    def _psnr(self, k: int, image: torch.Tensor, target: torch.Tensor | None = None) -> torch.Tensor:
+    def frame_psnr(self, k: int, image: torch.Tensor, target: torch.Tensor | None = None) -> torch.Tensor:
         """`measure` as a 0-d tensor where the image lives (no wait for the device)."""
         image = image.detach()
         target = self.target(k, image) if target is None else target.detach()
         if self.weights is None:
             return psnr(image, target)
-        mse = (image - target).square().sum() / (3 * self._weight(k).sum().clamp_min(1e-12))
+        mse = (image - target).square().sum() / (3 * self.weight(k).sum().clamp_min(1e-12))
         return -10.0 * torch.log10(mse)
 
     def render(self, k: int, defer: bool = False, inputs: dict | None = None, **kw):
@@ -375,53 +372,10 @@ class Trainer:
             # frames issued without waiting for their counts, read EVAL_AHEAD frames later (the host queues
             # the next while the device renders: 90 camel frames at 5M Gaussians took 0.2-0.3 s waiting on each)
             for i, (k, image, _) in enumerate(issue_in_order(frames, issue, EVAL_AHEAD)):
-                out.append(self._psnr(k, image))
+                out.append(self.frame_psnr(k, image))
                 if tick is not None:
                     tick(f"measuring the clip PSNR: frame {i + 1} of {len(frames)}")
         return torch.stack(out).tolist() if out else []
-
-    def importance(self, tick=None) -> tuple[torch.Tensor, list[float]]:
-        """(float32 [N]: each Gaussian's importance, the pixels' worth of colour it gives the clip: its
-        blend weights alpha * T, temporal opacity inside, summed over every supervised pixel (times
-        its weight) of every training frame; the PSNR of each frame, floats [T]), from one pass over
-        the frames, each rendered with its RGB colours [N,3] as a leaf, whose gradient of the weighted red
-        channel's sum is that sum (as `tomgs.render.blend_weights`). tick(text) after each frame."""
-        inputs = {k: v.detach() for k, v in self.model.render_inputs().items()}
-        sh = inputs.pop("colors")
-        total = torch.zeros(len(self.model), device=self.device)
-        psnrs, colors = [], None
-        for k in range(self.num_frames):
-            if colors is None or self.model.sh_degree > 0:  # degree 0: one colour for every view
-                colors = fused_sh_to_colors(sh, inputs["means"], self.viewmats[k]).detach().requires_grad_(True)
-            with torch.enable_grad():
-                image, _, _ = self.render(k, inputs=dict(inputs, colors=colors))
-                red = image[..., 0] if self.weights is None else image[..., 0] * self._weight(k)[..., 0]
-                (grad,) = torch.autograd.grad(red.sum(), colors)
-            total += grad[:, 0]
-            psnrs.append(self._psnr(k, image))
-            if tick is not None:
-                tick(f"importance {k + 1}/{self.num_frames}")
-        return total, torch.stack(psnrs).tolist() if psnrs else []
-
-    def sparsify(self, tick=None) -> tuple[float, int] | None:
-        """A round of the quality rule (tomgs.train.sparsify): the clip PSNR and the importance in one pass;
-        the least important Gaussians the rule proposes priced by a second pass without them, and removed
-        when the rule takes the prune. Returns (the clip PSNR before the prune, the frames it covers), or
-        None for an empty cloud."""
-        if len(self.model) == 0:
-            return None
-        importance, psnrs = self.importance(tick)
-        measured = float(np.mean(psnrs))
-        remove = self.sparsifier.propose(len(self.model), measured)
-        if remove:
-            least = torch.zeros(len(self.model), dtype=torch.bool, device=self.device)
-            least[torch.argsort(importance)[:remove]] = True
-            without = float(np.mean(self.clip_psnr(tick, hidden=least)))
-            if self.sparsifier.judge(len(self.model), remove, measured, without):
-                self.densifier.remove(self.model, self.optimizer, least)
-                self.densifier.reset_stats(len(self.model), self.device)
-        self.densifier.changed_at = self.iteration
-        return measured, self.num_frames
 
     def compact(self, tick=None) -> int:
         """Leave out the Gaussians that give no frame of the clip `config.compact_pixels` pixels' worth
@@ -537,7 +491,7 @@ class Trainer:
                 if self.iteration - self.densifier.changed_at >= settle and self.sparsifier.due(self.progress):
                     size = len(self.model)
                     began = time.perf_counter()
-                    measured = self.sparsify(lambda text: tick(self.iteration, now, text))
+                    measured = take_round(self, self.sparsifier, lambda text: tick(self.iteration, now, text))
                     if measured is not None:
                         rounded = (*measured, size)
                         next_eval = now + max(c.eval_interval_s, (time.perf_counter() - began) / EVAL_OVERHEAD)
@@ -816,53 +770,3 @@ def _as_uint8(values, shape, name: str, device) -> torch.Tensor:
 def spread(total: int, count: int) -> np.ndarray:
     """int [count]: `count` of `total` frames evenly spaced, the first and last among them (count >= 1)."""
     return np.unique(np.linspace(0, total - 1, count).round().astype(np.int64))
-
-
-def log_memory_mb(device: torch.device) -> float:
-    """The log's memory column: peak MiB allocated by torch on a GPU, peak resident host memory on a CPU."""
-    if device.type == "cuda":
-        return torch.cuda.max_memory_allocated(device) / 2**20
-    import resource
-
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux
-
-
-def write_csv(path: Path, rows: list[dict]) -> None:
-    """The log `rows` as CSV at `path`, replaced atomically (never written through a link)."""
-    out = io.StringIO()
-    writer = csv.DictWriter(out, fieldnames=CSV_FIELDS)
-    writer.writeheader()
-    writer.writerows(rows)
-    write_text(path, out.getvalue())
-
-
-def write_plot(path: Path, history: list[dict]) -> None:
-    """The plot of a fit's log rows (`history`): PSNR against run time (training frames, evenly spaced clip
-    frames, the full clip), and below it the Gaussians and the scene file's megabytes."""
-    from tomgs.io.plots import line_plots_png
-
-    train = [(r["wall_s"], r["train_psnr"]) for r in history if r["train_psnr"] != ""]
-    clip = [r for r in history if r["clip_psnr"] != ""]
-    every = max((int(r.get("clip_frames") or 0) for r in clip), default=0)  # the last covers every frame
-    full = [(r["wall_s"], r["clip_psnr"]) for r in clip if int(r.get("clip_frames") or every) == every]
-    part = [(r["wall_s"], r["clip_psnr"]) for r in clip if int(r.get("clip_frames") or every) < every]
-    series = {}
-    if train:
-        series["training frames (running)"] = tuple(np.array(v, dtype=float) for v in zip(*train))
-    if part:
-        series["clip, evenly spaced frames"] = tuple(np.array(v, dtype=float) for v in zip(*part))
-    if full:
-        series["full clip"] = tuple(np.array(v, dtype=float) for v in zip(*full))
-    if not series:
-        return
-    panels = [dict(series=series, xlabel="wall-clock seconds", ylabel="PSNR (dB)", title="PSNR against run time")]
-    sized = [r for r in history if r.get("scene_bytes", "") != ""]
-    if sized:
-        seconds = np.array([float(r["wall_s"]) for r in sized])
-        size = {"Gaussians (millions)": (seconds, np.array([int(r["gaussians"]) / 1e6 for r in sized])),
-                "scene file (100 MB)": (seconds, np.array([int(r["scene_bytes"]) / 1e8 for r in sized]))}
-        last = sized[-1]
-        panels.append(dict(series=size, xlabel="wall-clock seconds", ylabel="size",
-                           title=f"Size against run time: {int(last['gaussians']):,} Gaussians, "
-                                 f"{int(last['scene_bytes']) / 1e6:.1f} MB at the end"))
-    line_plots_png(path, panels)

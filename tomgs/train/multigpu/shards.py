@@ -462,7 +462,7 @@ def refine(model: GaussianModel, part: Halo, frames: torch.Tensor, cameras, conf
     from tomgs.train.checkpoint import StopSignals
     from tomgs.train.optim import uses_seen_adam
     from tomgs.train.sampler import MAX_PSNR, FrameSampler
-    from tomgs.train.trainer import log_memory_mb
+    from tomgs.train.log import log_memory_mb
 
     c = config
     world = dist.get_world_size()
