@@ -327,9 +327,9 @@ def test_a_resaved_scene_gets_its_cameras_back(scene_path, tmp_path):
 
 @pytest.mark.parametrize("args, message", [
     (["--frame", 99, "-o", "{out}/a.ply"], "not one of the scene's frames"),
-    (["--frame", -1, "-o", "{out}/a.ply"], "not one of the scene's frames"),
-    (["--time", 1.5, "-o", "{out}/a.ply"], "outside the clip"),
-    (["--time", "nan", "-o", "{out}/a.ply"], "outside the clip"),
+    (["--frame", -1, "-o", "{out}/a.ply"], "--frame -1: out of range; give a frame number in 0.."),
+    (["--time", 1.5, "-o", "{out}/a.ply"], "--time 1.5: out of range; give clip time in 0..1"),
+    (["--time", "nan", "-o", "{out}/a.ply"], "--time nan: not a finite number"),
     (["--frame", 1, "--time", 0.5, "-o", "{out}/a.ply"], "exactly one"),
     (["-o", "{out}/a.ply"], "--frame K"),
     (["--frame", 1, "-o", "{out}/a.obj"], "unknown format '.obj'"),
