@@ -4,10 +4,11 @@
     clip        what a checkpoint records of the clip and options, a resume's checks; phases: the
                 phases' names, ticks, start and peak memory
     init        the Gaussians a fit starts from
-    trainer     the training loop (Trainer, FitResult), its log and plot; captured_step: a step as one
-                CUDA graph
+    trainer     the training loop (Trainer, FitResult); log: its CSV and plot; captured_step: a step
+                as one CUDA graph
     config      TrainConfig and its presets; plan: the budget's plan of a fit
-    densify     the densification strategy; optim: Adam; sampler: which frame trains next
+    densify     the densification strategy; sparsify: the quality rule (how many Gaussians a fit
+                keeps); optim: Adam; sampler: which frame trains next
     checkpoint  checkpoints, stop signals, resume; warm: the kernels' warm-up beside the poses
     multigpu/   the sharded fit over several GPUs (pool, launch, rank, shards)
 
