@@ -93,7 +93,7 @@ def check_poses(poses: str | None, option: str = "--poses") -> None:
     path = Path(str(poses))
     named = path.suffix.lower() in POSE_FILES or len(path.parts) > 1 or str(poses).endswith(("/", "\\"))
     if named and not path.exists():
-        raise InputError(f"{option} {poses}: no such file or folder; give auto, identity, a cameras .json, an AnyCam "
+        raise InputError(f"{option} {poses} does not exist; give auto, identity, a cameras .json, an AnyCam "
                          ".npy, a COLMAP text folder or an .onnx model")
 
 
