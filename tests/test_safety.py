@@ -354,7 +354,7 @@ def test_defect11_ctrl_c_while_a_command_starts_exits_130_in_one_line(scene, tmp
     result = run("render", scene, "-o", tmp_path / "r.mp4")
     assert result.exit_code == 130, result.output
     lines = [line for line in result.output.splitlines() if line.strip()]
-    assert lines == ["interrupted (SIGINT): stopped, outputs left as they were"], result.output
+    assert lines == ["interrupted (SIGINT): stopped, nothing half-written left"], result.output
 
 
 @pytest.mark.parametrize("command", ["export", "edit", "info"])
@@ -591,7 +591,7 @@ def test_defect07_sigterm_to_a_render_leaves_no_temporary_and_says_so(name, tmp_
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 128 + signal.SIGTERM, err
-    assert err.strip().splitlines()[-1] == "interrupted (SIGTERM): stopped, outputs left as they were", err
+    assert err.strip().splitlines()[-1] == "interrupted (SIGTERM): stopped, nothing half-written left", err
     assert list(out.iterdir()) == []
 
 

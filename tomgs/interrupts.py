@@ -96,4 +96,12 @@ def raising() -> Iterator[None]:
             signal.signal(sig, before)
 
 
-__all__ = ["STOP_SIGNALS", "Interrupted", "deferrable", "held", "raising", "signal_name"]
+def ignore_stop_signals() -> None:
+    """Ignore SIGINT, SIGTERM and SIGHUP from now on (main thread): a process already on its way out
+    after one of them, whose handlers `raising()` restores as it leaves."""
+    if threading.current_thread() is threading.main_thread():
+        for sig in STOP_SIGNALS:
+            signal.signal(sig, signal.SIG_IGN)
+
+
+__all__ = ["STOP_SIGNALS", "Interrupted", "deferrable", "held", "ignore_stop_signals", "raising", "signal_name"]

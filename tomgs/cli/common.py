@@ -57,7 +57,7 @@ class Group(click.Group):
     also while it imports). Whatever ends a command, none of its temporaries is left."""
 
     def invoke(self, ctx):
-        from tomgs.interrupts import held, raising, signal_name
+        from tomgs.interrupts import held, ignore_stop_signals, raising, signal_name
         from tomgs.outputs import remove_temporaries
 
         with raising():
@@ -65,9 +65,8 @@ class Group(click.Group):
                 return super().invoke(ctx)
             except KeyboardInterrupt as e:
                 signum = getattr(e, "signum", signal.SIGINT)
-                with held():
-                    remove_temporaries()
-                click.echo(f"\ninterrupted ({signal_name(signum)}): stopped, outputs left as they were", err=True)
+                ignore_stop_signals()  # a second signal while this one is said and cleaned up: no traceback
+                click.echo(f"\ninterrupted ({signal_name(signum)}): stopped, nothing half-written left", err=True)
                 raise SystemExit(128 + signum) from None
             finally:
                 with held():
