@@ -9,14 +9,15 @@ For each clip and quality: poses from the built-in tracker with the DAVIS masks 
 time, reading and poses included, is the budget (`tomgs fit --budget`: training takes what the rest leaves),
 then over every frame PSNR, SSIM (and LPIPS with --lpips), the Gaussians kept, the scene file's bytes, and
 from the fit's log the full-clip PSNR and the Gaussians at each of MARKS seconds of the whole fit and at
-every full-clip measurement (the quality rule's rounds among them: `curve`). `--rule per_halving,in_all`
-replaces the quality rule of every level but max (a sweep of the rule's price). Writes
+every full-clip measurement (the quality rule's rounds among them: `curve`), and the growth stages from the
+fit's notes. `--rule per_halving,in_all[,per_gaussian]` replaces the prices of every level but max (a sweep). Writes
 <out>/<clip>-<quality>.ply/.csv/.psnr.png and the table as compact.md and compact.json.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -25,7 +26,7 @@ import torch
 
 import tomgs
 from tomgs.train import fit, output_paths, preset
-from tomgs.train.sparsify import QUALITY_RULES, QualityRule
+from tomgs.train.sparsify import QUALITY_RULES
 
 if __package__:
     from .common import PAPER, environment, log_rows, markdown_table, output_folder, psnr_at, smoke_clip_folder, \
@@ -62,7 +63,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("--minutes", type=float, default=2.0, help="wall-clock budget of each fit, poses included")
     ap.add_argument("--out", type=Path, default=None, help="default bench_out/compact")
     ap.add_argument("--set", action="append", default=[], help="a TrainConfig override, e.g. --set sparsify_rounds=6")
-    ap.add_argument("--rule", help="per_halving,in_all (dB): the price of every level but max (sweeps)")
+    ap.add_argument("--rule", help="per_halving,in_all[,per_gaussian]: the prices of every level but max (sweeps; "
+                                   "tomgs.train.sparsify.QualityRule)")
     ap.add_argument("--poses", default="auto", help="auto (tracker with the DAVIS masks) or identity")
     ap.add_argument("--tag", default="", help="a name for this run's files (sweeps)")
     ap.add_argument("--lpips", type=Path, help="LPIPS weights (alexnet-lpips-v0.1.npz or its folder)")
@@ -85,10 +87,10 @@ def main(argv=None) -> list[dict]:
         args.root = out / "clips"
         smoke_clip_folder(args.root, "smoke")
     if args.rule:
-        per_halving, in_all = (float(v) for v in args.rule.split(","))
+        prices = dict(zip(("per_halving", "in_all", "per_gaussian"), (float(v) for v in args.rule.split(","))))
         for name, rule in QUALITY_RULES.items():
             if rule is not None:
-                QUALITY_RULES[name] = QualityRule(per_halving, in_all)
+                QUALITY_RULES[name] = dataclasses.replace(rule, **prices)
     device = torch.device(args.device)
     overrides = {k: json.loads(v) for k, v in (s.split("=", 1) for s in args.set)}
     lpips = tomgs.LPIPS(args.lpips, device=device) if args.lpips else None

@@ -32,8 +32,9 @@ from tomgs.errors import counted
 @click.option("--iterations", type=Number(1, 10**7, integer=True, what="iterations"), default=None,
               help="override the preset's iteration count (with --budget: stop at whichever comes first)")
 @click.option("--quality", type=click.Choice(["compact", "default", "max"]), default=None,
-              help="how many Gaussians the fit keeps: default prunes the least important while a prune costs "
-                   "little PSNR, compact prunes further, max keeps every Gaussian it grew (every dB)")
+              help="how many Gaussians the fit keeps: default grows the cloud while new Gaussians still take "
+                   "enough error away and prunes the least important while that costs little PSNR, compact stops "
+                   "and prunes sooner, max grows to the cap and keeps it all (every dB)")
 @click.option("--poses", default="auto", show_default=True,
               help="auto, identity, or a cameras .json / AnyCam .npy / COLMAP folder / .onnx model")
 @clip_options

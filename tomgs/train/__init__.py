@@ -7,8 +7,9 @@
     trainer     the training loop (Trainer, FitResult); log: its CSV and plot; captured_step: a step
                 as one CUDA graph
     config      TrainConfig and its presets; plan: the budget's plan of a fit
-    densify     the densification strategy; sparsify: the quality rule (how many Gaussians a fit
-                keeps); optim: Adam; sampler: which frame trains next
+    densify     the densification strategy; growth: how far it grows (stages priced per Gaussian);
+                sparsify: the quality levels and their prune rounds; optim: Adam; sampler: which
+                frame trains next
     checkpoint  checkpoints, stop signals, resume; warm: the kernels' warm-up beside the poses
     multigpu/   the sharded fit over several GPUs (pool, launch, rank, shards)
 

@@ -24,6 +24,9 @@ AUTO_POINTS_PER_FRAME = {"cuda": (16000, 48000, 5_000_000), "cpu": (2000, 2000, 
 AUTO_GRAD_THRESHOLD = {"cuda": 1e-4, "cpu": 2e-4}
 INIT_DEPTHS = ("tracks", "median")  # TrainConfig.init_depth
 QUALITIES = ("compact", "default", "max")  # TrainConfig.quality (tomgs.train.sparsify.QUALITY_RULES)
+# A GPU fit at a quality below "max" grows in stages from at most this share of its cap (tomgs.train.growth);
+# a CPU fit's cap is already what its time allows, three times its start (tomgs.train.plan.auto_cap).
+START_SHARE = 1 / 32
 
 
 @dataclass
@@ -145,11 +148,14 @@ class TrainConfig:
     def points_per_frame(self, pixels: int, frames: int, device_type: str = "cpu") -> int:
         """Initial Gaussians per frame of `pixels` pixels in a clip of `frames` frames, trained on a
         `device_type` device: `init_points_per_frame`, or when it is None AUTO_POINTS_PER_FRAME's
-        count for the device and clip length, at most one per 5 pixels; and never more than half of the cap (`cap`)
-        over the whole clip, so that densification always has room to work."""
+        count for the device and clip length, at most one per 5 pixels, and on a GPU at a quality below "max" at
+        most START_SHARE of the cap over the whole clip (growth in stages starts small); never more than half of
+        the cap (`cap`) over the whole clip, so that densification always has room to work."""
         if self.init_points_per_frame is None:
             fewest, most, start = AUTO_POINTS_PER_FRAME.get(device_type, AUTO_POINTS_PER_FRAME["cpu"])
             wanted = min(max(fewest, min(most, start // max(frames, 1))), pixels // 5)
+            if device_type == "cuda" and self.quality != "max":
+                wanted = min(wanted, int(self.cap(frames, pixels, device_type) * START_SHARE) // max(frames, 1))
         else:
             wanted = int(self.init_points_per_frame)
         return max(min(wanted, self.cap(frames, pixels, device_type) // (2 * max(frames, 1))), 1)

@@ -25,8 +25,9 @@ class Densifier:
         self.threshold = config.threshold(torch.device(device).type)
         self.generator = torch.Generator(device=device).manual_seed(seed + 1)
         self.reset_stats(num_gaussians, device)
-        self.capped = False
-        self.stopped = False  # growth ended by the quality rule (tomgs.train.sparsify.Sparsifier.growth_pays)
+        self.limit = int(config.max_gaussians)  # the most Gaussians now: the cap, or a stage's (tomgs.train.growth)
+        self.capped = False  # at the limit
+        self.stopped = False  # growth ended by the quality's price (tomgs.train.growth)
         self.changed_at = 0  # the iteration of the last densification, prune or opacity reset
         self.densified_at = 0  # the iteration of the last densification
 
@@ -75,7 +76,7 @@ class Densifier:
         return progress < self.config.densify_stop_fraction and not self.capped and not self.stopped
 
     def may_grow(self, progress: float) -> bool:
-        """Whether densification may still add Gaussians: before the end of its window, under the cap."""
+        """Whether densification may still add Gaussians: before the end of its window, under the limit."""
         return self.collecting(progress) and self.config.densify_start_fraction < self.config.densify_stop_fraction
 
     def step_pre_backward(self, meta: dict, progress: float) -> None:
@@ -90,7 +91,7 @@ class Densifier:
         gradient, which the optimiser does not touch), then, at `iteration` (the step just taken,
         counted from 1) and `progress` (by iterations or by the wall-clock budget, whichever is
         further): densify every `densify_interval` steps inside [densify_start_fraction,
-        densify_stop_fraction) until the cap, else prune every 10 intervals; reset opacities every
+        densify_stop_fraction) until the limit (the cap, or a stage's), else prune every 10 intervals; reset opacities every
         `opacity_reset_interval` steps while densifying. A prune inside the window that frees rows under
         a reached cap lets densification go on into them: Gaussians the optimiser has faded out at
         every frame (windows shrunk between frames) give their room to those with high gradients."""
@@ -107,7 +108,7 @@ class Densifier:
             self.changed_at = self.densified_at = iteration
         elif iteration % (10 * c.densify_interval) == 0:
             if self.prune(model, optimizer) and progress < c.densify_stop_fraction \
-                    and len(model) < c.max_gaussians:
+                    and len(model) < self.limit:
                 self.capped = False
             self.reset_stats(len(model), model.means.device)
             self.changed_at = iteration
@@ -124,7 +125,7 @@ class Densifier:
                 and iteration % c.densify_interval == 0)
 
     def step(self, model: GaussianModel, optimizer: torch.optim.Optimizer) -> dict:
-        """Clone small and split large Gaussians with high gradients (until the cap), then prune.
+        """Clone small and split large Gaussians with high gradients (until the limit), then prune.
         Returns counts of what happened."""
         c = self.config
         n = len(model)
@@ -132,7 +133,7 @@ class Densifier:
         hot = grads >= self.threshold
         scales = model.scales.detach()
         max_scale = scales.amax(-1)
-        room = max(c.max_gaussians - n, 0)
+        room = max(self.limit - n, 0)
         clone = hot & (max_scale <= c.percent_dense * self.extent)
         split = hot & ~clone
         clone, split = _limit(clone, split, room, grads)
@@ -192,7 +193,7 @@ class Densifier:
         _apply(model, optimizer, keep, None, replace=tensors, reset_moments=("opacity_logits",))
 
     def state_dict(self) -> dict:
-        return dict(grad_sum=self.grad_sum, seen=self.seen, capped=self.capped,
+        return dict(grad_sum=self.grad_sum, seen=self.seen, capped=self.capped, limit=self.limit,
                     generator=self.generator.get_state(), changed_at=self.changed_at, stopped=self.stopped,
                     densified_at=self.densified_at)
 
@@ -202,6 +203,7 @@ class Densifier:
         self.changed_at = int(state.get("changed_at", 0))  # checkpoints before it: as if unchanged
         self.stopped = bool(state.get("stopped", False))  # checkpoints before it: growth never stopped
         self.densified_at = int(state.get("densified_at", 0))
+        self.limit = int(state.get("limit", self.config.max_gaussians))  # checkpoints before it: the cap
 
 
 def _limit(clone: torch.Tensor, split: torch.Tensor, room: int, grads: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

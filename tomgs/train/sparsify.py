@@ -18,8 +18,8 @@ goes on down, one that loses much stops early; on DAVIS in 2 minutes the first 3
 10M went for ~0.1 dB and the next 30% cost 1-2 dB, and kite-surf's least important 30% cost 4 dB, so
 all three stopped near 6M (benchmarks/README.md, "How many Gaussians a fit keeps").
 
-The same price, per doubling, decides where growth stops: `growth_pays` says whether the last
-doubling of the cloud during densification bought its training PSNR the level's `per_halving`.
+Where growth stops is decided earlier, while the cloud grows, at the level's `per_gaussian` price
+(tomgs.train.growth).
 
 Decisions are taken at those rounds only (`take_round`, which the trainer's loop calls), on the host,
 from numbers the passes already brought back: nothing here runs at a training step.
@@ -44,15 +44,19 @@ MIN_SHARE = 1 / 32
 @dataclass(frozen=True)
 class QualityRule:
     """What a quality level lets a prune cost in clip PSNR (dB), measured right after it: `per_halving`
-    for each halving of the count, and at most `in_all` below the best PSNR the rounds measured."""
+    for each halving of the count, and at most `in_all` below the best PSNR the rounds measured; and the
+    least squared error a Gaussian grown must take away from the clip, `per_gaussian` (tomgs.train.growth)."""
 
     per_halving: float
     in_all: float
+    per_gaussian: float
 
 
 QUALITY_RULES = {
-    "compact": QualityRule(per_halving=2.0, in_all=2.5),  # from the DAVIS prices; no compact fit measured yet
-    "default": QualityRule(per_halving=1.0, in_all=1.0),
+    # prunes: from the DAVIS prices (benchmarks/README.md); growth: estimated from 1-minute fits capped at 1-5M
+    # (camel's 1M -> 2M took ~2e-3 away per Gaussian, 2M -> 4M ~8e-4), not yet measured staged
+    "compact": QualityRule(per_halving=2.0, in_all=2.5, per_gaussian=4e-3),
+    "default": QualityRule(per_halving=1.0, in_all=1.0, per_gaussian=1e-3),
     "max": None,  # no rounds: the cloud densification grew, less what the end's compaction leaves out
 }
 
@@ -71,7 +75,6 @@ class Sparsifier:
         self.measured: list[tuple[int, float]] = []  # (count, clip PSNR) at each round, before its prune
         self.priced: list[tuple] = []  # (count, proposed, clip PSNR with and without them, taken) of each prune
         self.stopped = ""  # why the rounds ended early ("" while they go on)
-        self.grown: tuple[int, float] | None = None  # (count, training PSNR) where growth was last priced
 
     @property
     def active(self) -> bool:
@@ -125,32 +128,15 @@ class Sparsifier:
         return (f"quality {quality}: {len(self.measured)} rounds from {self.measured[0][0]:,} Gaussians; prunes "
                 f"priced: {priced or 'none'}" + (f"; stopped: {self.stopped}" if self.stopped else ""))
 
-    def growth_pays(self, count: int, psnr: float) -> bool:
-        """Whether densification should go on after it grew the cloud to `count` Gaussians with the
-        training PSNR at `psnr`: False once a doubling of the count since the last price bought less
-        than the level's `per_halving` dB. Always True at "max"."""
-        if self.rule is None:
-            return True
-        if self.grown is None:
-            self.grown = (int(count), float(psnr))
-            return True
-        was_count, was_psnr = self.grown
-        if count < 2 * was_count:
-            return True
-        self.grown = (int(count), float(psnr))
-        return psnr - was_psnr >= self.rule.per_halving * math.log2(count / was_count)
-
     def state_dict(self) -> dict:
         return dict(taken=self.taken, share=self.share, measured=[[c, p] for c, p in self.measured],
-                    priced=[list(p) for p in self.priced], stopped=self.stopped,
-                    grown=None if self.grown is None else list(self.grown))
+                    priced=[list(p) for p in self.priced], stopped=self.stopped)
 
     def load_state_dict(self, state: dict) -> None:
         self.taken, self.share = int(state["taken"]), float(state["share"])
         self.measured = [(int(c), float(p)) for c, p in state["measured"]]
         self.priced = [(int(c), int(r), float(p), float(w), bool(t)) for c, r, p, w, t in state["priced"]]
         self.stopped = str(state["stopped"])
-        self.grown = None if state["grown"] is None else (int(state["grown"][0]), float(state["grown"][1]))
 
 
 def importance(trainer, tick=None) -> tuple[torch.Tensor, list[float]]:

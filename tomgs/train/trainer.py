@@ -47,6 +47,7 @@ from tomgs.train.checkpoint import (FORMAT, START_OVER, VERSION, CheckpointWrite
 from tomgs.train.captured_step import CapturedStep, unsupported
 from tomgs.train.config import TrainConfig
 from tomgs.train.densify import Densifier
+from tomgs.train.growth import Growth
 from tomgs.train.init import initial_model
 from tomgs.train.log import log_memory_mb, write_csv
 from tomgs.train.sparsify import Sparsifier, take_round
@@ -158,6 +159,10 @@ class Trainer:
         self.sampler = FrameSampler(self.num_frames, config.sampling, config.psnr_momentum, config.seed)
         self.densifier = Densifier(self.config, self.extent, len(self.model), device, config.seed, self.times)
         self.sparsifier = Sparsifier(self.config, self.height * self.width)
+        supervised = self.num_frames * self.height * self.width if self.weights is None else \
+            float(self.weights.float().sum()) / 255.0
+        self.growth = Growth(self.config, len(self.model), supervised)
+        self.densifier.limit = self.growth.limit
         # which Gaussians each frame renders (rebuilt, not saved: checkpoints leave it out)
         use_index = pays_on(device) if config.alive_index is None else bool(config.alive_index)
         self.alive = TrainingIndex(self.times, dense=not self.sparse_adam, lookahead=device.type == "cuda") \
@@ -480,12 +485,8 @@ class Trainer:
                 if self.iteration > 1:
                     step_seconds = now - before if step_seconds is None else 0.9 * step_seconds + 0.1 * (now - before)
                 tick(self.iteration, now, self.status())
-                heard = self.train_psnr() if self.densifier.densified_at == self.iteration else None
-                if heard is not None and not self.densifier.stopped and \
-                        not self.sparsifier.growth_pays(len(self.model), heard):
-                    self.densifier.stopped = True
-                    self.notes.append(f"densification stopped at {len(self.model):,} Gaussians: its last doubling "
-                                      f"bought less than the {c.quality} quality asks")
+                if self.iteration % c.densify_interval == 0 and self.growth.staged:
+                    self._grow()
                 rounded = None  # (clip PSNR, frames, Gaussians measured) of a round of the quality rule
                 # a round prices its prune against the clip PSNR, which dips for a few dozen steps after a change
                 if self.iteration - self.densifier.changed_at >= settle and self.sparsifier.due(self.progress):
@@ -552,6 +553,8 @@ class Trainer:
                               f"({error.filename}: {error.strerror}): training went on{kept}")
         if stop.signum is not None:  # arrived after the loop's last look: still a step boundary
             stop_here(stop.signum)
+        if len(self.growth.stages) > 1:
+            self.notes.append(self.growth.summary())
         if self.sparsifier.measured:
             self.notes.append(self.sparsifier.summary(c.quality))
         self.elapsed = time.perf_counter() - start
@@ -600,6 +603,17 @@ class Trainer:
         psnr = f", PSNR {float(seen.mean()):.2f} dB" if len(seen) else ""
         return f"iteration {self.iteration:,}{psnr}, {len(self.model):,} Gaussians"
 
+    def _grow(self) -> None:
+        """A densification interval of a fit growing in stages (tomgs.train.growth): the densifier's limit
+        doubles when its stage has paid, or densification stops."""
+        done = self.growth.update(self.progress, len(self.model), self.densifier.capped, self.train_psnr())
+        if done == "grow":
+            self.densifier.limit, self.densifier.capped = self.growth.limit, False
+            self.densifier.reset_stats(len(self.model), self.device)
+        elif done == "stop":
+            self.densifier.stopped = True
+            self.notes.append(f"densification stopped {self.growth.stopped} ({self.config.quality} quality)")
+
     def train_psnr(self) -> float | None:
         """The mean running PSNR of the frames trained on so far (None before any): what the sampler has
         heard. Handing it the measurements still on their way would change what it draws next at
@@ -635,7 +649,7 @@ class Trainer:
             params={k: v.detach() for k, v in self.model.parameters_by_name().items()},
             sh_degree=int(self.model.sh_degree), optimizer=self.optimizer.state_dict(),
             sampler=dict(self.sampler.state_dict(), pending=self._pending()), densifier=densifier,
-            sparsifier=self.sparsifier.state_dict(),
+            sparsifier=self.sparsifier.state_dict(), growth=self.growth.state_dict(),
             history=[dict(r) for r in self.history],
             notes=[str(n) for n in self.notes], clip=dict(self.clip),
         )
@@ -734,6 +748,8 @@ class Trainer:
         self.densifier.load_state_dict(densifier)
         if "sparsifier" in state:  # checkpoints before it: no round taken yet
             self.sparsifier.load_state_dict(state["sparsifier"])
+        if "growth" in state:  # checkpoints before it: grown to the cap
+            self.growth.load_state_dict(state["growth"])
         self.iteration, self.elapsed = state["iteration"], float(state["elapsed"])
         self._restore_pending(state["sampler"].get("pending", []))  # checkpoints before it: none
         self.history, self.notes = list(state["history"]), list(state["notes"])
