@@ -53,8 +53,8 @@ class QualityRule:
 
 
 QUALITY_RULES = {
-    # prunes: from the DAVIS prices (benchmarks/README.md); growth: estimated from 1-minute fits capped at 1-5M
-    # (camel's 1M -> 2M took ~2e-3 away per Gaussian, 2M -> 4M ~8e-4), not yet measured staged
+    # prunes: from the DAVIS prices (benchmarks/README.md); growth: estimated from camel's 1-minute fits capped
+    # at 1-5M (~1-2e-3 per Gaussian around 1-2M, ~8e-4 around 2-4M; docs/notes/compact.md), not yet measured
     "compact": QualityRule(per_halving=2.0, in_all=2.5, per_gaussian=4e-3),
     "default": QualityRule(per_halving=1.0, in_all=1.0, per_gaussian=1e-3),
     "max": None,  # no rounds: the cloud densification grew, less what the end's compaction leaves out
