@@ -485,7 +485,8 @@ class Trainer:
                 if self.iteration > 1:
                     step_seconds = now - before if step_seconds is None else 0.9 * step_seconds + 0.1 * (now - before)
                 tick(self.iteration, now, self.status())
-                if self.iteration % c.densify_interval == 0 and self.growth.staged:
+                if self.iteration % c.densify_interval == 0 and self.growth.staged and \
+                        self.progress < c.densify_stop_fraction:
                     self._grow()
                 rounded = None  # (clip PSNR, frames, Gaussians measured) of a round of the quality rule
                 # a round prices its prune against the clip PSNR, which dips for a few dozen steps after a change
