@@ -40,6 +40,45 @@ def test_a_recorded_launch_keeps_each_vector_argument_apart(device):
     assert list(one) == [1.0, 1.0, 1.0]
 
 
+@wp.struct
+class _Span:
+    src: wp.array(dtype=wp.int32)
+    offset: int
+    scale: float
+
+
+@wp.kernel
+def _scaled_copy(span: _Span, dst: wp.array(dtype=wp.int32)):
+    i = wp.tid()
+    dst[i] = int(float(span.src[i + span.offset]) * span.scale)
+
+
+@pytest.mark.parametrize("device", devices())
+def test_a_recorded_launch_reads_each_calls_struct_and_leaves_the_callers_alone(device):
+    """A struct argument (a `struct_values` value holding descriptors and scalars) is copied whole into the
+    command's own value at every call: each call reads its own arrays and scalars, and the values passed
+    before keep their bytes; another type in its place is refused."""
+    from tomgs.runtime import Launches, struct_values
+
+    fresh = Launches()
+    span_values = struct_values(_Span)
+    with scope(torch.device(device)) as wp_device:
+        held = []
+        for k in range(3):
+            src = torch.arange(8, dtype=torch.int32, device=device) * (k + 1)
+            dst = torch.zeros(5, dtype=torch.int32, device=device)
+            span = span_values(src=wrap(src), offset=k, scale=float(k + 2))
+            before = bytes(span)
+            fresh(_scaled_copy, 5, [span, wrap(dst)], wp_device)
+            expected = (torch.arange(k, k + 5, dtype=torch.int32) * (k + 1) * (k + 2)).tolist()
+            assert dst.cpu().tolist() == expected
+            held.append((src, dst, span, before))
+        for _, _, span, before in held:
+            assert bytes(span) == before
+        with pytest.raises(TypeError, match="struct"):
+            fresh(_scaled_copy, 5, [wrap(src), wrap(dst)], wp_device)
+
+
 @pytest.mark.parametrize("device", devices())
 def test_wrap_part_reads_and_writes_its_range_only(device):
     """A kernel sees elements [start, start + length) of the tensor, and writing through the part

@@ -11,6 +11,7 @@
     wrap_flat(tensor)                the same of a contiguous tensor seen as [numel]
     NO_ARRAY                         a descriptor of an empty array, for outputs a launch will not write
     indexable(grad, like, *size)     an incoming gradient as a kernel can index it (zeros for None)
+    struct_values(struct)            the ctypes class of a wp.struct's values, filled with descriptors
     launch(kernel, dim, args, device, block_dim=256)
                                      a recorded launch per (kernel, device, block size), re-armed
     whole_blocks(n)                  the launch size, in whole blocks of 256, of n threads of work
@@ -52,7 +53,7 @@ import warp._src.context as _warp_context  # private: only for sort_pairs (see t
 from tomgs.errors import RenderError
 
 __all__ = ["resolve_device", "kernels_compiled", "mark_kernels_compiled", "init_warp", "warp_device", "scope", "torch_stream", "wrap", "wrap_rows", "wrap_flat", "NO_ARRAY",
-           "indexable", "launch", "Launches", "whole_blocks", "ArrayDescriptor", "sort_pairs"]
+           "indexable", "struct_values", "launch", "Launches", "whole_blocks", "ArrayDescriptor", "sort_pairs"]
 
 _warp_ready = False
 
@@ -218,7 +219,6 @@ def _inner_axes(dtype) -> int:
 # Packing them and copying the bytes in is ~2x quicker than the structure's own __init__ (a Python
 # loop over the axes), and a frame builds ~40 descriptors.
 _DESCRIPTOR_BYTES = struct.Struct("=QQ4i4iHH4x")
-_DESCRIPTOR_SIZE = _DESCRIPTOR_BYTES.size
 _NO_AXES = (0, 0, 0, 0)
 
 
@@ -317,18 +317,47 @@ def _check_descriptor() -> None:
 _check_descriptor()
 
 
+class _Packed:
+    """A struct argument's ctypes value as `wp.launch` takes a struct instance (what it packs is
+    `__ctype__()`): for recording a launch from a value `struct_values` built."""
+
+    __slots__ = ("value",)
+
+    def __init__(self, value: ctypes.Structure):
+        self.value = value
+
+    def __ctype__(self) -> ctypes.Structure:
+        return self.value
+
+
+# each wp.struct's values' class, found once
+_struct_values: dict = {}
+
+
+def struct_values(struct):
+    """The ctypes class of a `wp.struct`'s values, as kernels receive them: build one with keywords (`wrap`ped
+    arrays, Python scalars, Warp vectors) and pass it to `launch` for a struct argument. Warp fills a struct
+    instance's array fields from `wp.array`s only (~20 us each from a tensor); this fills them with
+    descriptors. Taken from what a public instance returns (`__ctype__()`), as ArrayDescriptor is."""
+    found = _struct_values.get(struct)
+    if found is None:
+        found = _struct_values[struct] = type(struct().__ctype__())
+    return found
+
+
 class Launches:
     """One recorded Warp launch per (kernel, device, block size), re-armed with fresh arguments.
 
     `wp.launch` spends tens of microseconds in Python per call validating and packing arguments;
     re-arming a recorded launch with ready-made descriptors skips that, which is a large share of
-    a frame at 1M Gaussians. Arguments: `wrap`ped tensors for arrays, Python ints and floats for
-    scalars, in the kernel's order. Not thread-safe: launch from one thread at a time.
+    a frame at 1M Gaussians. Arguments: `wrap`ped tensors for arrays, values of `struct_values` for
+    structs, Python ints and floats for scalars, in the kernel's order. Not thread-safe: launch from
+    one thread at a time.
     """
 
     def __init__(self):
-        # (kernel, device, block size) -> [command, its dim, the arguments it holds, the
-        # addresses of its own array descriptors (0 for a scalar)]
+        # (kernel, device, block size) -> [command, its dim, the arguments it holds, the addresses of
+        # its own array descriptors and struct values (0 for a scalar), their types, their sizes]
         self._recorded: dict[tuple, list] = {}
 
     def __call__(self, kernel, dim: int, args: list, device: str, block_dim: int = 256) -> None:
@@ -341,27 +370,30 @@ class Launches:
             # in place: each gets a copy of its own (one object passed twice would take both values, and the
             # caller's own object would change at later launches)
             args = [type(arg).from_buffer_copy(arg) if isinstance(arg, ctypes.Array) else arg for arg in args]
-            cmd = wp.launch(kernel, dim=dim, inputs=args, device=device, block_dim=block_dim, record_cmd=True)
-            # each array argument gets a descriptor of the command's own (the launch may hold the
-            # caller's, which is shared: NO_ARRAY, a frame's saved descriptors), and later ones have
-            # their bytes copied into it, where the launch already points (params[0] is the bounds)
-            slots = [0] * len(args)
+            inputs = [_Packed(arg) if isinstance(arg, ctypes.Structure) and type(arg) is not ArrayDescriptor
+                      else arg for arg in args]
+            cmd = wp.launch(kernel, dim=dim, inputs=inputs, device=device, block_dim=block_dim, record_cmd=True)
+            # each array and struct argument gets a value of the command's own (the launch may hold the
+            # caller's, which is shared: NO_ARRAY, a frame's saved descriptors), and later ones have their
+            # bytes copied into it, where the launch already points (params[0] is the bounds)
+            slots, types, sizes = [0] * len(args), [None] * len(args), [0] * len(args)
             for i, arg in enumerate(args):
-                if type(arg) is ArrayDescriptor:
-                    cmd.set_param_at_index_from_ctype(i, ArrayDescriptor.from_buffer_copy(arg))
-                    slots[i] = ctypes.addressof(cmd.params[i + 1])
-            self._recorded[key] = [cmd, dim, list(args), slots]
+                if isinstance(arg, ctypes.Structure):
+                    cmd.set_param_at_index_from_ctype(i, type(arg).from_buffer_copy(arg))
+                    slots[i], types[i], sizes[i] = ctypes.addressof(cmd.params[i + 1]), type(arg), ctypes.sizeof(arg)
+            self._recorded[key] = [cmd, dim, list(args), slots, types, sizes]
         else:
-            cmd, last_dim, held, slots = entry
+            cmd, last_dim, held, slots, types, sizes = entry
             if dim != last_dim:
                 cmd.set_dim(dim)
                 entry[1] = dim
             for i, arg in enumerate(args):
-                if slots[i]:  # an array: a descriptor is a new object every frame
-                    if type(arg) is not ArrayDescriptor:
-                        raise TypeError(f"{kernel.key} argument {i}: a recorded launch takes `wrap`ped arrays, "
-                                        f"got {type(arg).__name__}")
-                    ctypes.memmove(slots[i], ctypes.addressof(arg), _DESCRIPTOR_SIZE)
+                if slots[i]:  # an array or a struct: a new object every frame
+                    if type(arg) is not types[i]:
+                        raise TypeError(f"{kernel.key} argument {i}: a recorded launch takes `wrap`ped arrays and "
+                                        f"`struct_values` structs, a {types[i].__name__} here; got "
+                                        f"{type(arg).__name__}")
+                    ctypes.memmove(slots[i], ctypes.addressof(arg), sizes[i])
                 elif type(arg) is not int or type(held[i]) is not int or arg != held[i]:
                     # an int the command already holds (sizes, flags: most scalars, frame after frame)
                     # is not set again

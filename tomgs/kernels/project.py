@@ -53,6 +53,77 @@ NUM_FLAGS = 10
 CONTRACT_FLAGS = (1, 2, 3, 4, 5, 6, 9)  # the slots that refuse the frame
 
 
+# What the projection kernels share, bundled: each kernel takes the Gaussians, the view and its outputs (or
+# gradients) as three arguments rather than some thirty, and a frame builds each once for its four launches.
+
+
+@wp.struct
+class Cloud:
+    """The Gaussians a frame reads (`rasterize`'s inputs) and which of them it projects: output j is
+    Gaussian rows[j] with has_rows, else Gaussian j."""
+
+    means: wp.array(dtype=wp.vec3)  # [N] world
+    quats: wp.array(dtype=wp.vec4)  # [N] w x y z, any norm
+    scales: wp.array(dtype=wp.vec3)  # [N]
+    opacities: wp.array(dtype=float)  # [N] base opacity
+    t_means: wp.array(dtype=float)  # [N]
+    t_scales: wp.array(dtype=float)  # [N] sigma
+    n: int  # N, the Gaussians the inputs hold
+    rows: wp.array(dtype=wp.int32)  # [M] with has_rows: the Gaussians projected (the outputs are [M])
+    has_rows: int
+    # [1] with rows: only rows[:row_count[0]] are the frame's, the rest padding, culled (a replayed frame's,
+    # tomgs.render.captured); or empty
+    row_count: wp.array(dtype=wp.int32)
+
+
+@wp.struct
+class View:
+    """A frame's camera, image and time, as the projection kernels read them."""
+
+    viewmats: wp.array(dtype=wp.mat44)  # [1] world -> camera
+    Ks: wp.array(dtype=wp.mat33)  # [1]
+    width: int
+    height: int
+    tiles_x: int
+    tiles_y: int
+    t_hi: float  # t = t_hi + t_lo
+    t_lo: float
+    times: wp.array(dtype=float)  # [2] (t_hi, t_lo) in device memory, read in place of the two above; or empty
+    near: float
+    far: float
+
+
+@wp.struct
+class Projected:
+    """Stage 1's outputs, per output j [M]."""
+
+    means2d: wp.array(dtype=wp.vec2)
+    conics: wp.array(dtype=wp.vec3)
+    depths: wp.array(dtype=float)
+    radii: wp.array(dtype=wp.vec2i)  # (0, 0) when culled
+    opacities_t: wp.array(dtype=float)  # o_i(t)
+    tiles_touched: wp.array(dtype=wp.int32)
+
+
+@wp.struct
+class Gradients:
+    """The projection backward's gradients: in, per output [M]; out, per Gaussian [N] (with rows added at
+    rows[j] into arrays the caller zeroed, kernels/rows.py), and the camera's partials per output [M]."""
+
+    v_means2d: wp.array(dtype=wp.vec2)  # [M] incoming
+    v_conics: wp.array(dtype=wp.vec3)
+    v_opacities_t: wp.array(dtype=float)
+    camera_grads: int  # 1: write per-output viewmat and K partials
+    v_means: wp.array(dtype=wp.vec3)  # out [N]
+    v_quats: wp.array(dtype=wp.vec4)
+    v_scales: wp.array(dtype=wp.vec3)
+    v_opacities: wp.array(dtype=float)
+    v_t_means: wp.array(dtype=float)
+    v_t_scales: wp.array(dtype=float)
+    v_viewmat_parts: wp.array(dtype=wp.mat44)  # out [M] when camera_grads, summed by the caller
+    v_K_parts: wp.array(dtype=wp.vec4)  # out [M] (fx, fy, cx, cy) when camera_grads
+
+
 @wp.func
 def quat_max_abs(q: wp.vec4) -> float:
     return wp.max(wp.max(wp.abs(q[0]), wp.abs(q[1])), wp.max(wp.abs(q[2]), wp.abs(q[3])))
@@ -181,12 +252,12 @@ def scaled_rotation(q: wp.vec4, s: wp.vec3) -> wp.mat33:
 
 
 @wp.func
-def footprint(j: int, p: wp.vec3, opac: float, q: wp.vec4, s: wp.vec3, viewmat: wp.mat44, K: wp.mat33,
-              width: int, height: int, tiles_x: int, tiles_y: int, means2d: wp.array(dtype=wp.vec2),
-              conics: wp.array(dtype=wp.vec3), radii: wp.array(dtype=wp.vec2i),
-              tiles_touched: wp.array(dtype=wp.int32)):
+def footprint(j: int, p: wp.vec3, opac: float, q: wp.vec4, s: wp.vec3, viewmat: wp.mat44, K: wp.mat33, view: View,
+              out: Projected):
     """The long path of output j (camera point p, alive at opacity opac, inside the depth range): its
     screen-space footprint written where it is visible; off screen or non-finite it stays culled."""
+    width = view.width
+    height = view.height
     J = ewa_jacobian(p, K, fov_limits(K, width, height))
     A = J * view_rotation(viewmat) * scaled_rotation(q, s)
     conic = conic_of(A)
@@ -203,43 +274,18 @@ def footprint(j: int, p: wp.vec3, opac: float, q: wp.vec4, s: wp.vec3, viewmat: 
                      or center[1] - ry >= float(height))
     if finite and (rx > 0.0 or ry > 0.0) and on_screen:
         radius = wp.vec2i(int(rx), int(ry))
-        means2d[j] = center
-        conics[j] = conic
-        radii[j] = radius
-        tiles_touched[j] = tiles_of(center, conic, radius, opac, tiles_x, tiles_y)
+        out.means2d[j] = center
+        out.conics[j] = conic
+        out.radii[j] = radius
+        out.tiles_touched[j] = tiles_of(center, conic, radius, opac, view.tiles_x, view.tiles_y)
 
 
 @wp.kernel(cuda_max_registers=DENSE_REGISTERS, grid_stride=False)  # one thread per row: no loop to carry
 def project_forward(
-    means: wp.array(dtype=wp.vec3),  # [N]
-    quats: wp.array(dtype=wp.vec4),  # [N] w x y z, any norm
-    scales: wp.array(dtype=wp.vec3),  # [N]
-    opacities: wp.array(dtype=float),  # [N] base opacity
-    t_means: wp.array(dtype=float),  # [N]
-    t_scales: wp.array(dtype=float),  # [N] sigma
-    viewmats: wp.array(dtype=wp.mat44),  # [1] world -> camera
-    Ks: wp.array(dtype=wp.mat33),  # [1]
-    width: int,
-    height: int,
-    t_hi: float,  # t = t_hi + t_lo
-    t_lo: float,
-    times: wp.array(dtype=float),  # [2] (t_hi, t_lo) in device memory, read in place of the two above; or empty
-    near: float,
-    far: float,
-    tiles_x: int,
-    tiles_y: int,
-    means2d: wp.array(dtype=wp.vec2),  # out [N]
-    conics: wp.array(dtype=wp.vec3),  # out [N]
-    depths: wp.array(dtype=float),  # out [N]
-    radii: wp.array(dtype=wp.vec2i),  # out [N], (0, 0) when culled
-    opacities_t: wp.array(dtype=float),  # out [N] o_i(t)
-    tiles_touched: wp.array(dtype=wp.int32),  # out [N]
+    cloud: Cloud,
+    view: View,
+    out: Projected,  # out [M]
     flags: wp.array(dtype=wp.int64),  # [NUM_FLAGS] zeroed by the caller; set to 1 on a contract violation
-    rows: wp.array(dtype=wp.int32),  # [M] with has_rows: the Gaussians projected (the outputs are [M])
-    has_rows: int,
-    row_count: wp.array(dtype=wp.int32),  # [1] with rows: only rows[:row_count[0]] are the frame's, the rest
-    #                                       padding, culled (a replayed frame's, tomgs.render.captured); or empty
-    n: int,  # N, the Gaussians the inputs hold
     inline_lanes: int,  # a warp holding this many alive lanes runs their long path (INLINE_LANES; 1 on a CPU)
     capacity: int,  # slots of each work list (work_capacity)
     work: wp.array(dtype=wp.int32),  # out [WORK_LISTS x capacity]: outputs left to project_listed
@@ -251,79 +297,66 @@ def project_forward(
     # takes as long as its slowest lane: with ~15% alive, nearly every warp holds a few)
     j = wp.tid()
     i = j
-    radii[j] = wp.vec2i(0, 0)
-    tiles_touched[j] = 0
-    means2d[j] = wp.vec2(0.0, 0.0)
-    conics[j] = wp.vec3(0.0, 0.0, 0.0)
+    out.radii[j] = wp.vec2i(0, 0)
+    out.tiles_touched[j] = 0
+    out.means2d[j] = wp.vec2(0.0, 0.0)
+    out.conics[j] = wp.vec3(0.0, 0.0, 0.0)
     valid = True
-    if has_rows != 0:
-        if row_count.shape[0] > 0 and j >= row_count[0]:
+    if cloud.has_rows != 0:
+        if cloud.row_count.shape[0] > 0 and j >= cloud.row_count[0]:
             valid = False  # padding: projected as a culled Gaussian, never read
         else:
-            i = rows[j]
-            if i < 0 or i >= n:
+            i = cloud.rows[j]
+            if i < 0 or i >= cloud.n:
                 flags[FLAG_ROWS] = wp.int64(1)
                 valid = False
     keep = False
     opac = float(0.0)
     p = wp.vec3(0.0)
-    viewmat = viewmats[0]
+    viewmat = view.viewmats[0]
     if valid:
-        base = opacities[i]
-        s = scales[i]
+        base = cloud.opacities[i]
+        s = cloud.scales[i]
+        t_scale = cloud.t_scales[i]
         if not (base >= 0.0 and base <= 1.0):
             flags[FLAG_OPACITIES] = wp.int64(1)
         if s[0] < 0.0 or s[1] < 0.0 or s[2] < 0.0:
             flags[FLAG_SCALES] = wp.int64(1)
-        if t_scales[i] < 0.0:
+        if t_scale < 0.0:
             flags[FLAG_T_SCALES] = wp.int64(1)
-        t = frame_time(t_hi, t_lo, times)
-        z = temporal_z(t[0], t[1], t_means[i], t_scales[i])
+        t = frame_time(view.t_hi, view.t_lo, view.times)
+        z = temporal_z(t[0], t[1], cloud.t_means[i], t_scale)
         opac = base * wp.exp(-0.5 * z * z)
-        p = world_to_camera(viewmat, means[i])
+        p = world_to_camera(viewmat, cloud.means[i])
         # alive (also rejects NaN) and inside the depth range
-        keep = opac >= ALPHA_MIN and opac <= 1.0e30 and p[2] > near and p[2] < far
-    opacities_t[j] = opac
-    depths[j] = p[2]
+        keep = opac >= ALPHA_MIN and opac <= 1.0e30 and p[2] > view.near and p[2] < view.far
+    out.opacities_t[j] = opac
+    out.depths[j] = p[2]
     inline = lanes_count(keep) >= inline_lanes  # the same for the warp's lanes
     list_row(keep and not inline, j, capacity, work, work_counts)  # every lane reaches it: no return above
     if keep and inline:
-        footprint(j, p, opac, quats[i], scales[i], viewmat, Ks[0], width, height, tiles_x, tiles_y, means2d, conics,
-                  radii, tiles_touched)
+        footprint(j, p, opac, cloud.quats[i], cloud.scales[i], viewmat, view.Ks[0], view, out)
 
 
 @wp.kernel
 def project_listed(
-    means: wp.array(dtype=wp.vec3),  # [N]
-    quats: wp.array(dtype=wp.vec4),  # [N]
-    scales: wp.array(dtype=wp.vec3),  # [N]
-    viewmats: wp.array(dtype=wp.mat44),  # [1]
-    Ks: wp.array(dtype=wp.mat33),  # [1]
-    width: int,
-    height: int,
-    tiles_x: int,
-    tiles_y: int,
-    opacities_t: wp.array(dtype=float),  # [M] from project_forward
+    cloud: Cloud,
+    view: View,
+    out: Projected,  # [M]: reads opacities_t from project_forward, writes the long path's outputs where visible
     capacity: int,  # project_forward's work lists: the outputs it left
     work: wp.array(dtype=wp.int32),
     work_counts: wp.array(dtype=wp.int32),
-    rows: wp.array(dtype=wp.int32),  # [M] with has_rows: output j is Gaussian rows[j]
-    has_rows: int,
-    means2d: wp.array(dtype=wp.vec2),  # out [M], written where visible
-    conics: wp.array(dtype=wp.vec3),  # out [M]
-    radii: wp.array(dtype=wp.vec2i),  # out [M]
-    tiles_touched: wp.array(dtype=wp.int32),  # out [M]
 ):
     # launched over the work lists' slots, run where one lists a row
     j = work_item(wp.tid(), capacity, work, work_counts)
     if j < 0:
         return
     i = j
-    if has_rows != 0:
-        i = rows[j]
-    viewmat = viewmats[0]
-    footprint(j, world_to_camera(viewmat, means[i]), opacities_t[j], quats[i], scales[i], viewmat, Ks[0],
-              width, height, tiles_x, tiles_y, means2d, conics, radii, tiles_touched)
+    if cloud.has_rows != 0:
+        i = cloud.rows[j]
+    viewmat = view.viewmats[0]
+    footprint(j, world_to_camera(viewmat, cloud.means[i]), out.opacities_t[j], cloud.quats[i], cloud.scales[i],
+              viewmat, view.Ks[0], view, out)
 
 
 @wp.func
@@ -347,57 +380,37 @@ def rotation_vjp(q: wp.vec4, g: wp.mat33) -> wp.vec4:
 def gradients(
     j: int,  # the output
     i: int,  # its Gaussian
-    means: wp.array(dtype=wp.vec3),
-    quats: wp.array(dtype=wp.vec4),
-    scales: wp.array(dtype=wp.vec3),
-    opacities: wp.array(dtype=float),
-    t_means: wp.array(dtype=float),
-    t_scales: wp.array(dtype=float),
-    viewmats: wp.array(dtype=wp.mat44),
-    Ks: wp.array(dtype=wp.mat33),
-    width: int,
-    height: int,
-    t_hi: float,
+    cloud: Cloud,
+    view: View,
+    t_hi: float,  # the frame's time (frame_time)
     t_lo: float,
-    v_means2d: wp.array(dtype=wp.vec2),
-    v_conics: wp.array(dtype=wp.vec3),
-    v_opacities_t: wp.array(dtype=float),
-    camera_grads: int,
-    v_means: wp.array(dtype=wp.vec3),
-    v_quats: wp.array(dtype=wp.vec4),
-    v_scales: wp.array(dtype=wp.vec3),
-    v_opacities: wp.array(dtype=float),
-    v_t_means: wp.array(dtype=float),
-    v_t_scales: wp.array(dtype=float),
-    v_viewmat_parts: wp.array(dtype=wp.mat44),
-    v_K_parts: wp.array(dtype=wp.vec4),
-    has_rows: int,
+    grads: Gradients,
 ):
     """The long path of the backward for visible output j (Gaussian i): its gradients (added at i
     with rows) and camera partials."""
     # temporal window: o = a g, g = exp(-z^2 / 2), z = (t - m) / sigma
-    sigma = t_scales[i]
-    z = temporal_z(t_hi, t_lo, t_means[i], sigma)
+    sigma = cloud.t_scales[i]
+    z = temporal_z(t_hi, t_lo, cloud.t_means[i], sigma)
     g = wp.exp(-0.5 * z * z)
-    v_o = v_opacities_t[j]
-    o = opacities[i] * g
-    put(v_opacities, i, v_o * g, has_rows)
-    put(v_t_means, i, v_o * o * z / sigma, has_rows)
-    put(v_t_scales, i, v_o * o * z * z / sigma, has_rows)
+    v_o = grads.v_opacities_t[j]
+    o = cloud.opacities[i] * g
+    put(grads.v_opacities, i, v_o * g, cloud.has_rows)
+    put(grads.v_t_means, i, v_o * o * z / sigma, cloud.has_rows)
+    put(grads.v_t_scales, i, v_o * o * z * z / sigma, cloud.has_rows)
 
-    viewmat = viewmats[0]
+    viewmat = view.viewmats[0]
     W = view_rotation(viewmat)
-    K = Ks[0]
+    K = view.Ks[0]
     fx = K[0, 0]
     fy = K[1, 1]
-    mu = means[i]
+    mu = cloud.means[i]
     p = world_to_camera(viewmat, mu)
-    lim = fov_limits(K, width, height)
+    lim = fov_limits(K, view.width, view.height)
     J = ewa_jacobian(p, K, lim)
-    q = quats[i]
+    q = cloud.quats[i]
     qn = unit_quat(q)
     R = rotation_from_unit_quat(qn)
-    s = scales[i]
+    s = cloud.scales[i]
     M = wp.mat33(
         R[0, 0] * s[0], R[0, 1] * s[1], R[0, 2] * s[2],
         R[1, 0] * s[0], R[1, 1] * s[1], R[1, 2] * s[2],
@@ -408,7 +421,7 @@ def gradients(
 
     # differentiate the forward's own formulas (conic_of), never dL/dSigma2d = -Q V Q: for a needle
     # that matrix needs an absolute accuracy far below float32's on its entries (error ~ eps cond)
-    v_A = conic_vjp(A, v_conics[j])
+    v_A = conic_vjp(A, grads.v_conics[j])
     v_J = v_A * wp.transpose(B)
     v_B = wp.transpose(J) * v_A
     v_M = wp.transpose(W) * v_B
@@ -419,18 +432,18 @@ def gradients(
         v_M[1, 0] * s[0], v_M[1, 1] * s[1], v_M[1, 2] * s[2],
         v_M[2, 0] * s[0], v_M[2, 1] * s[1], v_M[2, 2] * s[2],
     )
-    put(v_scales, i, wp.vec3(
+    put(grads.v_scales, i, wp.vec3(
         v_M[0, 0] * R[0, 0] + v_M[1, 0] * R[1, 0] + v_M[2, 0] * R[2, 0],
         v_M[0, 1] * R[0, 1] + v_M[1, 1] * R[1, 1] + v_M[2, 1] * R[2, 1],
         v_M[0, 2] * R[0, 2] + v_M[1, 2] * R[1, 2] + v_M[2, 2] * R[2, 2],
-    ), has_rows)
+    ), cloud.has_rows)
     v_qn = rotation_vjp(qn, v_R)
     q_max = quat_max_abs(q)
     q_len = wp.length(q / q_max)  # |q| = q_max q_len, never formed: it may overflow
     if q_max > 0.0 and q_max * q_len >= QUAT_EPS:
-        put(v_quats, i, (v_qn - qn * wp.dot(qn, v_qn)) / q_len / q_max, has_rows)
+        put(grads.v_quats, i, (v_qn - qn * wp.dot(qn, v_qn)) / q_len / q_max, cloud.has_rows)
     else:
-        put(v_quats, i, v_qn / QUAT_EPS, has_rows)
+        put(grads.v_quats, i, v_qn / QUAT_EPS, cloud.has_rows)
 
     # Jacobian entries J00 = fx/z, J02 = -fx u/z, J11 = fy/z, J12 = -fy v/z with u, v clamped
     px = p[0]
@@ -456,56 +469,31 @@ def gradients(
         v_fy -= v_v * v / fy
 
     # pixel centre (fx x/z + cx, fy y/z + cy)
-    vm2 = v_means2d[j]
+    vm2 = grads.v_means2d[j]
     v_p[0] += fx * vm2[0] / pz
     v_p[1] += fy * vm2[1] / pz
     v_p[2] -= (fx * px * vm2[0] + fy * py * vm2[1]) / (pz * pz)
     v_fx += vm2[0] * px / pz
     v_fy += vm2[1] * py / pz
 
-    put(v_means, i, wp.transpose(W) * v_p, has_rows)
-    if camera_grads != 0:
+    put(grads.v_means, i, wp.transpose(W) * v_p, cloud.has_rows)
+    if grads.camera_grads != 0:
         v_W += wp.outer(v_p, mu)
-        v_viewmat_parts[j] = wp.mat44(
+        grads.v_viewmat_parts[j] = wp.mat44(
             v_W[0, 0], v_W[0, 1], v_W[0, 2], v_p[0],
             v_W[1, 0], v_W[1, 1], v_W[1, 2], v_p[1],
             v_W[2, 0], v_W[2, 1], v_W[2, 2], v_p[2],
             0.0, 0.0, 0.0, 0.0,
         )
-        v_K_parts[j] = wp.vec4(v_fx, v_fy, vm2[0], vm2[1])
+        grads.v_K_parts[j] = wp.vec4(v_fx, v_fy, vm2[0], vm2[1])
 
 
 @wp.kernel(cuda_max_registers=DENSE_REGISTERS)
 def project_backward(
-    means: wp.array(dtype=wp.vec3),  # [N] (forward inputs, as above)
-    quats: wp.array(dtype=wp.vec4),
-    scales: wp.array(dtype=wp.vec3),
-    opacities: wp.array(dtype=float),
-    t_means: wp.array(dtype=float),
-    t_scales: wp.array(dtype=float),
-    viewmats: wp.array(dtype=wp.mat44),
-    Ks: wp.array(dtype=wp.mat33),
-    width: int,
-    height: int,
-    t_hi: float,
-    t_lo: float,
-    times: wp.array(dtype=float),  # as project_forward's
+    cloud: Cloud,  # the forward's
+    view: View,
     radii: wp.array(dtype=wp.vec2i),  # [M] from the forward; (0, 0) = culled, no gradient
-    v_means2d: wp.array(dtype=wp.vec2),  # [M] incoming gradients
-    v_conics: wp.array(dtype=wp.vec3),
-    v_opacities_t: wp.array(dtype=float),
-    camera_grads: int,  # 1: write per-Gaussian viewmat and K partials below
-    v_means: wp.array(dtype=wp.vec3),  # out [N]
-    v_quats: wp.array(dtype=wp.vec4),  # out [N]
-    v_scales: wp.array(dtype=wp.vec3),  # out [N]
-    v_opacities: wp.array(dtype=float),  # out [N]
-    v_t_means: wp.array(dtype=float),  # out [N]
-    v_t_scales: wp.array(dtype=float),  # out [N]
-    v_viewmat_parts: wp.array(dtype=wp.mat44),  # out [M] when camera_grads, summed by the caller
-    v_K_parts: wp.array(dtype=wp.vec4),  # out [M] (fx, fy, cx, cy) when camera_grads
-    rows: wp.array(dtype=wp.int32),  # [M] with has_rows: the Gaussians the forward projected
-    has_rows: int,  # then the forward's outputs, their gradients and the camera partials are [M]; the
-    #                 inputs' gradients [N], zeroed by the caller, are added at rows (kernels/rows.py)
+    grads: Gradients,
     inline_lanes: int,  # as project_forward's
     capacity: int,  # slots of each work list (work_capacity)
     work: wp.array(dtype=wp.int32),  # out [WORK_LISTS x capacity]: visible outputs left to project_backward_listed
@@ -516,59 +504,33 @@ def project_backward(
     # (without rows: the listed ones too, which project_backward_listed overwrites after)
     j = wp.tid()
     i = j
-    if has_rows != 0:
-        i = rows[j]
+    if cloud.has_rows != 0:
+        i = cloud.rows[j]
     r = radii[j]
     visible = r[0] != 0 or r[1] != 0  # a culled or bad row: no gradient
     inline = lanes_count(visible) >= inline_lanes
     list_row(visible and not inline, j, capacity, work, work_counts)  # every lane reaches it
     if visible and inline:
-        t = frame_time(t_hi, t_lo, times)
-        gradients(j, i, means, quats, scales, opacities, t_means, t_scales, viewmats, Ks, width, height, t[0], t[1],
-                  v_means2d, v_conics, v_opacities_t, camera_grads, v_means, v_quats, v_scales, v_opacities, v_t_means,
-                  v_t_scales, v_viewmat_parts, v_K_parts, has_rows)
+        t = frame_time(view.t_hi, view.t_lo, view.times)
+        gradients(j, i, cloud, view, t[0], t[1], grads)
     else:
-        if has_rows == 0:
-            v_means[i] = wp.vec3(0.0)
-            v_quats[i] = wp.vec4(0.0)
-            v_scales[i] = wp.vec3(0.0)
-            v_opacities[i] = 0.0
-            v_t_means[i] = 0.0
-            v_t_scales[i] = 0.0
-        if camera_grads != 0:
-            v_viewmat_parts[j] = wp.mat44(0.0)
-            v_K_parts[j] = wp.vec4(0.0)
+        if cloud.has_rows == 0:
+            grads.v_means[i] = wp.vec3(0.0)
+            grads.v_quats[i] = wp.vec4(0.0)
+            grads.v_scales[i] = wp.vec3(0.0)
+            grads.v_opacities[i] = 0.0
+            grads.v_t_means[i] = 0.0
+            grads.v_t_scales[i] = 0.0
+        if grads.camera_grads != 0:
+            grads.v_viewmat_parts[j] = wp.mat44(0.0)
+            grads.v_K_parts[j] = wp.vec4(0.0)
 
 
 @wp.kernel
 def project_backward_listed(
-    means: wp.array(dtype=wp.vec3),  # [N] (as project_backward)
-    quats: wp.array(dtype=wp.vec4),
-    scales: wp.array(dtype=wp.vec3),
-    opacities: wp.array(dtype=float),
-    t_means: wp.array(dtype=float),
-    t_scales: wp.array(dtype=float),
-    viewmats: wp.array(dtype=wp.mat44),
-    Ks: wp.array(dtype=wp.mat33),
-    width: int,
-    height: int,
-    t_hi: float,
-    t_lo: float,
-    times: wp.array(dtype=float),
-    v_means2d: wp.array(dtype=wp.vec2),
-    v_conics: wp.array(dtype=wp.vec3),
-    v_opacities_t: wp.array(dtype=float),
-    camera_grads: int,
-    v_means: wp.array(dtype=wp.vec3),
-    v_quats: wp.array(dtype=wp.vec4),
-    v_scales: wp.array(dtype=wp.vec3),
-    v_opacities: wp.array(dtype=float),
-    v_t_means: wp.array(dtype=float),
-    v_t_scales: wp.array(dtype=float),
-    v_viewmat_parts: wp.array(dtype=wp.mat44),
-    v_K_parts: wp.array(dtype=wp.vec4),
-    rows: wp.array(dtype=wp.int32),
-    has_rows: int,
+    cloud: Cloud,  # as project_backward
+    view: View,
+    grads: Gradients,
     capacity: int,  # project_backward's work lists: the visible outputs it left
     work: wp.array(dtype=wp.int32),
     work_counts: wp.array(dtype=wp.int32),
@@ -578,12 +540,10 @@ def project_backward_listed(
     if j < 0:
         return
     i = j
-    if has_rows != 0:
-        i = rows[j]
-    t = frame_time(t_hi, t_lo, times)
-    gradients(j, i, means, quats, scales, opacities, t_means, t_scales, viewmats, Ks, width, height, t[0],
-              t[1], v_means2d, v_conics, v_opacities_t, camera_grads, v_means, v_quats, v_scales, v_opacities,
-              v_t_means, v_t_scales, v_viewmat_parts, v_K_parts, has_rows)
+    if cloud.has_rows != 0:
+        i = cloud.rows[j]
+    t = frame_time(view.t_hi, view.t_lo, view.times)
+    gradients(j, i, cloud, view, t[0], t[1], grads)
 
 
 @wp.func

@@ -19,7 +19,7 @@ import warp as wp
 from tomgs.constants import TILE_SIZE, sort_low_bit
 from tomgs.render.inputs import RasterInputs, RenderError, prepare_inputs
 from tomgs.kernels import binning, lanes, project, raster, raster_batched
-from tomgs.runtime import NO_ARRAY, indexable, launch, scope, sort_pairs, whole_blocks, wrap, wrap_part
+from tomgs.runtime import NO_ARRAY, indexable, launch, scope, sort_pairs, struct_values, whole_blocks, wrap, wrap_part
 
 # The radix sort needs 2 x count slots and counts in int32: 2^30 keeps both inside int32.
 MAX_INTERSECTIONS = 2**30
@@ -221,6 +221,11 @@ def _pass_args(lists: _WorkLists | None, k: int) -> list:
     return (lists and lists.take(k)) or [1, 0, NO_ARRAY, NO_ARRAY]
 
 
+# the values of the projection kernels' structs, filled with descriptors
+CLOUD, VIEW = struct_values(project.Cloud), struct_values(project.View)
+PROJECTED, GRADIENTS = struct_values(project.Projected), struct_values(project.Gradients)
+
+
 class _Project(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, t_means, t_scales, viewmat, K, flags, frame: Frame,
@@ -237,30 +242,28 @@ class _Project(torch.autograd.Function):
         opacities_t = torch.empty(n, **f32)
         radii = torch.empty(n, 2, device=means.device, dtype=torch.int32)
         tiles_touched = torch.empty(n, device=means.device, dtype=torch.int32)
-        # descriptors of the inputs are built once and reused by the backward (their tensors are saved)
-        inputs = [wrap(means, wp.vec3), wrap(quats, wp.vec4), wrap(scales, wp.vec3), wrap(opacities), wrap(t_means),
-                  wrap(t_scales), wrap(viewmat, wp.mat44), wrap(K, wp.mat33)]
+        # the Gaussians and the view are bundled once and reused by the backward (their tensors are saved)
+        viewmat_d, K_d = wrap(viewmat, wp.mat44), wrap(K, wp.mat33)
+        cloud = CLOUD(means=wrap(means, wp.vec3), quats=wrap(quats, wp.vec4), scales=wrap(scales, wp.vec3),
+                      opacities=wrap(opacities), t_means=wrap(t_means), t_scales=wrap(t_scales), n=means.shape[0],
+                      rows=NO_ARRAY if rows is None else wrap(rows), has_rows=int(rows is not None),
+                      row_count=frame.row_count)
+        view = VIEW(viewmats=viewmat_d, Ks=K_d, width=frame.width, height=frame.height, tiles_x=frame.tiles_x,
+                    tiles_y=frame.tiles_y, t_hi=frame.t_hi, t_lo=frame.t_lo, times=frame.times, near=frame.near,
+                    far=frame.far)
         wrapped.update(means2d=wrap(means2d, wp.vec2), conics=wrap(conics, wp.vec3), depths=wrap(depths),
                        radii=wrap(radii, wp.vec2i), opacities_t=wrap(opacities_t),
-                       tiles_touched=wrap(tiles_touched), viewmat=inputs[6], K=inputs[7])
-        rows_d = NO_ARRAY if rows is None else wrap(rows)
+                       tiles_touched=wrap(tiles_touched), viewmat=viewmat_d, K=K_d)
+        out = PROJECTED(means2d=wrapped["means2d"], conics=wrapped["conics"], depths=wrapped["depths"],
+                        radii=wrapped["radii"], opacities_t=wrapped["opacities_t"],
+                        tiles_touched=wrapped["tiles_touched"])
         # the long path of the outputs in warps holding few alive ones is listed, run in full warps after
         work_d = _pass_args(lists, 0)
-        launch(project.project_forward, n, device=frame.device, args=[
-            *inputs, frame.width, frame.height, frame.t_hi, frame.t_lo, frame.times, frame.near, frame.far,
-            frame.tiles_x, frame.tiles_y, wrapped["means2d"], wrapped["conics"], wrapped["depths"], wrapped["radii"],
-            wrapped["opacities_t"], wrapped["tiles_touched"], wrap(flags), rows_d, int(rows is not None),
-            frame.row_count, means.shape[0], *work_d,
-        ])
+        launch(project.project_forward, n, device=frame.device, args=[cloud, view, out, wrap(flags), *work_d])
         if work_d[0] > 1:
-            launch(project.project_listed, lists.slots, device=frame.device, args=[
-                *inputs[:3], *inputs[6:], frame.width, frame.height, frame.tiles_x, frame.tiles_y,
-                wrapped["opacities_t"], *work_d[1:], rows_d, int(rows is not None), wrapped["means2d"],
-                wrapped["conics"], wrapped["radii"], wrapped["tiles_touched"],
-            ])
-        ctx.frame = frame
+            launch(project.project_listed, lists.slots, device=frame.device, args=[cloud, view, out, *work_d[1:]])
         ctx.rows = rows
-        ctx.descriptors = (inputs, wrapped["radii"], rows_d)
+        ctx.descriptors = (cloud, view, wrapped["radii"])
         ctx.save_for_backward(means, quats, scales, opacities, t_means, t_scales, viewmat, K, radii, conics)
         ctx.mark_non_differentiable(depths, radii, tiles_touched)
         ctx.set_materialize_grads(False)  # no zero-filled gradients for depths, radii, tiles (never read)
@@ -269,14 +272,14 @@ class _Project(torch.autograd.Function):
     @staticmethod
     def backward(ctx, v_means2d, v_conics, _v_depths, _v_radii, v_opacities_t, _v_tiles):
         means, quats, scales, opacities, t_means, t_scales, viewmat, K, radii, conics = ctx.saved_tensors
-        frame, rows = ctx.frame, ctx.rows
+        rows = ctx.rows
         n = radii.shape[0]  # M: the Gaussians projected
         camera_grads = ctx.needs_input_grad[6] or ctx.needs_input_grad[7]
         # every row written, or with rows only theirs: the rest stays zero
         fresh = torch.empty_like if rows is None else torch.zeros_like
         v_means, v_quats, v_scales = fresh(means), fresh(quats), fresh(scales)
         v_opacities, v_t_means, v_t_scales = fresh(opacities), fresh(t_means), fresh(t_scales)
-        inputs, radii_d, rows_d = ctx.descriptors
+        cloud, view, radii_d = ctx.descriptors
         # named, so that a dense copy lives until the launch is queued (a descriptor does not own it)
         v_means2d, v_conics = indexable(v_means2d, conics, n, 2), indexable(v_conics, conics)
         v_opacities_t = indexable(v_opacities_t, conics, n)
@@ -289,15 +292,16 @@ class _Project(torch.autograd.Function):
         # the visible outputs of warps holding few, run in full warps after
         lists = _WorkLists.of(n, 1, means.device)
         work_d = _pass_args(lists, 0)
+        grads = GRADIENTS(v_means2d=wrap(v_means2d, wp.vec2), v_conics=wrap(v_conics, wp.vec3),
+                          v_opacities_t=wrap(v_opacities_t), camera_grads=int(camera_grads),
+                          v_means=wrap(v_means, wp.vec3), v_quats=wrap(v_quats, wp.vec4),
+                          v_scales=wrap(v_scales, wp.vec3), v_opacities=wrap(v_opacities), v_t_means=wrap(v_t_means),
+                          v_t_scales=wrap(v_t_scales), v_viewmat_parts=parts[0], v_K_parts=parts[1])
         with scope(means.device) as device:
-            shared = [*inputs, frame.width, frame.height, frame.t_hi, frame.t_lo, frame.times]
-            grads = [wrap(v_means2d, wp.vec2), wrap(v_conics, wp.vec3), wrap(v_opacities_t), int(camera_grads),
-                     wrap(v_means, wp.vec3), wrap(v_quats, wp.vec4), wrap(v_scales, wp.vec3), wrap(v_opacities),
-                     wrap(v_t_means), wrap(v_t_scales), *parts, rows_d, int(rows is not None)]
-            launch(project.project_backward, n, device=device, args=[*shared, radii_d, *grads, *work_d])
+            launch(project.project_backward, n, device=device, args=[cloud, view, radii_d, grads, *work_d])
             if work_d[0] > 1:
                 launch(project.project_backward_listed, lists.slots, device=device,
-                       args=[*shared, *grads, *work_d[1:]])
+                       args=[cloud, view, grads, *work_d[1:]])
         v_viewmat = v_K = None
         if camera_grads:
             v_viewmat = v_viewmat_parts.sum(0)
