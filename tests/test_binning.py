@@ -192,7 +192,7 @@ def write_keys(inputs, touched: torch.Tensor, width: int, height: int, capacity:
     `size` slots filled with `sentinel`: (keys, ids). `inline_lanes` 33: every warp lists its visible
     Gaussians, which write_tile_keys_listed writes."""
     from tomgs.kernels import binning
-    from tomgs.render.frame import Frame, _WorkLists, _pass_args
+    from tomgs.render.stages import Frame, WorkLists, pass_args
     from tomgs.runtime import launch, scope, wrap
     import warp as wp
 
@@ -201,12 +201,12 @@ def write_keys(inputs, touched: torch.Tensor, width: int, height: int, capacity:
     keys = torch.full((size,), sentinel, dtype=torch.int64, device=means2d.device)
     ids = torch.full((size,), sentinel, dtype=torch.int32, device=means2d.device)
     frame = Frame(width, height, 0.0, 0.0, 0.01, 1e10, "cpu")
-    lists = _WorkLists(len(means2d), 1, inline_lanes, means2d.device) if inline_lanes > 1 else None
+    lists = WorkLists(len(means2d), 1, inline_lanes, means2d.device) if inline_lanes > 1 else None
     assert inline_lanes in (1, 33)
     with scope(means2d.device) as device:
         shared = [wrap(means2d, wp.vec2), wrap(conics, wp.vec3), wrap(opacities), wrap(radii, wp.vec2i), wrap(depths),
                   wrap(ends), frame.tiles_x, frame.tiles_y, capacity, wrap(keys), wrap(ids)]
-        work = _pass_args(lists, 0)
+        work = pass_args(lists, 0)
         launch(binning.write_tile_keys, len(means2d), device=device, args=[*shared, *work])
         if lists:
             launch(binning.write_tile_keys_listed, lists.slots, device=device, args=[*shared, *work[1:]])
@@ -217,14 +217,14 @@ def write_keys(inputs, touched: torch.Tensor, width: int, height: int, capacity:
 def test_a_pass_of_the_work_lists_serves_one_launch():
     """A pass's counters are zeroed once: the pass runs listed the first time its arguments are taken,
     and inline after (a frame's keys written again past their bound append to no used list)."""
-    from tomgs.render.frame import _WorkLists, _pass_args
+    from tomgs.render.stages import WorkLists, pass_args
 
-    lists = _WorkLists(100, 2, 33, torch.device("cpu"))
-    first = _pass_args(lists, 1)
+    lists = WorkLists(100, 2, 33, torch.device("cpu"))
+    first = pass_args(lists, 1)
     assert first[:2] == [33, lists.capacity] and lists.capacity > 0
-    assert _pass_args(lists, 1)[:2] == [1, 0]  # taken: inline, no list
-    assert _pass_args(lists, 0)[:2] == [33, lists.capacity]  # the other pass is its own
-    assert _pass_args(None, 0)[:2] == [1, 0]
+    assert pass_args(lists, 1)[:2] == [1, 0]  # taken: inline, no list
+    assert pass_args(lists, 0)[:2] == [33, lists.capacity]  # the other pass is its own
+    assert pass_args(None, 0)[:2] == [1, 0]
 
 
 @pytest.mark.parametrize("device", DEVICES)

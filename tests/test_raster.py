@@ -204,7 +204,7 @@ def test_alpha_at_the_skip_threshold(batched, monkeypatch):
     alpha lies just above 1/255 are composited, those just below are not, as in the float64
     reference. The kernels skip an entry past POWER_SKIP without its exp; a threshold below
     ln(255), by 1e-3 or more, would drop pixels of the first ring."""
-    from tomgs.render.frame import kernel_choices
+    from tomgs.render.stages import kernel_choices
 
     monkeypatch.setattr(kernel_choices, "batched", batched)
     one = dict(means=torch.tensor([[0.0123, 0.0071, 2.0]], dtype=torch.float64),
@@ -284,13 +284,14 @@ def test_long_paths_inline_or_listed_give_the_same(device, with_rows, monkeypatc
     backward adds by atomics in no fixed order, which moved a per-Gaussian gradient by 1.4e-4 of itself
     between two runs and the camera gradient, a sum over every Gaussian, by 1e-2 of a small entry."""
     from tomgs.render import frame as render
+    from tomgs.render import stages
 
     scene = random_scene(70, n=400)
     scene["t_scales"] = scene["t_scales"] * 0.2  # most dead at t
     rows = torch.tensor([*range(0, 400, 3), 5, 5], dtype=torch.int32, device=device) if with_rows else None
     results = []
     for inline_lanes in (1, 33):  # every thread inline; every warp (at most 32 lanes) listed
-        monkeypatch.setattr(render.kernel_choices, "inline_lanes", inline_lanes)
+        monkeypatch.setattr(stages.kernel_choices, "inline_lanes", inline_lanes)
         monkeypatch.setattr(render, "key_bounds", render.KeyBounds())  # keys after the sync, then before it
         for _ in range(2):
             inputs, rest = split({k: (v.float() if isinstance(v, torch.Tensor) else v) for k, v in scene.items()},
@@ -414,7 +415,7 @@ def batched_on_cpu(request, monkeypatch):
     each thread stages whole batches itself) or of cooperative fibers, 256 forward and 128 backward
     (`enable_cpu_blocks`: barriers, shared batches and block reductions as on a GPU, so a missing
     barrier shows)."""
-    from tomgs.render.frame import kernel_choices
+    from tomgs.render.stages import kernel_choices
 
     if request.param == "cooperative_blocks":
         import warp as wp
@@ -452,7 +453,7 @@ def assert_batched_matches(scene: dict) -> dict:
     and against the per-pixel pair: the same arithmetic per pixel, so the same image to 1e-6, and the
     same gradients to float32 sums taken in another order (the batched backward adds a thread's two
     pixels before its atomics): 1e-4, ten times inside the oracle's tolerance."""
-    from tomgs.render.frame import kernel_choices
+    from tomgs.render.stages import kernel_choices
 
     meta = assert_matches_reference(scene, "cpu")
     (image, alpha, _), _, ins, _ = render_both(scene, "cpu")
@@ -557,7 +558,7 @@ def test_tiles_taken_longest_first_give_the_same_frame(batched, monkeypatch):
     """Blocks that take the tiles in order of list length (the CUDA default) composite the same
     image as blocks in tile order, with either kernel pair, and the same gradients to float32
     rounding (the tiles add into each Gaussian's sums in another order)."""
-    from tomgs.render.frame import kernel_choices
+    from tomgs.render.stages import kernel_choices
 
     monkeypatch.setattr(kernel_choices, "batched", batched)
     scene = random_scene(31, n=150, width=70, height=41)  # 5x3 tiles, lists of many lengths
@@ -606,18 +607,18 @@ def test_frame_counts_come_with_the_sync(cooperative, monkeypatch):
 @pytest.fixture
 def write_capacities(monkeypatch):
     """Fresh bounds (tomgs.render.frame.key_bounds) for the test, and the list of the capacities that
-    rasterize's calls of render._write_keys ask for, in order."""
+    rasterize's calls of render.write_keys ask for, in order."""
     from tomgs.render import frame as render
 
     monkeypatch.setattr(render, "key_bounds", render.KeyBounds())
     asked = []
-    write = render._write_keys
+    write = render.write_keys
 
     def spy(wrapped, n, ends, frame, capacity, lists=None):
         asked.append(capacity)
         return write(wrapped, n, ends, frame, capacity, lists)
 
-    monkeypatch.setattr(render, "_write_keys", spy)
+    monkeypatch.setattr(render, "write_keys", spy)
     return asked
 
 
@@ -661,9 +662,9 @@ def test_frames_past_the_kept_bound_write_their_keys_again(write_capacities, dev
     same frame rendered again within the bound (keys written once, before the sync). With every warp
     listing its Gaussians (inline_lanes 33), the keys written again run inline: binning's lists have
     served the first write."""
-    from tomgs.render import frame as render
+    from tomgs.render import stages
 
-    monkeypatch.setattr(render.kernel_choices, "inline_lanes", inline_lanes)
+    monkeypatch.setattr(stages.kernel_choices, "inline_lanes", inline_lanes)
     width, height = 96, 80
     # (1500 left two pixels of a float32 render 8e-4 from the float64 reference on the H100, the same
     # before tile keys moved before the sync: a scene at the float32 edge, not this path)

@@ -2,8 +2,9 @@
 
     inputs     `prepare_inputs`: checks and activates a frame's inputs (RasterInputs)
     sh         view-dependent colour from spherical harmonics (`eval_sh`, `sh_to_colors`)
-    frame      the three stages (project -> bin -> raster) and the frame layer that issues them:
-               `rasterize`, `render_frame`, `blend_weights`, `FrameCounts`
+    stages     the three stages (project -> bin -> raster) as they launch their kernels
+    frame      the frame layer that issues them, and the public `rasterize`, `render_frame`,
+               `blend_weights`, `FrameCounts`, `project_stage`, `bin_stage`
     alive      the alive index: which Gaussians a frame's time can see
     captured   `FrameGraph`: frames replayed from CUDA graphs
     sequence   `render_sequence`, `ClipRenderer`: a clip's frames, pipelined

@@ -46,7 +46,8 @@ import warp as wp
 from tomgs.errors import RenderError
 from tomgs.kernels import project
 from tomgs.render import frame as frame_layer
-from tomgs.render.frame import Frame, FrameCounts, check_scalars, check_time, issue_frame
+from tomgs.render.frame import FrameCounts, check_scalars, check_time, issue_frame
+from tomgs.render.stages import Frame
 from tomgs.render.inputs import check_rows, prepare_inputs
 from tomgs.runtime import NO_ARRAY, launch, scope, torch_stream, warp_device, wrap
 
