@@ -37,52 +37,57 @@ def adam_move(p: float, m: float, v: float, has_moments: int, scale: wp.float64,
     return scale * moved + wp.float64(1.0e-5) * (wp.float64(1.0) + wp.abs(wp.float64(p))) + headroom
 
 
+@wp.struct
+class Bound:
+    """What bounds each Gaussian's reach under training: its temporal parameters, their Adam moments and
+    Adam's constants (tomgs.render.alive's TrainingIndex fills it), one argument for the two kernels."""
+
+    t_means: wp.array(dtype=float)  # [N] the model's stored parameters
+    log_t_scales: wp.array(dtype=float)
+    opacity_logits: wp.array(dtype=float)
+    m_t: wp.array(dtype=float)  # Adam's moments of each (stand-ins without)
+    v_t: wp.array(dtype=float)
+    m_s: wp.array(dtype=float)
+    v_s: wp.array(dtype=float)
+    m_o: wp.array(dtype=float)
+    v_o: wp.array(dtype=float)
+    has_moments: wp.vec3i  # t_means, log_t_scales, opacity_logits
+    scale: wp.vec3d  # F lr (1 + 1e-3) of each
+    headroom: wp.vec3d  # headroom x lr of each
+    q: wp.float64
+    root_c: wp.float64
+    spikes: int
+    dense: int
+    slack: wp.float64
+
+
 @wp.func
-def reach_window(
-    i: int,
-    t_means: wp.array(dtype=float),  # [N] the model's stored parameters
-    log_t_scales: wp.array(dtype=float),
-    opacity_logits: wp.array(dtype=float),
-    m_t: wp.array(dtype=float), v_t: wp.array(dtype=float),  # Adam's moments of each (stand-ins without)
-    m_s: wp.array(dtype=float), v_s: wp.array(dtype=float),
-    m_o: wp.array(dtype=float), v_o: wp.array(dtype=float),
-    has_moments: wp.vec3i,  # t_means, log_t_scales, opacity_logits
-    scale: wp.vec3d,  # F lr (1 + 1e-3) of each
-    headroom: wp.vec3d,  # headroom x lr of each
-    q: wp.float64,
-    root_c: wp.float64,
-    spikes: int,
-    dense: int,
-    slack: wp.float64,
-) -> wp.vec2d:
-    mu = t_means[i]
-    d_t = adam_move(mu, m_t[i], v_t[i], has_moments[0], scale[0], q, root_c, spikes, dense, headroom[0])
-    d_s = adam_move(log_t_scales[i], m_s[i], v_s[i], has_moments[1], scale[1], q, root_c, spikes, dense, headroom[1])
-    d_o = adam_move(opacity_logits[i], m_o[i], v_o[i], has_moments[2], scale[2], q, root_c, spikes, dense,
-                    headroom[2])
-    a = wp.float64(1.0) / (wp.float64(1.0) + wp.exp(-(wp.float64(opacity_logits[i]) + d_o)))
-    sigma = wp.exp(wp.float64(log_t_scales[i]) + d_s)
+def reach_window(i: int, b: Bound) -> wp.vec2d:
+    mu = b.t_means[i]
+    d_t = adam_move(mu, b.m_t[i], b.v_t[i], b.has_moments[0], b.scale[0], b.q, b.root_c, b.spikes, b.dense,
+                    b.headroom[0])
+    d_s = adam_move(b.log_t_scales[i], b.m_s[i], b.v_s[i], b.has_moments[1], b.scale[1], b.q, b.root_c, b.spikes,
+                    b.dense, b.headroom[1])
+    d_o = adam_move(b.opacity_logits[i], b.m_o[i], b.v_o[i], b.has_moments[2], b.scale[2], b.q, b.root_c, b.spikes,
+                    b.dense, b.headroom[2])
+    a = wp.float64(1.0) / (wp.float64(1.0) + wp.exp(-(wp.float64(b.opacity_logits[i]) + d_o)))
+    sigma = wp.exp(wp.float64(b.log_t_scales[i]) + d_s)
     alpha_min = wp.float64(ALPHA_MIN)
     if not (a >= alpha_min):  # alive at no time (NaN too)
         return wp.vec2d(INF, -INF)
     reach = wp.sqrt(wp.float64(2.0) * wp.log(wp.max(a / alpha_min, wp.float64(1.0))))
-    r = (reach * (wp.float64(1.0) + slack) + slack) * sigma
+    r = (reach * (wp.float64(1.0) + b.slack) + b.slack) * sigma
     return wp.vec2d(wp.float64(mu) - d_t - r, wp.float64(mu) + d_t + r)
 
 
 @wp.kernel
 def reach_windows(
-    t_means: wp.array(dtype=float), log_t_scales: wp.array(dtype=float), opacity_logits: wp.array(dtype=float),
-    m_t: wp.array(dtype=float), v_t: wp.array(dtype=float), m_s: wp.array(dtype=float), v_s: wp.array(dtype=float),
-    m_o: wp.array(dtype=float), v_o: wp.array(dtype=float),
-    has_moments: wp.vec3i, scale: wp.vec3d, headroom: wp.vec3d, q: wp.float64, root_c: wp.float64, spikes: int,
-    dense: int, slack: wp.float64,
+    bound: Bound,
     first: wp.array(dtype=wp.float64),  # out [N]
     last: wp.array(dtype=wp.float64),  # out [N]
 ):
     i = wp.tid()
-    w = reach_window(i, t_means, log_t_scales, opacity_logits, m_t, v_t, m_s, v_s, m_o, v_o, has_moments, scale,
-                     headroom, q, root_c, spikes, dense, slack)
+    w = reach_window(i, bound)
     first[i] = w[0]
     last[i] = w[1]
 
@@ -119,11 +124,7 @@ def frames_to(times: wp.array(dtype=wp.float64), x: wp.float64) -> int:
 def reach_escapes(
     rows: wp.array(dtype=wp.int32),  # [M] the Gaussians a step rendered
     moved: wp.array(dtype=wp.bool),  # [M] those it gave a gradient (in view): only these are checked
-    t_means: wp.array(dtype=float), log_t_scales: wp.array(dtype=float), opacity_logits: wp.array(dtype=float),
-    m_t: wp.array(dtype=float), v_t: wp.array(dtype=float), m_s: wp.array(dtype=float), v_s: wp.array(dtype=float),
-    m_o: wp.array(dtype=float), v_o: wp.array(dtype=float),
-    has_moments: wp.vec3i, scale: wp.vec3d, headroom: wp.vec3d, q: wp.float64, root_c: wp.float64, spikes: int,
-    dense: int, slack: wp.float64,
+    bound: Bound,
     times: wp.array(dtype=wp.float64),  # [T] the index's frame times, ascending
     size: int,  # frames per bucket
     b_first: wp.array(dtype=wp.int32),  # [N] first bucket listing each Gaussian
@@ -136,8 +137,7 @@ def reach_escapes(
         escaped[j] = False
         return
     i = int(rows[j])
-    w = reach_window(i, t_means, log_t_scales, opacity_logits, m_t, v_t, m_s, v_s, m_o, v_o, has_moments, scale,
-                     headroom, q, root_c, spikes, dense, slack)
+    w = reach_window(i, bound)
     out = False
     if not (wp.isnan(w[0]) or wp.isnan(w[1])):  # a NaN window: culled by projection, alive nowhere
         start = frames_from(times, w[0])

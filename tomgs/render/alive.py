@@ -331,12 +331,13 @@ class TrainingIndex:
         self._params: tuple = ()  # weak references to the indexed parameters
         self._lrs: tuple = ()
 
-    def _bound_args(self, model, optimizer, spikes: int, headroom: float) -> tuple[list, list]:
-        """tomgs/kernels/alive.py's arguments from `t_means` to `slack`, and the tensors they point at
+    def _bound(self, model, optimizer, spikes: int, headroom: float) -> tuple[object, list]:
+        """tomgs/kernels/alive.py's `Bound` of the model and optimiser, and the tensors it points at
         (held until the launch is queued)."""
         import warp as wp
 
-        from tomgs.runtime import wrap
+        from tomgs.kernels import alive as kernels
+        from tomgs.runtime import struct_values, wrap
 
         groups = _temporal_groups(model, optimizer)
         if len({tuple(group["betas"]) for _, group, _ in groups.values()}) > 1:
@@ -352,10 +353,12 @@ class TrainingIndex:
             has.append(int(present))
             scale.append(scale_i)
             room.append(headroom * group["lr"])
-        params = [wrap(t) for t in held[0::3]]
-        moments = [wrap(t) for pair in zip(held[1::3], held[2::3]) for t in pair]
-        return [*params, *moments, wp.vec3i(*has), wp.vec3d(*scale), wp.vec3d(*room), q, root_c, int(spikes),
-                int(self.dense), GATHER_SLACK], held
+        t_means, m_t, v_t, log_t_scales, m_s, v_s, opacity_logits, m_o, v_o = (wrap(t) for t in held)
+        bound = struct_values(kernels.Bound)(
+            t_means=t_means, log_t_scales=log_t_scales, opacity_logits=opacity_logits, m_t=m_t, v_t=v_t, m_s=m_s,
+            v_s=v_s, m_o=m_o, v_o=v_o, has_moments=wp.vec3i(*has), scale=wp.vec3d(*scale), headroom=wp.vec3d(*room),
+            q=q, root_c=root_c, spikes=int(spikes), dense=int(self.dense), slack=GATHER_SLACK)
+        return bound, held
 
     def reach(self, model, optimizer, spikes: int, headroom: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
         """(first, last) float64 [N]: the windows every Gaussian of `model` can reach in `spikes`
@@ -367,9 +370,9 @@ class TrainingIndex:
         n, device = len(model), model.t_means.device
         first = torch.empty(n, dtype=torch.float64, device=device)
         last = torch.empty(n, dtype=torch.float64, device=device)
-        args, held = self._bound_args(model, optimizer, spikes, headroom)
+        bound, held = self._bound(model, optimizer, spikes, headroom)
         with scope(device) as wp_device:
-            launch(kernels.reach_windows, n, device=wp_device, args=[*args, wrap(first), wrap(last)])
+            launch(kernels.reach_windows, n, device=wp_device, args=[bound, wrap(first), wrap(last)])
         del held
         return first, last
 
@@ -422,10 +425,10 @@ class TrainingIndex:
             return
         out = torch.empty(len(checked), dtype=torch.bool, device=device)
         count = torch.zeros(1, dtype=torch.int32, device=device)
-        args, held = self._bound_args(model, optimizer, int(self.lookahead), 0.0)
+        bound, held = self._bound(model, optimizer, int(self.lookahead), 0.0)
         with scope(device) as wp_device:
             launch(kernels.reach_escapes, len(checked), device=wp_device, args=[
-                wrap(checked), wrap(moved), *args, wrap(index.times), index.size, wrap(index.b_first),
+                wrap(checked), wrap(moved), bound, wrap(index.times), index.size, wrap(index.b_first),
                 wrap(index.b_last), wrap(out), wrap(count)])
         del held
         room = int(MOVER_SHARE * index.n) - (0 if self.movers is None else len(self.movers))
