@@ -491,7 +491,7 @@ def raster_node(out: torch.Tensor):
         if node is None or node in seen:
             continue
         seen.add(node)
-        if type(node).__name__ == "_RasterizeBackward":
+        if type(node).__name__ == "RasterizeBackward":
             return node
         todo += [parent for parent, _ in node.next_functions]
     raise AssertionError("no raster stage in the graph")
