@@ -111,10 +111,12 @@ def test_defect01_outputs_never_overwrite_each_other_or_an_input(case, clip, sce
 
 class FullDisk:
     """`open` for tomgs.io.writer whose files take `room` bytes in all, then raise ENOSPC (a small
-    disk, deterministically)."""
+    disk, deterministically). Once full, a seek fails too, as a buffered file's does when it flushes
+    bytes that no longer fit; `buffered`: the write that overflows seems to succeed (its bytes wait
+    in the buffer) and only the seeks after it fail."""
 
-    def __init__(self, room: int):
-        self.room = room
+    def __init__(self, room: int, buffered: bool = False):
+        self.room, self.buffered = room, buffered
 
     def __call__(self, path, mode="r", *args, **kwargs):
         real = open(path, mode, *args, **kwargs)  # noqa: SIM115 - handed to the caller
@@ -135,9 +137,16 @@ class FullDisk:
             def write(self, data):
                 if len(data) > disk.room:
                     disk.room = 0
+                    if disk.buffered:
+                        return len(data)
                     raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
                 disk.room -= len(data)
                 return real.write(data)
+
+            def seek(self, offset, whence=0):
+                if disk.room == 0:
+                    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+                return real.seek(offset, whence)
         return Limited()
 
 
@@ -156,6 +165,20 @@ def test_defect02_full_disk_while_writing_a_video_is_one_line_and_leaves_nothing
     assert str(tmp_path / name) in line and "nothing was written" in line, line
     assert "No space left on device" in line or "holds 0 of its 6 frames" in line, line
     assert list(tmp_path.iterdir()) == []  # no output, no temporary
+
+
+@pytest.mark.parametrize("room", [0, 3000])
+def test_defect02_a_seek_that_fails_on_a_full_disk_is_no_traceback(room, monkeypatch, tmp_path):
+    """A full disk met first by a seek (a buffered file flushing): FFmpeg seeks again after the first
+    failure, and PyAV printed each earlier failure's traceback ("PyAV library exception being
+    dropped") above the one line; the safety trials' `render` on a tmpfs found it."""
+    import tomgs.io.writer as writer
+
+    monkeypatch.setattr(writer, "open", FullDisk(room, buffered=True), raising=False)
+    result = run("demo", "-o", tmp_path / "d.mp4", "--frames", "6", "--size", "48x27", "--device", "cpu", "-q")
+    line = one_line_refusal(result, code=1)
+    assert "No space left on device; nothing was written" in line, line
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_defect02_a_video_writer_is_closed_once_even_when_its_close_fails(monkeypatch, tmp_path):

@@ -106,9 +106,11 @@ def write_frames(frames: Iterable[np.ndarray], path, fps: float = 25.0, numbers:
 
 
 class _Sink:
-    """The file an H.264 container writes through: a write that fails (a full disk) is kept in
-    `error` rather than raised into FFmpeg, which would go on writing (PyAV prints each error after
-    the first); the writer raises it after the call. A failed sink takes no more bytes."""
+    """The file an H.264 container writes through: a write, read or seek that fails (a full disk; a
+    buffered file's read and seek flush its pending bytes first) is kept in `error` rather than
+    raised into FFmpeg, which would go on writing and seeking (PyAV prints each error after the
+    first); the writer raises it after the call. A failed sink takes no more bytes, reads nothing
+    and answers a seek with the error's negative number, as FFmpeg's own files do."""
 
     def __init__(self, path: Path):
         self.file = open(path, "w+b")  # noqa: SIM115 - closed by the writer's close()
@@ -124,10 +126,20 @@ class _Sink:
         return len(data)
 
     def read(self, size: int = -1) -> bytes:
-        return self.file.read(size)
+        if self.error is None:
+            try:
+                return self.file.read(size)
+            except OSError as e:
+                self.error = e
+        return b""
 
     def seek(self, offset: int, whence: int = 0) -> int:
-        return self.file.seek(offset, whence)
+        if self.error is None:
+            try:
+                return self.file.seek(offset, whence)
+            except OSError as e:
+                self.error = e
+        return -(self.error.errno or errno.EIO)
 
     def tell(self) -> int:
         return self.file.tell()
