@@ -14,7 +14,8 @@ kinds of trial, `--trials` of each per command:
 After each: the user's file is byte for byte as it was, the earlier output too or replaced by a
 complete new one (it loads: a fit can finish its scene and be stopped while it reports), no hidden
 entry ('.NAME.*.tmp', a lock) is left, and a command that did not finish said why in one line on
-stderr (-q: nothing else is printed).
+stderr (-q: nothing else is printed). The report lists the distinct lines said (the trial's folder
+as DIR); its JSON keeps the whole stderr of every trial that broke a promise.
 A SIGTERM that lands while Python is still starting (before the command's handlers exist) ends the
 process silently, with nothing written: counted apart.
 
@@ -145,11 +146,14 @@ def trials(name: str, inputs: dict, root: Path, count: int, rng: random.Random, 
     written = sum(pages(p.stat().st_size) for p in reference.iterdir() if p.is_file())  # all it leaves
     user = {"notes.txt": rng.randbytes(2000), **{n: (reference / n).read_bytes() for n in replaced}}
     rows = dict(command=name, reference_s=round(seconds, 2), written_bytes=written, disk={}, sigterm={}, broken=[],
-                lines=set())
+                lines=set(), stderr_of_broken=[])
 
-    def record(kind, outcome, broken, err):
+    def record(kind, outcome, broken, err, folder):
+        err = err.replace(str(folder), "DIR")  # the trial's folder: one line for every trial that said the same
         rows[kind][outcome] = rows[kind].get(outcome, 0) + 1
         rows["broken"] += [f"{kind}: {b}" for b in broken]
+        if broken:
+            rows["stderr_of_broken"].append(err)
         if outcome == "stopped":
             rows["lines"].add(err.strip().splitlines()[-1][:300])
 
@@ -166,7 +170,7 @@ def trials(name: str, inputs: dict, root: Path, count: int, rng: random.Random, 
             args, _ = command_line(name, inputs, folder)
             code, err, _ = run(args, folder)
             outcome, broken = verdict(before, folder, replaced, code, err)
-            record("disk", outcome, broken, err)
+            record("disk", outcome, broken, err, folder)
         finally:
             unmount(folder)
     for k in range(count):
@@ -179,7 +183,7 @@ def trials(name: str, inputs: dict, root: Path, count: int, rng: random.Random, 
         outcome, broken = verdict(before, folder, replaced, code, err)
         for leftover in ("s.ckpt", "s.csv"):  # an interrupted fit's resume state and log: its own, expected
             (folder / leftover).unlink(missing_ok=True)
-        record("sigterm", outcome, broken, err)
+        record("sigterm", outcome, broken, err, folder)
         shutil.rmtree(folder)
     rows["lines"] = sorted(rows["lines"])
     return rows
