@@ -406,6 +406,27 @@ def test_defect11_a_full_disk_names_the_file_in_every_command(command, scene, tm
     assert list(tmp_path.iterdir()) == []
 
 
+def test_defect11_a_full_disk_at_the_fits_lock_names_the_scene(clip, tmp_path, monkeypatch):
+    """A fit into a folder with no room left: writing its process id into the lock failed with a bare
+    "Error: No space left on device" naming no file (the safety trials' fit on a tmpfs found it). Now
+    the line names the scene and what was kept, before any work, and no lock is left."""
+    import tomgs.outputs as outputs
+
+    class NoRoom:  # tomgs.outputs's `os`, whose writes find the disk full
+        def __getattr__(self, name):
+            return getattr(os, name)
+
+        @staticmethod
+        def write(fd, data):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(outputs, "os", NoRoom())
+    (tmp_path / "s.ply").write_bytes(b"an earlier scene")
+    line = one_line_refusal(run("fit", clip, "-o", tmp_path / "s.ply", "--iterations", "3", "-y", "-q"), code=1)
+    assert line == f"Error: {tmp_path / 's.ply'}: No space left on device; the existing s.ply is kept", line
+    assert listing(tmp_path) == {"s.ply": b"an earlier scene"} and sorted(os.listdir(tmp_path)) == ["s.ply"]
+
+
 # -- 4. --gpus N started N processes before any check ------------------------------------------------------
 
 

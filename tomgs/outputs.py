@@ -401,8 +401,9 @@ def remove_stale_temporaries(path, older_than_s: float = _OLD_TEMPORARY_AGE) -> 
 def output_lock(path, what: str = "fit") -> Iterator[None]:
     """Hold an advisory lock on output `path` ('.NAME.lock' beside it, holding this process's id)
     while the block runs, released and removed on every exit path (the system releases it when a
-    killed process ends). InputError at once when another process holds it. POSIX only (elsewhere:
-    no lock)."""
+    killed process ends). InputError at once when another process holds it; an OSError naming
+    `path` (`write_failed`) when the lock cannot be written (a full disk). POSIX only (elsewhere: no
+    lock)."""
     try:
         import fcntl
     except ImportError:
@@ -434,8 +435,11 @@ def output_lock(path, what: str = "fit") -> Iterator[None]:
             break
         os.close(fd)  # its holder removed it as we opened it: lock the one at the path now
     try:
-        os.ftruncate(fd, 0)
-        os.write(fd, str(os.getpid()).encode())
+        try:
+            os.ftruncate(fd, 0)
+            os.write(fd, str(os.getpid()).encode())
+        except OSError as e:  # a full disk: not even the id fits, nor will the output
+            raise write_failed(e, path) from None
         yield
     finally:
         with held():
