@@ -14,8 +14,9 @@ kinds of trial, `--trials` of each per command:
 After each: the user's file is byte for byte as it was, the earlier output too or replaced by a
 complete new one (it loads: a fit can finish its scene and be stopped while it reports), no hidden
 entry ('.NAME.*.tmp', a lock) is left, and a command that did not finish said why in one line on
-stderr (-q: nothing else is printed). The report lists the distinct lines said (the trial's folder
-as DIR); its JSON keeps the whole stderr of every trial that broke a promise.
+stderr (-q: nothing else is printed), naming the file when the disk was full. The report lists the
+distinct lines said (the trial's folder as DIR); its JSON keeps the whole stderr of every trial that
+broke a promise.
 A SIGTERM that lands while Python is still starting (before the command's handlers exist) ends the
 process silently, with nothing written: counted apart.
 
@@ -113,6 +114,8 @@ def verdict(before: dict, after_folder: Path, replaced: list[str], code: int, er
         outcome = "stopped"
         if len(lines) != 1:
             broken.append(f"exit {code} with {len(lines)} lines: {lines[-3:]!r}")
+        elif "No space left" in lines[0] and str(after_folder) not in lines[0]:
+            broken.append(f"a full disk's line names no file: {lines[0]!r}")
     return outcome, broken
 
 
