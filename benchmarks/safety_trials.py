@@ -17,8 +17,9 @@ entry ('.NAME.*.tmp', a lock) is left, and a command that did not finish said wh
 stderr (-q: nothing else is printed), naming the file when the disk was full. The report lists the
 distinct lines said (the trial's folder as DIR); its JSON keeps the whole stderr of every trial that
 broke a promise.
-A SIGTERM that lands while Python is still starting (before the command's handlers exist) ends the
-process silently, with nothing written: counted apart.
+A SIGTERM that lands outside the command's handlers ends the process silently: while Python is still
+starting (nothing written yet), or after the command ended, while Python exits (seconds on a loaded
+machine: its output is complete, its exit status 143). Counted apart, as "killed outside the command".
 
     python -m benchmarks.safety_trials [--trials 20] [--commands fit,render,demo,export,edit]
     python -m benchmarks.safety_trials --smoke        # render: one trial of each kind
@@ -94,7 +95,8 @@ def complete(path: Path) -> bool:
 
 
 def verdict(before: dict, after_folder: Path, replaced: list[str], code: int, err: str) -> tuple[str, list[str]]:
-    """(outcome, what broke a promise) of a trial: finished, stopped (one line), or started too early."""
+    """(outcome, what broke a promise) of a trial: finished, stopped (one line), or killed outside the
+    command (Python starting or exiting)."""
     broken = []
     after = snapshot(after_folder)
     hidden = [p.name for p in after_folder.iterdir() if p.name.startswith(".") and p.name != "lost+found"]
@@ -109,7 +111,7 @@ def verdict(before: dict, after_folder: Path, replaced: list[str], code: int, er
         if lines:
             broken.append(f"printed {lines!r}")
     elif code == -signal.SIGTERM and not lines:
-        outcome = "killed while starting"
+        outcome = "killed outside the command"
     else:
         outcome = "stopped"
         if len(lines) != 1:
