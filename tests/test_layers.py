@@ -250,6 +250,7 @@ def test_fit_layer_from_the_command_line(fitted, tmp_path):
                  tmp_path / "fg.ply", "--preset", "quick", "--iterations", "5", "--device", "cpu")
     assert result.exit_code == 0, result.output
     assert "foreground layer" in result.output and load_scene(tmp_path / "fg.ply").info["layer"] == "foreground"
+    assert "full-clip PSNR" in result.output  # its views: every frame and its mirror, not "80 of 40 frames"
 
 
 def _bad_masks(folder: Path, kind: str, masks: np.ndarray) -> Path:
