@@ -238,7 +238,7 @@ def progress_bar(length: int, label: str, **options):
 
 
 STEPS = 1000  # a phase bar's length: phases count frames, iterations or seconds, shown as a fraction
-PHASE_LABELS = {"read": "reading", "poses": "poses", "compile": "compiling", "init": "initialising",
+PHASE_LABELS = {"load": "loading", "read": "reading", "poses": "poses", "compile": "compiling", "init": "initialising",
                 "train": "training", "save": "saving"}
 
 

@@ -99,14 +99,16 @@ def fit(video, output, preset, iterations, quality, frames, max_side, masks, pos
     check_poses(poses)
     if gpus is not None:  # the ranks import while this process does (tomgs.train.multigpu.pool)
         rank_pool.start(gpus)
-    from tomgs.outputs import check_distinct, existing_path
-    from tomgs.io.scene import bits_per_pixel
-    from tomgs.train import FitInterrupted, output_paths
-    from tomgs.train import fit as fit_scene
-    from tomgs.train import preset as make_config
-    from tomgs.train.multigpu.launch import ShardFailed
-    from tomgs.train.multigpu.pool import is_leader
-    from tomgs.train.phases import phase_text, process_started
+    with phase_bars() as bars:  # torch and Warp take seconds to import on a busy machine: a log hears of them
+        bars("load", 0, 1, "torch and Warp")
+        from tomgs.outputs import check_distinct, existing_path
+        from tomgs.io.scene import bits_per_pixel
+        from tomgs.train import FitInterrupted, output_paths
+        from tomgs.train import fit as fit_scene
+        from tomgs.train import preset as make_config
+        from tomgs.train.multigpu.launch import ShardFailed
+        from tomgs.train.multigpu.pool import is_leader
+        from tomgs.train.phases import phase_text, process_started
 
     beside = {f"the fit's {what}": path for what, path in output_paths(output).items() if what != "scene"}
     check_distinct({"-o": output, **beside, "--json": json_out},
