@@ -170,6 +170,13 @@ def check_safety_trials(r):
 def check_declared_sizes(r):
     assert [row["case"] for row in r] == ["png", "jpeg_progressive", "checkpoint"]
     assert all(row["said"].startswith("refused") and row["grew_mib"] < 64 for row in r)
+def check_door(r):
+    assert len(r["rows"]) == 10 and r["python_start_s"] > 0
+    for row in r["rows"]:  # answered at once: one line, exit 2, no torch or Warp (numpy and PyAV only to read files)
+        assert row["exit"] == 2 and row["lines"] == 1 and row["said"].startswith("Error:"), row
+        assert not set(row["heavy"]) & {"torch", "warp", "cv2"}, row
+
+
 def check_compact(r):
     assert [row["quality"] for row in r] == ["default", "max"]
     for row in r:

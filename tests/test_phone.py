@@ -94,7 +94,7 @@ def test_frames_weights_and_alpha_targets_stay_uint8(long_clip):
     trainer.step()
 
 
-PHASES = ("reading", "poses", "initialising", "training", "saving")
+PHASES = ("loading", "reading", "poses", "initialising", "training", "saving")
 PROGRESS_LINE = re.compile(r"\s*\[\s*\S+ (?:s|min)\] (\S+) \d+%")  # a phase's line where stderr is a log
 
 
@@ -103,8 +103,11 @@ def test_fit_prints_its_plan_first_and_a_bar_for_every_phase(long_clip, tmp_path
                  "quick", "--iterations", "12", "--device", "cpu", "--poses", "identity")
     assert result.exit_code == 0, result.output
     lines = result.output.splitlines()
-    assert lines[0].startswith("plan: 8 frames of 32x24 on cpu, 12 iterations") and "ETA" in lines[0]
-    # not a terminal here: a line as each phase starts, "[  1 s] reading 0%" (tomgs.cli.common.ProgressLines)
+    # not a terminal here: a line as each phase starts, "[  1 s] reading 0%" (tomgs.cli.common.ProgressLines),
+    # from the imports ("loading") on; the plan comes before the clip is read
+    said = [line for line in lines if not PROGRESS_LINE.match(line)]
+    assert PROGRESS_LINE.match(lines[0]).group(1) == "loading"
+    assert said[0].startswith("plan: 8 frames of 32x24 on cpu, 12 iterations") and "ETA" in said[0]
     started = [m.group(1) for m in map(PROGRESS_LINE.match, lines) if m]
     assert [p for p in dict.fromkeys(started) if p in PHASES] == list(PHASES)  # each phase, in order
     assert "peak memory" in result.output and "s in all (read" in result.output

@@ -397,6 +397,13 @@ def remove_stale_temporaries(path, older_than_s: float = _OLD_TEMPORARY_AGE) -> 
     return removed
 
 
+def check_unlocked(path, what: str = "fit") -> None:
+    """InputError at once when another process holds `path`'s lock (output_lock): the door's look before
+    any work; the work takes the lock itself (a process that takes it in between is refused then)."""
+    with output_lock(path, what):
+        pass
+
+
 @contextmanager
 def output_lock(path, what: str = "fit") -> Iterator[None]:
     """Hold an advisory lock on output `path` ('.NAME.lock' beside it, holding this process's id)

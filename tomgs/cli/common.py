@@ -54,7 +54,9 @@ class Group(click.Group):
     """The `tomgs` group. Every command runs with SIGINT, SIGTERM and SIGHUP raising an interrupt
     (tomgs.interrupts), so its writers release their files and remove their temporaries on the way
     out; an interrupted command says so in one line and exits 128 + the signal (130 for Ctrl-C,
-    also while it imports). Whatever ends a command, none of its temporaries is left."""
+    also while it imports). Whatever ends a command, none of its temporaries is left. A command's
+    usage mistake (a missing option, an unknown one) is one line, as every other mistake is, naming
+    where the help is, instead of click's usage block."""
 
     def invoke(self, ctx):
         from tomgs.interrupts import held, ignore_stop_signals, raising, signal_name
@@ -63,6 +65,9 @@ class Group(click.Group):
         with raising():
             try:
                 return super().invoke(ctx)
+            except click.UsageError as e:
+                where = e.ctx.command_path if e.ctx is not None else ctx.command_path
+                raise UsageError(f"{e.format_message()} (see '{where} -h')") from None
             except KeyboardInterrupt as e:
                 signum = getattr(e, "signum", signal.SIGINT)
                 ignore_stop_signals()  # a second signal while this one is said and cleaned up: no traceback
@@ -233,7 +238,7 @@ def progress_bar(length: int, label: str, **options):
 
 
 STEPS = 1000  # a phase bar's length: phases count frames, iterations or seconds, shown as a fraction
-PHASE_LABELS = {"read": "reading", "poses": "poses", "compile": "compiling", "init": "initialising",
+PHASE_LABELS = {"load": "loading", "read": "reading", "poses": "poses", "compile": "compiling", "init": "initialising",
                 "train": "training", "save": "saving"}
 
 

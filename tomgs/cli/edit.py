@@ -76,8 +76,8 @@ def edit(scene, output, selectors, translate, rotate, scale, centre, duplicate, 
         raise UsageError("--render goes with a scene output (.ply or .tsog); -o already renders")
     if over and not (render_out or keyframes):
         raise UsageError("--over is what the render goes over: give --render (or --keyframes with a video -o)")
+    check_selectors(selectors)  # the arguments' mistakes before the scene is read
     cameras, _ = check_scene(scene)
-    check_selectors(selectors)
     if keyframes:
         check_existing(keyframes, "--keyframes: file")
     else:

@@ -85,7 +85,7 @@ def fit(video, output, preset, iterations, quality, frames, max_side, masks, pos
       tomgs fit long.mp4 -o scene.ply --gpus 2          # two GPUs, one stretch of the clip each
       torchrun --nproc_per_node 8 -m tomgs.cli fit long.mp4 -o scene.ply
     """
-    from tomgs.outputs import check_fit_outputs
+    from tomgs.outputs import check_distinct, check_fit_outputs, check_unlocked, existing_path, fit_output_paths
     from tomgs.cli.preflight import check_clip, check_device, check_poses
     from tomgs.train.multigpu import pool as rank_pool
 
@@ -93,24 +93,26 @@ def fit(video, output, preset, iterations, quality, frames, max_side, masks, pos
         rank_pool.check_world(gpus, device, rank_pool.visible_gpus(), cores=os.cpu_count())
     if gpus in (None, 1) and not rank_pool.under_torchrun():  # a sharded fit checks its ranks' files itself
         check_fit_outputs(output, resume=resume, overwrite=overwrite)
+        check_unlocked(output)
     to_stdout = check_json(json_out, overwrite)
+    beside = {f"the fit's {what}": path for what, path in fit_output_paths(output).items() if what != "scene"}
+    check_distinct({"-o": output, **beside, "--json": json_out},
+                   {"VIDEO": video, "--masks": masks, "--poses": existing_path(poses)})
     check_device(device)
     check_clip(video, frames, max_side, masks, layer)
     check_poses(poses)
     if gpus is not None:  # the ranks import while this process does (tomgs.train.multigpu.pool)
         rank_pool.start(gpus)
-    from tomgs.outputs import check_distinct, existing_path
-    from tomgs.io.scene import bits_per_pixel
-    from tomgs.train import FitInterrupted, output_paths
-    from tomgs.train import fit as fit_scene
-    from tomgs.train import preset as make_config
-    from tomgs.train.multigpu.launch import ShardFailed
-    from tomgs.train.multigpu.pool import is_leader
-    from tomgs.train.phases import phase_text, process_started
+    with phase_bars() as bars:  # torch and Warp take seconds to import on a busy machine: a log hears of them
+        bars("load", 0, 1, "torch and Warp")
+        from tomgs.io.scene import bits_per_pixel
+        from tomgs.train import FitInterrupted
+        from tomgs.train import fit as fit_scene
+        from tomgs.train import preset as make_config
+        from tomgs.train.multigpu.launch import ShardFailed
+        from tomgs.train.multigpu.pool import is_leader
+        from tomgs.train.phases import phase_text, process_started
 
-    beside = {f"the fit's {what}": path for what, path in output_paths(output).items() if what != "scene"}
-    check_distinct({"-o": output, **beside, "--json": json_out},
-                   {"VIDEO": video, "--masks": masks, "--poses": existing_path(poses)})
     started = process_started()
     overrides = dict(iterations=iterations, max_gaussians=max_gaussians, max_seconds=max_seconds, sampling=sampling,
                      opacity_reset_interval=opacity_reset, sh_degree=sh_degree, compact_pixels=compact_pixels,
@@ -144,7 +146,7 @@ def fit(video, output, preset, iterations, quality, frames, max_side, masks, pos
         rank_pool.dismiss()  # ranks the fit did not take (it refused its inputs first)
     if not is_leader():  # a torchrun rank other than 0: rank 0 reports the run
         return
-    paths = output_paths(output)
+    paths = fit_output_paths(output)
     memory = f"peak memory {result.peak_host_mb / 1024:.2f} GiB host" + (
         "" if result.peak_gpu_mb is None else f", {result.peak_gpu_mb / 1024:.2f} GiB GPU")
     nbytes = Path(output).stat().st_size

@@ -112,21 +112,32 @@ def check_selectors(selectors, cameras=None) -> list:
 
 def check_scene(path, cameras=None):
     """(Cameras, info) of the scene file `path` (tomgs.io.scene.read_scene_clip): its header and
-    cameras, not its Gaussians."""
+    cameras, not its Gaussians. The path itself is checked first (tomgs.io.kinds), before the scene
+    reader and numpy are imported."""
+    from tomgs.io.kinds import check_scene_path
+
+    check_scene_path(path)
     from tomgs.io.scene import read_scene_clip
 
     return read_scene_clip(path, cameras=cameras)
 
 
-def check_render(output, cameras, frames=None, overwrite: bool = False, over=None, device=None) -> None:
-    """A render of `cameras`' frames `frames` to `output` (a video or a PNG folder), before any work:
-    the output's type and place (tomgs.io.writer.check_output), the range (tomgs.render.jobs.select_frames),
-    the scene to render `over` and the device. tomgs.render.jobs.plan_render checks the rest."""
+def check_render_output(output, overwrite: bool = False, device=None) -> None:
+    """The output of a render (a video or a PNG folder: its type and place, tomgs.io.writer.check_output)
+    and its device, from the arguments alone: checked before a scene is read."""
     from tomgs.io.writer import check_output
-    from tomgs.render.jobs import select_frames
 
     check_device(device)
     check_output(output, overwrite)
+
+
+def check_render(output, cameras, frames=None, overwrite: bool = False, over=None, device=None) -> None:
+    """A render of `cameras`' frames `frames` to `output` (a video or a PNG folder), before any work:
+    the output and device (check_render_output), the range (tomgs.render.jobs.select_frames) and the
+    scene to render `over`. tomgs.render.jobs.plan_render checks the rest."""
+    from tomgs.render.jobs import select_frames
+
+    check_render_output(output, overwrite, device)
     select_frames(cameras, frames)
     if over is not None:
         check_scene(over)

@@ -27,10 +27,10 @@ def render(scene, frames, output, device, background, fps, layer_paths, overwrit
       tomgs render edited.ply --cameras cams/cameras.json -o out.mp4   # re-saved by SuperSplat
     """
     from tomgs.outputs import check_distinct
-    from tomgs.cli.preflight import check_render, check_scene
+    from tomgs.cli.preflight import check_render, check_render_output, check_scene
 
     check_distinct({"-o": output}, {"SCENE": scene, "--layer": list(layer_paths), "--cameras": cameras_path})
-
+    check_render_output(output, overwrite, device)  # the arguments' mistakes before the scene is read
     cameras, _ = check_scene(scene, cameras=cameras_path)
     for path in layer_paths:
         check_scene(path)

@@ -16,11 +16,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from tomgs.errors import InputError
-from tomgs.temporal import alive_at, alive_between
+
+if TYPE_CHECKING:
+    import numpy as np
 
 SYNTAX = "box:x0,y0,z0,x1,y1,z1, sphere:x,y,z,r, time:t0,t1, index:FILE.txt or mask:FOLDER"
 _NUMBERS = {"box": 6, "sphere": 4, "time": 2}
@@ -58,6 +59,8 @@ def parse_selector(text: str) -> Selector:
 def select(model, cameras, selectors) -> np.ndarray:
     """Sorted scene indices int64 [n] of the Gaussians of `model` (a GaussianModel seen by `cameras`)
     that every selector (Selector or text) picks; all Gaussians when there is none."""
+    import numpy as np
+
     selectors = [s if isinstance(s, Selector) else parse_selector(s) for s in selectors]
     means = model.means.detach().cpu().double().numpy()
     keep = np.ones(len(means), dtype=bool)
@@ -72,6 +75,8 @@ def select(model, cameras, selectors) -> np.ndarray:
 
 
 def _pick(s: Selector, model, cameras, means: np.ndarray) -> np.ndarray:
+    import numpy as np
+
     if s.kind == "box":
         lo, hi = np.minimum(s.numbers[:3], s.numbers[3:]), np.maximum(s.numbers[:3], s.numbers[3:])
         return ((means >= lo) & (means <= hi)).all(1)
@@ -91,10 +96,14 @@ def _temporal(model) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def _alive_between(model, t0: float, t1: float) -> np.ndarray:
     """bool [N]: o_i(t) >= 1/255 for some t in [t0, t1] (tomgs.temporal, float64)."""
+    from tomgs.temporal import alive_between
+
     return alive_between(*_temporal(model), t0, t1)
 
 
 def _index_file(path: Path, n: int) -> np.ndarray:
+    import numpy as np
+
     if not path.is_file():
         raise InputError(f"--select index:{path}: the file does not exist; give a text file of Gaussian indices")
     limit = 32 * n + 2**20  # room for every index, repeated, with separators and comments of a sane file
@@ -117,6 +126,8 @@ def _index_file(path: Path, n: int) -> np.ndarray:
 def read_masks(folder: Path, cameras) -> np.ndarray:
     """bool [T,H,W] at the scene's image size, one per scene frame, from a folder of mask images:
     one per scene frame, or one per source frame (then picked by the scene's frame numbers)."""
+    import numpy as np
+
     import cv2
 
     from tomgs.io.video import read_image, list_images
@@ -142,6 +153,10 @@ def read_masks(folder: Path, cameras) -> np.ndarray:
 def mask_vote(model, cameras, masks: np.ndarray) -> np.ndarray:
     """bool [N]: the Gaussian's mean falls inside `masks` [T,H,W] in more than half of the frames where
     it is alive (o_i(t_k) >= 1/255) and in front of the camera inside the image."""
+    import numpy as np
+
+    from tomgs.temporal import alive_at
+
     means = model.means.detach().cpu().double().numpy()
     window = _temporal(model)
     inside = np.zeros(len(means), dtype=np.int64)

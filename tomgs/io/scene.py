@@ -65,7 +65,7 @@ import numpy as np
 from tomgs.cameras import Cameras, short_repr
 from tomgs.errors import InputError
 from tomgs.io import tsog
-from tomgs.io.video import VIDEO_EXTS
+from tomgs.io.kinds import SCENE_FIX, check_scene_path
 from tomgs.outputs import atomic_file
 
 if TYPE_CHECKING:  # for the annotation only; load_scene imports the model when it builds one
@@ -295,20 +295,7 @@ def _read_ply_scene(path: Path, given: Cameras | None, fix: str) -> tuple[dict, 
     return header, stored, arrays
 
 
-FIX = "write scenes with `tomgs fit` or tomgs.save_scene"
-
-
-def check_scene_path(path) -> Path:
-    """`path` as a Path once it names an existing file; InputError saying what to give otherwise (a
-    video in a scene's place is named as such)."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"scene file {path} does not exist" + (" (it is a folder)" if path.is_dir() else "")
-                         + f": give the path of a .ply or .tsog scene ({FIX})")
-    if path.suffix.lower() in VIDEO_EXTS:
-        raise InputError(f"{path} is a video, not a scene: give the .ply that `tomgs fit {path.name} -o scene.ply` "
-                         f"writes")
-    return path
+FIX = SCENE_FIX
 
 
 def read_scene_clip(path, cameras=None) -> tuple[Cameras, dict]:

@@ -9,10 +9,12 @@ import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from tomgs.errors import InputError
+
+if TYPE_CHECKING:
+    import numpy as np
 
 VIDEO_EXTS = {".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v"}
 IMAGE_EXTS = {".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff"}
@@ -48,6 +50,8 @@ class Video:
     @property
     def times(self) -> np.ndarray:
         """float64 [T]: frame k of n at t = k / (n - 1); a single frame at t = 0."""
+        import numpy as np
+
         n = len(self.frames)
         return np.arange(n, dtype=np.float64) / max(n - 1, 1)
 
@@ -86,8 +90,8 @@ def parse_frames(spec, total: int | None = None) -> slice:
     return slice(*vals)
 
 
-def _select(total: int, sel: slice, spec, what: Path) -> np.ndarray:
-    idx = np.arange(total)[sel]
+def _select(total: int, sel: slice, spec, what: Path) -> range:
+    idx = range(total)[sel]
     if len(idx) == 0:
         raise InputError(f"frame range {spec!r} selects no frames of {what} ({total} frames): pick a range inside 0:{total}")
     return idx
@@ -243,6 +247,8 @@ class _Frames:
     never held twice (a list of frames stacked at the end was)."""
 
     def __init__(self, path: Path, max_side: int | None, count: int):
+        import numpy as np
+
         self.path, self.max_side, self.count = path, max_side, count
         self.array: np.ndarray | None = None  # uint8 [count, h, w, 3] once the first frame is known
         self.kept = 0
@@ -251,6 +257,8 @@ class _Frames:
         self.flat = True
 
     def add(self, image: np.ndarray, name: str, bgr: bool = True) -> None:
+        import numpy as np
+
         import cv2
 
         if image.ndim != 3 or image.shape[2] != 3:
@@ -299,6 +307,8 @@ def read_video(path, frames=None, max_side: int | None = None, masks=None, progr
     random bytes decode to); for images whose header declares more than MAX_SIDE a side; for
     selected frames that would take more than half of this machine's memory.
     """
+    import numpy as np
+
     import cv2
 
     path = Path(path)
@@ -531,6 +541,8 @@ def _read_video_file(path: Path, sel: slice, spec, max_side, report):
 def _upright(image: np.ndarray, frame) -> np.ndarray:
     """The frame as it is shown: phone clips store portrait frames sideways with a display rotation
     (counter-clockwise degrees), which players apply."""
+    import numpy as np
+
     turns = round((getattr(frame, "rotation", 0) or 0) / 90) % 4
     return np.ascontiguousarray(np.rot90(image, turns)) if turns else image
 
@@ -538,6 +550,8 @@ def _upright(image: np.ndarray, frame) -> np.ndarray:
 def _read_masks(folder: Path, source: Source, idx, size: tuple[int, int]) -> np.ndarray:
     """bool [len(idx), *size] from a folder with one mask per frame of `source` (of its size), each
     resized (nearest) to `size` as it is read."""
+    import numpy as np
+
     import cv2
 
     files = list_images(check_masks(folder, source))
@@ -559,6 +573,8 @@ def read_video_for(path, cameras) -> np.ndarray:
     """uint8 [T,H,W,3]: the frames of `path` that `cameras` (a tomgs.Cameras) were made for, picked by
     source frame number and resized as `read_video` resizes, so a scene meets its own training frames.
     Only the frames the scene has are converted (a regular step is read as a stepped range)."""
+    import numpy as np
+
     numbers = np.asarray(cameras.frame_indices, dtype=np.int64)
     sel = None
     if len(numbers):
@@ -586,6 +602,8 @@ THUMB_TOLERANCE = 2.0  # grey levels: decoders differ by less, another video or 
 def thumbnails(images) -> np.ndarray:
     """uint8 [T, THUMB * THUMB * C]: each image (uint8 or bool [T,H,W(,C)]) as area averages, what
     identifies a clip's frames."""
+    import numpy as np
+
     import cv2
 
     out = []
@@ -598,6 +616,8 @@ def thumbnails(images) -> np.ndarray:
 def differing_thumbnails(a: np.ndarray, b: np.ndarray) -> int:
     """How many rows of thumbnails `b` differ from `a`'s by more than THUMB_TOLERANCE (all of them
     when their shapes differ)."""
+    import numpy as np
+
     a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
     if a.shape != b.shape:
         return len(b)
@@ -627,7 +647,7 @@ def video_differences(path, cameras, record: dict | None) -> tuple[list[str], li
     record = record or {}
     impossible, differ = [], []
     name = Path(path).name
-    last = int(np.max(cameras.frame_indices)) if len(cameras) else -1
+    last = int(cameras.frame_indices.max()) if len(cameras) else -1
     if last >= source.frames:
         impossible.append(f"{name} has {source.frames} frame{'s' if source.frames != 1 else ''}, the scene was "
                           f"fitted on source frame {last}")
@@ -650,6 +670,8 @@ def frame_differences(path, frames: np.ndarray, record: dict | None) -> list[str
     """What differs between `frames` (uint8 [T,H,W,3], read from `path` for a scene by
     `read_video_for`) and the thumbnails of the scene's clip record (`clip_record`): nothing for a
     scene without them."""
+    import numpy as np
+
     import base64
     import binascii
 

@@ -13,11 +13,13 @@ import os
 import re
 from collections.abc import Iterable
 from pathlib import Path
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from tomgs.errors import InputError
 from tomgs.outputs import check_file_output, check_folder_output, discard, publish, temporary, write_failed
+
+if TYPE_CHECKING:
+    import numpy as np
 
 # suffix -> codec: H.264 (yuv420p, index first) through PyAV for the containers browsers and players
 # read (OpenCV's mp4v, MPEG-4 Part 2, plays in no browser); Motion JPEG through OpenCV for .avi
@@ -53,6 +55,8 @@ def write_frames(frames: Iterable[np.ndarray], path, fps: float = 25.0, numbers:
     output is refused unless `overwrite`, and then replaced only on success. Frames are staged in a
     temporary folder beside `path` (tomgs.outputs.temporary), removed on every exit path; the video
     writer is closed once. An OSError while writing (a full disk) names `path` and what was kept."""
+    import numpy as np
+
     import cv2
 
     path = check_output(path, overwrite)
@@ -190,6 +194,8 @@ class _H264Writer:
         self.av = av
 
     def write(self, rgb: np.ndarray) -> None:
+        import numpy as np
+
         if any(self.pad[0] + self.pad[1]):
             rgb = np.pad(rgb, self.pad, mode="edge")
         for packet in self.stream.encode(self.av.VideoFrame.from_ndarray(rgb, format="rgb24")):
@@ -228,6 +234,8 @@ class _MJPGWriter:
         self.path, self.count = path, 0
 
     def write(self, rgb: np.ndarray) -> None:
+        import numpy as np
+
         self.writer.write(np.ascontiguousarray(rgb[..., ::-1]))
         self.count += 1
 

@@ -27,6 +27,7 @@ import torch
 from tomgs.cameras import intrinsics
 from tomgs.poses.ba import bundle_adjust, pick_device, refine_poses, reprojection_errors, so3_exp
 from tomgs.poses.tracks import KLT, WORK_SIDE, FlowMotion, Tracks, WorkingFrames, robust_fit, select_keyframes
+from tomgs.threads import one_cpu_thread
 
 REGISTER_RUN = 1 << 16  # observations refined at once when the frames between keyframes are registered
 
@@ -253,6 +254,11 @@ class Tracker:
         return None if klt is None else klt.tracks(), static0, grays
 
     def solve(self) -> Solution:
+        """The cameras and points of the clip (on a CPU with torch in one thread: tomgs.threads)."""
+        with one_cpu_thread(self.device):
+            return self._solve()
+
+    def _solve(self) -> Solution:
         t0 = time.perf_counter()
         T = self.T_all
         # the fixed-camera check comes after the pass: deciding first would mean reading twice
@@ -770,7 +776,8 @@ def known_camera_points(frames, masks, cams):
         for k in range(1, T):
             tr._triangulate_frame(k)
         if tr._has().sum() >= 50:
-            tr._run_ba(np.zeros(T, bool), iters=10, rest=True)
+            with one_cpu_thread(tr.device):
+                tr._run_ba(np.zeros(T, bool), iters=10, rest=True)
             ci, pi, obs, pts, _ = tr._ba_problem(np.ones(T, bool))
             err = reprojection_errors(tr.Rw, tr.tw, tr.X[pts], tr.K, ci, pi, obs)
             return tr.X[pts], tr._point_colors(pts), float(np.median(err)) / tr.scale

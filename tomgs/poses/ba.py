@@ -91,16 +91,8 @@ def _jacobians(Xc, tc, r, obs, c, f, delta):
 
 
 def _reduced_solve(H: torch.Tensor, Z: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Solve (H - Z^T Z) x = b. On the CPU in one thread: for a few hundred unknowns handing
-    BLAS work to threads costs more than it saves on a busy 2-core machine."""
-    if H.device.type != "cpu":
-        return torch.linalg.solve(H - Z.T @ Z, b)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        return torch.linalg.solve(H - Z.T @ Z, b)
-    finally:
-        torch.set_num_threads(threads)
+    """Solve (H - Z^T Z) x = b (the tracker runs it on the CPU in one thread: tomgs.threads)."""
+    return torch.linalg.solve(H - Z.T @ Z, b)
 
 
 BA_RUN = 1 << 15  # observations whose Jacobians are built at once (~2 kB each; a 1800-frame clip's keyframes: 0.5 GB)

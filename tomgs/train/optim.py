@@ -1,8 +1,9 @@
-"""The optimiser of the trainer's sparse mode: Adam that updates only the Gaussians a step saw.
+"""The optimiser of the trainer's sparse mode: Adam that updates only the Gaussians a step saw (and,
+over every row, the CPU's dense Adam: make_adam).
 
 `SeenAdam.step(seen)` runs torch.optim.Adam's update on the rows whose Gaussian was in view
 (`seen`, bool [N]) and leaves the other rows and their moments alone (tomgs/kernels/adam.py says
-why), all parameters in one launch. Its state has Adam's layout (step, exp_avg, exp_avg_sq per
+why), all parameters in one launch; `step()` updates every row. Its state has Adam's layout (step, exp_avg, exp_avg_sq per
 parameter), so densification's moment surgery and checkpoints treat both optimisers alike.
 """
 
@@ -21,13 +22,14 @@ def uses_seen_adam(config, device: torch.device) -> bool:
 
 def make_adam(params: dict[str, torch.nn.Parameter], lr: dict[str, float], sparse: bool,
               device: torch.device) -> torch.optim.Optimizer | SeenAdam:
-    """One group per parameter (named, with its learning rate `lr[name]`): SeenAdam when `sparse`,
-    else torch's Adam, fused on a GPU (one kernel for all groups; the foreach path took 2 ms at 4.5M
-    Gaussians)."""
+    """One group per parameter (named, with its learning rate `lr[name]`): SeenAdam when `sparse`;
+    else dense Adam: on a GPU torch's, fused (one kernel for all groups; the foreach path took 2 ms at
+    4.5M Gaussians), on a CPU SeenAdam over every row (`step()`: the same update), since torch's
+    Adam imports torch._dynamo when it is made (1.5 s of an idle 2-core CPU, 5.6 s of a busy one)."""
     groups = [dict(params=[p], lr=lr[name], name=name) for name, p in params.items()]
-    if sparse:
+    if sparse or device.type == "cpu":
         return SeenAdam(groups, lr=0.0, eps=1e-15)
-    return torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=device.type == "cuda")
+    return torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=True)
 
 
 class SeenAdam:
@@ -49,6 +51,7 @@ class SeenAdam:
                 raise ValueError("SeenAdam takes betas and eps for all groups at once, not per group")
             self.param_groups.append(group)
         self._empty: dict[torch.device, torch.Tensor] = {}  # the stand-in of an unused slot, per device
+        self._every: dict[torch.device, torch.Tensor] = {}  # a dense step's `seen`, per device
 
     def zero_grad(self, set_to_none: bool = True) -> None:
         for group in self.param_groups:
@@ -115,8 +118,9 @@ class SeenAdam:
         return group["lr"], 1.0 - beta1 ** step, math.sqrt(1.0 - beta2 ** step)
 
     @torch.no_grad()
-    def step(self, seen: torch.Tensor) -> None:
-        """One Adam step on the rows where `seen` (bool [N], N = every parameter's first axis) is True."""
+    def step(self, seen: torch.Tensor | None = None) -> None:
+        """One Adam step on the rows where `seen` (bool [N], N = every parameter's first axis) is True;
+        None: on every row (dense Adam, as torch.optim.Adam steps)."""
         from tomgs.kernels import adam
         from tomgs.runtime import launch, scope, wrap, wrap_rows
 
@@ -126,6 +130,8 @@ class SeenAdam:
             for p in group["params"]:
                 if p.grad is None or p.numel() == 0:
                     continue
+                if seen is None:
+                    seen = self._every_row(p.shape[0], p.device)
                 if p.shape[0] != seen.shape[0]:
                     raise ValueError(f"seen has {seen.shape[0]} rows but the parameter has {p.shape[0]}")
                 state = self.state_of(p)
@@ -146,6 +152,14 @@ class SeenAdam:
                 launch(adam.adam_seen_rows, seen.shape[0], device=device, args=[
                     *arrays, wrap(seen), adam.vec_slots(*lr), adam.vec_slots(*bias1), adam.vec_slots(*bias2_sqrt),
                     beta1, beta2, self.defaults["eps"]])
+
+
+    def _every_row(self, rows: int, device: torch.device) -> torch.Tensor:
+        """bool [rows] of True on `device`, kept while the row count holds (dense steps)."""
+        every = self._every.get(device)
+        if every is None or every.shape[0] != rows:
+            every = self._every[device] = torch.ones(rows, dtype=torch.bool, device=device)
+        return every
 
 
 def adam_estimates(optimizer: torch.optim.Optimizer) -> dict[str, tuple[torch.Tensor, torch.Tensor, int]]:

@@ -3,14 +3,18 @@ budget, the Gaussian cap and the initial points, and when it will end (ETA). `fi
 so a user knows from the first second what to expect, and follows it.
 
 Time comes from a cost model per device (seconds per training step: a + b Gaussians + c pixels;
-the same for a full-clip render; decoding and poses per pixel). The CPU's was fitted on an idle
-2-core machine (the bundled clip at 64x36 and 128x72 with 16k-256k Gaussians; a loaded machine is
-2-3 times slower); the GPU's is a first guess for the benchmarks to correct. A plan with a budget
-ends at the budget whatever the model says, since training takes the time the other phases leave.
+the same for a frame's render; decoding and poses per pixel), and a fit's training is its steps and
+what the trainer measures beside them: the clip PSNRs (at most EVAL_OVERHEAD of the steps), the
+quality rule's rounds (ROUND_PASSES renders of every frame each) and the end (the compaction and the
+last clip PSNR). The CPU's is CPU time with torch in one thread (what an idle machine's wall time is;
+tomgs.threads), measured on the bundled clip at 160x96 and 80x48 with 4k-128k Gaussians on the
+2-core machine of the workplace; a machine that other work keeps busy takes longer in wall time, by
+its load. The GPU's is a first guess for the benchmarks to correct. A plan with a budget ends at the
+budget whatever the model says, since training takes the time the other phases leave.
 
 Capacity follows the clip and the device. The cap on Gaussians grows with the square root of the
 clip's pixels (frames x width x height; 10M for a DAVIS clip, 90 frames of 854x480, where the paper
-used 10M), bounded on a GPU by its free memory. On a CPU, where every step costs ~3.5 us per
+used 10M), bounded on a GPU by its free memory. On a CPU, where every step costs ~2.7 us per
 Gaussian (the Warp kernels run serially), the starting cloud is at most what the time left can step
 MIN_STEPS times, and the cap CAP_OVER_START times that.
 """
@@ -22,13 +26,16 @@ from dataclasses import dataclass, field
 
 from tomgs.errors import counted
 
-# seconds per training step (render, loss, backward, Adam): a + b * Gaussians + c * pixels
-# (cuda: the H100's, from benchmarks/results/phone_*.json and camel_fit.json: 10-16 ms a step at 0.4-2 Mpx)
-STEP_COST = {"cpu": (0.03, 3.5e-6, 4e-6), "cuda": (6e-3, 0.6e-9, 2.5e-9)}
-# seconds per forward render of one frame (full-clip PSNR, evaluation)
-RENDER_COST = {"cpu": (0.005, 1.7e-6, 1e-6), "cuda": (1e-3, 0.5e-9, 2e-9)}
+# seconds per training step (render, loss, backward, Adam): a + b * Gaussians + c * pixels (cpu: CPU seconds of
+# the bundled clip's steps, 0.135-0.497 s at 160x96 with 4k-128k Gaussians, 0.054-0.182 s at 80x48 with 4k-64k;
+# cuda: the H100's, from benchmarks/results/phone_*.json and camel_fit.json: 10-16 ms a step at 0.4-2 Mpx)
+STEP_COST = {"cpu": (0.023, 2.7e-6, 7.5e-6), "cuda": (6e-3, 0.6e-9, 2.5e-9)}
+# seconds per forward render of one frame (clip PSNR; cpu: 0.050-0.200 s at 160x96, 0.021-0.062 s at 80x48)
+RENDER_COST = {"cpu": (0.002, 1.1e-6, 3.5e-6), "cuda": (1e-3, 0.5e-9, 2e-9)}
 DECODE_COST = 10e-9  # seconds per source pixel decoded and converted (H.264, 2 cores)
-POSE_COST = {"cpu": 1e-6, "cuda": 7e-9}  # seconds per fitted pixel of the built-in tracker (H100: 900 x 1080p in 12.7 s)
+# seconds per fitted pixel of the built-in tracker (cpu: the bundled clip without masks, 3.0 CPU seconds for 40
+# frames of 160x96; H100: 900 x 1080p in 12.7 s)
+POSE_COST = {"cpu": 4e-6, "cuda": 7e-9}
 # seconds of a first run's kernel compilation (Warp compiles each module at its first launch and caches it; a
 # fresh 2-core CPU spent ~54 s; the GPU's is a first guess)
 COMPILE_COST = {"cpu": 60.0, "cuda": 30.0}
@@ -83,7 +90,7 @@ class FitPlan:
     @property
     def eta(self) -> float:
         """Seconds from the start to the scene file: the phases' estimates, at most the budget."""
-        total = sum(self.phases.values())
+        total = round(sum(self.phases.values()), 6)  # training fills a budget to the float's last bits
         return min(self.budget, total) if self.budget > 0 else total
 
     def summary(self) -> str:
@@ -154,10 +161,14 @@ def make_plan(config, frames: int, height: int, width: int, source_pixels: int, 
     per_frame = config.replace(max_gaussians=cap).points_per_frame(pixels, frames, device_type)
     start = per_frame * frames
 
-    def train_estimate(n0: int) -> float:  # the steps and the last full-clip PSNR
+    def train_estimate(n0: int) -> float:  # the steps, the measurements and rounds beside them, the end
+        from tomgs.train.trainer import COMPACT_SHARE, EVAL_OVERHEAD, ROUND_PASSES
+
         grown = min(cap, 2 * n0)  # the cloud grows while it densifies: its mean size, roughly
-        return config.iterations * step_seconds(device_type, grown, pixels) + \
-            frames * render_seconds(device_type, grown, pixels)
+        clip = frames * render_seconds(device_type, grown, pixels)  # one clip PSNR
+        rounds = config.sparsify_rounds * ROUND_PASSES * clip if config.quality != "max" else 0.0
+        end = (COMPACT_SHARE * clip if config.compact_pixels > 0 else 0.0) + clip
+        return config.iterations * step_seconds(device_type, grown, pixels) * (1 + EVAL_OVERHEAD) + rounds + end
 
     def save(n: int) -> float:
         return SAVE_COST[0] + SAVE_COST[1] * min(cap, 2 * n)

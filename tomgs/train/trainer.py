@@ -75,6 +75,11 @@ COMPACT_SHARE = 3.0
 # they would cost more (a busy machine, slow first steps, a long clip), the compaction is left out and the
 # last measurement covers evenly spaced frames, so that the budget goes to training
 END_SHARE = 0.1
+# a round of the quality rule (tomgs.train.sparsify) costs what this many clip PSNRs cost: its importance pass
+# (a render and its backward a frame) and the pass without the Gaussians it proposes; under a time limit a
+# round is taken only where it and the run's end fit in the time left (a busy 2-core CPU's round on the
+# bundled clip took 15 s of a 40-s budget's last 8 and ran the fit over by as much)
+ROUND_PASSES = 3.0
 RENDER_SHARE = 0.5  # a forward render's time over a training step's (CPU, the bundled clip: 0.11 / 0.22 s)
 # a clip PSNR reads a frame's counts this many frames after issuing it: late enough that the read does not
 # wait, and few, since each frame in flight holds its image until then (all 90 of camel's in flight, each with
@@ -489,15 +494,18 @@ class Trainer:
                         self.progress < c.densify_stop_fraction:
                     self._grow()
                 rounded = None  # (clip PSNR, frames, Gaussians measured) of a round of the quality rule
+                # until one is measured, a frame of the clip PSNR costs what RENDER_SHARE of a step costs
+                frame_seconds = self.eval_frame_seconds or RENDER_SHARE * (step_seconds or 0.0)
                 # a round prices its prune against the clip PSNR, which dips for a few dozen steps after a change
-                if self.iteration - self.densifier.changed_at >= settle and self.sparsifier.due(self.progress):
+                if self.iteration - self.densifier.changed_at >= settle and \
+                        self._round_fits(limit - now if limit > 0 else math.inf, frame_seconds) and \
+                        self.sparsifier.due(self.progress):
                     size = len(self.model)
                     began = time.perf_counter()
                     measured = take_round(self, self.sparsifier, lambda text: tick(self.iteration, now, text))
                     if measured is not None:
                         rounded = (*measured, size)
                         next_eval = now + max(c.eval_interval_s, (time.perf_counter() - began) / EVAL_OVERHEAD)
-                # until one is measured, a frame of the clip PSNR costs what RENDER_SHARE of a step costs
                 frame_seconds = self.eval_frame_seconds or RENDER_SHARE * (step_seconds or 0.0)
                 ending = self._ending(frame_seconds)
                 out_of_time = 0 < limit <= now + min(sum(ending), END_SHARE * limit)
@@ -577,6 +585,21 @@ class Trainer:
         taking `frame_seconds`."""
         full = frame_seconds * self.num_frames
         return (COMPACT_SHARE * full if self.config.compact_pixels > 0 else 0.0), full
+
+    def _round_fits(self, left: float, frame_seconds: float) -> bool:
+        """Whether a round of the quality rule (ROUND_PASSES clip PSNRs) and the run's end fit in the `left`
+        seconds of the limit (inf: none), once the rounds' window has come; the first that does not ends
+        the rounds, said in `notes`."""
+        full = frame_seconds * self.num_frames
+        if not self.sparsifier.active or self.progress < self.sparsifier.start or \
+                ROUND_PASSES * full + sum(self._ending(frame_seconds)) <= left:
+            return True
+        if not self.sparsifier.stopped:
+            self.sparsifier.stopped = "the time left"
+            self.notes.append(f"quality rounds left out from {left:.0f} s before the time limit: a round (~"
+                              f"{ROUND_PASSES * full:.0f} s) and the end did not fit (--quality max keeps every "
+                              f"Gaussian without them)")
+        return False
 
     def _end(self, left: float, frame_seconds: float, tick) -> int:
         """The end of a run with `left` seconds of its limit (inf: none): the compaction, when it fits
