@@ -32,6 +32,19 @@ def test_the_readme_quick_start_fits_the_bundled_clip_and_edits_it():
     assert any("--layer" in c for c in commands)
 
 
+def test_every_picture_the_readme_shows_is_in_the_tree():
+    import re
+
+    text = (ROOT / "README.md").read_text()
+    pictures = re.findall(r'<img src="([^"]+)"', text) + re.findall(r"!\[[^\]]*\]\(([^)]+)\)", text)
+    assert len(pictures) >= 18 and all((ROOT / p).is_file() for p in pictures), pictures
+    # each folder a quick-start command renders has its pictures shown (make.py names them FOLDER-FRAME.png)
+    shown = {Path(p).name.split("-")[0] for p in pictures if p.startswith("assets/example/")}
+    rendered = {Path(c[c.index("--render") + 1] if "--render" in c else c[c.index("-o") + 1]).name
+                for c in quick_start() if c[0] in ("render", "edit")}
+    assert rendered <= shown, rendered - shown
+
+
 @pytest.mark.slow  # three short fits and their renders
 def test_the_quick_start_runs_and_every_edit_changes_the_frames(tmp_path, monkeypatch):
     import cv2
