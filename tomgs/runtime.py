@@ -20,9 +20,11 @@
     kernels_compiled(device_type)    whether this machine has compiled these kernels for that device
                                      before (a marker in Warp's kernel cache); mark_kernels_compiled
                                      writes it once a fit has run them
+    one_cpu_thread(device)           a context: torch's CPU ops in one thread while it runs on a CPU
+                                     device (the tracker and a fit; see there)
 
-Used by tomgs.render (the rasterizer), tomgs.metrics (SSIM), tomgs.train.optim (SeenAdam) and
-tomgs.edit.physics (XPBD). Every buffer is a torch tensor handed to Warp without a copy, so torch's
+Used by tomgs.render (the rasterizer), tomgs.metrics (SSIM), tomgs.train.optim (SeenAdam),
+tomgs.edit.physics (XPBD), and tomgs.poses and tomgs.train.pipeline (one_cpu_thread). Every buffer is a torch tensor handed to Warp without a copy, so torch's
 allocator and memory statistics see all of it.
 
 Warp has no public name for its array descriptor (the ctypes structure that kernels receive);
@@ -53,7 +55,8 @@ import warp._src.context as _warp_context  # private: only for sort_pairs (see t
 from tomgs.errors import RenderError
 
 __all__ = ["resolve_device", "kernels_compiled", "mark_kernels_compiled", "init_warp", "warp_device", "scope", "torch_stream", "wrap", "wrap_rows", "wrap_flat", "NO_ARRAY",
-           "indexable", "struct_values", "launch", "Launches", "whole_blocks", "ArrayDescriptor", "sort_pairs"]
+           "indexable", "struct_values", "launch", "Launches", "whole_blocks", "ArrayDescriptor", "sort_pairs",
+           "one_cpu_thread"]
 
 _warp_ready = False
 
@@ -441,3 +444,23 @@ def sort_pairs(keys: torch.Tensor, values: torch.Tensor, count: int, end_bit: in
     # the native sort runs on Warp's current stream of the current device: torch's, for this call only
     with wp.ScopedStream(torch_stream(warp_device(keys.device)), sync_enter=False):
         core.wp_radix_sort_pairs_int64_device(*args)
+
+
+# torch on a CPU: many small ops (the tracker's bundle adjustment: a few hundred unknowns; a training step's
+# loss and bookkeeping around the Warp kernels, which run serially anyway). Handing each op to a second
+# thread costs more than it saves, and on a 2-core machine that other work keeps busy the thread that waits
+# for the other at every op is where the time goes: at load ~8 the bundled clip's poses took 45 s of wall
+# time in two threads and 5.7 s in one, and 80 training steps 326 s against 158 s, same cameras and scene.
+@contextlib.contextmanager
+def one_cpu_thread(device):
+    """torch's CPU ops in one thread while the block runs, where `device` is a CPU (a GPU's work is
+    left as it is); the thread count before it is restored after."""
+    if torch.device(device).type != "cpu":
+        yield
+        return
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)

@@ -27,7 +27,7 @@ import torch
 from tomgs.cameras import intrinsics
 from tomgs.poses.ba import bundle_adjust, pick_device, refine_poses, reprojection_errors, so3_exp
 from tomgs.poses.tracks import KLT, WORK_SIDE, FlowMotion, Tracks, WorkingFrames, robust_fit, select_keyframes
-from tomgs.threads import one_cpu_thread
+from tomgs.runtime import one_cpu_thread
 
 REGISTER_RUN = 1 << 16  # observations refined at once when the frames between keyframes are registered
 
@@ -254,7 +254,7 @@ class Tracker:
         return None if klt is None else klt.tracks(), static0, grays
 
     def solve(self) -> Solution:
-        """The cameras and points of the clip (on a CPU with torch in one thread: tomgs.threads)."""
+        """The cameras and points of the clip (on a CPU with torch in one thread: tomgs.runtime.one_cpu_thread)."""
         with one_cpu_thread(self.device):
             return self._solve()
 

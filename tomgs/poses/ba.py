@@ -91,7 +91,7 @@ def _jacobians(Xc, tc, r, obs, c, f, delta):
 
 
 def _reduced_solve(H: torch.Tensor, Z: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Solve (H - Z^T Z) x = b (the tracker runs it on the CPU in one thread: tomgs.threads)."""
+    """Solve (H - Z^T Z) x = b (the tracker runs it on the CPU in one thread: tomgs.runtime.one_cpu_thread)."""
     return torch.linalg.solve(H - Z.T @ Z, b)
 
 

@@ -1,7 +1,7 @@
 """The clip as a fit records it, so that a resume finds the same one: the options that change its frames
 (built once, for one process and for every rank), what identifies its frames (source frame numbers,
-size, thumbnails of every frame and mask), and the checks a resume makes against a checkpoint; and
-the frame rate the scene plays at."""
+size, thumbnails of every frame and mask), and the checks a resume makes against a checkpoint; the
+frame rate the scene plays at; and where a trainer keeps the frames (`frame_store`, `uint8_planes`)."""
 
 from __future__ import annotations
 
@@ -107,3 +107,26 @@ def clip_fps(clip) -> float:
     if len(steps) and steps[0] > 1 and np.all(steps == steps[0]):
         fps /= int(steps[0])
     return float(fps)
+
+
+FRAME_MEMORY_SHARE = 0.25  # of the free GPU memory: frames beyond it stay on the host
+
+
+def frame_store(nbytes: float, device: torch.device) -> torch.device:
+    """Where the clip's uint8 frames live: on `device`, or on the host when they would take more than
+    FRAME_MEMORY_SHARE of a GPU's free memory (each step then copies one frame over)."""
+    if device.type != "cuda":
+        return device
+    free, _ = torch.cuda.mem_get_info(device)
+    return device if nbytes <= FRAME_MEMORY_SHARE * free else torch.device("cpu")
+
+
+def uint8_planes(values, shape, name: str, device) -> torch.Tensor:
+    """uint8 [T,H,W] (255 = 1) as given, or float [T,H,W] in [0,1] converted frame by frame -> uint8
+    [T,H,W] on `device` (stored like the frames, converted per step)."""
+    values = np.asarray(values)
+    if values.shape != tuple(shape):
+        raise ValueError(f"{name} must have shape {tuple(shape)} like the frames, got {values.shape}")
+    if values.dtype != np.uint8:
+        values = np.stack([np.rint(np.clip(v.astype(np.float32), 0.0, 1.0) * 255.0).astype(np.uint8) for v in values])
+    return torch.as_tensor(values, device=device)

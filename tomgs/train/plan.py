@@ -7,7 +7,7 @@ the same for a frame's render; decoding and poses per pixel), and a fit's traini
 what the trainer measures beside them: the clip PSNRs (at most EVAL_OVERHEAD of the steps), the
 quality rule's rounds (ROUND_PASSES renders of every frame each) and the end (the compaction and the
 last clip PSNR). The CPU's is CPU time with torch in one thread (what an idle machine's wall time is;
-tomgs.threads), measured on the bundled clip at 160x96 and 80x48 with 4k-128k Gaussians on the
+tomgs.runtime.one_cpu_thread), measured on the bundled clip at 160x96 and 80x48 with 4k-128k Gaussians on the
 2-core machine of the workplace; a machine that other work keeps busy takes longer in wall time, by
 its load. The GPU's is a first guess for the benchmarks to correct. A plan with a budget ends at the
 budget whatever the model says, since training takes the time the other phases leave.
@@ -49,6 +49,17 @@ MIN_STEPS = 500  # a CPU fit must be able to step its starting cloud this many t
 # the iterations of a fit whose budget was asked for (TrainConfig.stop_at_iterations False): more than any
 # budget holds, so the budget alone ends the training and its schedules follow the clock
 UNTIL_BUDGET = 2**31 - 1
+# What the trainer (tomgs.train.trainer) spends beside its steps, which it and the estimates here share:
+# Clip PSNR measurements may cost at most this fraction of the run (a long clip's takes seconds).
+EVAL_OVERHEAD = 0.1
+# the compaction at a run's end costs per frame what this many frames of a clip PSNR cost (a forward and
+# a backward: camel's 1-minute scene on the H100, 0.5 s for 90 frames, ~5.6 ms a frame against ~2)
+COMPACT_SHARE = 3.0
+# a round of the quality rule (tomgs.train.sparsify) costs what this many clip PSNRs cost: its importance pass
+# (a render and its backward a frame) and the pass without the Gaussians it proposes; under a time limit a
+# round is taken only where it and the run's end fit in the time left (a busy 2-core CPU's round on the
+# bundled clip took 15 s of a 40-s budget's last 8 and ran the fit over by as much)
+ROUND_PASSES = 3.0
 CAP_OVER_START = 3  # time-bound cap: this many times the starting cloud
 REFERENCE_CAP, REFERENCE_PIXELS = 10_000_000, 90 * 854 * 480  # DAVIS clip: the paper's 10M cap
 MIN_CAP = 100_000
@@ -162,8 +173,6 @@ def make_plan(config, frames: int, height: int, width: int, source_pixels: int, 
     start = per_frame * frames
 
     def train_estimate(n0: int) -> float:  # the steps, the measurements and rounds beside them, the end
-        from tomgs.train.trainer import COMPACT_SHARE, EVAL_OVERHEAD, ROUND_PASSES
-
         grown = min(cap, 2 * n0)  # the cloud grows while it densifies: its mean size, roughly
         clip = frames * render_seconds(device_type, grown, pixels)  # one clip PSNR
         rounds = config.sparsify_rounds * ROUND_PASSES * clip if config.quality != "max" else 0.0

@@ -45,6 +45,7 @@ from tomgs.train.checkpoint import (FORMAT, START_OVER, VERSION, CheckpointWrite
                                     StopSignals, check_same_settings, config_from, config_to_dict, own_copies,
                                     read_checkpoint, state_bytes, write_checkpoint)
 from tomgs.train.captured_step import CapturedStep, unsupported
+from tomgs.train.clip import frame_store, uint8_planes
 from tomgs.train.config import TrainConfig
 from tomgs.train.densify import Densifier
 from tomgs.train.growth import Growth
@@ -52,6 +53,7 @@ from tomgs.train.init import initial_model
 from tomgs.train.log import log_memory_mb, write_csv
 from tomgs.train.sparsify import Sparsifier, take_round
 from tomgs.train.optim import make_adam, uses_seen_adam
+from tomgs.train.plan import COMPACT_SHARE, EVAL_OVERHEAD, ROUND_PASSES
 from tomgs.train.sampler import FrameSampler
 
 # The sampler hears each step's PSNR up to this many steps late: reading it back every step made the
@@ -60,26 +62,16 @@ SAMPLER_LAG = 8
 # A save may cost at most this fraction of the training time: with slow saves (millions of
 # Gaussians, a slow disk) checkpoints are spaced to 1 / CHECKPOINT_OVERHEAD times a save's duration.
 CHECKPOINT_OVERHEAD = 0.05
-# Clip PSNR measurements may cost at most this fraction of the run (a long clip's takes seconds).
-EVAL_OVERHEAD = 0.1
 CHEAP_EVAL = 1.0  # seconds: a measurement this quick is taken whenever it is due
 # Before the last, a measurement the run cannot yet pay for in full covers evenly spaced frames: as
 # many as EVAL_OVERHEAD allows, or up to EVAL_FRAMES that take CHEAP_EVAL, never fewer than
 # MIN_EVAL_FRAMES (a 900-frame 1080p clip's full measurement first fitted the 10% after 1.5 minutes)
 EVAL_FRAMES = 64
 MIN_EVAL_FRAMES = 8
-# the compaction at a run's end costs per frame what this many frames of a clip PSNR cost (a forward and
-# a backward: camel's 1-minute scene on the H100, 0.5 s for 90 frames, ~5.6 ms a frame against ~2)
-COMPACT_SHARE = 3.0
 # A budget's end (the compaction and the last clip PSNR) keeps at most this share of the training time: when
 # they would cost more (a busy machine, slow first steps, a long clip), the compaction is left out and the
 # last measurement covers evenly spaced frames, so that the budget goes to training
 END_SHARE = 0.1
-# a round of the quality rule (tomgs.train.sparsify) costs what this many clip PSNRs cost: its importance pass
-# (a render and its backward a frame) and the pass without the Gaussians it proposes; under a time limit a
-# round is taken only where it and the run's end fit in the time left (a busy 2-core CPU's round on the
-# bundled clip took 15 s of a 40-s budget's last 8 and ran the fit over by as much)
-ROUND_PASSES = 3.0
 RENDER_SHARE = 0.5  # a forward render's time over a training step's (CPU, the bundled clip: 0.11 / 0.22 s)
 # a clip PSNR reads a frame's counts this many frames after issuing it: late enough that the read does not
 # wait, and few, since each frame in flight holds its image until then (all 90 of camel's in flight, each with
@@ -146,7 +138,7 @@ class Trainer:
         self.store = frame_store(frames.nbytes * (1 + (weights is not None) / 3 + (alpha_targets is not None) / 3),
                                   device)
         self.frames = torch.as_tensor(frames, device=self.store)
-        self.weights, self.alpha_targets = (None if a is None else _as_uint8(a, frames.shape[:3], name, self.store)
+        self.weights, self.alpha_targets = (None if a is None else uint8_planes(a, frames.shape[:3], name, self.store)
                                             for a, name in ((weights, "weights"), (alpha_targets, "alpha_targets")))
         self.viewmats = cameras.viewmats(device)
         self.K = torch.as_tensor(cameras.K, dtype=torch.float32, device=device)
@@ -782,29 +774,6 @@ class Trainer:
         if changed:
             self.notes.append(f"resumed at iteration {self.iteration} with other settings: {', '.join(changed)}")
         return state
-
-
-FRAME_MEMORY_SHARE = 0.25  # of the free GPU memory: frames beyond it stay on the host
-
-
-def frame_store(nbytes: float, device: torch.device) -> torch.device:
-    """Where the clip's uint8 frames live: on `device`, or on the host when they would take more than
-    FRAME_MEMORY_SHARE of a GPU's free memory (each step then copies one frame over)."""
-    if device.type != "cuda":
-        return device
-    free, _ = torch.cuda.mem_get_info(device)
-    return device if nbytes <= FRAME_MEMORY_SHARE * free else torch.device("cpu")
-
-
-def _as_uint8(values, shape, name: str, device) -> torch.Tensor:
-    """uint8 [T,H,W] (255 = 1) as given, or float [T,H,W] in [0,1] converted frame by frame -> uint8
-    [T,H,W] on `device` (stored like the frames, converted per step)."""
-    values = np.asarray(values)
-    if values.shape != tuple(shape):
-        raise ValueError(f"{name} must have shape {tuple(shape)} like the frames, got {values.shape}")
-    if values.dtype != np.uint8:
-        values = np.stack([np.rint(np.clip(v.astype(np.float32), 0.0, 1.0) * 255.0).astype(np.uint8) for v in values])
-    return torch.as_tensor(values, device=device)
 
 
 def spread(total: int, count: int) -> np.ndarray:

@@ -42,7 +42,8 @@ from tomgs.outputs import fit_output_paths
 from tomgs.train.phases import peak_memory, process_started, train_ticks
 from tomgs.train.plan import SAVE_COST, make_plan, render_seconds
 from tomgs.train.log import write_csv, write_plot
-from tomgs.train.trainer import Trainer, frame_store
+from tomgs.train.clip import frame_store
+from tomgs.train.trainer import Trainer
 from tomgs.train.warm import WarmUp
 
 GROUP_TIMEOUT = timedelta(hours=1)  # a collective waits this long (rank 0's poses on a long clip come first)
