@@ -25,7 +25,7 @@ class Densifier:
         self.threshold = config.threshold(torch.device(device).type)
         self.generator = torch.Generator(device=device).manual_seed(seed + 1)
         self.reset_stats(num_gaussians, device)
-        self.limit = int(config.max_gaussians)  # the most Gaussians now: the cap, or a stage's (tomgs.train.growth)
+        self.limit = config.max_gaussians  # the most Gaussians now: the cap, or a stage's (tomgs.train.growth)
         self.capped = False  # at the limit
         self.stopped = False  # growth ended by the quality's price (tomgs.train.growth)
         self.changed_at = 0  # the iteration of the last densification, prune or opacity reset
@@ -203,7 +203,7 @@ class Densifier:
         self.changed_at = int(state.get("changed_at", 0))  # checkpoints before it: as if unchanged
         self.stopped = bool(state.get("stopped", False))  # checkpoints before it: growth never stopped
         self.densified_at = int(state.get("densified_at", 0))
-        self.limit = int(state.get("limit", self.config.max_gaussians))  # checkpoints before it: the cap
+        self.limit = state.get("limit", self.config.max_gaussians)  # checkpoints before it: the cap
 
 
 def _limit(clone: torch.Tensor, split: torch.Tensor, room: int, grads: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
