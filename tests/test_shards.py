@@ -443,13 +443,17 @@ def start_fit(clip, out: Path, iterations: int) -> subprocess.Popen:
 
 
 def rank_pids(process: subprocess.Popen, out: Path, timeout: float = 240.0) -> dict[int, int]:
-    """The ranks' pids from their first line on stderr, once both have saved a checkpoint."""
-    pids, began = {}, time.monotonic()
+    """The ranks' pids from their first line on stderr, once both have saved a checkpoint. A rank's line may
+    land inside a line of the parent's progress (written in parts), so it is looked for anywhere in a line."""
+    import re
+
+    pids, began, read = {}, time.monotonic(), []
     while len(pids) < 2:
         line = process.stderr.readline()
-        assert line or process.poll() is None, "the fit ended before its ranks started"
-        if line.startswith("rank ") and "(pid " in line:
-            pids[int(line.split()[1].split("/")[0])] = int(line.split("(pid ")[1].split(",")[0])
+        read.append(line)
+        assert line or process.poll() is None, f"the fit ended before its ranks started: {''.join(read)[-3000:]}"
+        for rank, pid in re.findall(r"rank (\d+)/\d+ \(pid (\d+),", line):
+            pids[int(rank)] = int(pid)
         assert time.monotonic() - began < timeout
     while not all(p["checkpoint"].is_file() for p in rank_paths(out, 2)):
         assert process.poll() is None and time.monotonic() - began < timeout, process.stderr.read()[-2000:]
@@ -513,6 +517,7 @@ def test_a_failing_caller_stops_every_rank(clip, tmp_path, capfd):
     outlives the call. The ranks are the processes it runs (multiprocessing's, named tomgs-rankN) when
     the callback fails: rank 1 may not have said its pid yet, since rank 0 logs without waiting for it."""
     import multiprocessing
+    import re
 
     frames, cams, _ = clip
     out = tmp_path / "scene.ply"
@@ -525,8 +530,7 @@ def test_a_failing_caller_stops_every_rank(clip, tmp_path, capfd):
     with pytest.raises(RuntimeError, match="display broke"):
         fit(frames, out, small_config(ITERATIONS, checkpoint_interval_s=0.2), gpus=2, device="cpu",
             poses=str(cams), progress=progress)
-    said = [int(line.split("(pid ")[1].split(",")[0]) for line in capfd.readouterr().err.splitlines()
-            if line.startswith("rank ") and "(pid " in line]
+    said = [int(pid) for pid in re.findall(r"rank \d+/\d+ \(pid (\d+),", capfd.readouterr().err)]
     assert len(pids) == 2 and set(said) <= set(pids), (pids, said)
     for pid in pids:
         with pytest.raises(ProcessLookupError):
