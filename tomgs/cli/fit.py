@@ -153,8 +153,7 @@ def fit(video, output, preset, iterations, quality, frames, max_side, masks, pos
     bpp = bits_per_pixel(nbytes, result.cameras)
     if not to_stdout:
         frames = len(result.cameras)
-        # a foreground layer trains on each frame twice (the mirrored view too): all of them is the full clip
-        covered = "full-clip PSNR" if result.clip_frames == 0 or result.clip_frames >= frames else \
+        covered = "full-clip PSNR" if result.clip_frames in (0, frames) else \
             f"clip PSNR over {result.clip_frames} of {frames} frames"
         click.echo(f"{output}: {len(result.model):,} Gaussians, {result.iterations:,} iterations in "
                    f"{result.seconds:.1f} s, {covered} {result.clip_psnr:.2f} dB")

@@ -243,6 +243,8 @@ def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses
                 config={k: v for k, v in vars(config).items()}, notes=result.notes, clip=record)
     if layer is not None:
         info["layer"] = layer
+    if result.clip_frames == trainer.num_frames:  # every view trained on (a foreground layer's: each frame and
+        result.clip_frames = len(cameras)       # its mirror) is every frame of the clip
     result.cameras = cameras
     phases("save", 0, 2, None)
     try:

@@ -157,7 +157,7 @@ class Trainer:
         self.densifier = Densifier(self.config, self.extent, len(self.model), device, config.seed, self.times)
         self.sparsifier = Sparsifier(self.config, self.height * self.width)
         supervised = self.num_frames * self.height * self.width if self.weights is None else \
-            float(self.weights.float().sum()) / 255.0
+            float(self.weights.sum(dtype=torch.float64)) / 255.0  # no float copy of every frame's weights
         self.growth = Growth(self.config, len(self.model), supervised)
         self.densifier.limit = self.growth.limit
         # which Gaussians each frame renders (rebuilt, not saved: checkpoints leave it out)
@@ -498,7 +498,6 @@ class Trainer:
                     if measured is not None:
                         rounded = (*measured, size)
                         next_eval = now + max(c.eval_interval_s, (time.perf_counter() - began) / EVAL_OVERHEAD)
-                frame_seconds = self.eval_frame_seconds or RENDER_SHARE * (step_seconds or 0.0)
                 ending = self._ending(frame_seconds)
                 out_of_time = 0 < limit <= now + min(sum(ending), END_SHARE * limit)
                 last = self.iteration == c.iterations or out_of_time
