@@ -160,3 +160,31 @@ def test_kernels_of_one_name_in_two_modules_keep_their_own_recorded_launches(tmp
         assert out.tolist() == [7] * 4
         fresh(first.fill, 4, [wrap(out)], wp_device)
         assert out.tolist() == [1] * 4
+
+
+def test_warps_quiet_start_silences_only_native_writes():
+    """While Warp starts on a machine without CUDA, native code's writes to descriptor 2 go nowhere, but
+    what Python writes to sys.stderr meanwhile, from this thread or another (a rank's first line while its
+    warm-up thread starts Warp), reaches stderr: before, the redirect swallowed it and a two-rank fit said
+    one rank's line only. Afterwards sys.stderr is what it was and descriptor 2 is stderr again."""
+    import subprocess
+    import sys
+    import textwrap
+
+    script = textwrap.dedent("""
+        import os, sys, threading
+        from tomgs.runtime import _native_stderr_silenced
+
+        before = sys.stderr
+        with _native_stderr_silenced():
+            os.write(2, b"native line\\n")
+            sys.stderr.write("python line\\n")
+            other = threading.Thread(target=lambda: sys.stderr.write("thread line\\n") and sys.stderr.flush())
+            other.start()
+            other.join()
+        assert sys.stderr is before
+        os.write(2, b"after\\n")
+    """)
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stderr.splitlines() == ["python line", "thread line", "after"], done.stderr

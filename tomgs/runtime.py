@@ -125,16 +125,35 @@ def init_warp() -> None:
 
 @contextlib.contextmanager
 def _native_stderr_silenced():
-    """Send what native code writes to file descriptor 2 to /dev/null for the duration."""
+    """Send what native code writes to file descriptor 2 to /dev/null for the duration. What Python
+    writes to sys.stderr meanwhile, from any thread (a rank's first line, the progress line), goes to
+    the real stderr: sys.stderr is a writer on a copy of descriptor 2 until it is back."""
     sys.stderr.flush()
     saved = os.dup(2)
+    python_stderr = sys.stderr
+    on_descriptor_2 = _descriptor(python_stderr) == 2
+    if on_descriptor_2:
+        sys.stderr = open(saved, "w", buffering=1, encoding=python_stderr.encoding,  # noqa: SIM115 - kept
+                          errors=python_stderr.errors, closefd=False)
+        sys.stderr.reconfigure(write_through=True)
     try:
         with open(os.devnull, "w") as null:
             os.dup2(null.fileno(), 2)
             yield
     finally:
         os.dup2(saved, 2)
-        os.close(saved)
+        if on_descriptor_2:  # the copy stays open (once a process): a thread may still hold its writer
+            sys.stderr.flush()
+            sys.stderr = python_stderr
+        else:
+            os.close(saved)
+
+
+def _descriptor(stream) -> int | None:
+    try:
+        return stream.fileno()
+    except (AttributeError, OSError, ValueError):  # a captured or replaced stream has none
+        return None
 
 
 def warp_device(device: torch.device) -> str:
