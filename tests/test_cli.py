@@ -136,3 +136,24 @@ def test_progress_lines_keep_coming_while_the_work_is_silent(capsys):
     when = r"[\d.]+ (s|min)"
     want = rf"\[ *{when}\] training 50%: iteration 5, PSNR 20.00 dB, 1,000 Gaussians, ETA {when}"
     assert all(re.fullmatch(want, row) for row in rows), rows
+
+
+def test_out_of_memory_names_the_options_the_command_has():
+    """An allocation that fails says how to give the command less to hold with its own options: render has
+    --frames but no --max-side or --cap (a 480-byte cameras file asking for 16384x16384 frames ends there)."""
+    import click
+
+    from tomgs.cli import main
+    from tomgs.cli.common import out_of_memory
+
+    said = {}
+    for name in ("render", "fit", "info"):
+        with click.Context(main) as parent:
+            command = main.get_command(parent, name)
+            with click.Context(command, parent=parent):
+                said[name] = out_of_memory(MemoryError("can't allocate 3221225472 bytes"))
+    assert said["render"] == ("out of memory (can't allocate 3221225472 bytes); give the command less to hold: "
+                              "fewer or smaller frames (--frames)")
+    assert said["fit"].endswith("fewer or smaller frames (--frames, --max-side), or a lower --cap")
+    assert said["info"].endswith("less to hold: fewer or smaller frames")
+    assert out_of_memory(MemoryError()).startswith("out of memory (the allocator refused)")

@@ -45,9 +45,13 @@ def user_errors(command):
 
 
 def out_of_memory(error: BaseException) -> str:
+    """One line for an allocation that failed, naming the running command's options that give it less to hold."""
     detail = str(error).strip().splitlines()[-1][:160] if str(error).strip() else "the allocator refused"
-    return (f"out of memory ({detail}); give the command less to hold: fewer or smaller frames (--frames, "
-            f"--max-side), or a lower --cap")
+    context = click.get_current_context(silent=True)
+    has = {name for p in (context.command.params if context else ()) for name in getattr(p, "opts", ())}
+    frames = [o for o in ("--frames", "--max-side") if o in has]
+    return (f"out of memory ({detail}); give the command less to hold: fewer or smaller frames"
+            + (f" ({', '.join(frames)})" if frames else "") + (", or a lower --cap" if "--cap" in has else ""))
 
 
 class Group(click.Group):
