@@ -37,7 +37,8 @@ def _frames(count: int = 3, width: int = 64, height: int = 48) -> list[np.ndarra
     return list(demo_frames(count, width, height))
 
 
-def _declare_jpeg(data: bytes, sof: bytes, width: int, height: int) -> bytes:
+def declare_jpeg(data: bytes, sof: bytes, width: int, height: int) -> bytes:
+    """`data` with every JPEG frame header `sof` (FFC0 baseline, FFC2 progressive) declaring `width` x `height`."""
     out, at = bytearray(data), 0
     while (at := data.find(sof, at)) >= 0:
         out[at + 5:at + 9] = height.to_bytes(2, "big") + width.to_bytes(2, "big")
@@ -66,7 +67,7 @@ def _jpeg(progressive: bool):
         import cv2
 
         data = cv2.imencode(".jpg", frame[..., ::-1], [cv2.IMWRITE_JPEG_PROGRESSIVE, int(progressive)])[1].tobytes()
-        return _declare_jpeg(data, b"\xff\xc2" if progressive else b"\xff\xc0", SIDE, SIDE)
+        return declare_jpeg(data, b"\xff\xc2" if progressive else b"\xff\xc0", SIDE, SIDE)
     return encode
 
 
@@ -116,6 +117,12 @@ def _checkpoint_of_views(rows: int) -> dict:
     config = preset("quick", iterations=5, init_points_per_frame=50, max_gaussians=400)
     state = Trainer(images, cams, points, np.full((len(points), 3), 0.5, np.float32), config,
                     torch.device("cpu")).state_dict()
+    return views_declaring(state, rows)
+
+
+def views_declaring(state: dict, rows: int) -> dict:
+    """A trainer's checkpoint state whose per-Gaussian tensors (parameters, Adam moments, densifier
+    statistics) are stride-0 views of `rows` rows over their first row: a few KB saved."""
 
     def declared(t):
         return t.detach()[:1].expand(rows, *t.shape[1:])
@@ -162,7 +169,7 @@ def make_cases(root: Path, names: list[str]) -> dict[str, tuple[str, str]]:
         elif name == "mjpeg_avi":
             write_frames(_frames(8), root / "small.avi")
             path = root / "mjpeg.avi"
-            path.write_bytes(_declare_jpeg((root / "small.avi").read_bytes(), b"\xff\xc0", SIDE, SIDE))
+            path.write_bytes(declare_jpeg((root / "small.avi").read_bytes(), b"\xff\xc0", SIDE, SIDE))
             cases[name] = ("read_video", str(path))
         elif name == "mp4_cut":
             write_frames(_frames(100), root / "whole.mp4")

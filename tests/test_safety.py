@@ -13,6 +13,7 @@ import pytest
 import torch
 from click.testing import CliRunner
 
+from benchmarks.declared_sizes import declare_jpeg, views_declaring
 from tomgs.cameras import Cameras, intrinsics, look_at
 from tomgs.cli import main
 from tomgs.io.scene import load_scene, save_scene
@@ -477,15 +478,7 @@ def test_defect05_a_checkpoint_of_views_declaring_more_than_their_storage_is_ref
     images, cams, points, colors = synthetic_clip(2, 24, 14)
     state = Trainer(images, cams, points, colors, small_config(5), CPU).state_dict()
     rows = 200_000_000
-
-    def declared(t):
-        return t.detach()[:1].expand(rows, *t.shape[1:])
-
-    state["params"] = {k: declared(v) for k, v in state["params"].items()}
-    for entry in state["optimizer"]["state"].values():
-        entry["exp_avg"], entry["exp_avg_sq"] = declared(entry["exp_avg"]), declared(entry["exp_avg_sq"])
-    state["densifier"]["grad_sum"] = declared(state["densifier"]["grad_sum"])
-    state["densifier"]["seen"] = declared(state["densifier"]["seen"])
+    state = views_declaring(state, rows)
     path = tmp_path / "s.ckpt"
     torch.save(state, path)
     assert path.stat().st_size < 200_000
@@ -501,15 +494,6 @@ def _texture(k: int, h: int = 48, w: int = 64) -> np.ndarray:
     return np.stack([(x * 5 + 9 * k) % 256, (y * 7 + 3 * k) % 256, (x * y + k) % 256], -1).astype(np.uint8)
 
 
-def _declare(data: bytes, sof: bytes, width: int, height: int) -> bytes:
-    """`data` with every JPEG frame header `sof` (FFC0, FFC2) declaring `width` x `height`."""
-    out, at = bytearray(data), 0
-    while (at := data.find(sof, at)) >= 0:
-        out[at + 5:at + 9] = height.to_bytes(2, "big") + width.to_bytes(2, "big")
-        at += 2
-    return bytes(out)
-
-
 @pytest.mark.parametrize("progressive", [True, False])
 def test_defect06_jpeg_frames_declaring_more_than_their_bytes_are_refused_before_decoding(progressive, tmp_path):
     """3 KB JPEGs patched to declare 16000x16000 made `poses` peak at 5.2 GB (progressive JPEG had a
@@ -520,7 +504,7 @@ def test_defect06_jpeg_frames_declaring_more_than_their_bytes_are_refused_before
     folder.mkdir()
     for k in range(3):
         ok, data = cv2.imencode(".jpg", _texture(k), [cv2.IMWRITE_JPEG_PROGRESSIVE, int(progressive)])
-        patched = _declare(data.tobytes(), b"\xff\xc2" if progressive else b"\xff\xc0", 16000, 16000)
+        patched = declare_jpeg(data.tobytes(), b"\xff\xc2" if progressive else b"\xff\xc0", 16000, 16000)
         assert len(patched) < 4000
         (folder / f"{k:05d}.jpg").write_bytes(patched)
     for command in (["poses", folder, "-o", tmp_path / "c.json"], ["fit", folder, "-o", tmp_path / "s.ply"]):
@@ -534,7 +518,7 @@ def test_defect06_a_motion_jpeg_video_declaring_more_than_its_bytes_is_refused(t
     from tomgs.io import write_frames
 
     write_frames([_texture(k) for k in range(8)], tmp_path / "small.avi")
-    patched = _declare((tmp_path / "small.avi").read_bytes(), b"\xff\xc0", 16000, 16000)
+    patched = declare_jpeg((tmp_path / "small.avi").read_bytes(), b"\xff\xc0", 16000, 16000)
     (tmp_path / "big.avi").write_bytes(patched)
     line = one_line_refusal(run("poses", tmp_path / "big.avi", "-o", tmp_path / "c.json"))
     assert "frame 0 declares a 16000x16000 JPEG, more than its" in line, line
