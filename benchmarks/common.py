@@ -1,12 +1,13 @@
 """What the benchmark scripts share: where a run's table goes and what it says about the run (command,
 commit, device), timing helpers, the random scene of the rasterizer's benchmarks, tiny synthetic clips
-for the `--smoke` modes, reading a fit's CSV log, and the paper's DAVIS figures.
+for the `--smoke` modes, the arguments of the benchmarks over DAVIS clips, reading a fit's CSV log, and the paper's DAVIS figures.
 
 Every script of the suite imports this module and no other script of the suite.
 """
 
 from __future__ import annotations
 
+import argparse
 import csv
 import datetime
 import json
@@ -339,6 +340,54 @@ def demo_video(path: Path, frames: int = 6, width: int = 48, height: int = 28, d
 
     write_frames(demo_frames(frames, width, height, device), path, fps=24.0, overwrite=True)
     return Path(path)
+
+
+# ----------------------------------------------------------------------------- benchmarks over DAVIS clips
+
+
+def clip_parser(doc: str, name: str, minutes: float, smoke: str) -> argparse.ArgumentParser:
+    """The arguments of a benchmark that fits DAVIS clips (davis, compact): the folder of clips, --clips,
+    --minutes, --out, --set, --poses, --tag, --lpips, --device and --smoke (`smoke` says what it runs)."""
+    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("root", type=Path, nargs="?", help="folder holding <clip>/images and <clip>/masks")
+    ap.add_argument("--clips", default="camel,cows,kite-surf")
+    ap.add_argument("--minutes", type=float, default=minutes, help="wall-clock budget of each fit, poses included")
+    ap.add_argument("--out", type=Path, default=None, help=f"default bench_out/{name}")
+    ap.add_argument("--set", action="append", default=[], help="a TrainConfig override (JSON value), e.g. "
+                                                               "--set max_gaussians=2000000")
+    ap.add_argument("--poses", default="auto", help="auto (tracker with the DAVIS masks) or identity (ablation)")
+    ap.add_argument("--tag", default="", help="a name for this run's files (ablations, sweeps)")
+    ap.add_argument("--lpips", type=Path, help="LPIPS weights (alexnet-lpips-v0.1.npz or its folder)")
+    ap.add_argument("--device", default="cuda", help="cuda; cpu for a dry run")
+    ap.add_argument("--smoke", action="store_true",
+                    help=f"a 6-frame synthetic clip at 48x27 on the CPU, {smoke}, identity poses; the table in a "
+                         "temporary folder unless --out")
+    return ap
+
+
+def parse_clip_args(ap: argparse.ArgumentParser, argv, smoke_minutes: float) -> argparse.Namespace:
+    """`ap`'s arguments; --smoke sets the CPU, identity poses, the smoke clip and `smoke_minutes`."""
+    args = ap.parse_args(argv)
+    if args.smoke:
+        args.device, args.poses, args.clips, args.minutes = "cpu", "identity", "smoke", smoke_minutes
+    elif args.root is None:
+        ap.error("the folder of clips is required (or --smoke)")
+    return args
+
+
+def start_clip_run(args: argparse.Namespace, name: str, argv) -> tuple[Path, torch.device, dict, object, dict]:
+    """(the output folder, the device, the TrainConfig overrides of --set, the LPIPS network or None, the
+    run's environment) of a benchmark over clips; a smoke run's clip is made in the output folder."""
+    import tomgs
+
+    out = output_folder(args.out, args.smoke, name)
+    if args.smoke:
+        args.root = out / "clips"
+        smoke_clip_folder(args.root, "smoke")
+    device = torch.device(args.device)
+    overrides = {k: json.loads(v) for k, v in (s.split("=", 1) for s in args.set)}
+    lpips = tomgs.LPIPS(args.lpips, device=device) if args.lpips else None
+    return out, device, overrides, lpips, environment(device, name, argv)
 
 
 # ----------------------------------------------------------------------------- a fit's CSV log

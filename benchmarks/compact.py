@@ -20,7 +20,6 @@ import argparse
 import dataclasses
 import json
 import time
-from pathlib import Path
 
 import torch
 
@@ -29,10 +28,10 @@ from tomgs.train import fit, output_paths, preset
 from tomgs.train.sparsify import QUALITY_RULES
 
 if __package__:
-    from .common import PAPER, environment, log_rows, markdown_table, output_folder, psnr_at, smoke_clip_folder, \
+    from .common import PAPER, clip_parser, log_rows, markdown_table, parse_clip_args, psnr_at, start_clip_run, \
         write_report
 else:  # run as a file (python benchmarks/compact.py): Python puts this folder first on sys.path
-    from common import PAPER, environment, log_rows, markdown_table, output_folder, psnr_at, smoke_clip_folder, \
+    from common import PAPER, clip_parser, log_rows, markdown_table, parse_clip_args, psnr_at, start_clip_run, \
         write_report
 
 MARKS = (60, 120, 300)  # seconds of the whole fit at which the curve is read
@@ -56,45 +55,21 @@ def curve(rows: list[dict], offset: float = 0.0) -> list[list]:
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("root", type=Path, nargs="?", help="folder holding <clip>/images and <clip>/masks")
-    ap.add_argument("--clips", default="camel,cows,kite-surf")
+    ap = clip_parser(__doc__, "compact", 2.0, "12-s fits")
     ap.add_argument("--qualities", default="default,max", help="quality levels, comma separated")
-    ap.add_argument("--minutes", type=float, default=2.0, help="wall-clock budget of each fit, poses included")
-    ap.add_argument("--out", type=Path, default=None, help="default bench_out/compact")
-    ap.add_argument("--set", action="append", default=[], help="a TrainConfig override, e.g. --set sparsify_rounds=6")
     ap.add_argument("--rule", help="per_halving,in_all[,per_gaussian]: the prices of every level but max (sweeps; "
                                    "tomgs.train.sparsify.QualityRule)")
-    ap.add_argument("--poses", default="auto", help="auto (tracker with the DAVIS masks) or identity")
-    ap.add_argument("--tag", default="", help="a name for this run's files (sweeps)")
-    ap.add_argument("--lpips", type=Path, help="LPIPS weights (alexnet-lpips-v0.1.npz or its folder)")
-    ap.add_argument("--device", default="cuda", help="cuda; cpu for a dry run")
-    ap.add_argument("--smoke", action="store_true",
-                    help="a 6-frame synthetic clip at 48x27 on the CPU, 12-s fits, identity poses; the table in a "
-                         "temporary folder unless --out")
-    args = ap.parse_args(argv)
-    if args.smoke:
-        args.device, args.poses, args.clips, args.minutes = "cpu", "identity", "smoke", 0.2
-    elif args.root is None:
-        ap.error("the folder of clips is required (or --smoke)")
-    return args
+    return parse_clip_args(ap, argv, smoke_minutes=0.2)
 
 
 def main(argv=None) -> list[dict]:
     args = parse_args(argv)
-    out = output_folder(args.out, args.smoke, "compact")
-    if args.smoke:
-        args.root = out / "clips"
-        smoke_clip_folder(args.root, "smoke")
+    out, device, overrides, lpips, env = start_clip_run(args, "compact", argv)
     if args.rule:
         prices = dict(zip(("per_halving", "in_all", "per_gaussian"), (float(v) for v in args.rule.split(","))))
         for name, rule in QUALITY_RULES.items():
             if rule is not None:
                 QUALITY_RULES[name] = dataclasses.replace(rule, **prices)
-    device = torch.device(args.device)
-    overrides = {k: json.loads(v) for k, v in (s.split("=", 1) for s in args.set)}
-    lpips = tomgs.LPIPS(args.lpips, device=device) if args.lpips else None
-    env = environment(device, "compact", argv)
     suffix = f"-{args.tag}" if args.tag else ""
     rows = []
     for clip in args.clips.split(","):

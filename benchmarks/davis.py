@@ -31,11 +31,11 @@ import tomgs
 from tomgs.train import Trainer, fit, output_paths, preset
 
 if __package__:
-    from .common import PAPER, environment, kernel_times, log_rows, markdown_table, output_folder, psnr_at, \
-        scene_fps, smoke_clip_folder, sync, time_to, write_report
+    from .common import PAPER, clip_parser, kernel_times, log_rows, markdown_table, parse_clip_args, psnr_at, \
+        scene_fps, start_clip_run, sync, time_to, write_report
 else:  # run as a file (python benchmarks/davis.py): Python puts this folder first on sys.path
-    from common import PAPER, environment, kernel_times, log_rows, markdown_table, output_folder, psnr_at, \
-        scene_fps, smoke_clip_folder, sync, time_to, write_report
+    from common import PAPER, clip_parser, kernel_times, log_rows, markdown_table, parse_clip_args, psnr_at, \
+        scene_fps, start_clip_run, sync, time_to, write_report
 
 MARKS = (30, 60, 120, 300)  # seconds of the whole fit at which the curve is read
 
@@ -64,44 +64,22 @@ def step_profile(scene_path: Path, frames, device: torch.device, iters: int = 30
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("root", type=Path, nargs="?", help="folder holding <clip>/images and <clip>/masks")
-    ap.add_argument("--clips", default="camel,cows,kite-surf")
-    ap.add_argument("--minutes", type=float, default=10.0, help="wall-clock budget of each fit")
+    ap = clip_parser(__doc__, "davis", 10.0, "40 iterations")
     ap.add_argument("--preset", default="default")
-    ap.add_argument("--out", type=Path, default=None, help="default bench_out/davis")
-    ap.add_argument("--set", action="append", default=[], help="a TrainConfig override, e.g. --set max_gaussians=2000000")
-    ap.add_argument("--poses", default="auto", help="auto (tracker with the DAVIS masks) or identity (ablation)")
-    ap.add_argument("--tag", default="", help="a name for this run's rows and files (ablations, sweeps)")
-    ap.add_argument("--lpips", type=Path, help="LPIPS weights (alexnet-lpips-v0.1.npz or its folder)")
     ap.add_argument("--profile", action="store_true", help="profile the training step at the end of each fit (CUDA)")
-    ap.add_argument("--device", default="cuda", help="cuda; cpu for a dry run")
-    ap.add_argument("--smoke", action="store_true",
-                    help="a 6-frame synthetic clip at 48x27 on the CPU, 40 iterations, identity poses; the table "
-                         "in a temporary folder unless --out")
-    args = ap.parse_args(argv)
+    args = parse_clip_args(ap, argv, smoke_minutes=1.0)
     if args.smoke:
-        args.device, args.poses, args.clips, args.minutes = "cpu", "identity", "smoke", 1.0
         args.set = [*args.set, "iterations=40", "stop_at_iterations=true", "eval_interval_s=1e9"]
-    elif args.root is None:
-        ap.error("the folder of clips is required (or --smoke)")
     return args
 
 
 def main(argv=None) -> list[dict]:
     args = parse_args(argv)
-    out = output_folder(args.out, args.smoke, "davis")
-    if args.smoke:
-        args.root = out / "clips"
-        smoke_clip_folder(args.root, "smoke")
-    device = torch.device(args.device)
-    overrides = {k: json.loads(v) for k, v in (s.split("=", 1) for s in args.set)}
+    out, device, overrides, lpips, env = start_clip_run(args, "davis", argv)
     # a full-clip PSNR every 10 s (at most 10% of the run: Trainer.run), so the curve is read within 10 s
     # of each mark
     config = preset(args.preset, **{"iterations": 200_000, "max_seconds": args.minutes * 60, "eval_interval_s": 10.0,
                                     **overrides})
-    lpips = tomgs.LPIPS(args.lpips, device=device) if args.lpips else None
-    env = environment(device, "davis", argv)
     suffix = f"-{args.tag}" if args.tag else ""
     rows = []
     for clip in args.clips.split(","):
