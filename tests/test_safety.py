@@ -112,12 +112,12 @@ def test_defect01_outputs_never_overwrite_each_other_or_an_input(case, clip, sce
 
 class FullDisk:
     """`open` for tomgs.io.writer whose files take `room` bytes in all, then raise ENOSPC (a small
-    disk, deterministically). Once full, a seek fails too, as a buffered file's does when it flushes
-    bytes that no longer fit; `buffered`: the write that overflows seems to succeed (its bytes wait
-    in the buffer) and only the seeks after it fail."""
+    disk, deterministically; `code`: another errno, EIO for a failing disk). Once full, a seek fails
+    too, as a buffered file's does when it flushes bytes that no longer fit; `buffered`: the write that
+    overflows seems to succeed (its bytes wait in the buffer) and only the seeks after it fail."""
 
-    def __init__(self, room: int, buffered: bool = False):
-        self.room, self.buffered = room, buffered
+    def __init__(self, room: int, buffered: bool = False, code: int = errno.ENOSPC):
+        self.room, self.buffered, self.code = room, buffered, code
 
     def __call__(self, path, mode="r", *args, **kwargs):
         real = open(path, mode, *args, **kwargs)  # noqa: SIM115 - handed to the caller
@@ -140,13 +140,13 @@ class FullDisk:
                     disk.room = 0
                     if disk.buffered:
                         return len(data)
-                    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+                    raise OSError(disk.code, os.strerror(disk.code))
                 disk.room -= len(data)
                 return real.write(data)
 
             def seek(self, offset, whence=0):
                 if disk.room == 0:
-                    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+                    raise OSError(disk.code, os.strerror(disk.code))
                 return real.seek(offset, whence)
         return Limited()
 
@@ -166,6 +166,19 @@ def test_defect02_full_disk_while_writing_a_video_is_one_line_and_leaves_nothing
     assert str(tmp_path / name) in line and "nothing was written" in line, line
     assert "No space left on device" in line or "holds 0 of its 6 frames" in line, line
     assert list(tmp_path.iterdir()) == []  # no output, no temporary
+
+
+@pytest.mark.parametrize("name", ["d.mp4", "frames"])
+def test_a_failing_disk_while_writing_a_video_is_one_line_and_leaves_nothing(name, monkeypatch, tmp_path):
+    """EIO, a disk that fails rather than fills, takes the same way out as ENOSPC: one line naming the
+    file and its error, nothing left."""
+    import tomgs.io.writer as writer
+
+    monkeypatch.setattr(writer, "open", FullDisk(3000, code=errno.EIO), raising=False)
+    result = run("demo", "-o", tmp_path / name, "--frames", "6", "--size", "48x27", "--device", "cpu", "-q")
+    line = one_line_refusal(result, code=1)
+    assert str(tmp_path / name) in line and "Input/output error; nothing was written" in line, line
+    assert list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.parametrize("room", [0, 3000])
@@ -596,9 +609,11 @@ def _long_scene(tmp_path) -> Path:
     return path
 
 
-@pytest.mark.parametrize("name", ["r.mp4", "frames"])
-def test_defect07_sigterm_to_a_render_leaves_no_temporary_and_says_so(name, tmp_path):
-    """SIGTERM to a render left its temporary folder (.d.mp4.*.tmp/, or 10 MB of partial PNG frames)."""
+@pytest.mark.parametrize("name, signame", [("r.mp4", "SIGTERM"), ("frames", "SIGTERM"), ("r.mp4", "SIGHUP"),
+                                           ("frames", "SIGINT")])
+def test_defect07_sigterm_to_a_render_leaves_no_temporary_and_says_so(name, signame, tmp_path):
+    """SIGTERM to a render left its temporary folder (.d.mp4.*.tmp/, or 10 MB of partial PNG frames);
+    SIGHUP (a closed terminal) and SIGINT (Ctrl-C) take the same way out."""
     import signal
     import subprocess
     import sys
@@ -616,10 +631,11 @@ def test_defect07_sigterm_to_a_render_leaves_no_temporary_and_says_so(name, tmp_
     staged = [p for p in out.iterdir() if p.name.endswith(".tmp")]
     assert staged, "the render never staged its output"
     time.sleep(0.3)  # a few frames in
-    proc.send_signal(signal.SIGTERM)
+    signum = getattr(signal, signame)
+    proc.send_signal(signum)
     _, err = proc.communicate(timeout=120)
-    assert proc.returncode == 128 + signal.SIGTERM, err
-    assert err.strip().splitlines()[-1] == "interrupted (SIGTERM): stopped, nothing half-written left", err
+    assert proc.returncode == 128 + signum, err
+    assert err.strip().splitlines()[-1] == f"interrupted ({signame}): stopped, nothing half-written left", err
     assert list(out.iterdir()) == []
 
 
