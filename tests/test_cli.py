@@ -26,6 +26,27 @@ def test_version_and_help():
         assert command in help_text
 
 
+def test_every_option_of_every_command_says_what_it_does():
+    """`-h` is where a newcomer learns an option: none is listed without a line of help (--sampling,
+    --seed and demo's --frames once were)."""
+    import click
+
+    context = click.Context(main)
+    bare = []
+
+    def walk(command, path):
+        if isinstance(command, click.Group):
+            for name in command.list_commands(context):
+                walk(command.get_command(context, name), [*path, name])
+            return
+        assert command.help, f"{' '.join(path)} has no help"
+        bare.extend(f"{' '.join(path)} {'/'.join(p.opts)}" for p in command.params
+                    if isinstance(p, click.Option) and not p.hidden and not (p.help or "").strip())
+
+    walk(main, ["tomgs"])
+    assert bare == []
+
+
 def test_console_script_entry_point():
     out = subprocess.run([sys.executable, "-m", "tomgs.cli", "--version"], capture_output=True, text=True, check=True)
     assert tomgs.__version__ in out.stdout
