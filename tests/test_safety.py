@@ -609,34 +609,63 @@ def _long_scene(tmp_path) -> Path:
     return path
 
 
-@pytest.mark.parametrize("name, signame", [("r.mp4", "SIGTERM"), ("frames", "SIGTERM"), ("r.mp4", "SIGHUP"),
-                                           ("frames", "SIGINT")])
-def test_defect07_sigterm_to_a_render_leaves_no_temporary_and_says_so(name, signame, tmp_path):
-    """SIGTERM to a render left its temporary folder (.d.mp4.*.tmp/, or 10 MB of partial PNG frames);
-    SIGHUP (a closed terminal) and SIGINT (Ctrl-C) take the same way out."""
+def _signalled_render(tmp_path, name: str, signame: str, ignored: bool = False):
+    """A render of a long scene into `tmp_path`/out/`name`, sent `signame` a few frames after it staged
+    its output: (the process, its stderr, the output folder). The render starts with the stop signals
+    at their defaults, whatever this test's starter set (nohup ignores SIGHUP, a shell's background
+    job SIGINT), or with `signame` ignored."""
     import signal
     import subprocess
     import sys
     import time
+
+    def dispositions():
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            signal.signal(sig, signal.SIG_DFL)
+        if ignored:
+            signal.signal(getattr(signal, signame), signal.SIG_IGN)
 
     scene = _long_scene(tmp_path)
     out = tmp_path / "out"
     out.mkdir()
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
     proc = subprocess.Popen([sys.executable, "-m", "tomgs.cli", "render", str(scene), "-o", str(out / name), "-q",
-                             "--device", "cpu"], stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env)
+                             "--device", "cpu"], stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env,
+                            preexec_fn=dispositions)
     deadline = time.monotonic() + 120
     while not [p for p in out.iterdir() if p.name.endswith(".tmp")] and time.monotonic() < deadline:
         time.sleep(0.05)
     staged = [p for p in out.iterdir() if p.name.endswith(".tmp")]
     assert staged, "the render never staged its output"
     time.sleep(0.3)  # a few frames in
-    signum = getattr(signal, signame)
-    proc.send_signal(signum)
+    proc.send_signal(getattr(signal, signame))
     _, err = proc.communicate(timeout=120)
-    assert proc.returncode == 128 + signum, err
+    return proc, err, out
+
+
+@pytest.mark.parametrize("name, signame", [("r.mp4", "SIGTERM"), ("frames", "SIGTERM"), ("r.mp4", "SIGHUP"),
+                                           ("frames", "SIGINT")])
+def test_defect07_sigterm_to_a_render_leaves_no_temporary_and_says_so(name, signame, tmp_path):
+    """SIGTERM to a render left its temporary folder (.d.mp4.*.tmp/, or 10 MB of partial PNG frames);
+    SIGHUP (a closed terminal) and SIGINT (Ctrl-C) take the same way out."""
+    import signal
+
+    proc, err, out = _signalled_render(tmp_path, name, signame)
+    assert proc.returncode == 128 + getattr(signal, signame), err
     assert err.strip().splitlines()[-1] == f"interrupted ({signame}): stopped, nothing half-written left", err
     assert list(out.iterdir()) == []
+
+
+def test_a_render_started_under_nohup_goes_on_through_sighup(tmp_path):
+    """A stop signal its starter ignores stays ignored (`nohup tomgs render ...` outlives its terminal):
+    the render finishes and writes its whole video."""
+    import av
+
+    proc, err, out = _signalled_render(tmp_path, "r.mp4", "SIGHUP", ignored=True)
+    assert proc.returncode == 0 and err == "", err
+    assert [p.name for p in out.iterdir()] == ["r.mp4"]
+    with av.open(str(out / "r.mp4")) as video:
+        assert video.streams.video[0].frames == 400
 
 
 def test_defect07_writers_remove_their_own_stale_temporaries_and_nothing_else(scene, tmp_path):
