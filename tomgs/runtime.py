@@ -133,8 +133,8 @@ def _native_stderr_silenced():
     python_stderr = sys.stderr
     on_descriptor_2 = _descriptor(python_stderr) == 2
     if on_descriptor_2:
-        sys.stderr = open(saved, "w", buffering=1, encoding=python_stderr.encoding,  # noqa: SIM115 - kept
-                          errors=python_stderr.errors, closefd=False)
+        sys.stderr = open(saved, "w", buffering=1, encoding=getattr(python_stderr, "encoding", None),  # noqa: SIM115
+                          errors=getattr(python_stderr, "errors", None), closefd=False)  # kept: see below
         sys.stderr.reconfigure(write_through=True)
     try:
         with open(os.devnull, "w") as null:
