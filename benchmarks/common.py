@@ -1,6 +1,7 @@
 """What the benchmark scripts share: where a run's table goes and what it says about the run (command,
 commit, device), timing helpers, the random scene of the rasterizer's benchmarks, tiny synthetic clips
-for the `--smoke` modes, the arguments of the benchmarks over DAVIS clips, reading a fit's CSV log, and the paper's DAVIS figures.
+for the `--smoke` modes, the arguments of the benchmarks over DAVIS clips, reading a fit's CSV log,
+and the paper's DAVIS figures.
 
 Every script of the suite imports this module and no other script of the suite.
 """

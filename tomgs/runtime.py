@@ -24,8 +24,9 @@
                                      device (the tracker and a fit; see there)
 
 Used by tomgs.render (the rasterizer), tomgs.metrics (SSIM), tomgs.train.optim (SeenAdam),
-tomgs.edit.physics (XPBD), and tomgs.poses and tomgs.train.pipeline (one_cpu_thread). Every buffer is a torch tensor handed to Warp without a copy, so torch's
-allocator and memory statistics see all of it.
+tomgs.edit.physics (XPBD), and tomgs.poses and tomgs.train.pipeline (one_cpu_thread). Every buffer
+is a torch tensor handed to Warp without a copy, so torch's allocator and memory statistics see all
+of it.
 
 Warp has no public name for its array descriptor (the ctypes structure that kernels receive);
 `wp.from_torch(tensor, return_ctype=True)` is the public way to build one. It costs ~3x more per

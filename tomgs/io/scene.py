@@ -210,7 +210,7 @@ def load_scene(path, device="cpu", cameras=None) -> Scene:
     from tomgs.model import GaussianModel
 
     path = check_scene_path(path)
-    fix = FIX
+    fix = SCENE_FIX
     given = _given_cameras(cameras)
     if tsog.is_tsog(path):
         header, stored, arrays = tsog.read_tsog(path, CAMERA_RECORD, lambda clip: _checked_clip(clip, path, fix))
@@ -238,7 +238,7 @@ def _read_ply_scene(path: Path, given: Cameras | None, fix: str) -> tuple[dict, 
 
     # header read with a byte cap, element counts checked against the file's size, then memory-mapped:
     # each column is copied out once below
-    fix = FIX
+    fix = SCENE_FIX
     layout = ply_layout(path, "scene file", fix)
     ply = read_ply(path, "scene file", fix)
     names = [e.name for e in ply.elements]
@@ -295,9 +295,6 @@ def _read_ply_scene(path: Path, given: Cameras | None, fix: str) -> tuple[dict, 
     return header, stored, arrays
 
 
-FIX = SCENE_FIX
-
-
 def read_scene_clip(path, cameras=None) -> tuple[Cameras, dict]:
     """(cameras, info) of the scene file `path` without reading its Gaussians (nor importing torch):
     what a command checks its other arguments against before any work. `cameras` as `load_scene`
@@ -308,18 +305,19 @@ def read_scene_clip(path, cameras=None) -> tuple[Cameras, dict]:
     path = check_scene_path(path)
     given = _given_cameras(cameras)
     if tsog.is_tsog(path):
-        header, stored = tsog.read_tsog_clip(path, CAMERA_RECORD, lambda clip: _checked_clip(clip, path, FIX))
+        header, stored = tsog.read_tsog_clip(path, CAMERA_RECORD, lambda clip: _checked_clip(clip, path, SCENE_FIX))
         return (given if given is not None else _cameras(header, stored, path)), header["info"]
-    layout = ply_layout(path, "scene file", FIX)
+    layout = ply_layout(path, "scene file", SCENE_FIX)
     if not layout.elements or layout.elements[0][0] != "vertex":
         names = [name for name, _ in layout.elements]
-        raise InputError(f"{path} has elements {names}; a scene's Gaussians are its first element, 'vertex': {FIX}")
-    version = _version(layout.comments, path, FIX)
+        raise InputError(f"{path} has elements {names}; a scene's Gaussians are its first element, 'vertex': "
+                         f"{SCENE_FIX}")
+    version = _version(layout.comments, path, SCENE_FIX)
     if version == 2:
-        header, stored = _read_trailer(path, layout.data_end, FIX)
+        header, stored = _read_trailer(path, layout.data_end, SCENE_FIX)
     elif version == 1:
-        ply = read_ply(path, "scene file", FIX)
-        header, stored = _read_version_1(ply, layout.comments, path, FIX)
+        ply = read_ply(path, "scene file", SCENE_FIX)
+        header, stored = _read_version_1(ply, layout.comments, path, SCENE_FIX)
     else:
         header, stored = {"info": {}}, None
     if given is not None:
@@ -337,7 +335,7 @@ def _cameras(header: dict, stored: np.ndarray, path: Path) -> Cameras:
         return Cameras(stored["c2w"].reshape(-1, 4, 4), np.asarray(header["K"], dtype=np.float64),
                        header["width"], header["height"], stored["time"], stored["index"])
     except (ValueError, TypeError, OverflowError) as e:  # InputError from Cameras, or a K it cannot hold
-        raise InputError(f"{path}: bad cameras ({str(e).removeprefix('Cameras: ')}): {FIX}") from None
+        raise InputError(f"{path}: bad cameras ({str(e).removeprefix('Cameras: ')}): {SCENE_FIX}") from None
 
 
 def _given_cameras(cameras) -> Cameras | None:

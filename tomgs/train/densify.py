@@ -91,8 +91,8 @@ class Densifier:
         gradient, which the optimiser does not touch), then, at `iteration` (the step just taken,
         counted from 1) and `progress` (by iterations or by the wall-clock budget, whichever is
         further): densify every `densify_interval` steps inside [densify_start_fraction,
-        densify_stop_fraction) until the limit (the cap, or a stage's), else prune every 10 intervals; reset opacities every
-        `opacity_reset_interval` steps while densifying. A prune inside the window that frees rows under
+        densify_stop_fraction) until the limit (the cap, or a stage's), else prune every 10 intervals;
+        reset opacities every `opacity_reset_interval` steps while densifying. A prune inside the window that frees rows under
         a reached cap lets densification go on into them: Gaussians the optimiser has faded out at
         every frame (windows shrunk between frames) give their room to those with high gradients."""
         if self.collecting(progress):

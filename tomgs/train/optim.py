@@ -3,8 +3,9 @@ over every row, the CPU's dense Adam: make_adam).
 
 `SeenAdam.step(seen)` runs torch.optim.Adam's update on the rows whose Gaussian was in view
 (`seen`, bool [N]) and leaves the other rows and their moments alone (tomgs/kernels/adam.py says
-why), all parameters in one launch; `step()` updates every row. Its state has Adam's layout (step, exp_avg, exp_avg_sq per
-parameter), so densification's moment surgery and checkpoints treat both optimisers alike.
+why), all parameters in one launch; `step()` updates every row. Its state has Adam's layout
+(step, exp_avg, exp_avg_sq per parameter), so densification's moment surgery and checkpoints treat
+both optimisers alike.
 """
 
 from __future__ import annotations

@@ -110,7 +110,8 @@ def fit(video, output, config: TrainConfig | None = None, *, masks=None, frames=
             return paths["checkpoint"] if paths["checkpoint"].is_file() else None
 
         try:
-            # on a CPU torch works in one thread (tomgs.runtime.one_cpu_thread): a busy machine's second thread only waits
+            # on a CPU torch works in one thread (tomgs.runtime.one_cpu_thread): a busy machine's second
+            # thread only waits
             with StopSignals(immediate=True, checkpoint=existing_checkpoint), one_cpu_thread(device):
                 return _fit(video, paths, config, saved, options, masks=masks, frames=frames, max_side=max_side,
                             poses=poses, focal=focal, device=device, progress=progress, pose_progress=pose_progress,
