@@ -129,6 +129,12 @@ def craft(kind: str, checkpoint: Path, marker: Path) -> None:
     elif kind == "a pending measurement of no frame":
         genuine["sampler"]["pending"] = [[10 ** 6, 30.0]]
         torch.save(genuine, checkpoint)
+    elif kind == "a growth state of another layout":
+        genuine["growth"]["stages"] = [["evil"]]
+        torch.save(genuine, checkpoint)
+    elif kind == "a densifier limit that is no count":
+        genuine["densifier"]["limit"] = "evil"
+        torch.save(genuine, checkpoint)
     elif kind == "unknown setting":
         config = genuine["config"] if isinstance(genuine["config"], dict) else vars(genuine["config"])
         genuine["config"] = dict(config, evil=1)
@@ -143,7 +149,8 @@ def craft(kind: str, checkpoint: Path, marker: Path) -> None:
 BAD_CHECKPOINTS = ["payload only", "payload added to a genuine checkpoint", "payload in torch's legacy format",
                    "payload as a plain pickle", "garbage", "truncated", "empty", "plain data of another shape",
                    "rows that disagree", "a log row of another layout", "a pending measurement of no frame",
-                   "unknown setting", "a setting of no allowed value"]
+                   "a growth state of another layout", "a densifier limit that is no count", "unknown setting",
+                   "a setting of no allowed value"]
 
 
 @pytest.mark.parametrize("kind", BAD_CHECKPOINTS)

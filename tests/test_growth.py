@@ -85,6 +85,20 @@ def test_the_state_round_trips():
     assert again.state_dict() == g.state_dict()
 
 
+def test_a_checkpoint_from_before_the_stages_resumes_grown_to_its_cap():
+    """A checkpoint without the growth's state (or the densifier's limit) was grown toward the cap: its resume
+    takes no stage, which would have put the limit back to twice the start."""
+    from test_sparsify import fit
+
+    trainer, _ = fit("default", 30, max_gaussians=12_000)
+    state = trainer.state_dict()
+    del state["growth"], state["densifier"]["limit"]
+    resumed, _ = fit("default", 1, max_gaussians=12_000)
+    assert resumed.growth.staged
+    resumed.load_checkpoint(state)
+    assert resumed.densifier.limit == resumed.growth.limit == 12_000 and not resumed.growth.staged
+
+
 def test_a_gpu_fit_below_max_starts_from_a_share_of_its_cap():
     for quality, wanted in (("max", 48_000), ("default", int(10_000_000 * START_SHARE) // 90)):
         config = preset("default", quality=quality, max_gaussians=10_000_000)

@@ -16,10 +16,15 @@ After loading, its layout is checked (`check_state`) before a tensor of it is us
     sampler           {psnr: float64 [V], generator: uint8 tensor, pending: [[frame, PSNR], ...] the steps'
                       measurements it has not heard yet (absent in checkpoints before it: none)}
     densifier         {grad_sum: [N], seen: [N], capped: bool, generator: uint8 tensor, changed_at: int,
-                      stopped: bool, densified_at: int (the last two absent before growth could stop)}
+                      stopped: bool, densified_at: int (the last two absent before growth could stop),
+                      limit: int (absent before growth in stages: the cap)}
     sparsifier        tomgs.train.sparsify.Sparsifier's state: {taken: int, share: float, measured: [[count,
-                      PSNR], ...], priced: [[count, proposed, PSNR, PSNR without them, taken], ...], stopped: str, grown: [count, PSNR]
-                      or None} (absent in checkpoints before it: no round yet)
+                      PSNR], ...], priced: [[count, proposed, PSNR, PSNR without them, taken], ...],
+                      stopped: str} (absent in checkpoints before it: no round yet; `grown`, in those
+                      before growth in stages, is not read)
+    growth            tomgs.train.growth.Growth's state: {limit: int, stages: [[count, PSNR, worth], ...],
+                      full_since: float or None, heard: [PSNR, ...], stopped: str} (absent before it:
+                      grown as far as the densifier's limit)
     history, notes    the CSV rows (dicts of numbers and "") and the fit's notes (str); rows of a
                       checkpoint written before clip_frames was logged get it on reading (their clip
                       PSNRs covered every frame), and scene_bytes "" (not logged then)
@@ -409,8 +414,16 @@ def check_state(state, path="<checkpoint>", ours: bool = False) -> None:
             fail(f"densifier statistics ({key}) do not match the {n} rows")
     if not isinstance(densifier.get("capped"), bool) or not torch.is_tensor(densifier.get("generator")) \
             or type(densifier.get("changed_at", 0)) is not int or type(densifier.get("stopped", False)) is not bool \
-            or type(densifier.get("densified_at", 0)) is not int:
+            or type(densifier.get("densified_at", 0)) is not int or not _count(densifier.get("limit", 1)):
         fail("densifier state of another layout")
+    growth = state.get("growth", dict(limit=1, stages=[], full_since=None, heard=[], stopped=""))
+    if not isinstance(growth, dict) or not _count(growth.get("limit")) or not isinstance(growth.get("stopped"), str) \
+            or not isinstance(growth.get("stages"), list) or not isinstance(growth.get("heard"), list) \
+            or not all(isinstance(s, list) and len(s) == 3 and type(s[0]) is int and type(s[1]) is float
+                       and type(s[2]) is float for s in growth["stages"]) \
+            or not all(type(p) is float for p in growth["heard"]) \
+            or not (growth.get("full_since") is None or type(growth["full_since"]) is float):
+        fail("growth state of another layout")
     sparsifier = state.get("sparsifier", dict(taken=0, share=0.5, measured=[], priced=[], stopped="", grown=None))
     if not isinstance(sparsifier, dict) or type(sparsifier.get("taken")) is not int \
             or type(sparsifier.get("share")) is not float or not isinstance(sparsifier.get("stopped"), str) \
@@ -420,6 +433,11 @@ def check_state(state, path="<checkpoint>", ours: bool = False) -> None:
                        and type(p[3]) is float and type(p[4]) is bool for p in sparsifier["priced"]) \
             or not (sparsifier.get("grown") is None or _count_and_psnr(sparsifier["grown"])):
         fail("sparsifier state of another layout")
+
+
+def _count(value) -> bool:
+    """Whether `value` is a count of Gaussians: a positive int."""
+    return type(value) is int and value > 0
 
 
 def _count_and_psnr(pair) -> bool:

@@ -763,8 +763,10 @@ class Trainer:
         self.densifier.load_state_dict(densifier)
         if "sparsifier" in state:  # checkpoints before it: no round taken yet
             self.sparsifier.load_state_dict(state["sparsifier"])
-        if "growth" in state:  # checkpoints before it: grown to the cap
+        if "growth" in state:
             self.growth.load_state_dict(state["growth"])
+        else:  # checkpoints before it: grown as far as the densifier's limit (the cap), no stage to take
+            self.growth.limit = self.densifier.limit
         self.iteration, self.elapsed = state["iteration"], float(state["elapsed"])
         self._restore_pending(state["sampler"].get("pending", []))  # checkpoints before it: none
         self.history, self.notes = list(state["history"]), list(state["notes"])
