@@ -144,6 +144,13 @@ def check_phone_video(r):
     assert case["iterations"] == 10 and case["psnr_end"] > 10 and case["peak_host_gib"] > 0
 
 
+def check_phone(r):
+    (row,) = r
+    assert row["iterations"] == 30 and row["psnr"] > 10 and row["worst_frame_psnr"] <= row["psnr"]
+    assert len(row["frame_psnr"]) == row["frames"] == 6 and row["first_step_s"] > 0
+    assert row["curve"] and row["curve"][-1][3] == row["gaussians"]  # the log's last row is the scene's count
+
+
 def check_bench_poses(r):
     clip, orbit = r
     assert clip["reproj_px"] < 1.0 and orbit["case"] == "orbit:10:64x36"

@@ -121,3 +121,41 @@ def test_a_fit_below_max_grows_in_stages_within_each_limit():
     assert any(note.startswith("growth in stages: ") for note in result.notes)
     trainer, _ = fit("max", 1, **hot)
     assert not trainer.growth.staged and trainer.densifier.limit == 12_000
+
+
+def test_a_falling_psnr_is_not_settled():
+    """Right after its splits a stage's training PSNR falls, then climbs back: a flat or falling stretch
+    inside that dip does not end the stage."""
+    g = growth()
+    dip = [20.0, 19.0, 18.5, 18.4, 18.4, 18.4, 18.4, 18.4, 18.4]  # fell 1.6 dB, then flat at the bottom
+    assert all(g.update(0.1, 2000, True, p) is None for p in dip)
+    climb = [18.4 + 0.5 * k for k in range(1, 5)] + [20.5] * (SETTLE_INTERVALS + 1)
+    done = [g.update(0.1, 2000, True, p) for p in climb]
+    assert done[-1] == "grow" and done[:-1] == [None] * (len(climb) - 1)
+
+
+def test_a_negative_worth_waits_and_never_grows():
+    """A stage whose PSNR is below the last stage's is inside its dip: it waits for the PSNR to come back
+    (a later settled reading prices it); when its window runs out first, growth stops and says why. The
+    ratio of a negative worth to the last one's turns no negative worth positive."""
+    g = growth()
+    settle(g, 0.1, 2000, 20.0)
+    psnr = psnr_taking_away(20.0, 8 * PRICE, 2000, 1e6)
+    assert settle(g, 0.1, 4000, psnr) == "grow"
+    assert settle(g, 0.11, 8000, psnr - 0.5) is None  # settled below the last stage: no price read
+    assert g.staged and g.limit == 8000 and g.stages[-1][0] == 4000
+    window = 0.6 / MAX_STAGES
+    assert g.update(0.11 + window, 8000, True, psnr - 0.5) == "stop"
+    assert not g.staged and g.limit == 8000 and "had not won back its training PSNR" in g.stopped
+    assert g.stages[-1][2] < 0
+
+
+def test_a_worth_shrinking_faster_than_the_last_expects_less_never_more():
+    g = growth()
+    settle(g, 0.1, 2000, 20.0)
+    psnr = psnr_taking_away(20.0, 4 * PRICE, 2000, 1e6)
+    settle(g, 0.1, 4000, psnr)
+    psnr = psnr_taking_away(psnr, 2.2 * PRICE, 4000, 1e6)  # about half the last worth: the next at about a quarter
+    assert settle(g, 0.1, 8000, psnr) == "grow"  # 2.2 * 2.2 / 4 = 1.21 x the price
+    psnr = psnr_taking_away(psnr, 3 * PRICE, 8000, 1e6)  # grew against the trend: expected at most its own worth
+    assert settle(g, 0.1, 16000, psnr) == "grow" and g.stages[-1][2] == pytest.approx(3 * PRICE, rel=1e-6)

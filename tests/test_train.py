@@ -324,6 +324,49 @@ def test_densification_never_exceeds_the_cap(cap):
 
 
 
+
+
+@pytest.mark.parametrize("share", [False, True])
+def test_a_clone_or_split_shares_its_sources_opacity_when_asked(share):
+    """With share_opacity a clone's two Gaussians (the source and its copy, coincident) composite to the
+    source's opacity, 1 - (1 - a')^2 = a, and so does each pair of a split's samples; without it both keep a.
+    (Opacities from 0.018, above the prune's, to 1 - 1e-6.)"""
+    n, g = 40, torch.Generator().manual_seed(5)
+    logits = torch.linspace(-4.0, 13.8, n)
+    model = GaussianModel.from_points(torch.randn(n, 3, generator=g), torch.rand(n, 3, generator=g),
+                                      torch.rand(n, generator=g), 0.5, max_sh_degree=0)
+    with torch.no_grad():
+        model.opacity_logits.copy_(logits)
+        model.log_scales[: n // 2] = -1.0  # large: split
+        model.log_scales[n // 2:] = -8.0  # small: clone
+        model.t_means.copy_(torch.arange(n) / n)  # a label that copies travel with
+    optimizer = torch.optim.Adam([dict(params=[p], lr=1e-3, name=k) for k, p in model.parameters_by_name().items()])
+    densifier = Densifier(preset("quick", max_gaussians=10 * n, share_opacity=share), extent=1.0, num_gaussians=n,
+                          device=CPU)
+    densifier.grad_sum.fill_(1.0)
+    densifier.seen.fill_(1.0)
+    densifier.step(model, optimizer)
+    source = torch.sigmoid(logits.double())
+    labels = (model.t_means.detach() * n).round().long()
+    opacity = torch.sigmoid(model.opacity_logits.detach().double())
+    assert len(model) == 2 * n and torch.isfinite(model.opacity_logits).all()
+    for i in range(n):
+        rows = opacity[labels == i]
+        assert len(rows) == 2 and torch.allclose(rows[0], rows[1])
+        covered = 1 - (1 - rows[0]) ** 2 if share else rows[0]
+        assert torch.allclose(covered, source[i], rtol=1e-5, atol=1e-7), (i, float(covered), float(source[i]))
+
+def test_shared_opacity_logits_are_finite_and_exact_at_every_finite_logit():
+    from tomgs.train.densify import shared_opacity_logits
+
+    logits = torch.tensor([-1e30, -80.0, -17.0, -3.0, 0.0, 3.0, 17.0, 80.0, 1e30])
+    shared = shared_opacity_logits(logits)
+    assert torch.isfinite(shared[1:-1]).all() and (shared[1:] >= shared[:-1]).all()
+    a, b = torch.sigmoid(logits[2:-2].double()), torch.sigmoid(shared[2:-2].double())
+    assert torch.allclose(1 - (1 - b) ** 2, a, rtol=1e-5)
+    assert torch.allclose(shared[1], torch.tensor(-80.0 - math.log(2)), atol=1e-4)  # a' -> a / 2 for small a
+
+
 def test_under_the_cap_the_largest_gradients_densify_first():
     model = GaussianModel.from_points(torch.zeros(40, 3), torch.rand(40, 3), torch.rand(40), 0.5, max_sh_degree=0,
                                       sizes=torch.full((40,), 1e-4))  # all small: clones

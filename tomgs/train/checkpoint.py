@@ -13,14 +13,16 @@ After loading, its layout is checked (`check_state`) before a tensor of it is us
     frames            [V, H, W]: the training views and their size
     params            {name: float tensor [N, ...]} (tomgs.model.PARAM_NAMES), sh_degree
     optimizer         the optimiser's state_dict (Adam's layout, moments [N, ...])
-    sampler           {psnr: float64 [V], generator: uint8 tensor, pending: [[frame, PSNR], ...] the steps'
-                      measurements it has not heard yet (absent in checkpoints before it: none)}
+    sampler           {psnr: float64 [V] (running), latest: float64 [V] (each frame's last; absent before it),
+                      generator: uint8 tensor, pending: [[frame, PSNR], ...] the steps' measurements it has
+                      not heard yet (absent in checkpoints before it: none)}
     densifier         {grad_sum: [N], seen: [N], capped: bool, generator: uint8 tensor, changed_at: int,
                       stopped: bool, densified_at: int (the last two absent before growth could stop),
                       limit: int (absent before growth in stages: the cap)}
     sparsifier        tomgs.train.sparsify.Sparsifier's state: {taken: int, share: float, measured: [[count,
                       PSNR], ...], priced: [[count, proposed, PSNR, PSNR without them, taken], ...],
-                      stopped: str} (absent in checkpoints before it: no round yet; `grown`, in those
+                      stopped: str, seconds: float (the rounds' cost; absent before it: 0)} (absent in
+                      checkpoints before it: no round yet; `grown`, in those
                       before growth in stages, is not read)
     growth            tomgs.train.growth.Growth's state: {limit: int, stages: [[count, PSNR, worth], ...],
                       full_since: float or None, heard: [PSNR, ...], stopped: str} (absent before it:
@@ -401,7 +403,8 @@ def check_state(state, path="<checkpoint>", ours: bool = False) -> None:
 
     sampler = state["sampler"]
     if not torch.is_tensor(sampler.get("psnr")) or tuple(sampler["psnr"].shape) != (frames[0],) \
-            or not torch.is_tensor(sampler.get("generator")):
+            or not torch.is_tensor(sampler.get("generator")) or ("latest" in sampler and (
+                not torch.is_tensor(sampler["latest"]) or tuple(sampler["latest"].shape) != (frames[0],))):
         fail("sampler state does not match the frames")
     pending = sampler.get("pending", [])
     if not isinstance(pending, list) or not all(
@@ -431,7 +434,8 @@ def check_state(state, path="<checkpoint>", ours: bool = False) -> None:
             or not all(_count_and_psnr(m) for m in sparsifier["measured"]) \
             or not all(isinstance(p, list) and len(p) == 5 and _count_and_psnr(p[:3:2]) and type(p[1]) is int
                        and type(p[3]) is float and type(p[4]) is bool for p in sparsifier["priced"]) \
-            or not (sparsifier.get("grown") is None or _count_and_psnr(sparsifier["grown"])):
+            or not (sparsifier.get("grown") is None or _count_and_psnr(sparsifier["grown"])) \
+            or type(sparsifier.get("seconds", 0.0)) is not float:
         fail("sparsifier state of another layout")
 
 

@@ -41,6 +41,13 @@ class TrainConfig:
     # view-space positional gradient, NDC units as in 3DGS; None: by device (AUTO_GRAD_THRESHOLD)
     grad_threshold: float | None = None
     percent_dense: float = 0.01  # clone below this fraction of the scene extent, split above
+    # a clone or split's two Gaussians share their source's opacity a: each takes 1 - sqrt(1 - a), so that where
+    # they overlap they cover what it covered (Rota Bulo et al., "Revising densification in Gaussian splatting");
+    # False: each keeps a (3DGS), and a clone doubles its source's cover until training brings it back. With it a
+    # 1-minute fit of a 289-frame 720p phone clip (H200, docs/notes/training.md) kept its training PSNR from
+    # falling 1.3 dB while densification doubled the cloud, and ended 32.97 dB against 31.30. None: on a GPU,
+    # off on a CPU (not measured there: its fits of hundreds of steps densify a few times)
+    share_opacity: bool | None = None
     max_gaussians: int | None = None  # None: by the clip and device (tomgs.train.plan.auto_cap)
     prune_opacity: float = 0.005
     # at the end of training, leave out the Gaussians that give no frame of the clip this many pixels'
@@ -104,6 +111,9 @@ class TrainConfig:
     # first minute at 2 / 1 / 0.7 / 0.5 / 0.35 frames 34.4 / 34.6 / 34.85 / 34.5 / 34.05 dB at 60 s, 153 /
     # 178 / 209 / 215 / 254 steps/s (H100, docs/notes/training.md)
     init_t_scale_frames: float = 1.0
+    # the share of each frame's initial points that start alive over the whole clip (temporal sigma 1 in clip time)
+    # instead of around their frame: what stays in view is then trained by every frame from the first step
+    init_wide_fraction: float = 0.0
     # depth of the per-frame points: "tracks", interpolated from the tracked points each frame sees (Trainer's
     # log-depth grid), so a static surface's points from every frame start on it; "median", the frame's median
     # depth of them everywhere (the rule before; an ablation)
@@ -142,6 +152,8 @@ class TrainConfig:
             raise ValueError(f"sparsify_share must be between 0 and 1, not {self.sparsify_share!r}")
         if self.sparsify_rounds < 0:
             raise ValueError(f"sparsify_rounds must be 0 or more, not {self.sparsify_rounds!r}")
+        if not 0 <= self.init_wide_fraction <= 1:  # NaN fails too
+            raise ValueError(f"init_wide_fraction must be between 0 and 1, not {self.init_wide_fraction!r}")
         if not 0 <= self.init_depth_jitter <= 1:  # NaN fails too; exp(N(0, 1)) past 1 spans e^2 around the depth
             raise ValueError(f"init_depth_jitter must be between 0 and 1, not {self.init_depth_jitter!r}")
 
@@ -159,6 +171,10 @@ class TrainConfig:
         else:
             wanted = int(self.init_points_per_frame)
         return max(min(wanted, self.cap(frames, pixels, device_type) // (2 * max(frames, 1))), 1)
+
+    def shares_opacity(self, device_type: str = "cpu") -> bool:
+        """`share_opacity`, or when it is None: on a GPU, not on a CPU."""
+        return device_type == "cuda" if self.share_opacity is None else bool(self.share_opacity)
 
     def threshold(self, device_type: str = "cpu") -> float:
         """`grad_threshold`, or when it is None AUTO_GRAD_THRESHOLD's for a `device_type` device."""

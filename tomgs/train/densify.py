@@ -23,6 +23,7 @@ class Densifier:
         self.times = None if times is None else torch.as_tensor(sorted(times), dtype=torch.float32, device=device)
         self.extent = extent
         self.threshold = config.threshold(torch.device(device).type)
+        self.share_opacity = config.shares_opacity(torch.device(device).type)
         self.generator = torch.Generator(device=device).manual_seed(seed + 1)
         self.reset_stats(num_gaussians, device)
         self.limit = config.max_gaussians  # the most Gaussians now: the cap, or a stage's (tomgs.train.growth)
@@ -140,12 +141,16 @@ class Densifier:
         self.capped = self.capped or room == 0 or bool((clone.sum() + 2 * split.sum()) >= room)
 
         params = {k: v.detach() for k, v in model.parameters_by_name().items()}
+        if self.share_opacity and (clone.any() or split.any()):
+            params["opacity_logits"] = torch.where(clone | split, shared_opacity_logits(params["opacity_logits"]),
+                                                   params["opacity_logits"])
         added = {k: [params[k][clone]] for k in PARAM_NAMES}
         if split.any():
             samples = self._split(params, scales, split)
             for k in PARAM_NAMES:
                 added[k].append(samples[k])
-        _apply(model, optimizer, ~split, {k: torch.cat(v) for k, v in added.items()})  # a split replaces its source
+        # a split replaces its source; a clone's source keeps its row, with the shared opacity where it is shared
+        _apply(model, optimizer, ~split, {k: torch.cat(v) for k, v in added.items()}, replace=params)
         pruned = self.prune(model, optimizer)
         self.reset_stats(len(model), params["means"].device)
         return dict(cloned=int(clone.sum()), split=int(split.sum()), pruned=pruned, total=len(model))
@@ -204,6 +209,14 @@ class Densifier:
         self.stopped = bool(state.get("stopped", False))  # checkpoints before it: growth never stopped
         self.densified_at = int(state.get("densified_at", 0))
         self.limit = state.get("limit", self.config.max_gaussians)  # checkpoints before it: the cap
+
+
+def shared_opacity_logits(logits: torch.Tensor) -> torch.Tensor:
+    """The opacity logits [N] of the two Gaussians that share one of opacity sigmoid(logits) [N]: each a' =
+    1 - sqrt(1 - a), so that 1 - (1 - a')^2 = a. With s = sqrt(1 - a), a' / (1 - a') = a / (s (1 + s)), in
+    softplus terms finite for every finite logit (a float32 sigmoid rounds to 0 or 1 far sooner)."""
+    log_s = -0.5 * torch.nn.functional.softplus(logits)  # log sqrt(1 - a)
+    return -torch.nn.functional.softplus(-logits) - log_s - torch.log1p(torch.exp(log_s))
 
 
 def _limit(clone: torch.Tensor, split: torch.Tensor, room: int, grads: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -3,12 +3,18 @@
 At a quality other than "max" a fit grows in stages. Densification (tomgs.train.densify) grows the
 cloud up to the stage's limit, twice the cloud the fit started from; once there, training goes on
 until the training PSNR settles (it gains less than SETTLE_DB over SETTLE_INTERVALS densification
-intervals, or the stage has lasted its share of the densification window, 1 / MAX_STAGES), and the
-stage is priced by its *worth*: the clip's squared error its new Gaussians took away, per new
+intervals and is not below its best since by more, or the stage has lasted its share of the densification
+window, 1 / MAX_STAGES), and the stage is priced by its *worth*: the clip's squared error its new Gaussians took away, per new
 Gaussian (colours in [0, 1], summed over every supervised pixel of every training frame). The next
 stage doubles the limit while the worth expected of it (this stage's, shrunk by the ratio of this
-stage's worth to the last one's) is at least the quality's price (`QualityRule.per_gaussian`);
-otherwise densification stops, and the cloud keeps what it has.
+stage's worth to the last one's, a ratio in [0, 1]) is at least the quality's price
+(`QualityRule.per_gaussian`); otherwise densification stops, and the cloud keeps what it has. A worth
+of zero or less is no price: the stage is still inside the dip its splits made, and waits; one whose
+share runs out before it has won its PSNR back stops the growth, said so.
+
+The training PSNR the stages read is the mean of each frame's last measurement (tomgs.train.sampler's
+`latest_mean`): a frame's running PSNR moves a fifth of the way at each visit, and on a 300-frame clip
+it lagged the model by a few hundred steps, so a stage read it inside its own dip.
 
 The price is a rate-distortion slope, the lambda of a video encoder at constant quality: one number
 for every clip. A Gaussian earns its place when it takes at least that much error away. At a high
@@ -71,17 +77,24 @@ class Growth:
         if self.full_since is None:
             self.full_since, self.heard = progress, []
         self.heard.append(float(psnr))
-        settled = len(self.heard) > SETTLE_INTERVALS and \
-            self.heard[-1] - self.heard[-1 - SETTLE_INTERVALS] < SETTLE_DB
-        if not settled and progress - self.full_since < self.window:
+        out_of_time = progress - self.full_since >= self.window
+        if not (self.settled() or out_of_time):
             return None
-        self.full_since = None
         was_count, was_psnr, was_worth = self.stages[-1]
         worth = math.inf if math.isnan(was_psnr) else \
             (squared_error(was_psnr) - squared_error(psnr)) * self.pixels / max(count - was_count, 1)
+        if worth <= 0 and not out_of_time:  # still inside the dip its splits made: no price to read yet
+            return None
+        self.full_since = None
         self.stages.append((int(count), float(psnr), float(worth)))
-        # the first two stages have no ratio to go by (the start's worth is NaN, the first stage's infinite)
-        expected = worth * min(1.0, worth / was_worth) if 0 < was_worth < math.inf else worth
+        if worth <= 0:
+            self.stopped = (f"at {count:,} Gaussians: the last stage had not won back its training PSNR "
+                            f"({was_psnr:.2f} -> {psnr:.2f} dB) when its share of the densification window ran out")
+            return "stop"
+        # the worth shrinks from stage to stage at most as it did last (the first two stages have no ratio to go
+        # by: the start's worth is NaN, the first stage's infinite)
+        ratio = min(1.0, worth / was_worth) if 0 < was_worth < math.inf else 1.0
+        expected = worth * ratio
         if expected >= self.price:
             self.limit = min(self.cap, 2 * self.limit)
             return "grow"
@@ -89,6 +102,15 @@ class Growth:
                         f"per new Gaussian, and the next would take about {expected:.2g}: under the price of "
                         f"{self.price:.2g}")
         return "stop"
+
+    def settled(self) -> bool:
+        """Whether the training PSNR heard since the stage reached its limit has settled: it gained less than
+        SETTLE_DB over the last SETTLE_INTERVALS intervals and is within SETTLE_DB of the best heard since,
+        so a PSNR still falling (the dip right after splits) is not taken as settled."""
+        if len(self.heard) <= SETTLE_INTERVALS:
+            return False
+        latest = self.heard[-1]
+        return latest - self.heard[-1 - SETTLE_INTERVALS] < SETTLE_DB and latest >= max(self.heard) - SETTLE_DB
 
     def summary(self) -> str:
         """One line: the stages' counts and training PSNRs, and why growth ended."""

@@ -5,7 +5,8 @@ so a user knows from the first second what to expect, and follows it.
 Time comes from a cost model per device (seconds per training step: a + b Gaussians + c pixels;
 the same for a frame's render; decoding and poses per pixel), and a fit's training is its steps and
 what the trainer measures beside them: the clip PSNRs (at most EVAL_OVERHEAD of the steps), the
-quality rule's rounds (ROUND_PASSES renders of every frame each) and the end (the compaction and the
+quality rule's rounds (ROUND_PASSES renders of every frame each; under a budget at most ROUND_OVERHEAD of
+the training) and the end (the compaction and the
 last clip PSNR). The CPU's is CPU time with torch in one thread (what an idle machine's wall time is;
 tomgs.runtime.one_cpu_thread), measured on the bundled clip at 160x96 and 80x48 with 4k-128k Gaussians on the
 2-core machine of the workplace; a machine that other work keeps busy takes longer in wall time, by
@@ -60,6 +61,9 @@ COMPACT_SHARE = 3.0
 # round is taken only where it and the run's end fit in the time left (a busy 2-core CPU's round on the
 # bundled clip took 15 s of a 40-s budget's last 8 and ran the fit over by as much)
 ROUND_PASSES = 3.0
+# Under a time limit the rounds may take at most this fraction of the training time so far (1-minute fits of
+# 289-frame 720p clips, H200: eight rounds took ~15 s of 49 s of training, the PSNR flat meanwhile)
+ROUND_OVERHEAD = 0.15
 CAP_OVER_START = 3  # time-bound cap: this many times the starting cloud
 REFERENCE_CAP, REFERENCE_PIXELS = 10_000_000, 90 * 854 * 480  # DAVIS clip: the paper's 10M cap
 MIN_CAP = 100_000
@@ -177,7 +181,10 @@ def make_plan(config, frames: int, height: int, width: int, source_pixels: int, 
         clip = frames * render_seconds(device_type, grown, pixels)  # one clip PSNR
         rounds = config.sparsify_rounds * ROUND_PASSES * clip if config.quality != "max" else 0.0
         end = (COMPACT_SHARE * clip if config.compact_pixels > 0 else 0.0) + clip
-        return config.iterations * step_seconds(device_type, grown, pixels) * (1 + EVAL_OVERHEAD) + rounds + end
+        steps = config.iterations * step_seconds(device_type, grown, pixels)
+        if config.max_seconds > 0:  # under a limit the rounds take at most ROUND_OVERHEAD of the training
+            rounds = min(rounds, ROUND_OVERHEAD * steps)
+        return steps * (1 + EVAL_OVERHEAD) + rounds + end
 
     def save(n: int) -> float:
         return SAVE_COST[0] + SAVE_COST[1] * min(cap, 2 * n)

@@ -24,6 +24,8 @@ class FrameSampler:
         self.mode = mode
         self.momentum = momentum
         self.psnr = torch.zeros(num_frames, dtype=torch.float64)  # 0 = not measured yet
+        # each frame's last measurement (0 = none): the fit's training PSNR as of now, a visit late at most
+        self.latest = torch.zeros(num_frames, dtype=torch.float64)
         self.generator = torch.Generator().manual_seed(seed)
         # the distribution, kept until a PSNR changes: a GPU fit hears PSNRs every 8 steps, and each of
         # the ~12 small ops that rebuild it costs host time in a host-bound step
@@ -57,12 +59,21 @@ class FrameSampler:
         psnr = min(psnr, MAX_PSNR)
         old = float(self.psnr[frame])
         self.psnr[frame] = psnr if old == 0 else self.momentum * old + (1 - self.momentum) * psnr
+        self.latest[frame] = psnr
         self._probabilities = None
 
+    def latest_mean(self) -> float | None:
+        """The mean over the frames measured so far of each one's last PSNR (None before any). Unlike the
+        running PSNR, which a frame's visits move a fifth of the way each, it follows the model within one
+        visit of every frame: after a densification's dip, it shows the recovery as it happens."""
+        seen = self.latest[self.latest > 0]
+        return float(seen.mean()) if len(seen) else None
+
     def state_dict(self) -> dict:
-        return dict(psnr=self.psnr.clone(), generator=self.generator.get_state())
+        return dict(psnr=self.psnr.clone(), latest=self.latest.clone(), generator=self.generator.get_state())
 
     def load_state_dict(self, state: dict) -> None:
         self.psnr = state["psnr"].clone()
+        self.latest = state["latest"].clone() if "latest" in state else self.psnr.clone()  # older: the running one
         self.generator.set_state(state["generator"])
         self._probabilities = None

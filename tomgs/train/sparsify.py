@@ -75,6 +75,7 @@ class Sparsifier:
         self.measured: list[tuple[int, float]] = []  # (count, clip PSNR) at each round, before its prune
         self.priced: list[tuple] = []  # (count, proposed, clip PSNR with and without them, taken) of each prune
         self.stopped = ""  # why the rounds ended early ("" while they go on)
+        self.seconds = 0.0  # what the rounds taken have cost (the trainer times them)
 
     @property
     def active(self) -> bool:
@@ -130,13 +131,14 @@ class Sparsifier:
 
     def state_dict(self) -> dict:
         return dict(taken=self.taken, share=self.share, measured=[[c, p] for c, p in self.measured],
-                    priced=[list(p) for p in self.priced], stopped=self.stopped)
+                    priced=[list(p) for p in self.priced], stopped=self.stopped, seconds=self.seconds)
 
     def load_state_dict(self, state: dict) -> None:
         self.taken, self.share = int(state["taken"]), float(state["share"])
         self.measured = [(int(c), float(p)) for c, p in state["measured"]]
         self.priced = [(int(c), int(r), float(p), float(w), bool(t)) for c, r, p, w, t in state["priced"]]
         self.stopped = str(state["stopped"])
+        self.seconds = float(state.get("seconds", 0.0))  # checkpoints before it: none counted
 
 
 def importance(trainer, tick=None) -> tuple[torch.Tensor, list[float]]:

@@ -53,7 +53,7 @@ from tomgs.train.init import initial_model
 from tomgs.train.log import log_memory_mb, write_csv
 from tomgs.train.sparsify import Sparsifier, take_round
 from tomgs.train.optim import make_adam, uses_seen_adam
-from tomgs.train.plan import COMPACT_SHARE, EVAL_OVERHEAD, ROUND_PASSES
+from tomgs.train.plan import COMPACT_SHARE, EVAL_OVERHEAD, ROUND_OVERHEAD, ROUND_PASSES
 from tomgs.train.sampler import FrameSampler
 
 # The sampler hears each step's PSNR up to this many steps late: reading it back every step made the
@@ -113,8 +113,8 @@ class Trainer:
     [T,H,W] in [0,1]: adds L1 between the rendered alpha and it. initial: None, or (model, extent)
     to train instead of the trainer's own initialisation (extent: the scene size for learning rates
     and densification). wide_fraction: the fraction of each frame's initial Gaussians that start
-    alive over the whole clip (temporal sigma 1.0, like the tracked points) instead of around their
-    frame (`config.init_t_scale_frames`); the optimiser narrows the windows where the supervised
+    alive over the whole clip (temporal sigma 1.0, like the tracked points; None: `config.init_wide_fraction`)
+    instead of around their frame (`config.init_t_scale_frames`); the optimiser narrows the windows where the supervised
     pixels change. point_frames: None, or int [P,2], the first and last frame the tracker saw each
     point in: its Gaussian starts alive over those frames (centred on them, sigma half their span,
     at least `config.init_t_scale_frames`), not over the whole clip. init_progress: None, or
@@ -123,7 +123,7 @@ class Trainer:
     def __init__(self, frames: np.ndarray, cameras: Cameras, points: np.ndarray, colors: np.ndarray,
                  config: TrainConfig, device: torch.device, *, weights: np.ndarray | None = None,
                  alpha_targets: np.ndarray | None = None, initial: tuple[GaussianModel, float] | None = None,
-                 wide_fraction: float = 0.0, point_frames: np.ndarray | None = None, init_progress=None):
+                 wide_fraction: float | None = None, point_frames: np.ndarray | None = None, init_progress=None):
         frames = np.ascontiguousarray(frames)
         self.num_frames, self.height, self.width = frames.shape[:3]
         if len(cameras) != self.num_frames or (cameras.width, cameras.height) != (self.width, self.height):
@@ -148,7 +148,8 @@ class Trainer:
         if initial is None:
             self.model, self.extent, notes = initial_model(
                 self.frames, cameras, self.config, device, points, colors, weights=self.weights,
-                point_frames=point_frames, wide_fraction=wide_fraction, progress=init_progress)
+                point_frames=point_frames, progress=init_progress,
+                wide_fraction=self.config.init_wide_fraction if wide_fraction is None else wide_fraction)
             self.notes += notes
         else:
             self.model, self.extent = initial[0].to(device), float(initial[1])
@@ -491,10 +492,12 @@ class Trainer:
                 # a round prices its prune against the clip PSNR, which dips for a few dozen steps after a change
                 if self.iteration - self.densifier.changed_at >= settle and \
                         self._round_fits(limit - now if limit > 0 else math.inf, frame_seconds) and \
+                        (limit <= 0 or self._round_affordable(now, frame_seconds)) and \
                         self.sparsifier.due(self.progress):
                     size = len(self.model)
                     began = time.perf_counter()
                     measured = take_round(self, self.sparsifier, lambda text: tick(self.iteration, now, text))
+                    self.sparsifier.seconds += time.perf_counter() - began
                     if measured is not None:
                         rounded = (*measured, size)
                         next_eval = now + max(c.eval_interval_s, (time.perf_counter() - began) / EVAL_OVERHEAD)
@@ -592,6 +595,13 @@ class Trainer:
                               f"Gaussian without them)")
         return False
 
+    def _round_affordable(self, now: float, frame_seconds: float) -> bool:
+        """Under a time limit, whether the rounds taken so far and the next (ROUND_PASSES clip PSNRs) cost at most
+        ROUND_OVERHEAD of the `now` seconds trained: a round of a long clip takes seconds (a 289-frame 720p
+        clip's ~4 s), and eight of them took a third of a 1-minute fit's training. A round that waits takes
+        the slot due when it is affordable; the slots passed meanwhile are skipped."""
+        return self.sparsifier.seconds + ROUND_PASSES * frame_seconds * self.num_frames <= ROUND_OVERHEAD * now
+
     def _end(self, left: float, frame_seconds: float, tick) -> int:
         """The end of a run with `left` seconds of its limit (inf: none): the compaction, when it fits
         with a clip PSNR of MIN_EVAL_FRAMES frames beside it, then the frames the last clip PSNR can
@@ -614,8 +624,8 @@ class Trainer:
     def status(self) -> str:
         """'iteration N, PSNR x dB, G Gaussians': where training is, for a display (the PSNR of the
         training frames as the sampler has heard it, left out before it has)."""
-        seen = self.sampler.psnr[self.sampler.psnr > 0]
-        psnr = f", PSNR {float(seen.mean()):.2f} dB" if len(seen) else ""
+        train = self.train_psnr()
+        psnr = "" if train is None else f", PSNR {train:.2f} dB"
         return f"iteration {self.iteration:,}{psnr}, {len(self.model):,} Gaussians"
 
     def _grow(self) -> None:
@@ -630,11 +640,10 @@ class Trainer:
             self.notes.append(f"densification stopped {self.growth.stopped} ({self.config.quality} quality)")
 
     def train_psnr(self) -> float | None:
-        """The mean running PSNR of the frames trained on so far (None before any): what the sampler has
-        heard. Handing it the measurements still on their way would change what it draws next at
-        moments set by the clock, and a seeded run would no longer repeat."""
-        seen = self.sampler.psnr[self.sampler.psnr > 0]
-        return float(seen.mean()) if len(seen) else None
+        """The training PSNR: the mean over the frames trained on so far of each one's last PSNR (None before
+        any), as the sampler has heard them. Handing it the measurements still on their way would change
+        what it draws next at moments set by the clock, and a seeded run would no longer repeat."""
+        return self.sampler.latest_mean()
 
     def _row(self, now: float, clip: tuple[float, int] | None, count: int | None = None) -> dict:
         """The CSV row at `now` seconds; clip: (clip PSNR, the frames it covers) or None; count: the
