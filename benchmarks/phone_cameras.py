@@ -174,7 +174,8 @@ def row_of(r: dict) -> list:
     t, c, d = r["tomgs"], r["reference"], r["compare"]
     reg = "pycolmap not installed" if c is None else f"{c['registered']}/{c['frames']}"
     c = c or {}
-    return [r["clip"], t["frames"], t["mode"], t["focal"], t["fixed"], t["reproj_px"], t["rotation_deg"],
+    reproj = t["reproj_px"] if np.isfinite(t["reproj_px"]) else None  # a fixed camera has no error to measure
+    return [r["clip"], t["frames"], t["mode"], t["focal"], t["fixed"], reproj, t["rotation_deg"],
             t["path_over_depth"], t["seconds"], reg, c.get("focal"), c.get("reproj_px"), c.get("rotation_deg"),
             c.get("path_over_depth"), c.get("still_px"), c.get("seconds"), d.get("focal_ratio"),
             d.get("rotation_error_deg"), d.get("path_error")]
