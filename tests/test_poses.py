@@ -10,7 +10,7 @@ import pytest
 from tomgs.io import InputError
 from tomgs.poses import estimate_cameras
 from tomgs.cameras import intrinsics
-from tomgs.poses.synthetic import Plane, RenderedClip, make_clip, orbit, pan, room, textured
+from tomgs.poses.synthetic import Plane, RenderedClip, look_at, make_clip, orbit, pan, room, textured
 from tomgs.poses.synthetic import trajectory_errors as errors
 
 
@@ -23,6 +23,7 @@ def test_auto_unknown_focal_with_masks(orbit_clip):
     clip = orbit_clip
     cams, pts, cols, rep = estimate_cameras(clip.frames, clip.masks)
     assert any("focal trials" in n for n in rep.notes)
+    assert not any("weakly determined" in n for n in rep.notes), rep.notes  # the orbit pins it
     traj, rot = errors(cams.c2w, clip.c2w)
     assert rep.mode == "general" and rep.focal_estimated
     assert traj <= 0.02, traj
@@ -83,6 +84,16 @@ def test_fixed_camera_with_things_moved_in_front_of_it():
     assert rep.mode == "fixed" and any("fixed camera found by solving" in n for n in rep.notes), rep.notes
     assert not any("rotation cameras" in n for n in rep.notes)
     assert np.array_equal(cams.c2w, np.tile(np.eye(4), (T, 1, 1))) and cams.focal == 1.2 * 160 and len(pts) > 0
+
+
+def test_weakly_determined_focal_is_said():
+    """A camera that only moves forward leaves the focal in a flat valley (trials from 0.5 to 2 x the side
+    fit within a few percent): the notes say so rather than give the pick as measured."""
+    T = 24
+    c2w = np.stack([look_at([0, 0, 0.8 * k / (T - 1)], [0, 0, 5 + 0.8 * k / (T - 1)]) for k in range(T)])
+    clip = make_clip(c2w, width=160, height=120, focal=125.0, mover=True, seed=4)
+    _, _, _, rep = estimate_cameras(clip.frames, device="cpu")
+    assert rep.mode == "general" and any("focal length is weakly determined" in n for n in rep.notes), rep.notes
 
 
 def test_pure_rotation_unknown_focal():

@@ -30,6 +30,7 @@ from tomgs.poses.tracks import KLT, WORK_SIDE, FlowMotion, Tracks, WorkingFrames
 from tomgs.runtime import one_cpu_thread
 
 REGISTER_RUN = 1 << 16  # observations refined at once when the frames between keyframes are registered
+FLAT_ERROR = 1.1  # focal trials within this factor of the best error fit the views about as well
 FIXED_PX = 0.3  # working pixels: a camera that moves the background less than this in every frame is fixed
 
 
@@ -428,7 +429,7 @@ class Tracker:
         trial = np.unique(np.linspace(1, min(self.T - 1, j + 8), 12).round().astype(int))
         trial = sorted(set(trial.tolist()) | {j})
         starts = [self.focal] + [self.side * m for m in (0.5, 0.8, 1.25, 2.0)]
-        best, seen = (np.inf, None), []
+        best, seen, fits = (np.inf, None), [], []
         for f in starts:
             self.focal = f
             pts = self._solve_general(j, frames=trial, report=False)
@@ -436,9 +437,16 @@ class Tracker:
             if pts is not None:
                 err = self._all_errors(pts)[0]
                 seen.append(f"{f / self.scale:.0f}->{self.focal / self.scale:.0f} ({err / self.scale:.3f} px)")
+                fits.append((err, self.focal))
                 if err < best[0]:
                     best = (err, self.focal)
         self.notes.append("focal trials, start -> refined (median error): " + ", ".join(seen))
+        # a flat valley (forward motion, a small orbit): focals far apart fit the views about as well
+        close = [f for err, f in fits if err <= FLAT_ERROR * best[0]]
+        if close and max(close) > 1.5 * min(close):
+            self.notes.append(f"the focal length is weakly determined by this clip: trials refined to "
+                              f"{min(close) / self.scale:.0f}-{max(close) / self.scale:.0f} px fit within "
+                              f"{100 * (FLAT_ERROR - 1):.0f}% of the best error (give --focal if known)")
         return best[1]  # None: no start could be reconstructed
 
     # ---- general motion ------------------------------------------------------------------------
