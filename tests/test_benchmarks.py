@@ -156,6 +156,15 @@ def check_bench_poses(r):
     assert clip["reproj_px"] < 1.0 and orbit["case"] == "orbit:10:64x36"
 
 
+def check_phone_cameras(r):
+    (row,) = r
+    ours, ref, truth = row["tomgs"], row["reference"], row["truth"]
+    assert ours["mode"] == "general" and abs(ours["focal"] / truth["focal"] - 1) < 0.05 and truth["path_error"] < 0.02
+    if ref is not None:  # pycolmap installed: the reference solved the orbit and agrees
+        assert ref["registered"] == ref["frames"] == 12 and abs(row["compare"]["focal_ratio"] - 1) < 0.05
+        assert row["compare"]["rotation_error_deg"] < 1 and row["compare"]["path_error"] < 0.02
+
+
 def check_shards(r):
     assert set(r["results"]) == {"half0", "half1", "full_2gpu"} and r["goal"] is not None
 

@@ -30,6 +30,8 @@ from tomgs.poses.tracks import KLT, WORK_SIDE, FlowMotion, Tracks, WorkingFrames
 from tomgs.runtime import one_cpu_thread
 
 REGISTER_RUN = 1 << 16  # observations refined at once when the frames between keyframes are registered
+FLAT_ERROR = 1.1  # focal trials within this factor of the best error fit the views about as well
+FIXED_PX = 0.3  # working pixels: a camera that moves the background less than this in every frame is fixed
 
 
 @dataclass
@@ -84,7 +86,7 @@ def static_frames(clip: WorkingFrames, notes: list):
         notes.append(f"{bad} frame{'s' if bad != 1 else ''} masked over 85%: their masks were ignored")
 
 
-def is_fixed_camera(gray: dict, static0: np.ndarray, thresh_px: float = 0.3) -> bool:
+def is_fixed_camera(gray: dict, static0: np.ndarray, thresh_px: float = FIXED_PX) -> bool:
     """True if static corners of frame 0 stay within `thresh_px` in a handful of later frames.
     gray: {frame: uint8 [h,w]} holding frame 0 and the later frames to compare (fixed_probes);
     static0: bool [h,w], frame 0's static mask."""
@@ -210,6 +212,7 @@ class Tracker:
         self.K_given = None if K is None else scale_K(self.K_full, self.scale)
         self.focal_given = focal is not None
         self.focal = float(focal) * self.scale if focal is not None else 1.2 * max(self.W, self.H)
+        self.focal_first = self.focal  # a fixed camera's: its focal cannot be measured
         self.max_corners = max_corners or int(np.clip(self.W * self.H / 150, 300, 1500))
         self.device = pick_device(device)
         self.notes: list[str] = []
@@ -265,13 +268,10 @@ class Tracker:
         all_tracks, static0, grays = self.track(fixed_probes(T))
         if T == 1 or is_fixed_camera(grays, static0):
             self._tick("tracks", t0)
-            self.notes.append("single frame: identity pose" if T == 1 else
-                              "fixed camera detected: identity poses, no poses solved")
-            pts, cols = self._unit_depth(static0)
-            self._progress(2 * T)
-            return Solution(np.tile(np.eye(4), (T, 1, 1)), self._full_K(), pts, cols, "fixed", float("nan"),
-                            self.notes, self.timings)
-        del grays, static0
+            return self._fixed(static0, "single frame: identity pose" if T == 1 else
+                               "fixed camera detected: identity poses, no poses solved")
+        del grays
+        tracked_notes = len(self.notes)  # what solving notes is moot if the camera turns out fixed
         self.keys = select_keyframes(all_tracks, T, self.side)
         self.tracks, self.key_obs = all_tracks.subset(self.keys)
         self.T = len(self.keys)
@@ -296,6 +296,11 @@ class Tracker:
         t0 = self._tick("keyframes", t0)
         self._register_rest(all_tracks, mode == "rotation")
         self._tick("register", t0)
+        shift = self._camera_shift(pts)
+        if shift < FIXED_PX:  # what moved in front of it hid the fixed camera from is_fixed_camera
+            del self.notes[tracked_notes:]
+            return self._fixed(static0, f"fixed camera found by solving: the cameras move the background by at most "
+                                        f"{shift / self.scale:.2f} px, identity poses")
         sol = self._solution(mode, pts)
         if len(sol.points) == 0:  # nothing trackable (blank frames): still give the trainer something
             sol.points, sol.colors = self._unit_depth(None)
@@ -303,6 +308,31 @@ class Tracker:
             self.notes.append("no trackable texture: points placed at depth 1 in front of frame 0")
         self._progress(2 * T)
         return sol
+
+    def _fixed(self, static0: np.ndarray, note: str) -> Solution:
+        """The Solution of a fixed camera: identity poses, points at depth 1 in front of frame 0."""
+        self.notes.append(note)
+        if not self.focal_given and self.T_all > 1:
+            self.focal = self.focal_first
+            self.notes.append("a fixed camera's focal length cannot be measured: 1.2 x the image side assumed "
+                              "(give --focal if known)")
+        pts, cols = self._unit_depth(static0)
+        self._progress(2 * self.T_all)
+        return Solution(np.tile(np.eye(4), (self.T_all, 1, 1)), self._full_K(), pts, cols, "fixed", float("nan"),
+                        self.notes, self.timings)
+
+    def _camera_shift(self, pts: np.ndarray, n: int = 500) -> float:
+        """The largest, over the frames, 90th percentile of how far (working px) frame k's camera moves up to
+        `n` of the points `pts` from where frame 0's camera sees them: the image motion that the cameras
+        themselves make, whatever moved in front of them."""
+        if len(pts) == 0:
+            return np.inf
+        X = self.X[pts[np.linspace(0, len(pts) - 1, min(n, len(pts))).astype(int)]]
+        cam = np.einsum("tij,pj->tpi", self.Rw, X) + self.tw[:, None]  # [T,P,3]
+        ok = (cam[..., 2] > 1e-9) & (cam[:1, :, 2] > 1e-9)
+        uv = cam[..., :2] / np.where(ok, cam[..., 2], 1.0)[..., None] * np.diag(self.K)[:2]
+        d = np.linalg.norm(uv - uv[:1], axis=-1)
+        return float(max(np.percentile(dk[okk], 90) if okk.any() else np.inf for dk, okk in zip(d, ok)))
 
     def _full_K(self) -> np.ndarray:
         """K [3,3] in the input frames' pixels."""
@@ -399,7 +429,7 @@ class Tracker:
         trial = np.unique(np.linspace(1, min(self.T - 1, j + 8), 12).round().astype(int))
         trial = sorted(set(trial.tolist()) | {j})
         starts = [self.focal] + [self.side * m for m in (0.5, 0.8, 1.25, 2.0)]
-        best, seen = (np.inf, None), []
+        best, seen, fits = (np.inf, None), [], []
         for f in starts:
             self.focal = f
             pts = self._solve_general(j, frames=trial, report=False)
@@ -407,9 +437,16 @@ class Tracker:
             if pts is not None:
                 err = self._all_errors(pts)[0]
                 seen.append(f"{f / self.scale:.0f}->{self.focal / self.scale:.0f} ({err / self.scale:.3f} px)")
+                fits.append((err, self.focal))
                 if err < best[0]:
                     best = (err, self.focal)
         self.notes.append("focal trials, start -> refined (median error): " + ", ".join(seen))
+        # a flat valley (forward motion, a small orbit): focals far apart fit the views about as well
+        close = [f for err, f in fits if err <= FLAT_ERROR * best[0]]
+        if close and max(close) > 1.5 * min(close):
+            self.notes.append(f"the focal length is weakly determined by this clip: trials refined to "
+                              f"{min(close) / self.scale:.0f}-{max(close) / self.scale:.0f} px fit within "
+                              f"{100 * (FLAT_ERROR - 1):.0f}% of the best error (give --focal if known)")
         return best[1]  # None: no start could be reconstructed
 
     # ---- general motion ------------------------------------------------------------------------
