@@ -17,7 +17,7 @@ from click.testing import CliRunner
 
 from scenes import object_scene
 from tomgs.cli import main
-from tomgs.demo import example_file
+from tomgs.examples import example_file
 from tomgs.io.scene import save_scene
 from tomgs.io.video import clip_record, read_video
 from tomgs.io.writer import write_frames
@@ -86,11 +86,25 @@ MISTAKES = {
     "cuda without a GPU": (["fit", "{clip}", "-o", "s.ply", "--device", "cuda"], "no CUDA GPU"),
     "bad select": (["edit", "scene.ply", "-o", "e.ply", "--select", "box:1,2", "--remove"], "box takes 6"),
     "unknown extension": (["render", "scene.ply", "-o", "out.xyz"], "unknown output type '.xyz'"),
+    "export: unknown extension": (["export", "scene.ply", "-o", "out.xyz", "--frame", "0"], "unknown format '.xyz'"),
+    "export: no moment": (["export", "scene.ply", "-o", "out.ply"], "give the moment to export"),
+    "export: nothing to write": (["export", "scene.ply"], "give -o OUT"),
+    "poses: existing output": (["poses", "{clip}", "-o", "taken.ply"], "taken.ply exists"),
+    "info: plot not a PNG": (["info", "scene.ply", "--plot", "out.jpg"], "the plot is a PNG"),
+    "compress: not a scene": (["compress", "scene.ply", "-o", "out.xyz"], "a compressed scene is a .tsog"),
+    "compress: existing output": (["compress", "scene.ply", "-o", "taken.ply"], "taken.ply exists"),
+    "tets export: existing output": (["tets", "export", "scene.ply", "-o", "taken.ply"], "taken.ply exists"),
+    "tets import: no tets file": (["tets", "import", "scene.ply", "no.ply", "no.npz", "-o", "x.mp4"],
+                                  "no.ply does not exist"),
+    "simulate: not a sequence": (["simulate", "scene.ply", "-o", "out.txt"], "an .npz"),
+    "view: missing scene": (["view", "nope.ply"], "scene file nope.ply does not exist"),
+    "demo: unknown extension": (["demo", "-o", "out.xyz"], "unknown output type '.xyz'"),
+    "example: unknown name": (["example", "nope.mp4"], "no example file 'nope.mp4'"),
 }
 
 
 # what a mistake seen only in a file's contents imports to read them
-READERS = {"0-frame range": ("av",), "wrong video for eval": ("av", "numpy")}
+READERS = {"0-frame range": ("av",), "wrong video for eval": ("av", "numpy"), "tets import: no tets file": ("numpy",)}
 
 
 @pytest.mark.parametrize("mistake", list(MISTAKES))

@@ -31,11 +31,11 @@ from pathlib import Path
 import numpy as np
 
 from tomgs.constants import SH_C0
+from tomgs.io.kinds import STATIC_FORMATS
 from tomgs.io.sog import sog_bytes
 from tomgs.outputs import atomic_file
 from tomgs.render.sh import sh_degree_of
 
-FORMATS = (".ply", ".splat", ".spz", ".sog")
 FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")  # StaticGaussians' arrays
 
 
@@ -73,12 +73,12 @@ class StaticGaussians:
 
 
 def write_static(path, gaussians: StaticGaussians) -> Path:
-    """Write `gaussians` in the format of `path`'s extension (FORMATS), atomically."""
+    """Write `gaussians` in the format of `path`'s extension (STATIC_FORMATS), atomically."""
     path = Path(path)
     writers = {".ply": _ply_bytes, ".splat": _splat_bytes, ".spz": _spz_bytes, ".sog": sog_bytes}
     writer = writers.get(path.suffix.lower())
     if writer is None:
-        raise ValueError(f"unknown static format {path.suffix!r}; one of {', '.join(FORMATS)}")
+        raise ValueError(f"unknown static format {path.suffix!r}; one of {', '.join(STATIC_FORMATS)}")
     data = writer(gaussians)
     with atomic_file(path, durable=True) as tmp:
         Path(tmp).write_bytes(data)
