@@ -6,6 +6,7 @@ compare anyway."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -66,7 +67,8 @@ def clips(tmp_path_factory):
     """A scene fitted (as far as eval can tell) on clip a.mp4, and clips that are not a.mp4."""
     folder = tmp_path_factory.mktemp("door")
     clips = {"a": ("ramp", 6, 32, 24), "longer": ("ramp", 8, 32, 24), "larger": ("ramp", 6, 64, 48),
-             "other": ("flipped", 6, 32, 24), "wide": ("ramp", 6, 48, 24)}
+             "other": ("flipped", 6, 32, 24), "wide": ("ramp", 6, 48, 24),
+             "shorter": ("ramp", 4, 32, 24)}
     for name, (kind, count, width, height) in clips.items():
         write_frames(frames_of(kind, count, width, height), folder / f"{name}.mp4", fps=10.0)
     model, cams, _ = object_scene(frames=6)
@@ -140,7 +142,22 @@ def test_eval_of_the_scene_s_own_clip_says_nothing_of_differences(clips):
     assert result.exit_code == 0 and "compared anyway" not in result.output, result.output
 
 
-def test_eval_cannot_compare_frames_of_another_shape_even_forced(clips):
-    result = run("eval", clips / "scene.ply", clips / "wide.mp4", "--device", "cpu", "--force")
-    assert result.exit_code == 2 and "cannot be compared" in result.output and "48x24" in result.output, \
-        result.output
+@pytest.mark.parametrize("video, impossible, forced", [
+    ("wide.mp4", "48x24", "wide.mp4's 48x24 frames resized to the scene's 32x24"),
+    ("shorter.mp4", "shorter.mp4 has 4 frames", "compared the 4 of the scene's 6 frames that shorter.mp4 has"),
+])
+def test_eval_forced_compares_what_can_be_compared_and_says_so(clips, video, impossible, forced):
+    refused = run("eval", clips / "scene.ply", clips / video, "--device", "cpu")
+    assert refused.exit_code == 2 and "cannot be compared" in refused.output and impossible in refused.output, \
+        refused.output
+    assert "--force to compare the frames both have" in refused.output, refused.output
+    result = run("eval", clips / "scene.ply", clips / video, "--device", "cpu", "--force", "--json", "-")
+    assert result.exit_code == 0 and forced in result.stderr, result.output
+    assert json.loads(result.stdout)["frames"] == (4 if video == "shorter.mp4" else 6)
+
+
+def test_eval_with_its_json_on_stdout_and_quiet_prints_nothing_else(clips):
+    """With `--json -` the per-frame lines are notes on stderr: -q silences them."""
+    result = run("-q", "eval", clips / "scene.ply", clips / "a.mp4", "--device", "cpu", "--json", "-")
+    assert result.exit_code == 0 and result.stderr == "", result.stderr
+    assert set(json.loads(result.stdout)) >= {"psnr", "ssim", "per_frame"}
