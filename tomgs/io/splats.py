@@ -178,7 +178,8 @@ def _spz_bytes(g: StaticGaussians) -> bytes:
     positions = np.stack([(fixed >> shift) & 0xFF for shift in (0, 8, 16)], axis=-1).astype(np.uint8)  # [N,3,3]
     sections = [
         positions.reshape(-1),
-        _bytes(_sigmoid(g.opacity_logits) * 255.0),
+        # 1..254: the format's reader decodes a byte as the logit of byte / 255, infinite at 0 and 255
+        np.clip(_bytes(_sigmoid(g.opacity_logits) * 255.0), 1, 254),
         _bytes(g.sh_dc.astype(np.float64) * (SPZ_COLOR_SCALE * 255.0) + 127.5).reshape(-1),
         _bytes((g.log_scales.astype(np.float64) + 10.0) * 16.0).reshape(-1),
         _smallest_three(quats).astype("<u4").view(np.uint8),
