@@ -101,6 +101,8 @@ MISTAKES = {
     "simulate: not a sequence": (["simulate", "scene.ply", "-o", "out.txt"], "an .npz"),
     "view: missing scene": (["view", "nope.ply"], "scene file nope.ply does not exist"),
     "demo: unknown extension": (["demo", "-o", "out.xyz"], "unknown output type '.xyz'"),
+    "output is the input": (["edit", "scene.ply", "-o", "scene.ply", "--translate", "1,0,0"],
+                            "Error: -o scene.ply is the input SCENE: writing it"),  # the path named once
     "example: unknown name": (["example", "nope.mp4"], "no example file 'nope.mp4'"),
 }
 

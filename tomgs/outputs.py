@@ -321,7 +321,8 @@ def check_distinct(outputs: dict, inputs: dict | None = None) -> None:
         for path in _paths(value):
             for other_label, other in seen:
                 if _same(path, other):
-                    raise InputError(f"{label} {path} is also {other_label} ({other}): one would overwrite the "
+                    named = "" if other == path else f" ({other})"  # a path named once, another way twice
+                    raise InputError(f"{label} {path} is also {other_label}{named}: one would overwrite the "
                                      f"other; give each output its own path")
             seen.append((label, path))
     for in_label, value in (inputs or {}).items():
@@ -333,7 +334,8 @@ def check_distinct(outputs: dict, inputs: dict | None = None) -> None:
                     where = "holds"  # a folder of frames written where an input lies
                 else:
                     continue
-                raise InputError(f"{label} {path} {where} the input {in_label} {source}: writing it would "
+                named = "" if source == path else f" {source}"
+                raise InputError(f"{label} {path} {where} the input {in_label}{named}: writing it would "
                                  f"replace what this command reads; choose another output path")
 
 

@@ -104,9 +104,9 @@ def check_selectors(selectors, cameras=None) -> list:
     parsed = [parse_selector(text) for text in selectors]
     for s in parsed:
         if s.kind == "index":
-            check_existing(s.path, f"--select {s.text}: index file")
+            check_existing(s.path, "--select's index file")
         elif s.kind == "mask":
-            check_existing(s.path, f"--select {s.text}: mask folder", folder=True)
+            check_existing(s.path, "--select's mask folder", folder=True)
     return parsed
 
 

@@ -40,7 +40,7 @@ def tets():
 @user_errors
 def tets_export(scene, output, selectors, cage, cell, overwrite):
     """Write the Gaussians of SCENE that --select picks as tetrahedra (a PLY Blender imports:
-    Z up, vertex order kept; README "Editing" has the format).
+    Z up, vertex order kept; docs/editing.md has the format).
 
     \b
     Examples:
