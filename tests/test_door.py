@@ -98,6 +98,8 @@ MISTAKES = {
     "tets export: existing output": (["tets", "export", "scene.ply", "-o", "taken.ply"], "taken.ply exists"),
     "tets import: no tets file": (["tets", "import", "scene.ply", "no.ply", "no.npz", "-o", "x.mp4"],
                                   "no.ply does not exist"),
+    "tets export: bad select": (["tets", "export", "scene.ply", "-o", "t.ply", "--select", "box:1"], "box takes 6"),
+    "simulate: bad select": (["simulate", "scene.ply", "-o", "s.npz", "--select", "box:1"], "box takes 6"),
     "simulate: not a sequence": (["simulate", "scene.ply", "-o", "out.txt"], "an .npz"),
     "view: missing scene": (["view", "nope.ply"], "scene file nope.ply does not exist"),
     "demo: unknown extension": (["demo", "-o", "out.xyz"], "unknown output type '.xyz'"),
@@ -108,7 +110,7 @@ MISTAKES = {
 
 
 # what a mistake seen only in a file's contents imports to read them
-READERS = {"0-frame range": ("av",), "wrong video for eval": ("av", "numpy"), "tets import: no tets file": ("numpy",)}
+READERS = {"0-frame range": ("av",), "wrong video for eval": ("av", "numpy")}
 
 
 @pytest.mark.parametrize("mistake", list(MISTAKES))
