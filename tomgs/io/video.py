@@ -609,17 +609,21 @@ def read_video_against(path, cameras) -> tuple[np.ndarray, list[int], list[str]]
     if not keep:
         raise InputError(f"{path} has {source.frames} frames, none of the scene's (source frames {numbers.min()} to "
                          f"{numbers.max()}): nothing to compare")
-    clip = read_video(path, frames=slice(int(numbers[keep].min()), int(numbers[keep].max()) + 1))
+    wanted = numbers[keep]
+    steps = np.unique(np.diff(wanted))
+    step = int(steps[0]) if len(steps) == 1 and steps[0] > 0 else 1  # a regular step read as a stepped range
+    clip = read_video(path, frames=slice(int(wanted.min()), int(wanted.max()) + 1, step),
+                      max_side=max(cameras.width, cameras.height))
     position = {int(s): i for i, s in enumerate(clip.indices)}
     keep = [k for k in keep if int(numbers[k]) in position]
     frames = clip.frames[[position[int(numbers[k])] for k in keep]]
     notes = [] if len(keep) == len(numbers) else \
         [f"compared the {len(keep)} of the scene's {len(numbers)} frames that {name} has"]
-    height, width = frames.shape[1:3]
-    if (height, width) != (cameras.height, cameras.width):
+    if frames.shape[1:3] != (cameras.height, cameras.width):
         frames = np.stack([cv2.resize(f, (cameras.width, cameras.height), interpolation=cv2.INTER_AREA)
                            for f in frames])
-        notes.append(f"{name}'s {width}x{height} frames resized to the scene's {cameras.width}x{cameras.height}")
+        notes.append(f"{name}'s {source.width}x{source.height} frames resized to the scene's "
+                     f"{cameras.width}x{cameras.height}")
     return frames, keep, notes
 
 
