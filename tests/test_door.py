@@ -88,6 +88,7 @@ MISTAKES = {
     "cuda without a GPU": (["fit", "{clip}", "-o", "s.ply", "--device", "cuda"], "no CUDA GPU"),
     "bad select": (["edit", "scene.ply", "-o", "e.ply", "--select", "box:1,2", "--remove"], "box takes 6"),
     "unknown extension": (["render", "scene.ply", "-o", "out.xyz"], "unknown output type '.xyz'"),
+    "eval: missing video": (["eval", "scene.ply", "nope.mp4"], "nope.mp4 does not exist"),
     "export: unknown extension": (["export", "scene.ply", "-o", "out.xyz", "--frame", "0"], "unknown format '.xyz'"),
     "export: no moment": (["export", "scene.ply", "-o", "out.ply"], "give the moment to export"),
     "export: nothing to write": (["export", "scene.ply"], "give -o OUT"),

@@ -36,10 +36,12 @@ def evaluate_command(scene, video, lpips_weights, json_out, force, device, overw
     """
     from tomgs.outputs import check_distinct
     from tomgs.cli.preflight import check_device, check_eval_video, check_existing, check_scene, refuse_or_note
+    from tomgs.io.video import probe_source
 
     check_distinct({"--json": json_out}, {"SCENE": scene, "VIDEO": video, "--lpips": lpips_weights})
     to_stdout = check_json(json_out, overwrite)
     check_device(device)
+    probe_source(video)  # a missing video or a file of another kind, before the scene's header is read (numpy)
     cameras, info = check_scene(scene)
     notes, partial = check_eval_video(video, scene, cameras, info, force)
     if lpips_weights is not None:
