@@ -411,9 +411,9 @@ def check_unlocked(path, what: str = "fit") -> None:
 def output_lock(path, what: str = "fit") -> Iterator[None]:
     """Hold an advisory lock on output `path` and the files beside it that share its stem (a fit's
     log, plot and checkpoint: fit_output_paths), '.STEM.lock' whatever its extension, while the block
-    runs, released and removed on every exit path (the system releases it when a killed process ends). InputError at once when another process holds it; an OSError naming
-    `path` (`write_failed`) when the lock cannot be written (a full disk). POSIX only (elsewhere: no
-    lock)."""
+    runs, released and removed on every exit path (the system releases it when a killed process ends).
+    InputError at once when another process holds it; an OSError naming `path` (`write_failed`) when
+    the lock cannot be written (a full disk). POSIX only (elsewhere: no lock)."""
     try:
         import fcntl
     except ImportError:
