@@ -141,9 +141,9 @@ def run_case(spec_path: Path) -> None:
     import torch
 
     from tomgs.train import fit, preset
-    from tomgs.train.phases import process_started
+    from tomgs.train.phases import tomgs_started
 
-    started = process_started()
+    started = tomgs_started()
     folder = Path(spec["folder"])
     overrides = dict(max_seconds=spec["budget"])
     if spec.get("iterations"):  # beside the budget: whichever comes first

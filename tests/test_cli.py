@@ -47,6 +47,38 @@ def test_every_option_of_every_command_says_what_it_does():
     assert bare == []
 
 
+def test_every_help_points_to_what_exists():
+    """A help that names a README section names one the README has, a docs/ page one the repository
+    has, and `jq .KEY` a key of the JSON (`edit --help` sent readers to a README "Editing" section
+    that lives in docs/editing.md; `eval --help` to a `mean` that eval's JSON does not have)."""
+    import click
+    from pathlib import Path
+
+    from tomgs.metrics import EvalReport
+
+    root = Path(tomgs.__file__).parents[1]
+    headings = [line.lstrip("#").strip() for line in (root / "README.md").read_text().splitlines()
+                if line.startswith("#")]
+    context = click.Context(main)
+    texts = {}
+
+    def walk(command, path):
+        if isinstance(command, click.Group):
+            for name in command.list_commands(context):
+                walk(command.get_command(context, name), [*path, name])
+        texts[" ".join(path)] = " ".join(run(*path, "--help").output.split())
+
+    walk(main, [])
+    for name, text in texts.items():
+        for section in re.findall(r'README "([^"]+)"', text):
+            assert any(section in heading for heading in headings), f"tomgs {name} --help: README {section!r}"
+        for page in re.findall(r"\bdocs/[\w-]+\.md", text):
+            assert (root / page).is_file(), f"tomgs {name} --help: {page}"
+    report = EvalReport(frames=[0], psnr=[30.0], ssim=[0.9], width=4, height=4, seconds=1.0)
+    for key in re.findall(r"jq \.(\w+)", texts["eval"]):
+        assert key in report.to_dict(), f"tomgs eval --help: jq .{key}"
+
+
 def test_console_script_entry_point():
     out = subprocess.run([sys.executable, "-m", "tomgs.cli", "--version"], capture_output=True, text=True, check=True)
     assert tomgs.__version__ in out.stdout

@@ -96,3 +96,24 @@ def test_eval_bad_input(clip, tmp_path):
     not_a_scene.write_text("hello")
     result = CliRunner().invoke(main, ["eval", str(not_a_scene), str(clip)])
     assert result.exit_code == 2 and "scene.ply" in result.output
+
+
+def test_the_fit_s_clock_starts_with_tomgs_not_with_its_process(clip, tmp_path):
+    """`bash -c "sleep 15 && tomgs fit ..."` hands tomgs a process 15 s old: its budget and its time in
+    all count from tomgs's own start, not the process's."""
+    import os
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    code = ("import sys, time; time.sleep(4); sys.argv[0] = 'tomgs'; from tomgs.cli import main; main()")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, (str(root), os.environ.get("PYTHONPATH"))))}
+    began = time.perf_counter()
+    done = subprocess.run([sys.executable, "-c", code, "-q", "fit", str(clip), "-o", str(tmp_path / "s.ply"),
+                           "--iterations", "3", "--device", "cpu", "--poses", "identity", "--json", "-"],
+                          env=env, capture_output=True, text=True, timeout=600)
+    took = time.perf_counter() - began
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout)["wall_seconds"] < took - 3.5, (json.loads(done.stdout)["wall_seconds"], took)

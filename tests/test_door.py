@@ -6,6 +6,7 @@ compare anyway."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -17,7 +18,7 @@ from click.testing import CliRunner
 
 from scenes import object_scene
 from tomgs.cli import main
-from tomgs.demo import example_file
+from tomgs.examples import example_file
 from tomgs.io.scene import save_scene
 from tomgs.io.video import clip_record, read_video
 from tomgs.io.writer import write_frames
@@ -66,7 +67,8 @@ def clips(tmp_path_factory):
     """A scene fitted (as far as eval can tell) on clip a.mp4, and clips that are not a.mp4."""
     folder = tmp_path_factory.mktemp("door")
     clips = {"a": ("ramp", 6, 32, 24), "longer": ("ramp", 8, 32, 24), "larger": ("ramp", 6, 64, 48),
-             "other": ("flipped", 6, 32, 24), "wide": ("ramp", 6, 48, 24)}
+             "other": ("flipped", 6, 32, 24), "wide": ("ramp", 6, 48, 24),
+             "shorter": ("ramp", 4, 32, 24)}
     for name, (kind, count, width, height) in clips.items():
         write_frames(frames_of(kind, count, width, height), folder / f"{name}.mp4", fps=10.0)
     model, cams, _ = object_scene(frames=6)
@@ -86,6 +88,25 @@ MISTAKES = {
     "cuda without a GPU": (["fit", "{clip}", "-o", "s.ply", "--device", "cuda"], "no CUDA GPU"),
     "bad select": (["edit", "scene.ply", "-o", "e.ply", "--select", "box:1,2", "--remove"], "box takes 6"),
     "unknown extension": (["render", "scene.ply", "-o", "out.xyz"], "unknown output type '.xyz'"),
+    "eval: missing video": (["eval", "scene.ply", "nope.mp4"], "nope.mp4 does not exist"),
+    "export: unknown extension": (["export", "scene.ply", "-o", "out.xyz", "--frame", "0"], "unknown format '.xyz'"),
+    "export: no moment": (["export", "scene.ply", "-o", "out.ply"], "give the moment to export"),
+    "export: nothing to write": (["export", "scene.ply"], "give -o OUT"),
+    "poses: existing output": (["poses", "{clip}", "-o", "taken.ply"], "taken.ply exists"),
+    "info: plot not a PNG": (["info", "scene.ply", "--plot", "out.jpg"], "the plot is a PNG"),
+    "compress: not a scene": (["compress", "scene.ply", "-o", "out.xyz"], "a compressed scene is a .tsog"),
+    "compress: existing output": (["compress", "scene.ply", "-o", "taken.ply"], "taken.ply exists"),
+    "tets export: existing output": (["tets", "export", "scene.ply", "-o", "taken.ply"], "taken.ply exists"),
+    "tets import: no tets file": (["tets", "import", "scene.ply", "no.ply", "no.npz", "-o", "x.mp4"],
+                                  "no.ply does not exist"),
+    "tets export: bad select": (["tets", "export", "scene.ply", "-o", "t.ply", "--select", "box:1"], "box takes 6"),
+    "simulate: bad select": (["simulate", "scene.ply", "-o", "s.npz", "--select", "box:1"], "box takes 6"),
+    "simulate: not a sequence": (["simulate", "scene.ply", "-o", "out.txt"], "an .npz"),
+    "view: missing scene": (["view", "nope.ply"], "scene file nope.ply does not exist"),
+    "demo: unknown extension": (["demo", "-o", "out.xyz"], "unknown output type '.xyz'"),
+    "output is the input": (["edit", "scene.ply", "-o", "scene.ply", "--translate", "1,0,0"],
+                            "Error: -o scene.ply is the input SCENE: writing it"),  # the path named once
+    "example: unknown name": (["example", "nope.mp4"], "no example file 'nope.mp4'"),
 }
 
 
@@ -126,7 +147,22 @@ def test_eval_of_the_scene_s_own_clip_says_nothing_of_differences(clips):
     assert result.exit_code == 0 and "compared anyway" not in result.output, result.output
 
 
-def test_eval_cannot_compare_frames_of_another_shape_even_forced(clips):
-    result = run("eval", clips / "scene.ply", clips / "wide.mp4", "--device", "cpu", "--force")
-    assert result.exit_code == 2 and "cannot be compared" in result.output and "48x24" in result.output, \
-        result.output
+@pytest.mark.parametrize("video, impossible, forced", [
+    ("wide.mp4", "48x24", "wide.mp4's 48x24 frames resized to the scene's 32x24"),
+    ("shorter.mp4", "shorter.mp4 has 4 frames", "compared the 4 of the scene's 6 frames that shorter.mp4 has"),
+])
+def test_eval_forced_compares_what_can_be_compared_and_says_so(clips, video, impossible, forced):
+    refused = run("eval", clips / "scene.ply", clips / video, "--device", "cpu")
+    assert refused.exit_code == 2 and "cannot be compared" in refused.output and impossible in refused.output, \
+        refused.output
+    assert "--force to compare the frames both have" in refused.output, refused.output
+    result = run("eval", clips / "scene.ply", clips / video, "--device", "cpu", "--force", "--json", "-")
+    assert result.exit_code == 0 and forced in result.stderr, result.output
+    assert json.loads(result.stdout)["frames"] == (4 if video == "shorter.mp4" else 6)
+
+
+def test_eval_with_its_json_on_stdout_and_quiet_prints_nothing_else(clips):
+    """With `--json -` the per-frame lines are notes on stderr: -q silences them."""
+    result = run("-q", "eval", clips / "scene.ply", clips / "a.mp4", "--device", "cpu", "--json", "-")
+    assert result.exit_code == 0 and result.stderr == "", result.stderr
+    assert set(json.loads(result.stdout)) >= {"psnr", "ssim", "per_frame"}

@@ -203,6 +203,31 @@ def test_splat_and_spz_decode_to_what_tomgs_renders(scene_path, tmp_path):
     assert dots.min() > 1 - 1e-4  # the same rotation (q and -q alike), to the 9-bit smallest three
 
 
+def test_spz_opacities_decode_finite_as_the_format_s_reader_decodes_them(tmp_path):
+    """PlayCanvas's splat-transform read 110 of a moment's 10,287 .spz opacities as +inf: a byte of 255
+    (or 0) is the logit of 1 (or 0) to the reader Niantic ships (load-spz.cc: invSigmoid(alpha / 255.0f)
+    in float32). Every opacity, however close to 0 or 1, is written as a byte it decodes finitely."""
+    import gzip
+    import struct
+
+    from tomgs.io.splats import StaticGaussians, write_static
+
+    logits = np.array([-30.0, -8.0, -0.5, 0.0, 3.0, 6.0, 8.0, 30.0], np.float32)
+    n = len(logits)
+    g = StaticGaussians(np.zeros((n, 3), np.float32), np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+                        np.full((n, 3), -3.0, np.float32), logits, np.zeros((n, 3), np.float32),
+                        np.zeros((n, 0, 3), np.float32))
+    data = gzip.decompress(write_static(tmp_path / "o.spz", g).read_bytes())
+    magic, version, count = struct.unpack_from("<III", data)
+    assert count == n and version >= 2
+    alphas = np.frombuffer(data, np.uint8, count=n, offset=16 + 9 * n).astype(np.float32)  # after the positions
+    with np.errstate(divide="ignore"):
+        decoded = np.log((alphas / np.float32(255)) / (np.float32(1) - alphas / np.float32(255)))
+    assert np.isfinite(decoded).all(), alphas
+    opacity = 1 / (1 + np.exp(-logits.astype(np.float64)))
+    assert np.abs(1 / (1 + np.exp(-decoded.astype(np.float64))) - opacity).max() <= 1 / 255 + 1e-6
+
+
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
     mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
     return math.inf if mse == 0 else 10 * math.log10(255.0**2 / mse)

@@ -62,3 +62,24 @@ def test_the_quick_start_runs_and_every_edit_changes_the_frames(tmp_path, monkey
         change = np.mean([np.abs(cv2.imread(str(a)).astype(float) - cv2.imread(str(b)).astype(float)).mean()
                           for a, b in zip(after, before)])
         assert change > 0.5, (name, change)  # grey levels over whole frames: the edit shows
+
+
+def test_the_readme_s_figures_of_the_quick_fit_agree_with_its_output_and_say_what_moves_them():
+    """The quick fit's figures in the prose are those of the output it shows (PSNR, Gaussians, time in
+    all, ETA), its PSNR and Gaussians are given as ranges that hold another machine's (35.22 dB and
+    29,402 Gaussians), and exactness is claimed for the same machine and library versions only."""
+    import re
+
+    text = " ".join((ROOT / "README.md").read_text().split())
+    shown = re.search(r"ball\.ply: ([\d,]+) Gaussians, 600 iterations in [\d.]+ s, full-clip PSNR ([\d.]+) dB", text)
+    gaussians, psnr = int(shown[1].replace(",", "")), float(shown[2])
+    in_all = float(re.search(r"([\d.]+) s in all \(read", text)[1])
+    eta = float(re.search(r"ETA ~([\d.]+) min \(estimated\)", text)[1])
+    low, high = map(float, re.search(r"Expect ([\d.]+)-([\d.]+) dB and about ([\d,]+) Gaussians", text).groups()[:2])
+    assert low <= psnr <= high and low <= 35.22 <= high
+    about = int(re.search(r"Expect [\d.]+-[\d.]+ dB and about ([\d,]+) Gaussians", text)[1].replace(",", ""))
+    assert abs(about - gaussians) <= 50 and abs(about - 29_402) <= 50
+    assert f"{psnr:.2f} dB and {gaussians:,} Gaussians" in text
+    assert f"{in_all} s in all is {in_all / 60:.1f} minutes of wall time" in text
+    assert f"~{eta:.1f} on a machine's first fit" in text
+    assert text.count(f"{low}-{high} dB") >= 2  # the quick start and What to expect

@@ -703,11 +703,24 @@ def test_defect08_a_second_fit_of_an_output_is_refused_while_the_first_runs(clip
     with output_lock(out):  # the first fit, writing s.ply (another open of the lock: as another process)
         line = one_line_refusal(run("fit", clip, "-o", out, "--iterations", "3", "--device", "cpu", "-y"))
         assert f"{out}: another tomgs fit (process {os.getpid()}) is writing it now" in line, line
-        assert sorted(p.name for p in tmp_path.iterdir()) == [".s.ply.lock"]
+        assert sorted(p.name for p in tmp_path.iterdir()) == [".s.lock"]
     assert list(tmp_path.iterdir()) == []  # released and removed
     result = run("fit", clip, "-o", out, "--iterations", "3", "--device", "cpu", "--poses", "identity")
     assert result.exit_code == 0, result.output
-    assert not (tmp_path / ".s.ply.lock").exists()  # a finished fit leaves no lock
+    assert not (tmp_path / ".s.lock").exists()  # a finished fit leaves no lock
+
+
+def test_a_fit_of_another_format_of_a_running_fit_s_output_is_refused(clip, tmp_path):
+    """Fits of s.ply and s.tsog both ran at once (their locks were .s.ply.lock and .s.tsog.lock) and
+    wrote the same s.ckpt, s.csv and s.psnr.png: the lock covers every file of the stem."""
+    from tomgs.outputs import output_lock
+
+    with output_lock(tmp_path / "s.ply"):  # the first fit, writing s.ply
+        line = one_line_refusal(run("fit", clip, "-o", tmp_path / "s.tsog", "--iterations", "3", "--device", "cpu"))
+        assert line == (f"Error: {tmp_path / 's.tsog'}: another tomgs fit (process {os.getpid()}) is writing s.ply "
+                        "now, whose log, plot and checkpoint are this output's too; wait for it to end, or choose "
+                        "another output path"), line
+        assert sorted(p.name for p in tmp_path.iterdir()) == [".s.lock"]
 
 
 def test_defect11_a_scene_far_from_the_origin_says_its_frames_are_off(tmp_path):

@@ -293,10 +293,10 @@ class Chromium:
     def __init__(self, exe: str, profile, width: int, height: int):
         from websockets.sync.client import connect
 
-        flags = ["--headless", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
-                 "--disable-gpu-sandbox", "--no-first-run", "--disable-background-networking",
-                 "--disable-component-update", "--disable-sync", f"--user-data-dir={profile}",
-                 f"--window-size={width},{height}", "--remote-debugging-port=0", "about:blank"]
+        flags = ["--headless", "--no-sandbox", "--force-color-profile=srgb", "--use-angle=swiftshader",
+                 "--enable-unsafe-swiftshader", "--disable-gpu-sandbox", "--no-first-run",
+                 "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                 f"--user-data-dir={profile}", f"--window-size={width},{height}", "--remote-debugging-port=0", "about:blank"]
         self.proc = subprocess.Popen([exe, *flags], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                                      start_new_session=True)
         port_file = profile / "DevToolsActivePort"
@@ -360,13 +360,15 @@ def test_chromium_shows_the_frames_tomgs_render_draws(demo, tmp_path, chromium):
     """Two frames typed into the time slider of the page: each screenshot is `tomgs render` of its
     frame from the clip camera at the canvas's size (PSNR > 30 dB over the canvas outside the panel;
     measured 41-46 dB: float16 covariances, 8-bit colours and viser's 1% alpha cut are the rest), far
-    closer to it than to the other frame's render, and the two differ where the ball moved."""
+    closer to it than to the other frame's render, and the two differ where the ball moved. The page
+    opens on the first frame seen from the clip's first camera, in the colours `tomgs render` gives
+    (the same 30 dB)."""
     import cv2
 
     scene = load_scene(demo)
     cams = scene.cameras.resized(WIDTH, HEIGHT)
     frames = (2, 9)
-    renders = {k: frame.numpy() for k, frame, _ in render_layers(scene.model.render_inputs(), cams, list(frames),
+    renders = {k: frame.numpy() for k, frame, _ in render_layers(scene.model.render_inputs(), cams, [0, *frames],
                                                                 background=BACKGROUND)}
     proc, url = _start(demo)
     browser = Chromium(chromium, tmp_path / "profile", WIDTH, HEIGHT)
@@ -374,6 +376,9 @@ def test_chromium_shows_the_frames_tomgs_render_draws(demo, tmp_path, chromium):
     try:
         browser.call("Page.navigate", url=url)
         browser.settled()
+        browser.call("Runtime.evaluate", expression=PAGE_JS, returnByValue=True)  # the notice closed
+        opened = browser.settled()
+        cv2.imwrite(str(tmp_path / "opened.png"), (opened[..., ::-1] * 255).round().astype(np.uint8))
         for k in frames:
             browser.type_frame(int(scene.cameras.frame_indices[k]))
             shots[k] = browser.settled()
@@ -385,6 +390,8 @@ def test_chromium_shows_the_frames_tomgs_render_draws(demo, tmp_path, chromium):
     assert proc.returncode == 0
 
     canvas = np.s_[:AXES_TOP, :PANEL_LEFT]
+    first = _psnr(opened[canvas], renders[0][canvas])
+    assert first > 30.0 and first > _psnr(opened[canvas], renders[9][canvas]) + 5.0, f"opened: {first:.1f} dB"
     a, b = frames
     for k, other in ((a, b), (b, a)):
         match = _psnr(shots[k][canvas], renders[k][canvas])

@@ -6,7 +6,13 @@ Public names are resolved lazily from the module that owns them.
 
 from __future__ import annotations
 
+import time
+
 from tomgs._lazy import lazy_exports
+
+# tomgs's first instant (time.perf_counter()): a command's budget counts from it. Not the process's
+# start: a shell's `sleep 15 && tomgs fit ...` hands its 15 s old process to tomgs.
+STARTED = time.perf_counter()
 
 __version__ = "0.1.0"
 

@@ -1,6 +1,6 @@
 """The bundled examples: a small procedural TOM-GS scene (what `tomgs demo` renders) and the files
-shipped in the package (`tomgs example`: a clip to fit, with the masks of its moving object, and the
-Blender soft-body script).
+shipped in the package (`tomgs example`, tomgs.examples: a clip to fit, with the masks of its moving
+object, and the Blender soft-body script).
 
 A checkered wall and floor made of flat static Gaussians, and a ball that moves, represented the
 TOM-GS way: one copy of the ball per key position, each copy's opacity fading in and out around
@@ -23,26 +23,8 @@ from tomgs.cameras import Cameras, frame_times, intrinsics, look_at
 
 GAUSSIAN_FIELDS = ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales")
 
-# the files shipped in tomgs/data, each with what it is for
-EXAMPLE_FILES = {
-    "ball.mp4": "40 frames at 160x96 to fit: a ball bounces across a room, the camera moves sideways",
-    "ball_masks": "the ball's masks, one PNG a frame (white on the ball), for --masks and --select mask:",
-    "blender_softbody.py": "drops a `tomgs tets export --cage` cage in Blender, headless",
-    "LICENSE-ball.txt": "the licence of ball.mp4 and its masks (CC0: made by tomgs, `tomgs.demo.write_example`)",
-}
 EXAMPLE_CLIP = dict(num_frames=40, width=160, height=96)  # what write_example renders
 EXAMPLE_BACKGROUND = (0.05, 0.05, 0.08)
-
-
-def example_file(name: str) -> Path:
-    """The installed path of a bundled example file (one of EXAMPLE_FILES)."""
-    from importlib.resources import files
-
-    from tomgs.errors import InputError
-
-    if name not in EXAMPLE_FILES:
-        raise InputError(f"no example file {name!r}; the examples are {', '.join(EXAMPLE_FILES)}")
-    return Path(str(files("tomgs") / "data" / name))
 
 
 def _plane(origin, u_axis, v_axis, nu: int, nv: int, spacing: float, palette=None, rng=None

@@ -10,7 +10,8 @@ to replace.
     check_folder_output(...) an output folder of numbered frames: not a file, writable, and an
                            existing non-empty folder is written into only with overwrite=True
     check_distinct(...)    no output of a command is another of its outputs or one of its inputs
-    output_lock(path)      one writer of an output at a time: an advisory lock beside it
+    output_lock(path)      one writer of an output at a time: an advisory lock beside it, shared by
+                           every file of its stem (a fit's log, plot and checkpoint)
     check_fit_outputs(...) the files a fit writes (fit_output_paths), its checkpoint's rule
 
 Temporary names are '.NAME.PID.XXXXXXXX.tmp' beside the target: a file, or a folder a writer
@@ -320,7 +321,8 @@ def check_distinct(outputs: dict, inputs: dict | None = None) -> None:
         for path in _paths(value):
             for other_label, other in seen:
                 if _same(path, other):
-                    raise InputError(f"{label} {path} is also {other_label} ({other}): one would overwrite the "
+                    named = "" if other == path else f" ({other})"  # a path named once, another way twice
+                    raise InputError(f"{label} {path} is also {other_label}{named}: one would overwrite the "
                                      f"other; give each output its own path")
             seen.append((label, path))
     for in_label, value in (inputs or {}).items():
@@ -332,7 +334,8 @@ def check_distinct(outputs: dict, inputs: dict | None = None) -> None:
                     where = "holds"  # a folder of frames written where an input lies
                 else:
                     continue
-                raise InputError(f"{label} {path} {where} the input {in_label} {source}: writing it would "
+                named = "" if source == path else f" {source}"
+                raise InputError(f"{label} {path} {where} the input {in_label}{named}: writing it would "
                                  f"replace what this command reads; choose another output path")
 
 
@@ -406,18 +409,18 @@ def check_unlocked(path, what: str = "fit") -> None:
 
 @contextmanager
 def output_lock(path, what: str = "fit") -> Iterator[None]:
-    """Hold an advisory lock on output `path` ('.NAME.lock' beside it, holding this process's id)
-    while the block runs, released and removed on every exit path (the system releases it when a
-    killed process ends). InputError at once when another process holds it; an OSError naming
-    `path` (`write_failed`) when the lock cannot be written (a full disk). POSIX only (elsewhere: no
-    lock)."""
+    """Hold an advisory lock on output `path` and the files beside it that share its stem (a fit's
+    log, plot and checkpoint: fit_output_paths), '.STEM.lock' whatever its extension, while the block
+    runs, released and removed on every exit path (the system releases it when a killed process ends).
+    InputError at once when another process holds it; an OSError naming `path` (`write_failed`) when
+    the lock cannot be written (a full disk). POSIX only (elsewhere: no lock)."""
     try:
         import fcntl
     except ImportError:
         yield
         return
     path = Path(path)
-    lock = path.parent / f".{path.name}{LOCK_SUFFIX}"
+    lock = path.parent / f".{path.with_suffix('').name}{LOCK_SUFFIX}"
     if not path.parent.is_dir():  # nothing can be written there: the output's own check says so
         yield
         return
@@ -430,10 +433,12 @@ def output_lock(path, what: str = "fit") -> Iterator[None]:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
-            holder = os.read(fd, 32).decode("ascii", "replace").strip()
+            holder, _, name = os.read(fd, 4096).decode("utf-8", "replace").strip().partition(" ")
             os.close(fd)
-            raise InputError(f"{path}: another tomgs {what} (process {holder or 'unknown'}) is writing it now; wait "
-                             f"for it to end, or choose another output path") from None
+            writing = "it now" if name in ("", path.name) else \
+                f"{name} now, whose log, plot and checkpoint are this output's too"
+            raise InputError(f"{path}: another tomgs {what} (process {holder or 'unknown'}) is writing {writing}; "
+                             f"wait for it to end, or choose another output path") from None
         try:
             same = os.path.samestat(os.fstat(fd), os.stat(lock, follow_symlinks=False))
         except OSError:
@@ -444,7 +449,7 @@ def output_lock(path, what: str = "fit") -> Iterator[None]:
     try:
         try:
             os.ftruncate(fd, 0)
-            os.write(fd, str(os.getpid()).encode())
+            os.write(fd, f"{os.getpid()} {path.name}".encode())
         except OSError as e:  # a full disk: not even the id fits, nor will the output
             raise write_failed(e, path) from None
         yield

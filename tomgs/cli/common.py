@@ -12,6 +12,7 @@ import time
 
 import click
 
+import tomgs
 from tomgs.errors import InputError, RenderError
 from tomgs.cli.params import FOCAL, FPS, SIDE, Colour
 
@@ -174,7 +175,6 @@ OVER_HELP = ("a scene to render behind (e.g. a background from `fit --layer back
 
 
 LINE_INTERVAL = 5.0  # seconds between progress lines where stderr is not a terminal (a log file, CI, `| tee`)
-_STARTED = time.monotonic()  # about when the command started: its imports come first
 
 
 def _terminal() -> bool:
@@ -209,7 +209,8 @@ class ProgressLines:
         eta = ""
         if 0.02 <= fraction < 1.0:
             eta = f", ETA {_seconds((now - began) * (1 - fraction) / fraction)}"
-        click.echo(f"[{_seconds(now - _STARTED):>7s}] {label.strip()} {fraction:.0%}"
+        since = time.perf_counter() - tomgs.STARTED  # the command's time so far, as its budget counts it
+        click.echo(f"[{_seconds(since):>7s}] {label.strip()} {fraction:.0%}"
                    + (f": {text}" if text else "") + eta, err=True)
 
     def _run(self, interval: float) -> None:

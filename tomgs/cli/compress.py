@@ -34,8 +34,8 @@ def compress(scene, output, means_bits, t_bits, cameras_path, overwrite):
       tomgs render scene.tsog -o scene.mp4
       tomgs compress scene.tsog -o back.ply          # a PLY scene again, for 3DGS tools
     """
-    from tomgs.io.scene import bits_per_pixel, load_scene, save_scene
     from tomgs.outputs import check_distinct, check_file_output
+    from tomgs.cli.preflight import check_scene
 
     check_distinct({"-o": output}, {"SCENE": scene, "--cameras": cameras_path})
     if not is_scene_path(output):
@@ -43,6 +43,10 @@ def compress(scene, output, means_bits, t_bits, cameras_path, overwrite):
     if output.lower().endswith(".ply") and (means_bits, t_bits) != (16, 16):
         raise UsageError("--means-bits and --t-bits set a .tsog's precision; a .ply scene is exact")
     check_file_output(output, overwrite, what="scene")
+    check_scene(scene, cameras=cameras_path)
+
+    from tomgs.io.scene import bits_per_pixel, load_scene, save_scene
+
     loaded = load_scene(scene, cameras=cameras_path)
     before = Path(scene).stat().st_size
     started = time.perf_counter()

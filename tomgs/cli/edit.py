@@ -36,7 +36,8 @@ from tomgs.errors import counted
               "by --translate/--rotate/--scale or --keyframes too)")
 @click.option("--remove", is_flag=True, help="delete the selection")
 @click.option("--keyframes", type=click.Path(path_type=str), default=None,
-              help="JSON of keyframed transforms over time (README \"Editing\"); -o is then a video or folder")
+              help="JSON of keyframed transforms over time (docs/editing.md has the format); -o is then a video "
+                   "or folder")
 @click.option("--render", "render_out", type=click.Path(path_type=str), default=None,
               help="also render the edited scene here (" + OUTPUT_HELP + ")")
 @click.option("--over", type=click.Path(path_type=str), default=None, help="when rendering: " + OVER_HELP)

@@ -44,25 +44,18 @@ def export(scene, output, frame, clip_time, sh_degree, layer_paths, cameras_out,
     """
     from tomgs.outputs import check_distinct, check_file_output, check_folder_output
     from tomgs.cli.preflight import check_scene
+    from tomgs.io.kinds import CAMERA_FILES, STATIC_FORMATS
 
     if output is None and cameras_out is None:
         raise UsageError("give -o OUT (.ply, .splat, .spz or .sog) for the static scene, --cameras-out DIR, or both")
-    check_scene(scene, cameras=cameras_path)
-    for path in layer_paths:
-        check_scene(path)
-
-    from tomgs.edit.export import CAMERA_FILES, moment_with_layers, pick_moment, write_cameras
-    from tomgs.io.scene import load_scene
-    from tomgs.io.splats import FORMATS, write_static
-
     check_distinct({"-o": output, "--cameras-out": cameras_out,
                     "a file --cameras-out writes": [] if cameras_out is None else
                     [str(Path(cameras_out) / name) for name in CAMERA_FILES]},
                    {"SCENE": scene, "--layer": list(layer_paths), "--cameras": cameras_path})
     if output is not None:
-        if Path(output).suffix.lower() not in FORMATS:
+        if Path(output).suffix.lower() not in STATIC_FORMATS:
             raise UsageError(f"-o {output}: unknown format {Path(output).suffix or '(no extension)'!r}; the static "
-                             f"scene is one of {', '.join(FORMATS)}")
+                             f"scene is one of {', '.join(STATIC_FORMATS)}")
         if frame is None and clip_time is None:
             raise UsageError("give the moment to export: --frame K (a frame number of the scene) or --time T")
         check_file_output(output, overwrite, what="static scene")
@@ -70,6 +63,14 @@ def export(scene, output, frame, clip_time, sh_degree, layer_paths, cameras_out,
         raise UsageError("--frame, --time, --layer and --sh-degree choose what goes into -o OUT: give -o too")
     if cameras_out is not None:
         check_folder_output(cameras_out, lambda name: name in CAMERA_FILES, overwrite)
+    check_scene(scene, cameras=cameras_path)
+    for path in layer_paths:
+        check_scene(path)
+
+    from tomgs.edit.export import moment_with_layers, pick_moment, write_cameras
+    from tomgs.io.scene import load_scene
+    from tomgs.io.splats import write_static
+
     loaded = load_scene(scene, cameras=cameras_path)
     layers = [load_scene(path) for path in layer_paths]
     if output is not None:

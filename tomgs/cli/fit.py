@@ -111,9 +111,9 @@ def fit(video, output, preset, iterations, quality, frames, max_side, masks, pos
         from tomgs.train import preset as make_config
         from tomgs.train.multigpu.launch import ShardFailed
         from tomgs.train.multigpu.pool import is_leader
-        from tomgs.train.phases import phase_text, process_started
+        from tomgs.train.phases import phase_text, tomgs_started
 
-    started = process_started()
+    started = tomgs_started()
     overrides = dict(iterations=iterations, max_gaussians=max_gaussians, max_seconds=max_seconds, sampling=sampling,
                      opacity_reset_interval=opacity_reset, sh_degree=sh_degree, compact_pixels=compact_pixels,
                      seed=seed, quality=quality, stop_at_iterations=iterations is not None or None)

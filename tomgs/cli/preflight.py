@@ -104,9 +104,9 @@ def check_selectors(selectors, cameras=None) -> list:
     parsed = [parse_selector(text) for text in selectors]
     for s in parsed:
         if s.kind == "index":
-            check_existing(s.path, f"--select {s.text}: index file")
+            check_existing(s.path, "--select's index file")
         elif s.kind == "mask":
-            check_existing(s.path, f"--select {s.text}: mask folder", folder=True)
+            check_existing(s.path, "--select's mask folder", folder=True)
     return parsed
 
 
@@ -143,17 +143,19 @@ def check_render(output, cameras, frames=None, overwrite: bool = False, over=Non
         check_scene(over)
 
 
-def check_eval_video(video, scene: str, cameras, info: dict, force: bool = False) -> list[str]:
+def check_eval_video(video, scene: str, cameras, info: dict, force: bool = False) -> tuple[list[str], bool]:
     """Whether `video` is the clip the scene `scene` (its `cameras` and `info`) was fitted on, from
     its index and header: frame count, size and aspect (tomgs.io.video.video_differences). A
-    difference is an InputError naming it, unless `force`, which returns it as notes; a video that
-    cannot be compared frame by frame (too few frames, another aspect) is refused either way."""
+    difference is an InputError naming it, unless `force`, which returns it as notes; with the notes,
+    whether the video's frames can be compared only in part or resized (tomgs.io.video.read_video_against)."""
     from tomgs.io.video import video_differences
 
     impossible, differ = video_differences(video, cameras, info.get("clip"))
-    if impossible:
-        raise InputError(f"{video} cannot be compared with {scene}: {'; '.join(impossible)}")
-    return refuse_or_note(video, scene, differ, force)
+    if impossible and not force:
+        raise InputError(f"{video} cannot be compared frame by frame with {scene}: {'; '.join(impossible)}. Give "
+                         "the video it was fitted on, or --force to compare the frames both have, resized to the "
+                         "scene's size")
+    return refuse_or_note(video, scene, impossible + differ, force), bool(impossible)
 
 
 def refuse_or_note(video, scene: str, differ: list[str], force: bool) -> list[str]:

@@ -75,8 +75,8 @@ def simulate(scene, output, selectors, render_out, over, drop, spin, velocity, s
     check_file_output(output, overwrite, what="vertex sequence")
     check_file_output(cage_path, overwrite, what="cage")
     check_device(device)
-    cameras, _ = check_scene(scene)
     check_selectors(selectors)
+    cameras, _ = check_scene(scene)
     if render_out:
         check_render(render_out, cameras, None, overwrite, over=over)
 

@@ -40,7 +40,7 @@ def tets():
 @user_errors
 def tets_export(scene, output, selectors, cage, cell, overwrite):
     """Write the Gaussians of SCENE that --select picks as tetrahedra (a PLY Blender imports:
-    Z up, vertex order kept; README "Editing" has the format).
+    Z up, vertex order kept; docs/editing.md has the format).
 
     \b
     Examples:
@@ -56,8 +56,8 @@ def tets_export(scene, output, selectors, cage, cell, overwrite):
     if not output.lower().endswith(".ply"):
         raise UsageError(f"-o {output}: a tets file is a .ply")
     check_file_output(output, overwrite, what="tets file")
-    check_scene(scene)
     check_selectors(selectors)
+    check_scene(scene)
 
     from tomgs.edit.cage import make_tets
     from tomgs.edit.selection import select
@@ -97,11 +97,11 @@ def tets_import(scene, tets_file, sequence, output, over, frames, device, backgr
     from tomgs.cli.preflight import check_existing, check_render, check_scene
 
     check_distinct({"-o": output}, {"SCENE": scene, "TETS": tets_file, "SEQUENCE": sequence, "--over": over})
-    cameras, _ = check_scene(scene)
     check_existing(tets_file, "tets file")
     if not Path(sequence).exists():
         raise InputError(f"{sequence} does not exist: give the moved vertices (an .npz, a folder of PLY frames or one "
                          "PLY)")
+    cameras, _ = check_scene(scene)
     if is_scene_path(output):
         check_file_output(output, overwrite, what="scene")
     else:

@@ -4,7 +4,7 @@
         --tets cage.ply --out seq.npz [--frames 80] [--fps 24] [--drop 0.5] [--stiffness 0.9]
 
 Input: a tets PLY written by `tomgs tets export` (binary little endian, Blender axes, Z up; see
-README "Blender round trip"). It should be of kind `cage`: its tets share vertices, so the soft
+docs/editing.md, "Blender round trip"). It should be of kind `cage`: its tets share vertices, so the soft
 body's edge springs hold them together as one body. A `gaussian` file (one separate tet per
 Gaussian) is accepted with a warning, but every tet then falls on its own.
 

@@ -116,10 +116,6 @@ def moment_with_layers(scene, moment: Moment, layers=(), sh_degree: int | None =
     return join(parts)
 
 
-CAMERA_FILES = ("cameras.json", "transforms.json", "sparse/0/cameras.txt", "sparse/0/images.txt",
-                "sparse/0/points3D.txt")
-
-
 def write_cameras(folder, cameras: Cameras) -> list[Path]:
     """The clip's cameras in `folder` (created; existing files of these names replaced): tomgs's
     cameras.json (what `--cameras` reads back, times and frame numbers included), nerfstudio's

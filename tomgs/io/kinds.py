@@ -2,6 +2,8 @@
 imported: the door (tomgs.cli.preflight) asks here before it reads a file.
 
     check_scene_path(path)   an existing file that is not a video: a scene file to read
+    STATIC_FORMATS           the extensions of a static splat file (tomgs.io.splats writes them)
+    CAMERA_FILES             the files that the cameras of a clip are exported as (tomgs.edit.export)
 """
 
 from __future__ import annotations
@@ -11,6 +13,9 @@ from pathlib import Path
 from tomgs.errors import InputError
 from tomgs.io.video import VIDEO_EXTS
 
+STATIC_FORMATS = (".ply", ".splat", ".spz", ".sog")
+CAMERA_FILES = ("cameras.json", "transforms.json", "sparse/0/cameras.txt", "sparse/0/images.txt",
+                "sparse/0/points3D.txt")
 SCENE_FIX = "write scenes with `tomgs fit` or tomgs.save_scene"  # what to do about a file that is no scene
 
 

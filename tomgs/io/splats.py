@@ -31,11 +31,11 @@ from pathlib import Path
 import numpy as np
 
 from tomgs.constants import SH_C0
+from tomgs.io.kinds import STATIC_FORMATS
 from tomgs.io.sog import sog_bytes
 from tomgs.outputs import atomic_file
 from tomgs.render.sh import sh_degree_of
 
-FORMATS = (".ply", ".splat", ".spz", ".sog")
 FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")  # StaticGaussians' arrays
 
 
@@ -73,12 +73,12 @@ class StaticGaussians:
 
 
 def write_static(path, gaussians: StaticGaussians) -> Path:
-    """Write `gaussians` in the format of `path`'s extension (FORMATS), atomically."""
+    """Write `gaussians` in the format of `path`'s extension (STATIC_FORMATS), atomically."""
     path = Path(path)
     writers = {".ply": _ply_bytes, ".splat": _splat_bytes, ".spz": _spz_bytes, ".sog": sog_bytes}
     writer = writers.get(path.suffix.lower())
     if writer is None:
-        raise ValueError(f"unknown static format {path.suffix!r}; one of {', '.join(FORMATS)}")
+        raise ValueError(f"unknown static format {path.suffix!r}; one of {', '.join(STATIC_FORMATS)}")
     data = writer(gaussians)
     with atomic_file(path, durable=True) as tmp:
         Path(tmp).write_bytes(data)
@@ -178,7 +178,8 @@ def _spz_bytes(g: StaticGaussians) -> bytes:
     positions = np.stack([(fixed >> shift) & 0xFF for shift in (0, 8, 16)], axis=-1).astype(np.uint8)  # [N,3,3]
     sections = [
         positions.reshape(-1),
-        _bytes(_sigmoid(g.opacity_logits) * 255.0),
+        # 1..254: the format's reader decodes a byte as the logit of byte / 255, infinite at 0 and 255
+        np.clip(_bytes(_sigmoid(g.opacity_logits) * 255.0), 1, 254),
         _bytes(g.sh_dc.astype(np.float64) * (SPZ_COLOR_SCALE * 255.0) + 127.5).reshape(-1),
         _bytes((g.log_scales.astype(np.float64) + 10.0) * 16.0).reshape(-1),
         _smallest_three(quats).astype("<u4").view(np.uint8),

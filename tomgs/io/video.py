@@ -595,6 +595,38 @@ def read_video_for(path, cameras) -> np.ndarray:
     return frames
 
 
+def read_video_against(path, cameras) -> tuple[np.ndarray, list[int], list[str]]:
+    """What of `path` can be compared with a scene's `cameras` whatever the video (`eval --force`):
+    (uint8 [N,H,W,3] frames, the positions in `cameras` they stand for, notes saying what was done):
+    the scene's frames that the video has, by source frame number, each resized to the scene's size.
+    InputError when the video has none of them."""
+    import cv2
+    import numpy as np
+
+    numbers = np.asarray(cameras.frame_indices, dtype=np.int64)
+    source, name = probe_source(path), Path(path).name
+    keep = [k for k, s in enumerate(numbers) if s < source.frames]
+    if not keep:
+        raise InputError(f"{path} has {source.frames} frames, none of the scene's (source frames {numbers.min()} to "
+                         f"{numbers.max()}): nothing to compare")
+    wanted = numbers[keep]
+    steps = np.unique(np.diff(wanted))
+    step = int(steps[0]) if len(steps) == 1 and steps[0] > 0 else 1  # a regular step read as a stepped range
+    clip = read_video(path, frames=slice(int(wanted.min()), int(wanted.max()) + 1, step),
+                      max_side=max(cameras.width, cameras.height))
+    position = {int(s): i for i, s in enumerate(clip.indices)}
+    keep = [k for k in keep if int(numbers[k]) in position]
+    frames = clip.frames[[position[int(numbers[k])] for k in keep]]
+    notes = [] if len(keep) == len(numbers) else \
+        [f"compared the {len(keep)} of the scene's {len(numbers)} frames that {name} has"]
+    if frames.shape[1:3] != (cameras.height, cameras.width):
+        frames = np.stack([cv2.resize(f, (cameras.width, cameras.height), interpolation=cv2.INTER_AREA)
+                           for f in frames])
+        notes.append(f"{name}'s {source.width}x{source.height} frames resized to the scene's "
+                     f"{cameras.width}x{cameras.height}")
+    return frames, keep, notes
+
+
 THUMB = 4  # frames and masks are compared (a resume, an eval) as THUMB x THUMB area averages
 THUMB_TOLERANCE = 2.0  # grey levels: decoders differ by less, another video or crop by more
 

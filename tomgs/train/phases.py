@@ -1,28 +1,19 @@
-"""A fit's phases and what they cost: their names, the progress ticks of training, the process's start
-(a budget counts a command's start-up too) and the peak memory."""
+"""A fit's phases and what they cost: their names, the progress ticks of training, tomgs's start (a
+budget counts a command's start-up too) and the peak memory."""
 
 from __future__ import annotations
-
-import os
-import time
 
 import torch
 
 PHASES = ("read", "poses", "compile", "init", "train", "save")  # "compile": a first run's kernels, on a CPU
 
 
-def process_started() -> float:
-    """The time.perf_counter() value at which this process started (Linux: from /proc; elsewhere
-    now), so a command's budget counts its start-up too."""
-    try:
-        ticks = os.sysconf("SC_CLK_TCK")
-        with open("/proc/self/stat") as f:
-            began = int(f.read().rsplit(")", 1)[1].split()[19]) / ticks  # field 22: start, ticks after boot
-        with open("/proc/uptime") as f:
-            age = float(f.read().split()[0]) - began
-        return time.perf_counter() - min(max(age, 0.0), 60.0)
-    except (OSError, ValueError, IndexError):
-        return time.perf_counter()
+def tomgs_started() -> float:
+    """The time.perf_counter() value at which tomgs was first imported in this process (tomgs.STARTED),
+    so a command's budget counts its start-up too, and not what ran in the process before tomgs."""
+    import tomgs
+
+    return tomgs.STARTED
 
 
 def phase_text(seconds: dict) -> str:

@@ -39,7 +39,7 @@ from tomgs.train.multigpu.shards import (REFINE_FRACTION, assemble, boundary_psn
                                          gather_union, halo, local_cameras, log_row, merged_history, model_of,
                                          plan_stretches, rank_paths, refine, stretch_points)
 from tomgs.outputs import fit_output_paths
-from tomgs.train.phases import peak_memory, process_started, train_ticks
+from tomgs.train.phases import peak_memory, tomgs_started, train_ticks
 from tomgs.train.plan import SAVE_COST, make_plan, render_seconds
 from tomgs.train.log import write_csv, write_plot
 from tomgs.train.clip import frame_store
@@ -84,9 +84,9 @@ class Timeline:
         return timed()
 
 
-def process_start_epoch() -> float:
-    """time.time() at which this process started (tomgs.train.phases.process_started: Linux's /proc)."""
-    return time.time() - (time.perf_counter() - process_started())
+def tomgs_start_epoch() -> float:
+    """time.time() at which tomgs started in this process (tomgs.train.phases.tomgs_started)."""
+    return time.time() - (time.perf_counter() - tomgs_started())
 
 
 @dataclass
@@ -194,7 +194,7 @@ def run_rank(job: Job, rank: int, local_rank: int, report, entered: float | None
     # started can read as started before it, which no phase of the command can
     # a pool's rank (tomgs.train.multigpu.pool) may have started before a fit() call's clock: its phases begin at it
     entered = max(entered, job.start_time)
-    timeline.add("start-up", max(job.start_time, min(process_start_epoch(), entered)), entered)
+    timeline.add("start-up", max(job.start_time, min(tomgs_start_epoch(), entered)), entered)
     if waited is not None:
         timeline.add("wait for the job", max(waited[0], job.start_time), waited[1])
     device = torch.device(f"cuda:{local_rank}") if job.device_type == "cuda" else torch.device("cpu")
