@@ -388,6 +388,8 @@ def probe_source(path) -> Source:
             first = next(container.decode(stream), None)  # one frame: the display rotation
             if first is not None and round((first.rotation or 0) / 90) % 2:
                 w, h = h, w
+    except InputError:
+        raise
     except (av.error.FFmpegError, UnicodeDecodeError, ValueError) as e:
         raise InputError(f"cannot open video {path} ({str(e).strip()[:200]}): the file is unreadable or "
                          "corrupt") from None
@@ -433,9 +435,13 @@ def _video_index(container, stream, path) -> tuple[list, list]:
     import io
 
     pts, keys = [], []
+    stored = 0  # packets in the file, those an edit list hides included: what the index counts
     mjpeg = stream.codec_context.name == "mjpeg"
     for packet in container.demux(stream):
-        if packet.size == 0 or packet.is_discard:  # the flush packet; frames an edit list leaves out
+        if packet.size == 0:  # the flush packet
+            continue
+        stored += 1
+        if packet.is_discard:  # a frame the edit list hides (a trim's lead-in, a phone's last frame)
             continue
         if mjpeg:
             data = io.BytesIO(bytes(packet))
@@ -446,8 +452,8 @@ def _video_index(container, stream, path) -> tuple[list, list]:
         pts.append(packet.pts)
         keys.append(bool(packet.is_keyframe))
     listed = int(stream.frames or 0)  # what the container's index lists (0: it does not say)
-    if listed > len(pts):
-        raise InputError(f"video {path}: its index lists {listed} frames but the file holds {len(pts)}: it is "
+    if listed > stored:
+        raise InputError(f"video {path}: its index lists {listed} frames but the file holds {stored}: it is "
                          f"truncated (an interrupted copy or download); copy it again")
     return pts, keys
 
