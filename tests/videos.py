@@ -33,12 +33,12 @@ def frame_numbers(frames: np.ndarray) -> list[int]:
 
 def encode(path: Path, count: int = 40, codec: str = "libx264", rate=30, size=(W, H), options=None,
            bframes: int = 2, gop: int = 10, audio_first: bool = False, container_options=None,
-           pix_fmt: str = "yuv420p", first: int = 0) -> Path:
-    """`count` frames of `picture` (from frame `first`) encoded with `codec` into `path` (its suffix
-    picks the container)."""
+           pix_fmt: str = "yuv420p", turn: int = 0) -> Path:
+    """`count` frames of `picture` encoded with `codec` into `path` (its suffix picks the
+    container), each stored turned `turn` quarter turns counter-clockwise (`size` is as shown)."""
     import av
 
-    w, h = size
+    w, h = size if turn % 2 == 0 else size[::-1]
     with av.open(str(path), "w", options=container_options or {}) as out:
         if audio_first:
             audio = out.add_stream("aac", rate=48000)
@@ -47,17 +47,19 @@ def encode(path: Path, count: int = 40, codec: str = "libx264", rate=30, size=(W
         stream.codec_context.gop_size = gop
         opts = {"bf": str(bframes)} if codec in ("libx264", "mpeg4") else {}
         if codec == "libx264":
-            opts["sc_threshold"] = "0"
+            opts.update(sc_threshold="0", crf="12")
+        if codec == "libx265":
+            opts.update(crf="12")
         stream.options = {**opts, **(options or {})}
         if audio_first:
-            samples = av.AudioFrame.from_ndarray(np.zeros((1, 1024 * 2), np.float32), format="fltp", layout="stereo")
-            samples.sample_rate = 48000
-            for _ in range(count * 48000 // 1024 // int(rate) + 1):
+            for n in range(count * 48000 // 1024 // int(rate) + 1):  # the clip's length of silence
+                samples = av.AudioFrame.from_ndarray(np.zeros((1, 1024), np.float32), format="fltp", layout="mono")
+                samples.sample_rate, samples.pts = 48000, n * 1024
                 for packet in audio.encode(samples):
                     out.mux(packet)
-                samples.pts = None
-        for k in range(first, first + count):
-            frame = av.VideoFrame.from_ndarray(picture(k, w, h), format="rgb24")
+        for k in range(count):
+            image = np.ascontiguousarray(np.rot90(picture(k, *size), turn))
+            frame = av.VideoFrame.from_ndarray(image, format="rgb24")
             for packet in stream.encode(frame):
                 out.mux(packet)
         for packet in stream.encode():
@@ -108,4 +110,41 @@ def hide_last(source: Path, path: Path, frames: int = 1, fps: float = 30) -> Pat
     shown = int.from_bytes(data[at + 8 : at + 12], "big") - round(frames * scale / fps)
     data[at + 8 : at + 12] = shown.to_bytes(4, "big")
     path.write_bytes(bytes(data))
+    return path
+
+
+def rotate(source: Path, path: Path, degrees: int) -> Path:
+    """`source` (an MP4 of one track) with a display matrix that turns its frames `degrees`
+    clockwise when shown, as a phone writes it for a clip held upright or upside down."""
+    data = bytearray(source.read_bytes())
+    at = data.find(b"tkhd") + 4
+    at += 40 + (12 if data[at] == 1 else 0)  # the matrix, after the times, duration, layer and volume
+    cos, sin = {0: (1, 0), 90: (0, 1), 180: (-1, 0), 270: (0, -1)}[degrees % 360]
+    for n, value in enumerate((cos, sin, 0, -sin, cos, 0, 0, 0, 1 << 14)):  # 16.16 fixed point, w 2.30
+        data[at + 4 * n : at + 4 * n + 4] = ((value << 16) if n != 8 else value).to_bytes(4, "big", signed=True)
+    path.write_bytes(bytes(data))
+    return path
+
+
+def damage(source: Path, path: Path, frame: int, zero: bool = False) -> Path:
+    """`source` with the middle of the packet of frame `frame` (in file order) overwritten by
+    random bytes, or the whole packet zeroed."""
+    import av
+
+    with av.open(str(source)) as src:
+        packets = [(p.pos, p.size) for p in src.demux(src.streams.video[0]) if p.size]
+    pos, size = packets[frame]
+    data = bytearray(source.read_bytes())
+    if zero:
+        data[pos : pos + size] = bytes(size)
+    else:
+        data[pos + size // 3 : pos + 2 * size // 3] = np.random.default_rng(frame).bytes(2 * size // 3 - size // 3)
+    path.write_bytes(bytes(data))
+    return path
+
+
+def cut(source: Path, path: Path, percent: float) -> Path:
+    """The first `percent` % of `source`'s bytes: an interrupted copy or download."""
+    data = source.read_bytes()
+    path.write_bytes(data[: int(len(data) * percent / 100)])
     return path

@@ -391,8 +391,7 @@ def probe_source(path) -> Source:
     except InputError:
         raise
     except (av.error.FFmpegError, UnicodeDecodeError, ValueError) as e:
-        raise InputError(f"cannot open video {path} ({str(e).strip()[:200]}): the file is unreadable or "
-                         "corrupt") from None
+        raise _unreadable(path, e) from None
     return Source(path, count, h, w)
 
 
@@ -427,19 +426,50 @@ def check_masks(folder, source: Source) -> Path:
     return folder
 
 
+def _missing_box_bytes(path) -> int:
+    """Bytes the top-level boxes of an MP4 or MOV file declare past its end (0 for a whole file): a
+    cut one ends inside its last box, which a fragmented MP4's index cannot tell."""
+    size = os.path.getsize(path)
+    at = 0
+    with open(path, "rb") as f:
+        while size - at >= 8:  # a box header: 32-bit size (1: a 64-bit size follows; 0: to the end), type
+            f.seek(at)
+            head = f.read(16)
+            length = int.from_bytes(head[:4], "big")
+            if length == 1 and len(head) == 16:
+                length = int.from_bytes(head[8:16], "big")
+            if length == 0:
+                return 0
+            if length < 8:
+                return 0  # not a box: trailing bytes that FFmpeg ignores too
+            at += length
+    return max(at - size, 0)
+
+
 def _video_index(container, stream, path) -> tuple[list, list]:
-    """(pts, keyframe flags) of the stream's packets in file order, read without decoding. InputError
-    for a file shorter than its own index (a truncated MP4 whose index lists frames its bytes lack:
-    it would read as a shorter clip), and for a Motion JPEG frame that declares more pixels than its
-    bytes can hold (each is a JPEG: `jpeg_size`)."""
+    """(pts, keyframe flags) of the stream's shown packets in file order (those an edit list hides
+    left out), read without decoding. InputError for a file shorter than its own index: an MP4, MOV
+    or AVI whose index lists more frames than its bytes hold (frames an edit list hides count as
+    held), an MKV, WebM or fragmented MP4 whose packets end more than two frames before the duration
+    its header declares; and for a Motion JPEG frame that declares more pixels than its bytes can
+    hold (each is a JPEG: `jpeg_size`)."""
     import io
 
     pts, keys = [], []
     stored = 0  # packets in the file, those an edit list hides included: what the index counts
+    end = None  # seconds: where the last packet of any stream ends
     mjpeg = stream.codec_context.name == "mjpeg"
-    for packet in container.demux(stream):
+    for packet in container.demux():  # every stream: the demuxer reads them all anyway
         if packet.size == 0:  # the flush packet
             continue
+        if packet.pts is not None and packet.time_base is not None:
+            ends = float((packet.pts + (packet.duration or 0)) * packet.time_base)
+            end = ends if end is None else max(end, ends)
+        if packet.stream.index != stream.index:
+            continue
+        if packet.is_corrupt:  # the demuxer found fewer bytes than the index gives the packet
+            raise InputError(f"video {path}: frame {stored} lacks bytes its index points to: the file is truncated (an "
+                             f"interrupted copy or download) or damaged; copy it again")
         stored += 1
         if packet.is_discard:  # a frame the edit list hides (a trim's lead-in, a phone's last frame)
             continue
@@ -455,6 +485,18 @@ def _video_index(container, stream, path) -> tuple[list, list]:
     if listed > stored:
         raise InputError(f"video {path}: its index lists {listed} frames but the file holds {stored}: it is "
                          f"truncated (an interrupted copy or download); copy it again")
+    missing = _missing_box_bytes(path) if "mp4" in container.format.name else 0
+    if missing:
+        raise InputError(f"video {path}: its last part declares {missing:,} bytes more than the file holds: it is "
+                         f"truncated (an interrupted copy or download); copy it again")
+    if not listed and pts:  # no count to check (MKV, WebM, fragmented MP4): the duration its header declares
+        declared = (container.duration or 0) / 1e6
+        rate = stream.average_rate or stream.guessed_rate
+        frame = 1 / float(rate) if rate and 0 < float(rate) <= 1000 else 0.1
+        covered = (end or 0.0) - (container.start_time or 0) / 1e6
+        if declared - covered > 2 * frame + 0.005 * declared:
+            raise InputError(f"video {path}: its header says it lasts {declared:.2f} s but its frames end at "
+                             f"{max(covered, 0.0):.2f} s: it is truncated (an interrupted copy or download); copy it again")
     return pts, keys
 
 
@@ -471,29 +513,27 @@ def _read_video_file(path: Path, sel: slice, spec, max_side, report):
 
     from tomgs.constants import MAX_SIDE
 
-    fix = "re-encode it (e.g. ffmpeg -i in.mov -c:v libx264 out.mp4) or extract its frames to a folder"
     try:
         container = _open_av(path)
     except (av.error.FFmpegError, UnicodeDecodeError, ValueError) as e:
-        raise InputError(f"cannot open video {path} ({str(e).strip()[:200]}): the file is unreadable or corrupt; "
-                         f"{fix}") from None
+        raise _unreadable(path, e) from None
     try:
         if not container.streams.video:
-            raise InputError(f"cannot open video {path}: it holds no video stream; {fix}")
+            raise InputError(f"cannot open video {path}: it holds no video stream; {RE_ENCODE}")
         stream = container.streams.video[0]
         if stream.codec_context is None:
-            raise InputError(f"cannot decode video {path}: no decoder for its video codec; {fix}")
+            raise InputError(f"cannot decode video {path}: no decoder for its video codec; {RE_ENCODE}")
         w, h = stream.codec_context.width, stream.codec_context.height
         if not (1 <= w <= MAX_SIDE and 1 <= h <= MAX_SIDE):
             raise InputError(f"video {path} declares {w}x{h} frames; frames are 1..{MAX_SIDE} pixels a side: "
-                             f"the file is corrupt, or {fix}")
+                             f"the file is corrupt, or {RE_ENCODE}")
         rate = stream.average_rate or stream.guessed_rate
         fps = float(rate) if rate else None
         fps = fps if fps is not None and math.isfinite(fps) and 0 < fps <= 1000 else None
         pts, keys = _video_index(container, stream, path)
         total = len(pts)
         if total == 0:
-            raise InputError(f"video {path} has zero readable frames: the file is empty or corrupt; {fix}")
+            raise InputError(f"video {path} has zero readable frames: the file is empty or corrupt; {RE_ENCODE}")
         wanted = range(total)[sel]
         if not wanted:
             raise InputError(f"frame range {spec!r} selects no frames of {path} ({total} frames): "
@@ -502,6 +542,10 @@ def _read_video_file(path: Path, sel: slice, spec, max_side, report):
         timed = None not in pts and len(set(pts)) == total
         order = sorted(pts) if timed else None
         rank = {t: k for k, t in enumerate(order)} if timed else {}
+        # the decoder gives frames in presentation order; their times say which frame each is (a
+        # frame it drops is seen missing), unless they are decode-order times: an AVI's B-frames
+        # come out reordered under the times of the packets that carried them, so they are counted
+        counted = not timed or bool(stream.codec_context.has_b_frames and pts == order)
         start = 0  # back from the end of the index pass: to the keyframe before the first wanted frame
         if timed and wanted[0] > 0:
             first = order[wanted[0]]
@@ -519,7 +563,7 @@ def _read_video_file(path: Path, sel: slice, spec, max_side, report):
         idx, decoded, k = [], 0, start - 1
         for frame in container.decode(stream):
             decoded += 1
-            k = rank.get(frame.pts, k + 1) if timed else k + 1
+            k = k + 1 if counted else rank.get(frame.pts, k + 1)
             report(min(decoded, todo), todo)
             if k > wanted[-1]:
                 break
@@ -527,20 +571,26 @@ def _read_video_file(path: Path, sel: slice, spec, max_side, report):
                 continue
             if kept.size is None and (frame.width, frame.height) not in {(w, h), (h, w)}:  # rotation metadata
                 raise InputError(f"video {path} decodes to {frame.width}x{frame.height} frames but its header "
-                                 f"says {w}x{h}: the file is corrupt; {fix}")
+                                 f"says {w}x{h}: the file is corrupt; {RE_ENCODE}")
             kept.add(_upright(frame.to_ndarray(format="rgb24"), frame), f"frame {k} of {path}", bgr=False)
             idx.append(k)
     except av.error.FFmpegError as e:
-        raise InputError(f"cannot decode video {path} ({str(e).strip()[:200]}): {fix}") from None
+        before = f", or read the frames before it (--frames {wanted[0]}:{k + 1})" if idx else ""
+        raise InputError(f"video {path} does not decode at frame {k + 1} of {total} ({_reason(e)}): the "
+                         f"file is damaged or cut short; copy it again{before}") from None
     finally:
         container.close()
-    if not idx:
-        raise InputError(f"frame range {spec!r} selects no decodable frames of {path} ({total} frames): "
-                         f"the file is corrupt, or pick a range inside 0:{total}")
+    read = set(idx)
+    lost = [j for j in wanted if j not in read]
+    if lost:
+        before = f", or read the frames before them (--frames {wanted[0]}:{lost[0]})" if lost[0] > wanted[0] else ""
+        which = f"frame {lost[0]}" if len(lost) == 1 else f"{len(lost)} frames from {lost[0]} to {lost[-1]}"
+        raise InputError(f"video {path}: {which} of {total} do not decode: the file is damaged or cut short; copy it "
+                         f"again{before}")
     if kept.flat:
         raise InputError(f"video {path} decodes to {len(idx)} frame{'s' if len(idx) > 1 else ''} of one flat colour "
                          f"and nothing else: there is no picture to fit. A file of random or damaged bytes decodes "
-                         f"like this; if the video is real, pick frames with content (--frames); else {fix}")
+                         f"like this; if the video is real, pick frames with content (--frames); else {RE_ENCODE}")
     return fps, total, idx, kept, decoded
 
 
@@ -696,6 +746,21 @@ def frame_differences(path, frames: np.ndarray, record: dict | None) -> list[str
         return []
     return [f"{differ} of the scene's {len(frames)} frames differ from {Path(path).name}'s (another clip, crop or "
             "grade)"]
+
+
+RE_ENCODE = "re-encode it (e.g. ffmpeg -i in.mov -c:v libx264 out.mp4) or extract its frames to a folder"
+
+
+def _reason(error: Exception) -> str:
+    """What FFmpeg (or PyAV) said, without the file name it adds (the message names it once)."""
+    return str(getattr(error, "strerror", None) or error).strip()[:200]
+
+
+def _unreadable(path, error: Exception) -> InputError:
+    """The refusal of a video file that FFmpeg cannot open or index: corrupt, not a video, or cut
+    short (an MP4 whose index is at the end loses it)."""
+    return InputError(f"cannot open video {path} ({_reason(error)}): the file is unreadable, corrupt or cut short; copy "
+                      f"it again if it is an interrupted copy or download, else {RE_ENCODE}")
 
 
 def _open_av(path):
