@@ -84,6 +84,8 @@ def test_every_shown_frame_reads_upright_and_in_order(corpus, name):
     assert frame_numbers(clip.frames) == shown
     assert clip.frames.shape[1:3] == size and clip.frames[:, 1, 1].min() > 200  # upright
     assert clip.indices.tolist() == list(range(len(shown))) and clip.source_frames == len(shown)
+    hides = "trimmed" in name or "edit list" in name
+    assert [n for n in clip.notes if "edit list hides" in n] == clip.notes and len(clip.notes) == hides
     source = probe_source(path)
     assert (source.frames, source.height, source.width) == (len(shown), *size)
     if len(shown) > 30:
@@ -118,3 +120,12 @@ def test_a_damaged_file_is_exit_2_at_every_command(corpus, name, tmp_path):
         assert result.exit_code == 2, result.output
         assert path.name in result.output and "Traceback" not in result.output
     assert not list(tmp_path.iterdir())
+
+
+def test_a_clip_whose_edit_list_hides_frames_says_so(corpus, tmp_path):
+    """poses reads the 60 frames shown and says why other tools count 67."""
+    path = corpus["edit list hides the last frame"][0]
+    result = CliRunner().invoke(main, ["poses", str(path), "-o", str(tmp_path / "cams.json"), "--method", "identity"])
+    assert result.exit_code == 0, result.output
+    assert "60 frames shown of 67 stored: the file's edit list hides 7 frames" in result.output
+    assert "60 frames" in result.output.splitlines()[-1]

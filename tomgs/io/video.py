@@ -7,11 +7,11 @@ from __future__ import annotations
 
 import os
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from tomgs.errors import InputError
+from tomgs.errors import InputError, counted
 
 if TYPE_CHECKING:
     import numpy as np
@@ -33,6 +33,7 @@ class Video:
              keyframe preceding the first selected one, and after the last, are never decoded.
     source_frames, source_size: the frames in the source and their (height, width) as stored,
              before any selection or resizing (0 and None for a clip made in memory).
+    notes:   what a user may want to know of how the file was read (frames its edit list hides).
     """
 
     frames: np.ndarray
@@ -43,6 +44,7 @@ class Video:
     decoded: int = 0
     source_frames: int = 0
     source_size: tuple[int, int] | None = None
+    notes: list[str] = field(default_factory=list)
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -319,7 +321,7 @@ def read_video(path, frames=None, max_side: int | None = None, masks=None, progr
         raise InputError(f"max_side must be a positive number of pixels, got {max_side}")
     report = progress or (lambda done, total: None)
 
-    fps = None
+    fps, notes = None, []
     if path.is_dir():
         files = list_images(path)
         if not files:
@@ -334,12 +336,15 @@ def read_video(path, frames=None, max_side: int | None = None, masks=None, progr
     else:
         if path.suffix.lower() not in VIDEO_EXTS:
             raise InputError(f"{path} is neither a video ({', '.join(sorted(VIDEO_EXTS))}) nor a folder of frames")
-        fps, total, idx, kept, decoded = _read_video_file(path, sel, frames, max_side, report)
+        fps, total, idx, kept, decoded, hidden = _read_video_file(path, sel, frames, max_side, report)
+        if hidden:  # other tools count these: the difference explained
+            notes.append(f"{counted(total, 'frame')} shown of {total + hidden} stored: the file's edit list hides "
+                         f"{counted(hidden, 'frame')}, as players do")
 
     h, w = kept.size
     nh, nw = kept.array.shape[1:3]
     mask_arr = None if masks is None else _read_masks(Path(masks), Source(path, total, h, w), idx, (nh, nw))
-    return Video(kept.frames(), mask_arr, fps, np.asarray(idx, dtype=np.int64), path, decoded, total, (h, w))
+    return Video(kept.frames(), mask_arr, fps, np.asarray(idx, dtype=np.int64), path, decoded, total, (h, w), notes)
 
 
 @dataclass
@@ -446,9 +451,9 @@ def _missing_box_bytes(path) -> int:
     return max(at - size, 0)
 
 
-def _video_index(container, stream, path) -> tuple[list, list]:
+def _video_index(container, stream, path) -> tuple[list, list, int]:
     """(pts, keyframe flags) of the stream's shown packets in file order (those an edit list hides
-    left out), read without decoding. InputError for a file shorter than its own index: an MP4, MOV
+    left out), and the count of packets stored (those hidden included), read without decoding. InputError for a file shorter than its own index: an MP4, MOV
     or AVI whose index lists more frames than its bytes hold (frames an edit list hides count as
     held), an MKV, WebM or fragmented MP4 whose packets end more than two frames before the duration
     its header declares; and for a Motion JPEG frame that declares more pixels than its bytes can
@@ -497,12 +502,13 @@ def _video_index(container, stream, path) -> tuple[list, list]:
         if declared - covered > 2 * frame + 0.005 * declared:
             raise InputError(f"video {path}: its header says it lasts {declared:.2f} s but its frames end at "
                              f"{max(covered, 0.0):.2f} s: it is truncated (an interrupted copy or download); copy it again")
-    return pts, keys
+    return pts, keys, stored
 
 
 def _read_video_file(path: Path, sel: slice, spec, max_side, report):
     """Decode the frames of video file `path` that `sel` picks: (fps or None, the total frame count,
-    the kept source frame numbers, the _Frames holding them, the frames decoded).
+    the kept source frame numbers, the _Frames holding them, the frames decoded, the frames its edit
+    list hides).
 
     Frame k is the k-th in presentation order. The index (one pass over the packets, no decoding)
     gives the count, each packet's time and the keyframes: decoding seeks to the last keyframe at or
@@ -530,7 +536,7 @@ def _read_video_file(path: Path, sel: slice, spec, max_side, report):
         rate = stream.average_rate or stream.guessed_rate
         fps = float(rate) if rate else None
         fps = fps if fps is not None and math.isfinite(fps) and 0 < fps <= 1000 else None
-        pts, keys = _video_index(container, stream, path)
+        pts, keys, stored = _video_index(container, stream, path)
         total = len(pts)
         if total == 0:
             raise InputError(f"video {path} has zero readable frames: the file is empty or corrupt; {RE_ENCODE}")
@@ -591,7 +597,7 @@ def _read_video_file(path: Path, sel: slice, spec, max_side, report):
         raise InputError(f"video {path} decodes to {len(idx)} frame{'s' if len(idx) > 1 else ''} of one flat colour "
                          f"and nothing else: there is no picture to fit. A file of random or damaged bytes decodes "
                          f"like this; if the video is real, pick frames with content (--frames); else {RE_ENCODE}")
-    return fps, total, idx, kept, decoded
+    return fps, total, idx, kept, decoded, stored - total
 
 
 def _upright(image: np.ndarray, frame) -> np.ndarray:

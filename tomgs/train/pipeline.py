@@ -213,7 +213,7 @@ def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses
     torch.manual_seed(config.seed)
     trainer = Trainer(inputs.frames, views, points, colors, config, device, point_frames=point_frames,
                       init_progress=lambda done, total: phases("init", done, total, None), **inputs.hooks)
-    trainer.notes[:0] = [*pose_notes, *inputs.notes]
+    trainer.notes[:0] = [*clip.notes, *pose_notes, *inputs.notes]
     if saved is not None:
         trainer.load_checkpoint(saved)
         write_csv(paths["csv"], trainer.history)  # the log as of the checkpoint (a killed run wrote further)
