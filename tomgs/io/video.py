@@ -523,6 +523,7 @@ def _read_video_file(path: Path, sel: slice, spec, max_side, report):
         container = _open_av(path)
     except (av.error.FFmpegError, UnicodeDecodeError, ValueError) as e:
         raise _unreadable(path, e) from None
+    idx, k, total = [], -1, 0  # what was read when FFmpeg fails: nothing, while the index is read
     try:
         if not container.streams.video:
             raise InputError(f"cannot open video {path}: it holds no video stream; {RE_ENCODE}")
@@ -581,7 +582,9 @@ def _read_video_file(path: Path, sel: slice, spec, max_side, report):
             kept.add(_upright(frame.to_ndarray(format="rgb24"), frame), f"frame {k} of {path}", bgr=False)
             idx.append(k)
     except av.error.FFmpegError as e:
-        before = f", or read the frames before it (--frames {wanted[0]}:{k + 1})" if idx else ""
+        if not total:
+            raise _unreadable(path, e) from None
+        before = f", or read the frames before it (--frames {idx[0]}:{k + 1})" if idx else ""
         raise InputError(f"video {path} does not decode at frame {k + 1} of {total} ({_reason(e)}): the "
                          f"file is damaged or cut short; copy it again{before}") from None
     finally:
