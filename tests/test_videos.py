@@ -54,6 +54,10 @@ def corpus(tmp_path_factory):
                        ("AVI", made["H.264 B-frames in AVI, 40"][0]), ("fragmented MP4", made["fragmented MP4"][0])]:
         for percent in (50, 90):
             made[f"{name} cut at {percent}%"] = (cut(base, d / f"cut{percent}_{base.name}", percent), None)
+    for percent in (23, 65):
+        made[f"fragmented MP4 cut at {percent}%"] = (cut(made["fragmented MP4"][0], d / f"cut{percent}_frag.mp4",
+                                                          percent), None)
+    made["fragmented MP4 cut in its last index"] = (cut(made["fragmented MP4"][0], d / "cut99_frag.mp4", 99), range(40))
     made["MP4, moov first cut at 99%"] = (cut(made["moov at the start"][0], d / "cut99_fast.mp4", 99), None)
     made["a damaged packet"] = (damage(source, d / "damaged.mp4", 40), None)
     made["a keyframe zeroed"] = (damage(source, d / "zeroed.mp4", 20, zero=True), None)
@@ -64,10 +68,11 @@ def corpus(tmp_path_factory):
 READS = ["source (B-frames, moov at the end)", "trimmed start (stream copy)", "trimmed start and end",
          "edit list hides the last frame", "edit list hides the last 3", "H.264 B-frames in AVI",
          "H.264 B-frames in AVI, 40", "H.264 in MKV", "VP9 in WebM", "MOV", "audio stream first", "fragmented MP4",
-         "moov at the start", "60 fps", "853x479", "one frame", "two frames", "display rotation 90",
-         "display rotation 180", "display rotation 270"] + (["HEVC", "HEVC 10-bit"] if HEVC else [])
+         "fragmented MP4 cut in its last index", "moov at the start", "60 fps", "853x479", "one frame", "two frames",
+         "display rotation 90", "display rotation 180", "display rotation 270"] + (["HEVC", "HEVC 10-bit"] if HEVC else [])
 DAMAGED = [f"{name} cut at {percent}%" for name in ("MP4", "MP4, moov first", "MKV", "WebM", "AVI", "fragmented MP4")
-           for percent in (50, 90)] + ["MP4, moov first cut at 99%", "a damaged packet", "a keyframe zeroed",
+           for percent in (50, 90)] + ["fragmented MP4 cut at 23%", "fragmented MP4 cut at 65%",
+                                       "MP4, moov first cut at 99%", "a damaged packet", "a keyframe zeroed",
                                        "a damaged packet in MKV"]
 
 

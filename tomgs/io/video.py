@@ -431,33 +431,38 @@ def check_masks(folder, source: Source) -> Path:
     return folder
 
 
-def _missing_box_bytes(path) -> int:
-    """Bytes the top-level boxes of an MP4 or MOV file declare past its end (0 for a whole file): a
-    cut one ends inside its last box, which a fragmented MP4's index cannot tell."""
+FRAME_BOXES = (b"mdat", b"moof")  # the top-level boxes of an MP4 or MOV that hold frames or their places
+
+
+def _cut_frame_box(path) -> tuple[bytes, int] | None:
+    """(type, bytes missing) of the top-level box of an MP4 or MOV file that runs past its end,
+    when it is one that holds frames (FRAME_BOXES): a cut fragmented MP4 ends inside one, which its
+    index cannot tell. None for a whole file, or one cut in a box that holds none (its last index)."""
     size = os.path.getsize(path)
     at = 0
     with open(path, "rb") as f:
         while size - at >= 8:  # a box header: 32-bit size (1: a 64-bit size follows; 0: to the end), type
             f.seek(at)
             head = f.read(16)
-            length = int.from_bytes(head[:4], "big")
+            length, kind = int.from_bytes(head[:4], "big"), head[4:8]
             if length == 1 and len(head) == 16:
                 length = int.from_bytes(head[8:16], "big")
-            if length == 0:
-                return 0
-            if length < 8:
-                return 0  # not a box: trailing bytes that FFmpeg ignores too
+            if length < 8:  # 0: to the end; else not a box: trailing bytes that FFmpeg ignores too
+                return None
+            if at + length > size:
+                return (kind, at + length - size) if kind in FRAME_BOXES else None
             at += length
-    return max(at - size, 0)
+    return None
 
 
 def _video_index(container, stream, path) -> tuple[list, list, int]:
     """(pts, keyframe flags) of the stream's shown packets in file order (those an edit list hides
-    left out), and the count of packets stored (those hidden included), read without decoding. InputError for a file shorter than its own index: an MP4, MOV
-    or AVI whose index lists more frames than its bytes hold (frames an edit list hides count as
-    held), an MKV, WebM or fragmented MP4 whose packets end more than two frames before the duration
-    its header declares; and for a Motion JPEG frame that declares more pixels than its bytes can
-    hold (each is a JPEG: `jpeg_size`)."""
+    left out), and the count of packets stored (those hidden included), read without decoding.
+    InputError for a file shorter than its own index: an MP4, MOV or AVI whose index lists more
+    frames than its bytes hold (frames an edit list hides count as held), an MP4 whose last frame
+    box runs past its end (`_cut_frame_box`), an MKV, WebM or fragmented MP4 whose packets end more
+    than two frames before the duration its header declares; and for a Motion JPEG frame that
+    declares more pixels than its bytes can hold (each is a JPEG: `jpeg_size`)."""
     import io
 
     pts, keys = [], []
@@ -472,9 +477,6 @@ def _video_index(container, stream, path) -> tuple[list, list, int]:
             end = ends if end is None else max(end, ends)
         if packet.stream.index != stream.index:
             continue
-        if packet.is_corrupt:  # the demuxer found fewer bytes than the index gives the packet
-            raise InputError(f"video {path}: frame {stored} lacks bytes its index points to: the file is truncated (an "
-                             f"interrupted copy or download) or damaged; copy it again")
         stored += 1
         if packet.is_discard:  # a frame the edit list hides (a trim's lead-in, a phone's last frame)
             continue
@@ -490,10 +492,10 @@ def _video_index(container, stream, path) -> tuple[list, list, int]:
     if listed > stored:
         raise InputError(f"video {path}: its index lists {listed} frames but the file holds {stored}: it is "
                          f"truncated (an interrupted copy or download); copy it again")
-    missing = _missing_box_bytes(path) if "mp4" in container.format.name else 0
-    if missing:
-        raise InputError(f"video {path}: its last part declares {missing:,} bytes more than the file holds: it is "
-                         f"truncated (an interrupted copy or download); copy it again")
+    cut = _cut_frame_box(path) if "mp4" in container.format.name else None
+    if cut is not None:
+        raise InputError(f"video {path}: its last {cut[0].decode('latin-1')} box lacks {cut[1]:,} bytes of its frames: it "
+                         f"is truncated (an interrupted copy or download); copy it again")
     if not listed and pts:  # no count to check (MKV, WebM, fragmented MP4): the duration its header declares
         declared = (container.duration or 0) / 1e6
         rate = stream.average_rate or stream.guessed_rate
