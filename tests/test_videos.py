@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from tests.videos import H, W, cut, damage, encode, frame_numbers, hide_last, rotate, stream_copy
+from tests.videos import H, W, cut, damage, encode, frame_numbers, hide_last, picture, rotate, stream_copy
 from tomgs.cli import main
 from tomgs.errors import InputError
 from tomgs.io import read_video
@@ -39,6 +39,7 @@ def corpus(tmp_path_factory):
                            range(40)),
         "moov at the start": (encode(d / "fast.mp4", 40, container_options={"movflags": "faststart"}), range(40)),
         "60 fps": (encode(d / "fps60.mp4", 40, rate=60), range(40)),
+        "full range": (encode(d / "full.mp4", 40, pix_fmt="yuvj420p"), range(40)),
         "853x479": (encode(d / "odd.mp4", 6, size=(853, 479), pix_fmt="yuv444p"), range(6), (479, 853)),
         "one frame": (encode(d / "one.mp4", 1), range(1)),
         "two frames": (encode(d / "two.mp4", 2), range(2)),
@@ -68,8 +69,9 @@ def corpus(tmp_path_factory):
 READS = ["source (B-frames, moov at the end)", "trimmed start (stream copy)", "trimmed start and end",
          "edit list hides the last frame", "edit list hides the last 3", "H.264 B-frames in AVI",
          "H.264 B-frames in AVI, 40", "H.264 in MKV", "VP9 in WebM", "MOV", "audio stream first", "fragmented MP4",
-         "fragmented MP4 cut in its last index", "moov at the start", "60 fps", "853x479", "one frame", "two frames",
-         "display rotation 90", "display rotation 180", "display rotation 270"] + (["HEVC", "HEVC 10-bit"] if HEVC else [])
+         "fragmented MP4 cut in its last index", "moov at the start", "60 fps", "full range", "853x479",
+         "one frame", "two frames", "display rotation 90", "display rotation 180", "display rotation 270"] \
+    + (["HEVC", "HEVC 10-bit"] if HEVC else [])
 DAMAGED = [f"{name} cut at {percent}%" for name in ("MP4", "MP4, moov first", "MKV", "WebM", "AVI", "fragmented MP4")
            for percent in (50, 90)] + ["fragmented MP4 cut at 23%", "fragmented MP4 cut at 65%",
                                        "MP4, moov first cut at 99%", "a damaged packet", "a keyframe zeroed",
@@ -88,6 +90,8 @@ def test_every_shown_frame_reads_upright_and_in_order(corpus, name):
     clip = read_video(path)
     assert frame_numbers(clip.frames) == shown
     assert clip.frames.shape[1:3] == size and clip.frames[:, 1, 1].min() > 200  # upright
+    drawn = np.stack([picture(k, size[1], size[0]) for k in shown])
+    assert np.abs(clip.frames.astype(int) - drawn).mean() < 3  # the source's colours (full range, 10-bit)
     assert clip.indices.tolist() == list(range(len(shown))) and clip.source_frames == len(shown)
     hides = "trimmed" in name or "edit list" in name
     assert [n for n in clip.notes if "edit list hides" in n] == clip.notes and len(clip.notes) == hides
@@ -120,7 +124,8 @@ def test_a_damaged_file_is_exit_2_at_every_command(corpus, name, tmp_path):
     """poses and fit answer a damaged file with exit 2 and one line, and write nothing."""
     path = corpus[name][0]
     for args in (["poses", path, "-o", tmp_path / "cams.json", "--method", "identity"],
-                 ["fit", path, "-o", tmp_path / "s.ply", "--iterations", "1", "--device", "cpu", "--poses", "identity"]):
+                 ["fit", path, "-o", tmp_path / "s.ply", "--iterations", "1", "--device", "cpu",
+                  "--poses", "identity"]):
         result = CliRunner().invoke(main, [str(a) for a in args])
         assert result.exit_code == 2, result.output
         assert path.name in result.output and "Traceback" not in result.output

@@ -494,8 +494,8 @@ def _video_index(container, stream, path) -> tuple[list, list, int]:
                          f"truncated (an interrupted copy or download); copy it again")
     cut = _cut_frame_box(path) if "mp4" in container.format.name else None
     if cut is not None:
-        raise InputError(f"video {path}: its last {cut[0].decode('latin-1')} box lacks {cut[1]:,} bytes of its frames: it "
-                         f"is truncated (an interrupted copy or download); copy it again")
+        raise InputError(f"video {path}: its last {cut[0].decode('latin-1')} box lacks {cut[1]:,} bytes of its "
+                         f"frames: it is truncated (an interrupted copy or download); copy it again")
     if not listed and pts:  # no count to check (MKV, WebM, fragmented MP4): the duration its header declares
         declared = (container.duration or 0) / 1e6
         rate = stream.average_rate or stream.guessed_rate
@@ -503,7 +503,8 @@ def _video_index(container, stream, path) -> tuple[list, list, int]:
         covered = (end or 0.0) - (container.start_time or 0) / 1e6
         if declared - covered > 2 * frame + 0.005 * declared:
             raise InputError(f"video {path}: its header says it lasts {declared:.2f} s but its frames end at "
-                             f"{max(covered, 0.0):.2f} s: it is truncated (an interrupted copy or download); copy it again")
+                             f"{max(covered, 0.0):.2f} s: it is truncated (an interrupted copy or download); copy "
+                             "it again")
     return pts, keys, stored
 
 
@@ -770,8 +771,8 @@ def _reason(error: Exception) -> str:
 def _unreadable(path, error: Exception) -> InputError:
     """The refusal of a video file that FFmpeg cannot open or index: corrupt, not a video, or cut
     short (an MP4 whose index is at the end loses it)."""
-    return InputError(f"cannot open video {path} ({_reason(error)}): the file is unreadable, corrupt or cut short; copy "
-                      f"it again if it is an interrupted copy or download, else {RE_ENCODE}")
+    return InputError(f"cannot open video {path} ({_reason(error)}): the file is unreadable, corrupt or cut short; "
+                      f"copy it again if it is an interrupted copy or download, else {RE_ENCODE}")
 
 
 def _open_av(path):
