@@ -15,6 +15,7 @@ from tomgs.io import read_video
 from tomgs.io.video import probe_source
 
 HEVC = "libx265" in av.codecs_available
+VFR = np.cumsum([0] + [100 if k % 3 == 0 else 33 for k in range(1, 40)]).tolist()  # ms: every third frame late
 
 
 @pytest.fixture(scope="module")
@@ -40,6 +41,7 @@ def corpus(tmp_path_factory):
         "moov at the start": (encode(d / "fast.mp4", 40, container_options={"movflags": "faststart"}), range(40)),
         "60 fps": (encode(d / "fps60.mp4", 40, rate=60), range(40)),
         "full range": (encode(d / "full.mp4", 40, pix_fmt="yuvj420p"), range(40)),
+        "variable frame rate": (encode(d / "vfr.mp4", 40, stamps=VFR), range(40)),
         "853x479": (encode(d / "odd.mp4", 6, size=(853, 479), pix_fmt="yuv444p"), range(6), (479, 853)),
         "one frame": (encode(d / "one.mp4", 1), range(1)),
         "two frames": (encode(d / "two.mp4", 2), range(2)),
@@ -69,8 +71,8 @@ def corpus(tmp_path_factory):
 READS = ["source (B-frames, moov at the end)", "trimmed start (stream copy)", "trimmed start and end",
          "edit list hides the last frame", "edit list hides the last 3", "H.264 B-frames in AVI",
          "H.264 B-frames in AVI, 40", "H.264 in MKV", "VP9 in WebM", "MOV", "audio stream first", "fragmented MP4",
-         "fragmented MP4 cut in its last index", "moov at the start", "60 fps", "full range", "853x479",
-         "one frame", "two frames", "display rotation 90", "display rotation 180", "display rotation 270"] \
+         "fragmented MP4 cut in its last index", "moov at the start", "60 fps", "full range", "variable frame rate",
+         "853x479", "one frame", "two frames", "display rotation 90", "display rotation 180", "display rotation 270"] \
     + (["HEVC", "HEVC 10-bit"] if HEVC else [])
 DAMAGED = [f"{name} cut at {percent}%" for name in ("MP4", "MP4, moov first", "MKV", "WebM", "AVI", "fragmented MP4")
            for percent in (50, 90)] + ["fragmented MP4 cut at 23%", "fragmented MP4 cut at 65%",
@@ -139,3 +141,22 @@ def test_a_clip_whose_edit_list_hides_frames_says_so(corpus, tmp_path):
     assert result.exit_code == 0, result.output
     assert "60 frames shown of 67 stored: the file's edit list hides 7 frames" in result.output
     assert "60 frames" in result.output.splitlines()[-1]
+
+
+@pytest.mark.parametrize("name, facts", [
+    ("source (B-frames, moov at the end)", "30 fps"), ("60 fps", "60 fps"),
+    ("variable frame rate", "variable frame rate"),
+    ("display rotation 270", "30 fps, turned 270\N{DEGREE SIGN} as the file says")])
+def test_the_source_says_its_frame_rate_and_rotation(corpus, name, facts):
+    assert probe_source(corpus[name][0]).facts() == facts
+
+
+def test_the_fit_plan_says_what_the_file_says_of_itself(corpus, tmp_path):
+    """The plan line, before any frame is decoded: frames, size as shown (stored 48x64), frame rate,
+    rotation."""
+    path = corpus["display rotation 90"][0]
+    result = CliRunner().invoke(main, ["fit", str(path), "-o", str(tmp_path / "s.ply"), "--iterations", "1",
+                                       "--device", "cpu", "--poses", "identity"])
+    assert result.exit_code == 0, result.output
+    plan = next(line for line in result.output.splitlines() if line.startswith("plan: "))
+    assert plan.startswith("plan: 20 frames of 64x48 (30 fps, turned 90\N{DEGREE SIGN} as the file says) on cpu")

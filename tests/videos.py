@@ -33,9 +33,10 @@ def frame_numbers(frames: np.ndarray) -> list[int]:
 
 def encode(path: Path, count: int = 40, codec: str = "libx264", rate=30, size=(W, H), options=None,
            bframes: int = 2, gop: int = 10, audio_first: bool = False, container_options=None,
-           pix_fmt: str = "yuv420p", turn: int = 0) -> Path:
+           pix_fmt: str = "yuv420p", turn: int = 0, stamps=None) -> Path:
     """`count` frames of `picture` encoded with `codec` into `path` (its suffix picks the
-    container), each stored turned `turn` quarter turns counter-clockwise (`size` is as shown)."""
+    container), each stored turned `turn` quarter turns counter-clockwise (`size` is as shown);
+    frame k shown at `stamps[k]` milliseconds where given (a variable frame rate)."""
     import av
 
     w, h = size if turn % 2 == 0 else size[::-1]
@@ -44,6 +45,8 @@ def encode(path: Path, count: int = 40, codec: str = "libx264", rate=30, size=(W
             audio = out.add_stream("aac", rate=48000)
         stream = out.add_stream(codec, rate=rate)
         stream.width, stream.height, stream.pix_fmt = w, h, pix_fmt
+        if stamps is not None:
+            stream.codec_context.time_base = Fraction(1, 1000)
         stream.codec_context.gop_size = gop
         opts = {"bf": str(bframes)} if codec in ("libx264", "mpeg4") else {}
         if codec == "libx264":
@@ -60,6 +63,8 @@ def encode(path: Path, count: int = 40, codec: str = "libx264", rate=30, size=(W
         for k in range(count):
             image = np.ascontiguousarray(np.rot90(picture(k, *size), turn))
             frame = av.VideoFrame.from_ndarray(image, format="rgb24")
+            if stamps is not None:
+                frame.pts, frame.time_base = stamps[k], Fraction(1, 1000)
             for packet in stream.encode(frame):
                 out.mux(packet)
         for packet in stream.encode():

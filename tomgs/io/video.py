@@ -357,6 +357,15 @@ class Source:
     frames: int
     height: int
     width: int
+    fps: float | None = None  # the average rate (None: a folder, or a file that does not say)
+    variable: bool = False  # the intervals between frames differ (variable frame rate)
+    rotation: int = 0  # degrees clockwise the frames are turned to be shown upright
+
+    def facts(self) -> str:
+        """What a plan says of the source: its frame rate, or that it varies, and a display rotation."""
+        parts = ["variable frame rate" if self.variable else f"{self.fps:.4g} fps" if self.fps else ""]
+        parts.append(f"turned {self.rotation}\N{DEGREE SIGN} as the file says" if self.rotation else "")
+        return ", ".join(p for p in parts if p)
 
 
 def probe_source(path) -> Source:
@@ -386,27 +395,29 @@ def probe_source(path) -> Source:
             if not (1 <= w <= MAX_SIDE and 1 <= h <= MAX_SIDE):
                 raise InputError(f"video {path} declares {w}x{h} frames; frames are 1..{MAX_SIDE} pixels a side: "
                                  "the file is corrupt, or resize it")
-            count = len(_video_index(container, stream, path)[0])
-            if count == 0:
+            pts = _video_index(container, stream, path)[0]
+            if not pts:
                 raise InputError(f"video {path} has zero readable frames: the file is empty or corrupt")
             container.seek(0)
             first = next(container.decode(stream), None)  # one frame: the display rotation
-            if first is not None and round((first.rotation or 0) / 90) % 2:
+            turns = _turns(first) if first is not None else 0
+            if turns % 2:
                 w, h = h, w
     except InputError:
         raise
     except (av.error.FFmpegError, UnicodeDecodeError, ValueError) as e:
         raise _unreadable(path, e) from None
-    return Source(path, count, h, w)
+    return Source(path, len(pts), h, w, *_frame_rate(stream, pts), rotation=(360 - 90 * turns) % 360)
 
 
-def probe_clip(path, frames=None, max_side: int | None = None) -> tuple[int, int, int, int]:
+def probe_clip(path, frames=None, max_side: int | None = None,
+               source: Source | None = None) -> tuple[int, int, int, int]:
     """(selected frames, height, width, source pixels per frame) of a clip, from `probe_source`
-    without decoding the frames: what a fit plans with before it reads. Raises InputError as
-    `read_video` does for a missing path or a bad or empty range, and for selected frames that would
-    take more than half of this machine's memory."""
+    (or its `source`, already probed) without decoding the frames: what a fit plans with before it
+    reads. Raises InputError as `read_video` does for a missing path or a bad or empty range, and
+    for selected frames that would take more than half of this machine's memory."""
     sel = parse_frames(frames)
-    source = probe_source(path)
+    source = source or probe_source(path)
     count = len(_select(source.frames, sel, frames, source.path))
     nh, nw = _resized_size(source.height, source.width, max_side)
     _check_budget(source.path, count, nh, nw)
@@ -498,8 +509,8 @@ def _video_index(container, stream, path) -> tuple[list, list, int]:
                          f"frames: it is truncated (an interrupted copy or download); copy it again")
     if not listed and pts:  # no count to check (MKV, WebM, fragmented MP4): the duration its header declares
         declared = (container.duration or 0) / 1e6
-        rate = stream.average_rate or stream.guessed_rate
-        frame = 1 / float(rate) if rate and 0 < float(rate) <= 1000 else 0.1
+        fps = _frame_rate(stream, pts)[0]
+        frame = 1 / fps if fps else 0.1
         covered = (end or 0.0) - (container.start_time or 0) / 1e6
         if declared - covered > 2 * frame + 0.005 * declared:
             raise InputError(f"video {path}: its header says it lasts {declared:.2f} s but its frames end at "
@@ -516,8 +527,6 @@ def _read_video_file(path: Path, sel: slice, spec, max_side, report):
     Frame k is the k-th in presentation order. The index (one pass over the packets, no decoding)
     gives the count, each packet's time and the keyframes: decoding seeks to the last keyframe at or
     before the first selected frame and stops after the last one."""
-    import math
-
     import av
 
     from tomgs.constants import MAX_SIDE
@@ -537,10 +546,8 @@ def _read_video_file(path: Path, sel: slice, spec, max_side, report):
         if not (1 <= w <= MAX_SIDE and 1 <= h <= MAX_SIDE):
             raise InputError(f"video {path} declares {w}x{h} frames; frames are 1..{MAX_SIDE} pixels a side: "
                              f"the file is corrupt, or {RE_ENCODE}")
-        rate = stream.average_rate or stream.guessed_rate
-        fps = float(rate) if rate else None
-        fps = fps if fps is not None and math.isfinite(fps) and 0 < fps <= 1000 else None
         pts, keys, stored = _video_index(container, stream, path)
+        fps = _frame_rate(stream, pts)[0]
         total = len(pts)
         if total == 0:
             raise InputError(f"video {path} has zero readable frames: the file is empty or corrupt; {RE_ENCODE}")
@@ -606,12 +613,30 @@ def _read_video_file(path: Path, sel: slice, spec, max_side, report):
     return fps, total, idx, kept, decoded, stored - total
 
 
+def _frame_rate(stream, pts) -> tuple[float | None, bool]:
+    """(frames per second or None, whether it varies) of a video stream: its average rate, and
+    whether the intervals between its shown frames' times `pts` differ by over a quarter."""
+    import math
+
+    rate = stream.average_rate or stream.guessed_rate
+    fps = float(rate) if rate else None
+    fps = fps if fps is not None and math.isfinite(fps) and 0 < fps <= 1000 else None
+    times = sorted(t for t in pts if t is not None)
+    steps = sorted(b - a for a, b in zip(times, times[1:]))
+    return fps, len(steps) >= 2 and steps[-1] - steps[0] > steps[len(steps) // 2] / 4
+
+
+def _turns(frame) -> int:
+    """Quarter turns counter-clockwise that show `frame` upright: phone clips store portrait frames
+    sideways with a display rotation (counter-clockwise degrees), which players apply."""
+    return round((getattr(frame, "rotation", 0) or 0) / 90) % 4
+
+
 def _upright(image: np.ndarray, frame) -> np.ndarray:
-    """The frame as it is shown: phone clips store portrait frames sideways with a display rotation
-    (counter-clockwise degrees), which players apply."""
+    """The frame as it is shown (`_turns`)."""
     import numpy as np
 
-    turns = round((getattr(frame, "rotation", 0) or 0) / 90) % 4
+    turns = _turns(frame)
     return np.ascontiguousarray(np.rot90(image, turns)) if turns else image
 
 
