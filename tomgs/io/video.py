@@ -562,7 +562,7 @@ def _read_video_file(path: Path, sel: slice, spec, max_side, report):
         # the decoder gives frames in presentation order; their times say which frame each is (a
         # frame it drops is seen missing), unless they are decode-order times: an AVI's B-frames
         # come out reordered under the times of the packets that carried them, so they are counted
-        counted = not timed or bool(stream.codec_context.has_b_frames and pts == order)
+        by_count = not timed or bool(stream.codec_context.has_b_frames and pts == order)
         start = 0  # back from the end of the index pass: to the keyframe before the first wanted frame
         if timed and wanted[0] > 0:
             first = order[wanted[0]]
@@ -580,7 +580,7 @@ def _read_video_file(path: Path, sel: slice, spec, max_side, report):
         idx, decoded, k = [], 0, start - 1
         for frame in container.decode(stream):
             decoded += 1
-            k = k + 1 if counted else rank.get(frame.pts, k + 1)
+            k = k + 1 if by_count else rank.get(frame.pts, k + 1)
             report(min(decoded, todo), todo)
             if k > wanted[-1]:
                 break
