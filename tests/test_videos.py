@@ -160,3 +160,18 @@ def test_the_fit_plan_says_what_the_file_says_of_itself(corpus, tmp_path):
     assert result.exit_code == 0, result.output
     plan = next(line for line in result.output.splitlines() if line.startswith("plan: "))
     assert plan.startswith("plan: 20 frames of 64x48 (30 fps, turned 90\N{DEGREE SIGN} as the file says) on cpu")
+
+
+def test_eval_refuses_a_cut_copy_of_the_fitted_video(corpus, tmp_path):
+    """eval reads a video by the same rules: a cut copy of the clip a scene was fitted on is refused
+    as truncated in one line (exit 2), the whole one compared."""
+    path = corpus["H.264 in MKV"][0]
+    scene = tmp_path / "s.ply"
+    fit = CliRunner().invoke(main, ["fit", str(path), "-o", str(scene), "--iterations", "1", "--device", "cpu",
+                                    "--poses", "identity", "-q"])
+    assert fit.exit_code == 0, fit.output
+    for name in ("MKV cut at 50%", "MKV cut at 90%"):
+        result = CliRunner().invoke(main, ["eval", str(scene), str(corpus[name][0])])
+        assert result.exit_code == 2 and "truncated" in result.output, result.output
+        assert len(result.output.strip().splitlines()) == 1
+    assert CliRunner().invoke(main, ["eval", str(scene), str(path)]).exit_code == 0
