@@ -107,7 +107,7 @@ def test_fit_prints_its_plan_first_and_a_bar_for_every_phase(long_clip, tmp_path
     # from the imports ("loading") on; the plan comes before the clip is read
     said = [line for line in lines if not PROGRESS_LINE.match(line)]
     assert PROGRESS_LINE.match(lines[0]).group(1) == "loading"
-    assert said[0].startswith("plan: 8 frames of 32x24 on cpu, 12 iterations") and "ETA" in said[0]
+    assert said[0].startswith("plan: 8 frames of 32x24 (30 fps) on cpu, 12 iterations") and "ETA" in said[0]
     started = [m.group(1) for m in map(PROGRESS_LINE.match, lines) if m]
     assert [p for p in dict.fromkeys(started) if p in PHASES] == list(PHASES)  # each phase, in order
     assert "peak memory" in result.output and "s in all (read" in result.output

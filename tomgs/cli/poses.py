@@ -65,10 +65,10 @@ def poses(video, output, masks, frames, method, focal, max_side, json_out, overw
         click.echo(cams.to_json())
     else:
         cams.save(output)
-    for note in report.notes:
+    for note in [*clip.notes, *report.notes]:
         say(f"  note: {note}")
     click.echo(f"{'cameras' if output == '-' else output}: {report.summary()}", err=to_stdout)
     write_json(json_out, dict(output=str(output), summary=report.summary(), method=report.method, mode=report.mode,
                                frames=report.frames, focal=report.focal, focal_estimated=report.focal_estimated,
                                reprojection_px=report.reproj_px, points=report.points, seconds=report.seconds,
-                               notes=list(report.notes)))
+                               notes=[*clip.notes, *report.notes]))

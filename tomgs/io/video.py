@@ -7,11 +7,11 @@ from __future__ import annotations
 
 import os
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from tomgs.errors import InputError
+from tomgs.errors import InputError, counted
 
 if TYPE_CHECKING:
     import numpy as np
@@ -33,6 +33,7 @@ class Video:
              keyframe preceding the first selected one, and after the last, are never decoded.
     source_frames, source_size: the frames in the source and their (height, width) as stored,
              before any selection or resizing (0 and None for a clip made in memory).
+    notes:   what a user may want to know of how the file was read (frames its edit list hides).
     """
 
     frames: np.ndarray
@@ -43,6 +44,7 @@ class Video:
     decoded: int = 0
     source_frames: int = 0
     source_size: tuple[int, int] | None = None
+    notes: list[str] = field(default_factory=list)
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -319,7 +321,7 @@ def read_video(path, frames=None, max_side: int | None = None, masks=None, progr
         raise InputError(f"max_side must be a positive number of pixels, got {max_side}")
     report = progress or (lambda done, total: None)
 
-    fps = None
+    fps, notes = None, []
     if path.is_dir():
         files = list_images(path)
         if not files:
@@ -334,12 +336,15 @@ def read_video(path, frames=None, max_side: int | None = None, masks=None, progr
     else:
         if path.suffix.lower() not in VIDEO_EXTS:
             raise InputError(f"{path} is neither a video ({', '.join(sorted(VIDEO_EXTS))}) nor a folder of frames")
-        fps, total, idx, kept, decoded = _read_video_file(path, sel, frames, max_side, report)
+        fps, total, idx, kept, decoded, hidden = _read_video_file(path, sel, frames, max_side, report)
+        if hidden:  # other tools count these: the difference explained
+            notes.append(f"{counted(total, 'frame')} shown of {total + hidden} stored: the file's edit list hides "
+                         f"{counted(hidden, 'frame')}, as players do")
 
     h, w = kept.size
     nh, nw = kept.array.shape[1:3]
     mask_arr = None if masks is None else _read_masks(Path(masks), Source(path, total, h, w), idx, (nh, nw))
-    return Video(kept.frames(), mask_arr, fps, np.asarray(idx, dtype=np.int64), path, decoded, total, (h, w))
+    return Video(kept.frames(), mask_arr, fps, np.asarray(idx, dtype=np.int64), path, decoded, total, (h, w), notes)
 
 
 @dataclass
@@ -352,6 +357,15 @@ class Source:
     frames: int
     height: int
     width: int
+    fps: float | None = None  # the average rate (None: a folder, or a file that does not say)
+    variable: bool = False  # the intervals between frames differ (variable frame rate)
+    rotation: int = 0  # degrees clockwise the frames are turned to be shown upright
+
+    def facts(self) -> str:
+        """What a plan says of the source: its frame rate, or that it varies, and a display rotation."""
+        parts = ["variable frame rate" if self.variable else f"{self.fps:.4g} fps" if self.fps else ""]
+        parts.append(f"turned {self.rotation}\N{DEGREE SIGN} as the file says" if self.rotation else "")
+        return ", ".join(p for p in parts if p)
 
 
 def probe_source(path) -> Source:
@@ -381,26 +395,29 @@ def probe_source(path) -> Source:
             if not (1 <= w <= MAX_SIDE and 1 <= h <= MAX_SIDE):
                 raise InputError(f"video {path} declares {w}x{h} frames; frames are 1..{MAX_SIDE} pixels a side: "
                                  "the file is corrupt, or resize it")
-            count = len(_video_index(container, stream, path)[0])
-            if count == 0:
+            pts = _video_index(container, stream, path)[0]
+            if not pts:
                 raise InputError(f"video {path} has zero readable frames: the file is empty or corrupt")
             container.seek(0)
             first = next(container.decode(stream), None)  # one frame: the display rotation
-            if first is not None and round((first.rotation or 0) / 90) % 2:
+            turns = _turns(first) if first is not None else 0
+            if turns % 2:
                 w, h = h, w
+    except InputError:
+        raise
     except (av.error.FFmpegError, UnicodeDecodeError, ValueError) as e:
-        raise InputError(f"cannot open video {path} ({str(e).strip()[:200]}): the file is unreadable or "
-                         "corrupt") from None
-    return Source(path, count, h, w)
+        raise _unreadable(path, e) from None
+    return Source(path, len(pts), h, w, *_frame_rate(stream, pts), rotation=(360 - 90 * turns) % 360)
 
 
-def probe_clip(path, frames=None, max_side: int | None = None) -> tuple[int, int, int, int]:
+def probe_clip(path, frames=None, max_side: int | None = None,
+               source: Source | None = None) -> tuple[int, int, int, int]:
     """(selected frames, height, width, source pixels per frame) of a clip, from `probe_source`
-    without decoding the frames: what a fit plans with before it reads. Raises InputError as
-    `read_video` does for a missing path or a bad or empty range, and for selected frames that would
-    take more than half of this machine's memory."""
+    (or its `source`, already probed) without decoding the frames: what a fit plans with before it
+    reads. Raises InputError as `read_video` does for a missing path or a bad or empty range, and
+    for selected frames that would take more than half of this machine's memory."""
     sel = parse_frames(frames)
-    source = probe_source(path)
+    source = source or probe_source(path)
     count = len(_select(source.frames, sel, frames, source.path))
     nh, nw = _resized_size(source.height, source.width, max_side)
     _check_budget(source.path, count, nh, nw)
@@ -425,17 +442,54 @@ def check_masks(folder, source: Source) -> Path:
     return folder
 
 
-def _video_index(container, stream, path) -> tuple[list, list]:
-    """(pts, keyframe flags) of the stream's packets in file order, read without decoding. InputError
-    for a file shorter than its own index (a truncated MP4 whose index lists frames its bytes lack:
-    it would read as a shorter clip), and for a Motion JPEG frame that declares more pixels than its
-    bytes can hold (each is a JPEG: `jpeg_size`)."""
+FRAME_BOXES = (b"mdat", b"moof")  # the top-level boxes of an MP4 or MOV that hold frames or their places
+
+
+def _cut_frame_box(path) -> tuple[bytes, int] | None:
+    """(type, bytes missing) of the top-level box of an MP4 or MOV file that runs past its end,
+    when it is one that holds frames (FRAME_BOXES): a cut fragmented MP4 ends inside one, which its
+    index cannot tell. None for a whole file, or one cut in a box that holds none (its last index)."""
+    size = os.path.getsize(path)
+    at = 0
+    with open(path, "rb") as f:
+        while size - at >= 8:  # a box header: 32-bit size (1: a 64-bit size follows; 0: to the end), type
+            f.seek(at)
+            head = f.read(16)
+            length, kind = int.from_bytes(head[:4], "big"), head[4:8]
+            if length == 1 and len(head) == 16:
+                length = int.from_bytes(head[8:16], "big")
+            if length < 8:  # 0: to the end; else not a box: trailing bytes that FFmpeg ignores too
+                return None
+            if at + length > size:
+                return (kind, at + length - size) if kind in FRAME_BOXES else None
+            at += length
+    return None
+
+
+def _video_index(container, stream, path) -> tuple[list, list, int]:
+    """(pts, keyframe flags) of the stream's shown packets in file order (those an edit list hides
+    left out), and the count of packets stored (those hidden included), read without decoding.
+    InputError for a file shorter than its own index: an MP4, MOV or AVI whose index lists more
+    frames than its bytes hold (frames an edit list hides count as held), an MP4 whose last frame
+    box runs past its end (`_cut_frame_box`), an MKV, WebM or fragmented MP4 whose packets end more
+    than two frames before the duration its header declares; and for a Motion JPEG frame that
+    declares more pixels than its bytes can hold (each is a JPEG: `jpeg_size`)."""
     import io
 
     pts, keys = [], []
+    stored = 0  # packets in the file, those an edit list hides included: what the index counts
+    end = None  # seconds: where the last packet of any stream ends
     mjpeg = stream.codec_context.name == "mjpeg"
-    for packet in container.demux(stream):
-        if packet.size == 0 or packet.is_discard:  # the flush packet; frames an edit list leaves out
+    for packet in container.demux():  # every stream: the demuxer reads them all anyway
+        if packet.size == 0:  # the flush packet
+            continue
+        if packet.pts is not None and packet.time_base is not None:
+            ends = float((packet.pts + (packet.duration or 0)) * packet.time_base)
+            end = ends if end is None else max(end, ends)
+        if packet.stream.index != stream.index:
+            continue
+        stored += 1
+        if packet.is_discard:  # a frame the edit list hides (a trim's lead-in, a phone's last frame)
             continue
         if mjpeg:
             data = io.BytesIO(bytes(packet))
@@ -446,48 +500,57 @@ def _video_index(container, stream, path) -> tuple[list, list]:
         pts.append(packet.pts)
         keys.append(bool(packet.is_keyframe))
     listed = int(stream.frames or 0)  # what the container's index lists (0: it does not say)
-    if listed > len(pts):
-        raise InputError(f"video {path}: its index lists {listed} frames but the file holds {len(pts)}: it is "
+    if listed > stored:
+        raise InputError(f"video {path}: its index lists {listed} frames but the file holds {stored}: it is "
                          f"truncated (an interrupted copy or download); copy it again")
-    return pts, keys
+    cut = _cut_frame_box(path) if "mp4" in container.format.name else None
+    if cut is not None:
+        raise InputError(f"video {path}: its last {cut[0].decode('latin-1')} box lacks {cut[1]:,} bytes of its "
+                         f"frames: it is truncated (an interrupted copy or download); copy it again")
+    if not listed and pts:  # no count to check (MKV, WebM, fragmented MP4): the duration its header declares
+        declared = (container.duration or 0) / 1e6
+        fps = _frame_rate(stream, pts)[0]
+        frame = 1 / fps if fps else 0.1
+        covered = (end or 0.0) - (container.start_time or 0) / 1e6
+        if declared - covered > 2 * frame + 0.005 * declared:
+            raise InputError(f"video {path}: its header says it lasts {declared:.2f} s but its frames end at "
+                             f"{max(covered, 0.0):.2f} s: it is truncated (an interrupted copy or download); copy "
+                             "it again")
+    return pts, keys, stored
 
 
 def _read_video_file(path: Path, sel: slice, spec, max_side, report):
     """Decode the frames of video file `path` that `sel` picks: (fps or None, the total frame count,
-    the kept source frame numbers, the _Frames holding them, the frames decoded).
+    the kept source frame numbers, the _Frames holding them, the frames decoded, the frames its edit
+    list hides).
 
     Frame k is the k-th in presentation order. The index (one pass over the packets, no decoding)
     gives the count, each packet's time and the keyframes: decoding seeks to the last keyframe at or
     before the first selected frame and stops after the last one."""
-    import math
-
     import av
 
     from tomgs.constants import MAX_SIDE
 
-    fix = "re-encode it (e.g. ffmpeg -i in.mov -c:v libx264 out.mp4) or extract its frames to a folder"
     try:
         container = _open_av(path)
     except (av.error.FFmpegError, UnicodeDecodeError, ValueError) as e:
-        raise InputError(f"cannot open video {path} ({str(e).strip()[:200]}): the file is unreadable or corrupt; "
-                         f"{fix}") from None
+        raise _unreadable(path, e) from None
+    idx, k, total = [], -1, 0  # what was read when FFmpeg fails: nothing, while the index is read
     try:
         if not container.streams.video:
-            raise InputError(f"cannot open video {path}: it holds no video stream; {fix}")
+            raise InputError(f"cannot open video {path}: it holds no video stream; {RE_ENCODE}")
         stream = container.streams.video[0]
         if stream.codec_context is None:
-            raise InputError(f"cannot decode video {path}: no decoder for its video codec; {fix}")
+            raise InputError(f"cannot decode video {path}: no decoder for its video codec; {RE_ENCODE}")
         w, h = stream.codec_context.width, stream.codec_context.height
         if not (1 <= w <= MAX_SIDE and 1 <= h <= MAX_SIDE):
             raise InputError(f"video {path} declares {w}x{h} frames; frames are 1..{MAX_SIDE} pixels a side: "
-                             f"the file is corrupt, or {fix}")
-        rate = stream.average_rate or stream.guessed_rate
-        fps = float(rate) if rate else None
-        fps = fps if fps is not None and math.isfinite(fps) and 0 < fps <= 1000 else None
-        pts, keys = _video_index(container, stream, path)
+                             f"the file is corrupt, or {RE_ENCODE}")
+        pts, keys, stored = _video_index(container, stream, path)
+        fps = _frame_rate(stream, pts)[0]
         total = len(pts)
         if total == 0:
-            raise InputError(f"video {path} has zero readable frames: the file is empty or corrupt; {fix}")
+            raise InputError(f"video {path} has zero readable frames: the file is empty or corrupt; {RE_ENCODE}")
         wanted = range(total)[sel]
         if not wanted:
             raise InputError(f"frame range {spec!r} selects no frames of {path} ({total} frames): "
@@ -496,6 +559,10 @@ def _read_video_file(path: Path, sel: slice, spec, max_side, report):
         timed = None not in pts and len(set(pts)) == total
         order = sorted(pts) if timed else None
         rank = {t: k for k, t in enumerate(order)} if timed else {}
+        # the decoder gives frames in presentation order; their times say which frame each is (a
+        # frame it drops is seen missing), unless they are decode-order times: an AVI's B-frames
+        # come out reordered under the times of the packets that carried them, so they are counted
+        by_count = not timed or bool(stream.codec_context.has_b_frames and pts == order)
         start = 0  # back from the end of the index pass: to the keyframe before the first wanted frame
         if timed and wanted[0] > 0:
             first = order[wanted[0]]
@@ -513,7 +580,7 @@ def _read_video_file(path: Path, sel: slice, spec, max_side, report):
         idx, decoded, k = [], 0, start - 1
         for frame in container.decode(stream):
             decoded += 1
-            k = rank.get(frame.pts, k + 1) if timed else k + 1
+            k = k + 1 if by_count else rank.get(frame.pts, k + 1)
             report(min(decoded, todo), todo)
             if k > wanted[-1]:
                 break
@@ -521,29 +588,55 @@ def _read_video_file(path: Path, sel: slice, spec, max_side, report):
                 continue
             if kept.size is None and (frame.width, frame.height) not in {(w, h), (h, w)}:  # rotation metadata
                 raise InputError(f"video {path} decodes to {frame.width}x{frame.height} frames but its header "
-                                 f"says {w}x{h}: the file is corrupt; {fix}")
+                                 f"says {w}x{h}: the file is corrupt; {RE_ENCODE}")
             kept.add(_upright(frame.to_ndarray(format="rgb24"), frame), f"frame {k} of {path}", bgr=False)
             idx.append(k)
     except av.error.FFmpegError as e:
-        raise InputError(f"cannot decode video {path} ({str(e).strip()[:200]}): {fix}") from None
+        if not total:
+            raise _unreadable(path, e) from None
+        before = f", or read the frames before it (--frames {idx[0]}:{k + 1})" if idx else ""
+        raise InputError(f"video {path} does not decode at frame {k + 1} of {total} ({_reason(e)}): the "
+                         f"file is damaged or cut short; copy it again{before}") from None
     finally:
         container.close()
-    if not idx:
-        raise InputError(f"frame range {spec!r} selects no decodable frames of {path} ({total} frames): "
-                         f"the file is corrupt, or pick a range inside 0:{total}")
+    read = set(idx)
+    lost = [j for j in wanted if j not in read]
+    if lost:
+        before = f", or read the frames before them (--frames {wanted[0]}:{lost[0]})" if lost[0] > wanted[0] else ""
+        which = f"frame {lost[0]}" if len(lost) == 1 else f"{len(lost)} frames from {lost[0]} to {lost[-1]}"
+        raise InputError(f"video {path}: {which} of {total} do not decode: the file is damaged or cut short; copy it "
+                         f"again{before}")
     if kept.flat:
         raise InputError(f"video {path} decodes to {len(idx)} frame{'s' if len(idx) > 1 else ''} of one flat colour "
                          f"and nothing else: there is no picture to fit. A file of random or damaged bytes decodes "
-                         f"like this; if the video is real, pick frames with content (--frames); else {fix}")
-    return fps, total, idx, kept, decoded
+                         f"like this; if the video is real, pick frames with content (--frames); else {RE_ENCODE}")
+    return fps, total, idx, kept, decoded, stored - total
+
+
+def _frame_rate(stream, pts) -> tuple[float | None, bool]:
+    """(frames per second or None, whether it varies) of a video stream: its average rate, and
+    whether the intervals between its shown frames' times `pts` differ by over a quarter."""
+    import math
+
+    rate = stream.average_rate or stream.guessed_rate
+    fps = float(rate) if rate else None
+    fps = fps if fps is not None and math.isfinite(fps) and 0 < fps <= 1000 else None
+    times = sorted(t for t in pts if t is not None)
+    steps = sorted(b - a for a, b in zip(times, times[1:]))
+    return fps, len(steps) >= 2 and steps[-1] - steps[0] > steps[len(steps) // 2] / 4
+
+
+def _turns(frame) -> int:
+    """Quarter turns counter-clockwise that show `frame` upright: phone clips store portrait frames
+    sideways with a display rotation (counter-clockwise degrees), which players apply."""
+    return round((getattr(frame, "rotation", 0) or 0) / 90) % 4
 
 
 def _upright(image: np.ndarray, frame) -> np.ndarray:
-    """The frame as it is shown: phone clips store portrait frames sideways with a display rotation
-    (counter-clockwise degrees), which players apply."""
+    """The frame as it is shown (`_turns`)."""
     import numpy as np
 
-    turns = round((getattr(frame, "rotation", 0) or 0) / 90) % 4
+    turns = _turns(frame)
     return np.ascontiguousarray(np.rot90(image, turns)) if turns else image
 
 
@@ -722,6 +815,21 @@ def frame_differences(path, frames: np.ndarray, record: dict | None) -> list[str
         return []
     return [f"{differ} of the scene's {len(frames)} frames differ from {Path(path).name}'s (another clip, crop or "
             "grade)"]
+
+
+RE_ENCODE = "re-encode it (e.g. ffmpeg -i in.mov -c:v libx264 out.mp4) or extract its frames to a folder"
+
+
+def _reason(error: Exception) -> str:
+    """What FFmpeg (or PyAV) said, without the file name it adds (the message names it once)."""
+    return str(getattr(error, "strerror", None) or error).strip()[:200]
+
+
+def _unreadable(path, error: Exception) -> InputError:
+    """The refusal of a video file that FFmpeg cannot open or index: corrupt, not a video, or cut
+    short (an MP4 whose index is at the end loses it)."""
+    return InputError(f"cannot open video {path} ({_reason(error)}): the file is unreadable, corrupt or cut short; "
+                      f"copy it again if it is an interrupted copy or download, else {RE_ENCODE}")
 
 
 def _open_av(path):

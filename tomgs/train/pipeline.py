@@ -126,23 +126,28 @@ def fit(video, output, config: TrainConfig | None = None, *, masks=None, frames=
 def _plan(video, config, device, saved, *, frames, max_side, poses, layer, auto_budget):
     """The plan of a fit (tomgs.train.plan.make_plan) from the clip's index, before decoding."""
     from tomgs.io import Video
-    from tomgs.io.video import probe_clip
+    from tomgs.io.video import probe_clip, probe_source
     from tomgs.runtime import kernels_compiled
     from tomgs.train.plan import make_plan
 
+    facts = ""
     if isinstance(video, Video):
         count, height, width = video.frames.shape[:3]
         source = height * width
     else:
-        count, height, width, source = probe_clip(video, frames, max_side)
+        probed = probe_source(video)
+        count, height, width, source = probe_clip(video, frames, max_side, probed)
+        facts = probed.facts()
     views = 2 * count if layer == "foreground" else count  # the foreground trains two views of each frame
     free = None
     if device.type == "cuda":
         free = torch.cuda.mem_get_info(device)[0] - views * height * width * 3
     estimated = layer != "foreground" and str(poses) == "auto" and not (saved and saved["clip"].get("cameras"))
-    return make_plan(config, views, height, width, source * views // max(count, 1), device.type,
-                     poses_estimated=estimated, auto_budget=auto_budget, free_bytes=free,
-                     compiles=not kernels_compiled(device.type))
+    plan, config = make_plan(config, views, height, width, source * views // max(count, 1), device.type,
+                             poses_estimated=estimated, auto_budget=auto_budget, free_bytes=free,
+                             compiles=not kernels_compiled(device.type))
+    plan.source = facts
+    return plan, config
 
 
 def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses, focal, device, progress,
@@ -213,7 +218,7 @@ def _fit(video, paths, config, saved, options, *, masks, frames, max_side, poses
     torch.manual_seed(config.seed)
     trainer = Trainer(inputs.frames, views, points, colors, config, device, point_frames=point_frames,
                       init_progress=lambda done, total: phases("init", done, total, None), **inputs.hooks)
-    trainer.notes[:0] = [*pose_notes, *inputs.notes]
+    trainer.notes[:0] = [*clip.notes, *pose_notes, *inputs.notes]
     if saved is not None:
         trainer.load_checkpoint(saved)
         write_csv(paths["csv"], trainer.history)  # the log as of the checkpoint (a killed run wrote further)

@@ -88,7 +88,8 @@ def render_seconds(device_type: str, gaussians: float, pixels: float) -> float:
 class FitPlan:
     """A fit's plan: clip (frames x height x width) on `device`; `iterations`, and `budget` (seconds
     of the whole fit, 0: none) with `budget_chosen` when the plan picked it; `cap` and
-    `points_per_frame` with the reason for each; estimated seconds per phase (`phases`) and `eta`."""
+    `points_per_frame` with the reason for each; estimated seconds per phase (`phases`) and `eta`;
+    `source`, what the video file says of itself (tomgs.io.video.Source.facts)."""
 
     frames: int
     height: int
@@ -101,6 +102,7 @@ class FitPlan:
     points_per_frame: int
     phases: dict = field(default_factory=dict)
     reasons: list = field(default_factory=list)
+    source: str = ""  # what the clip's file says of itself: its frame rate, a display rotation
 
     @property
     def eta(self) -> float:
@@ -117,7 +119,8 @@ class FitPlan:
         eta = duration(self.eta) if self.budget > 0 else f"~{duration(self.eta)} (estimated)"
         compiling = (f"; compiling kernels first (first run only, ~{duration(self.phases['compile'])})"
                      if self.phases.get("compile") else "")
-        return (f"plan: {counted(self.frames, 'frame')} of {self.width}x{self.height} on {self.device}, "
+        source = f" ({self.source})" if self.source else ""
+        return (f"plan: {counted(self.frames, 'frame')} of {self.width}x{self.height}{source} on {self.device}, "
                 f"{work}{chosen}{compiling}; "
                 f"start from {self.points_per_frame * self.frames:,} Gaussians, cap {self.cap:,}; ETA {eta}")
 
