@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tomgs.errors import InputError
+from tomgs.errors import InputError, short_repr
 from tomgs.constants import MAX_SIDE
 from tomgs.io.cameras import load_array, load_json, parse_colmap
 from tomgs.outputs import write_text
@@ -67,15 +67,6 @@ def look_at(eye, target, up=(0.0, -1.0, 0.0)) -> np.ndarray:
 
 MAX_FRAME_NUMBER = 2**31 - 1
 """Frame numbers are source frame numbers, stored as int32 in scene files."""
-
-
-def short_repr(value, limit: int = 60) -> str:
-    """repr(value) cut to `limit` characters; never RecursionError on deeply nested file content."""
-    try:
-        text = repr(value)
-    except RecursionError:
-        return "<nested too deeply to show>"
-    return text if len(text) <= limit else text[:limit] + "..."
 
 
 def _side(value, what: str) -> int:
