@@ -39,7 +39,7 @@ def read_colmap(folder) -> tuple[np.ndarray, np.ndarray, int, int]:
             raise InputError(f"{f} is missing: export the COLMAP model as text (colmap model_converter "
                              "--output_type TXT)")
     try:
-        cams, entries = parse_colmap(cams_txt, imgs_txt)
+        cams, entries = _parse_colmap(cams_txt, imgs_txt)
     except InputError:
         raise
     except (ValueError, IndexError, OverflowError) as e:
@@ -59,7 +59,7 @@ def read_colmap(folder) -> tuple[np.ndarray, np.ndarray, int, int]:
     return c2w, K, w, h
 
 
-def parse_colmap(cams_txt: Path, imgs_txt: Path):
+def _parse_colmap(cams_txt: Path, imgs_txt: Path):
     """(camera id -> (K, w, h), [(name, camera id, R w2c, t w2c)]) from COLMAP text files."""
     cams = {}
     for line in cams_txt.read_text().splitlines():
