@@ -18,7 +18,7 @@ from click.testing import CliRunner
 
 from scenes import object_scene
 from tomgs.cli import main
-from tomgs.examples import example_file
+from tomgs.data import example_file
 from tomgs.io.scene import save_scene
 from tomgs.io.video import clip_record, read_video
 from tomgs.io.writer import write_frames

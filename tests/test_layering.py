@@ -1,9 +1,17 @@
-"""The package's layering: what importing a module loads, and no import circle among tomgs's modules.
+"""The package's layering: what importing a module loads, its floors, and no import circle.
 
 Each import check runs in a fresh interpreter (a subprocess), so that what this test process already
-imported cannot hide a heavy import. The circle check reads the source (no import runs): every
-`import` and `from ... import` of a tomgs module, at module level and inside functions, is an edge,
-and so is the package a module sits in (importing tomgs.io.video runs tomgs/io/__init__.py first).
+imported cannot hide a heavy import. The floor and circle checks read the source (no import runs):
+every `import` and `from ... import` of a tomgs module, at module level and inside functions, is an
+edge, and so is the package a module sits in (importing tomgs.io.video runs tomgs/io/__init__.py first).
+
+The floors, lowest first: kernels import only constants; model, cameras, temporal and geometry import
+no io, render, train or edit; io imports no render, train or edit; render no train or edit; train's
+single-process modules no train.multigpu (only the pipeline hands a fit to it). An import from a
+lower floor up is an arrow up whether it sits at module level or inside a function, with one kind of
+exception, each listed in DELEGATIONS: a public method of a lower floor's value type that hands the
+reading of a file to the io module that owns the format (`Cameras.load` -> tomgs.io.cameras), imported
+inside that method; the module it reaches imports nothing of the lower one (the circle check holds it).
 """
 
 from __future__ import annotations
@@ -69,30 +77,44 @@ def test_packages_import_cheaply(statement):
     assert heavy(loaded) == [], heavy(loaded)
 
 
-def imports_of(path: Path, name: str, known: set[str]) -> set[str]:
-    """The tomgs modules that module `name` (file `path`) imports anywhere in its source."""
+def import_edges(path: Path, name: str, known: set[str]) -> set[tuple[str, str]]:
+    """(tomgs module, where) for each import of module `name` (file `path`): `where` is the qualified
+    name of the function or class the import sits in, '' at module level."""
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     found = set()
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
-        if isinstance(node, ast.Import):
-            targets = [a.name for a in node.names]
-        elif isinstance(node, ast.ImportFrom):
-            base = node.module or ""
-            if node.level:
-                parts = package.split(".")
-                base = ".".join(parts[: len(parts) - node.level + 1] + ([base] if base else []))
-            # `from pkg import sub` imports the submodule pkg.sub when there is one
-            targets = [f"{base}.{a.name}" if f"{base}.{a.name}" in known else base for a in node.names]
-        else:
-            continue
-        for target in targets:
-            while target and target not in known:  # `import tomgs.x.y` of a name inside a module
-                target = target.rpartition(".")[0]
-            while target:  # the module and every package above it run
-                if target != name:
-                    found.add(target)
-                target = target.rpartition(".")[0]
-    return found - {"tomgs"}  # tomgs/__init__ imports only tomgs._lazy: every module may sit under it
+
+    def visit(node: ast.AST, where: str) -> None:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                visit(child, f"{where}.{child.name}" if where else child.name)
+                continue
+            visit(child, where)
+            if isinstance(child, ast.Import):
+                targets = [a.name for a in child.names]
+            elif isinstance(child, ast.ImportFrom):
+                base = child.module or ""
+                if child.level:
+                    parts = package.split(".")
+                    base = ".".join(parts[: len(parts) - child.level + 1] + ([base] if base else []))
+                # `from pkg import sub` imports the submodule pkg.sub when there is one
+                targets = [f"{base}.{a.name}" if f"{base}.{a.name}" in known else base for a in child.names]
+            else:
+                continue
+            for target in targets:
+                while target and target not in known:  # `import tomgs.x.y` of a name inside a module
+                    target = target.rpartition(".")[0]
+                while target:  # the module and every package above it run
+                    if target != name and target != "tomgs":  # tomgs/__init__ imports only tomgs._lazy
+                        found.add((target, where))
+                    target = target.rpartition(".")[0]
+
+    visit(ast.parse(path.read_text(), str(path)), "")
+    return found
+
+
+def imports_of(path: Path, name: str, known: set[str]) -> set[str]:
+    """The tomgs modules that module `name` (file `path`) imports anywhere in its source."""
+    return {target for target, _ in import_edges(path, name, known)}
 
 
 def cycle(graph: dict[str, set[str]]) -> list[str] | None:
@@ -136,6 +158,73 @@ def test_the_graph_sees_imports_inside_functions_and_packages():
 def test_no_import_circle():
     """No module of tomgs imports, at any depth and at any level (module or function), itself."""
     assert cycle(import_graph()) is None
+
+
+BASE = ("tomgs.model", "tomgs.cameras", "tomgs.temporal", "tomgs.geometry")
+FLOORS = [  # (the modules of a floor, what they may not import, what of that they may)
+    (("tomgs.constants",), ("tomgs",), ()),
+    (("tomgs.kernels",), ("tomgs",), ("tomgs.kernels", "tomgs.constants")),
+    (BASE, ("tomgs.io", "tomgs.render", "tomgs.train", "tomgs.edit"), ()),
+    (("tomgs.io",), ("tomgs.render", "tomgs.train", "tomgs.edit"), ()),
+    (("tomgs.render",), ("tomgs.train", "tomgs.edit"), ()),
+    (("tomgs.train",), ("tomgs.train.multigpu",), ()),  # multigpu itself and the pipeline aside (below)
+]
+ABOVE_TRAIN = ("tomgs.train.multigpu", "tomgs.train.pipeline")  # a sharded fit's modules, and the fit that starts one
+DELEGATIONS = {  # (lower module, its method, the io module it hands a file's reading to)
+    ("tomgs.cameras", "Cameras.load", "tomgs.io.cameras"),
+    ("tomgs.cameras", "Cameras.from_anycam", "tomgs.io.cameras"),
+    ("tomgs.cameras", "Cameras.from_colmap", "tomgs.io.cameras"),
+}
+
+
+def within(module: str, prefixes) -> bool:
+    return any(module == p or module.startswith(p + ".") for p in prefixes)
+
+
+def delegated(name: str, target: str, where: str) -> bool:
+    """Whether `name` imports `target` (a module or a package above it) as one of DELEGATIONS."""
+    return any((name, where) == (lower, method) and within(io, (target,)) for lower, method, io in DELEGATIONS)
+
+
+def arrows_up(graph: dict[str, set[tuple[str, str]]]) -> list[str]:
+    """'importer -> imported (in function)' for every import that runs from a floor up, delegations aside."""
+    bad = []
+    for name, edges in sorted(graph.items()):
+        for target, where in sorted(edges):
+            up = any(within(name, floor) and within(target, above) and not within(target, allowed)
+                     for floor, above, allowed in FLOORS if floor != ("tomgs.train",) or not within(name, ABOVE_TRAIN))
+            if up and not delegated(name, target, where):
+                bad.append(f"{name} -> {target}" + (f" (in {where})" if where else ""))
+    return bad
+
+
+def edge_graph() -> dict[str, set[tuple[str, str]]]:
+    known = modules()
+    return {name: import_edges(path, name, set(known)) for name, path in known.items()}
+
+
+def test_the_floors_see_arrows_up():
+    """The check finds an arrow up at module level and inside a function, and passes a delegation."""
+    assert arrows_up({"tomgs.model": {("tomgs.render.sh", "")}}) == ["tomgs.model -> tomgs.render.sh"]
+    assert arrows_up({"tomgs.io.tets": {("tomgs.edit.tets", "gaussian_tet_indices")}}) == \
+        ["tomgs.io.tets -> tomgs.edit.tets (in gaussian_tet_indices)"]
+    assert arrows_up({"tomgs.kernels.sh": {("tomgs.runtime", "")}}) == ["tomgs.kernels.sh -> tomgs.runtime"]
+    assert arrows_up({"tomgs.train.warm": {("tomgs.train.multigpu.shards", "warm_up")}}) != []
+    assert arrows_up({"tomgs.train.pipeline": {("tomgs.train.multigpu.launch", "fit")},
+                      "tomgs.kernels.sh": {("tomgs.constants", ""), ("tomgs.kernels.rows", "")},
+                      "tomgs.cameras": {("tomgs.io.cameras", "Cameras.load")}}) == []
+    assert arrows_up({"tomgs.cameras": {("tomgs.io.cameras", "Cameras.save")}}) != []
+
+
+def test_no_import_runs_from_a_floor_up():
+    """Every floor imports nothing above it (module docstring), at module level or in a function."""
+    assert arrows_up(edge_graph()) == []
+
+
+def test_each_delegation_is_used():
+    """A delegation no code makes any more leaves DELEGATIONS."""
+    graph = edge_graph()
+    assert [d for d in sorted(DELEGATIONS) if (d[2], d[1]) not in graph[d[0]]] == []
 
 
 def test_no_module_imports_another_modules_private_names():

@@ -552,7 +552,7 @@ def test_defect06_an_image_of_another_format_under_an_image_name_is_refused(tmp_
 def test_defect06_tiff_sizes_are_checked(tmp_path):
     import cv2
 
-    from tomgs.io.video import image_size
+    from tomgs.io.images import image_size
 
     ok, data = cv2.imencode(".tiff", _texture(0), [cv2.IMWRITE_TIFF_COMPRESSION, 1])  # uncompressed
     folder = tmp_path / "frames"

@@ -21,6 +21,10 @@ JSON schema (`Cameras.save` / `Cameras.load`), version 1:
 
 `index` is the frame number in the source video (after any range selection it need not start
 at 0); `time` is the frame time in [0, 1].
+
+Files are io's: `load`, `from_colmap` and `from_anycam` hand the reading to tomgs.io.cameras, imported
+inside the method (this module sits on a lower floor than io, docs/design.md), which also writes
+COLMAP text and nerfstudio's transforms.json.
 """
 
 from __future__ import annotations
@@ -31,9 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
-from tomgs.errors import InputError
+from tomgs.errors import InputError, short_repr
 from tomgs.constants import MAX_SIDE
-from tomgs.io.cameras import load_array, load_json, parse_colmap
 from tomgs.outputs import write_text
 
 FORMAT = "tomgs-cameras"
@@ -67,15 +70,6 @@ def look_at(eye, target, up=(0.0, -1.0, 0.0)) -> np.ndarray:
 
 MAX_FRAME_NUMBER = 2**31 - 1
 """Frame numbers are source frame numbers, stored as int32 in scene files."""
-
-
-def short_repr(value, limit: int = 60) -> str:
-    """repr(value) cut to `limit` characters; never RecursionError on deeply nested file content."""
-    try:
-        text = repr(value)
-    except RecursionError:
-        return "<nested too deeply to show>"
-    return text if len(text) <= limit else text[:limit] + "..."
 
 
 def _side(value, what: str) -> int:
@@ -271,6 +265,8 @@ class Cameras:
     @classmethod
     def load(cls, path) -> "Cameras":
         """Read a cameras JSON file (InputError naming the file for anything it holds)."""
+        from tomgs.io.cameras import load_json
+
         path = Path(path)
         if not path.is_file():
             raise InputError(f"cameras file {path} does not exist" + (" (it is a folder)" if path.is_dir() else ""))
@@ -281,15 +277,9 @@ class Cameras:
         """AnyCam output: c2w [T,4,4] camera-to-world in OpenCV axes (array or .npy path) and K
         [3,3] or [T,3,3] in pixels (array or .npy/.txt path; per-frame K are averaged). Scale is
         kept as given; poses are re-anchored so that frame 0 is the identity."""
-        source = " and ".join(str(a) for a in (c2w, K) if isinstance(a, (str, Path))) or "AnyCam arrays"
-        c2w = load_array(c2w, "c2w")
-        K = load_array(K, "K")
-        if c2w.ndim != 3 or c2w.shape[1:] != (4, 4) or len(c2w) == 0:
-            raise InputError(f"{source}: AnyCam c2w must have shape [T,4,4], got {c2w.shape}")
-        if K.shape == (len(c2w), 3, 3):
-            K = K.mean(axis=0)
-        if K.shape != (3, 3):
-            raise InputError(f"{source}: AnyCam K must have shape [3,3] or [T,3,3], got {K.shape}")
+        from tomgs.io.cameras import read_anycam
+
+        c2w, K, source = read_anycam(c2w, K)
         try:
             return cls.create(c2w, K, width, height).rebased()
         except InputError as e:
@@ -299,71 +289,14 @@ class Cameras:
         """The image name of each frame as `tomgs render -o folder/` writes it: '00012.png'."""
         return [f"{int(i):05d}.png" for i in self.frame_indices]
 
-    def colmap_text(self) -> dict[str, str]:
-        """A COLMAP text model of these cameras: {'cameras.txt', 'images.txt', 'points3D.txt': text},
-        one shared PINHOLE camera, images named by `frame_names` with COLMAP's world-to-camera
-        quaternion (w x y z) and translation, no points. COLMAP's pixel centres are at +0.5 as ours;
-        numbers in full precision (Python's repr), so `from_colmap` reads the poses back."""
-        from tomgs.geometry import rotmat_to_quat
-
-        fx, fy, cx, cy = (float(v) for v in (self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]))
-        w2c = np.linalg.inv(self.c2w)
-        quats = rotmat_to_quat(w2c[:, :3, :3])
-        images = ["# IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, then a line of points (none)"]
-        for k, name in enumerate(self.frame_names()):
-            numbers = " ".join(repr(float(v)) for v in (*quats[k], *w2c[k, :3, 3]))
-            images += [f"{k + 1} {numbers} 1 {name}", ""]
-        return {"cameras.txt": "# CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]\n"
-                               f"1 PINHOLE {self.width} {self.height} {fx!r} {fy!r} {cx!r} {cy!r}\n",
-                "images.txt": "\n".join(images) + "\n",
-                "points3D.txt": "# POINT3D_ID X Y Z R G B ERROR TRACK[]\n"}
-
-    def nerfstudio(self, image_folder: str = "images") -> dict:
-        """nerfstudio's transforms.json of these cameras: OpenGL camera axes (x right, y up, z back:
-        c2w with y and z negated), pinhole intrinsics (pixel centres at +0.5 in both), each frame's
-        file under `image_folder` and its clip time."""
-        opengl = self.c2w @ np.diag([1.0, -1.0, -1.0, 1.0])
-        return {"camera_model": "OPENCV", "w": self.width, "h": self.height, "fl_x": float(self.K[0, 0]),
-                "fl_y": float(self.K[1, 1]), "cx": float(self.K[0, 2]), "cy": float(self.K[1, 2]),
-                "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
-                "frames": [{"file_path": f"{image_folder}/{name}", "transform_matrix": m.tolist(), "time": float(t),
-                            "frame_index": int(i)}
-                           for name, m, t, i in zip(self.frame_names(), opengl, self.times, self.frame_indices)]}
-
     @classmethod
     def from_colmap(cls, folder) -> "Cameras":
-        """A COLMAP text model (folder with cameras.txt and images.txt; one shared camera).
+        """A COLMAP text model (folder with cameras.txt and images.txt; one shared camera), its
+        images in name order (tomgs.io.cameras.read_colmap), re-anchored so that frame 0 is the
+        identity. COLMAP already puts pixel centres at +0.5."""
+        from tomgs.io.cameras import read_colmap
 
-        Images are ordered by name (natural sort); COLMAP's world-to-camera (qw qx qy qz, t) poses
-        are inverted and re-anchored so that frame 0 is the identity. COLMAP already puts pixel
-        centres at +0.5. Distortion parameters are dropped (undistort the frames first).
-        """
-        from tomgs.io.video import natural_key
-
-        folder = Path(folder)
-        cams_txt, imgs_txt = folder / "cameras.txt", folder / "images.txt"
-        for f in (cams_txt, imgs_txt):
-            if not f.is_file():
-                raise InputError(f"{f} is missing: export the COLMAP model as text (colmap model_converter "
-                                 "--output_type TXT)")
-        try:
-            cams, entries = parse_colmap(cams_txt, imgs_txt)
-        except InputError:
-            raise
-        except (ValueError, IndexError, OverflowError) as e:
-            raise InputError(f"{folder}: cannot parse the COLMAP text model ({str(e)[:200]}); export it with "
-                             "colmap model_converter --output_type TXT") from None
-        if not entries:
-            raise InputError(f"{imgs_txt} lists no images")
-        entries.sort(key=lambda e: natural_key(Path(e[0])))
-        cam_ids = {e[1] for e in entries}
-        if len(cam_ids) != 1 or not cam_ids <= set(cams):
-            raise InputError(f"{folder}: tomgs needs one shared camera in cameras.txt, images use {sorted(cam_ids)}")
-        K, w, h = cams[cam_ids.pop()]
-        c2w = np.tile(np.eye(4), (len(entries), 1, 1))
-        for k, (_, _, R, t) in enumerate(entries):
-            c2w[k, :3, :3] = R.T
-            c2w[k, :3, 3] = -R.T @ t
+        c2w, K, w, h = read_colmap(folder)
         try:
             return cls.create(c2w, K, w, h).rebased()
         except InputError as e:

@@ -1,4 +1,7 @@
-"""Rasterizer constants shared by the Warp kernels and the torch reference (3DGS's values, docs/design.md)."""
+"""Rasterizer constants shared by the Warp kernels and the torch reference (3DGS's values, docs/design.md),
+and the spherical-harmonics basis: its constants and the degree a coefficient count has."""
+
+import math
 
 TILE_SIZE = 16  # pixels per tile side; one tile is one CUDA block of 256 threads
 ALPHA_MIN = 1.0 / 255.0  # a Gaussian below this opacity (temporal or per pixel) is skipped
@@ -48,3 +51,11 @@ SH_C3 = (
 )
 # a view direction is (mean - centre) / max(|mean - centre|, SH_DIR_EPS): torch's normalize, its default eps
 SH_DIR_EPS = 1e-12
+
+
+def sh_degree_of(num_coeffs: int) -> int:
+    """Degree d of an SH block with (d + 1)^2 coefficients; raises for other counts."""
+    degree = int(round(math.sqrt(num_coeffs))) - 1
+    if degree < 0 or degree > 3 or (degree + 1) ** 2 != num_coeffs:
+        raise ValueError(f"SH coefficients per channel must be 1, 4, 9 or 16, got {num_coeffs}")
+    return degree

@@ -1,5 +1,5 @@
 """The bundled examples: a small procedural TOM-GS scene (what `tomgs demo` renders) and the files
-shipped in the package (`tomgs example`, tomgs.examples: a clip to fit, with the masks of its moving
+shipped in the package (`tomgs example`, tomgs.data: a clip to fit, with the masks of its moving
 object, and the Blender soft-body script).
 
 A checkered wall and floor made of flat static Gaussians, and a ball that moves, represented the

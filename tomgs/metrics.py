@@ -3,6 +3,7 @@
 Images are float tensors in [0, 1], shape [H,W,3] or batched [B,H,W,3], on any device; each metric
 returns one value per image (a 0-d tensor for [H,W,3], [B] for a batch). Protocol (the papers'
 evaluation, as their numbers were made): float renders, no 8-bit rounding; PSNR per frame, averaged over frames.
+`frame_psnr` is a fit's own measure of its frames (one render each, no LPIPS or SSIM).
 
 `l1_dssim` is the training loss, (1 - w) L1 + w (1 - SSIM), in the SSIM passes (no torch operation
 over the image, forward or backward); `l1_dssim_and_psnr` also gives the PSNR, from the same sums.
@@ -234,6 +235,25 @@ def ssim(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
     return out if batched else out[0]
 
 
+@torch.no_grad()
+def frame_psnr(model, frames: torch.Tensor, cameras, device, tick=None) -> list[float]:
+    """PSNR [F] of each frame (uint8 [F,H,W,3]) of GaussianModel `model` rendered at its camera and time
+    (clip time), one frame at a time: what a fit measures of its own frames."""
+    from tomgs.render.frame import rasterize
+
+    viewmats = cameras.viewmats(device)
+    K = torch.as_tensor(cameras.K, dtype=torch.float32, device=device)
+    inputs = model.render_inputs()
+    out = []
+    for k in range(len(cameras)):
+        image = rasterize(**inputs, viewmat=viewmats[k], K=K, width=cameras.width, height=cameras.height,
+                          t=float(cameras.times[k]))[0]
+        out.append(psnr(image, frames[k].to(device).float() / 255.0))
+        if tick is not None:
+            tick(k + 1, len(cameras))
+    return torch.stack(out).tolist() if out else []
+
+
 # -- LPIPS ---------------------------------------------------------------------------------------
 
 _LPIPS_SHIFT = (-0.030, -0.088, -0.188)
@@ -421,4 +441,5 @@ def evaluate(model, cameras, frames, indices=None, lpips: LPIPS | None = None, d
     return report
 
 
-__all__ = ["psnr", "ssim", "ssim_map", "ssim_map_conv", "LPIPS", "EvalReport", "evaluate", "default_lpips_weights"]
+__all__ = ["psnr", "ssim", "ssim_map", "ssim_map_conv", "LPIPS", "EvalReport", "evaluate", "default_lpips_weights",
+           "frame_psnr"]

@@ -20,8 +20,7 @@ import numpy as np
 import torch
 
 from tomgs import temporal
-from tomgs.constants import ALPHA_MIN, SH_C0
-from tomgs.render.sh import sh_degree_of
+from tomgs.constants import ALPHA_MIN, SH_C0, sh_degree_of
 
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest", "t_means", "log_t_scales")
 RENDER_INPUTS = ("means", "quats", "scales", "opacities", "colors", "t_means", "t_scales")  # `render_inputs` keys

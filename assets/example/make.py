@@ -22,7 +22,7 @@ def quick_start(text: str, fit_args: list[str] | None = None) -> list[list[str]]
     """The `tomgs ...` lines of the README's quick start as argument lists (after `tomgs`), each
     `"$(tomgs example NAME)"` replaced by the bundled file's path; with `fit_args`, a fit's
     `--budget S` or `--preset P` by them (a short fit for a test)."""
-    from tomgs.examples import example_file
+    from tomgs.data import example_file
 
     section = text.split("## Quick start", 1)[1].split("\n## ", 1)[0]
     commands = []

@@ -57,7 +57,7 @@ def example(names):
       tomgs example                                       # what is bundled
       tomgs fit "$(tomgs example ball.mp4)" -o ball.ply --budget 240
     """
-    from tomgs.examples import EXAMPLE_FILES, example_file
+    from tomgs.data import EXAMPLE_FILES, example_file
 
     if not names:
         for name, what in EXAMPLE_FILES.items():

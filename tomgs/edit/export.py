@@ -123,12 +123,13 @@ def write_cameras(folder, cameras: Cameras) -> list[Path]:
     frame folder from `tomgs render -o folder/` lines up with both."""
     import json
 
+    from tomgs.io.cameras import colmap_text, nerfstudio
     from tomgs.outputs import write_text
 
     folder = Path(folder)
     (folder / "sparse" / "0").mkdir(parents=True, exist_ok=True)
     written = [cameras.save(folder / "cameras.json"),
-               write_text(folder / "transforms.json", json.dumps(cameras.nerfstudio(), indent=1))]
-    for name, text in cameras.colmap_text().items():
+               write_text(folder / "transforms.json", json.dumps(nerfstudio(cameras), indent=1))]
+    for name, text in colmap_text(cameras).items():
         written.append(write_text(folder / "sparse" / "0" / name, text))
     return written

@@ -130,7 +130,8 @@ def read_masks(folder: Path, cameras) -> np.ndarray:
 
     import cv2
 
-    from tomgs.io.video import read_image, list_images
+    from tomgs.io.images import read_image
+    from tomgs.io.video import list_images
 
     if not folder.is_dir():
         raise InputError(f"mask folder {folder} does not exist: give a folder with one mask image per frame")

@@ -8,7 +8,8 @@ map F = D_s D_m^-1 (edge matrices now and at rest), under which the Gaussian bec
 (x_0' + F (mu - x_0), F Sigma F^T): `deform`.
 
 Orientation: with the vertices in the order of `DIRECTIONS` the edge matrix has det < 0 for a
-right-handed R, so a positively oriented tet lists them as `POSITIVE_ORDER` (0, 1, 3, 2).
+right-handed R, so a positively oriented tet lists them as (0, 1, 3, 2): tomgs.io.tets.POSITIVE_ORDER, the
+order a `gaussian` tets file's rows keep.
 
 Flat Gaussians (one scale ~0) give a degenerate tet, which no solver can move. `gaussians_to_tets`
 can thicken the thin axis to `thicken` times the middle scale; `deform` then still maps the
@@ -24,7 +25,6 @@ from tomgs.geometry import covariances, edge_matrices, quat_to_rotmat, rotmat_to
 
 TET_SIZE = 1.0  # c: the tet's vertices sit at one standard deviation along each regular direction
 DIRECTIONS = np.array([[1.0, 1.0, 1.0], [1.0, -1.0, -1.0], [-1.0, 1.0, -1.0], [-1.0, -1.0, 1.0]])  # v_k [4,3]
-POSITIVE_ORDER = (0, 1, 3, 2)  # vertex order of a Gaussian's tet with positive volume
 THICKEN = 0.1  # physics tets: thin axis >= THICKEN x middle scale (keeps det D_m > 0)
 MIN_VARIANCE = 1e-24  # eigenvalues are floored here (scale 1e-12) so that log(scale) stays finite
 

@@ -1,11 +1,18 @@
-"""Camera files: the readers under `Cameras.load`, `Cameras.from_colmap` and `Cameras.from_anycam`
-(tomgs.cameras, the value type, builds its cameras from what these return).
+"""Camera files and other tools' camera formats: the readers under `Cameras.load`, `Cameras.from_colmap`
+and `Cameras.from_anycam`, and the writers of `tomgs export --cameras-out`.
+
+tomgs.cameras, the value type, sits on a lower floor: its constructors import these readers inside
+the method and build the cameras from the arrays they return; this module never imports it (the
+writers read a Cameras' fields). The tomgs cameras JSON schema is the value's own (`Cameras.to_dict`).
 
     load_json     a JSON file's value (tomgs cameras, keyframes), InputError naming the file
     load_npy      a numeric .npy array, its header checked before anything is allocated
     npy_header    the checked header of an .npy stream (also read inside .npz files)
     load_array    an array given as itself, an .npy file or a text file of numbers
-    parse_colmap  COLMAP's text model: cameras.txt and images.txt
+    read_anycam   AnyCam's output: camera-to-world poses and intrinsics
+    read_colmap   COLMAP's text model (cameras.txt and images.txt) as camera-to-world poses
+    colmap_text   a COLMAP text model of cameras
+    nerfstudio    nerfstudio's transforms.json of cameras
 """
 
 from __future__ import annotations
@@ -18,7 +25,41 @@ import numpy as np
 from tomgs.errors import InputError
 
 
-def parse_colmap(cams_txt: Path, imgs_txt: Path):
+def read_colmap(folder) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """(c2w float64 [T,4,4], K [3,3], width, height) of a COLMAP text model (folder with cameras.txt
+    and images.txt; one shared camera), its images ordered by name (natural sort); COLMAP's
+    world-to-camera (qw qx qy qz, t) poses inverted. Distortion parameters are dropped (undistort the
+    frames first). InputError naming the file for anything it holds."""
+    from tomgs.io.video import natural_key
+
+    folder = Path(folder)
+    cams_txt, imgs_txt = folder / "cameras.txt", folder / "images.txt"
+    for f in (cams_txt, imgs_txt):
+        if not f.is_file():
+            raise InputError(f"{f} is missing: export the COLMAP model as text (colmap model_converter "
+                             "--output_type TXT)")
+    try:
+        cams, entries = _parse_colmap(cams_txt, imgs_txt)
+    except InputError:
+        raise
+    except (ValueError, IndexError, OverflowError) as e:
+        raise InputError(f"{folder}: cannot parse the COLMAP text model ({str(e)[:200]}); export it with "
+                         "colmap model_converter --output_type TXT") from None
+    if not entries:
+        raise InputError(f"{imgs_txt} lists no images")
+    entries.sort(key=lambda e: natural_key(Path(e[0])))
+    cam_ids = {e[1] for e in entries}
+    if len(cam_ids) != 1 or not cam_ids <= set(cams):
+        raise InputError(f"{folder}: tomgs needs one shared camera in cameras.txt, images use {sorted(cam_ids)}")
+    K, w, h = cams[cam_ids.pop()]
+    c2w = np.tile(np.eye(4), (len(entries), 1, 1))
+    for k, (_, _, R, t) in enumerate(entries):
+        c2w[k, :3, :3] = R.T
+        c2w[k, :3, 3] = -R.T @ t
+    return c2w, K, w, h
+
+
+def _parse_colmap(cams_txt: Path, imgs_txt: Path):
     """(camera id -> (K, w, h), [(name, camera id, R w2c, t w2c)]) from COLMAP text files."""
     cams = {}
     for line in cams_txt.read_text().splitlines():
@@ -55,6 +96,22 @@ def _quat_to_R(q: np.ndarray) -> np.ndarray:
     if not (np.isfinite(norm) and norm > 0):
         raise ValueError(f"quaternion {q.tolist()} is not a rotation")
     return quat_to_rotmat(q / norm)  # unit first: a norm below QUAT_EPS is still a rotation here
+
+
+def read_anycam(c2w, K) -> tuple[np.ndarray, np.ndarray, str]:
+    """(c2w float64 [T,4,4], K [3,3], the source's name for messages) of AnyCam's output: c2w as an
+    array or an .npy path, K [3,3] or [T,3,3] as an array or an .npy/.txt path (per-frame K are
+    averaged). InputError naming the files for a wrong shape."""
+    source = " and ".join(str(a) for a in (c2w, K) if isinstance(a, (str, Path))) or "AnyCam arrays"
+    c2w = load_array(c2w, "c2w")
+    K = load_array(K, "K")
+    if c2w.ndim != 3 or c2w.shape[1:] != (4, 4) or len(c2w) == 0:
+        raise InputError(f"{source}: AnyCam c2w must have shape [T,4,4], got {c2w.shape}")
+    if K.shape == (len(c2w), 3, 3):
+        K = K.mean(axis=0)
+    if K.shape != (3, 3):
+        raise InputError(f"{source}: AnyCam K must have shape [3,3] or [T,3,3], got {K.shape}")
+    return c2w, K, source
 
 
 def load_array(a, what: str) -> np.ndarray:
@@ -139,3 +196,38 @@ def npy_header(stream, source) -> tuple[tuple[int, ...], np.dtype, bool, int]:
     if any(int(n) < 0 for n in shape):
         raise InputError(f"{source}: the .npy header declares shape {list(shape)}")
     return tuple(int(n) for n in shape), dtype, bool(fortran), 8 + len(length) + size
+
+
+def colmap_text(cameras) -> dict[str, str]:
+    """A COLMAP text model of `cameras` (a tomgs.cameras.Cameras): {'cameras.txt', 'images.txt',
+    'points3D.txt': text}, one shared PINHOLE camera, images named by `Cameras.frame_names` with
+    COLMAP's world-to-camera quaternion (w x y z) and translation, no points. COLMAP's pixel centres
+    are at +0.5 as ours; numbers in full precision (Python's repr), so `read_colmap` reads the poses back."""
+    from tomgs.geometry import rotmat_to_quat
+
+    K = cameras.K
+    fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+    w2c = np.linalg.inv(cameras.c2w)
+    quats = rotmat_to_quat(w2c[:, :3, :3])
+    images = ["# IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, then a line of points (none)"]
+    for k, name in enumerate(cameras.frame_names()):
+        numbers = " ".join(repr(float(v)) for v in (*quats[k], *w2c[k, :3, 3]))
+        images += [f"{k + 1} {numbers} 1 {name}", ""]
+    return {"cameras.txt": "# CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]\n"
+                           f"1 PINHOLE {cameras.width} {cameras.height} {fx!r} {fy!r} {cx!r} {cy!r}\n",
+            "images.txt": "\n".join(images) + "\n",
+            "points3D.txt": "# POINT3D_ID X Y Z R G B ERROR TRACK[]\n"}
+
+
+def nerfstudio(cameras, image_folder: str = "images") -> dict:
+    """nerfstudio's transforms.json of `cameras` (a tomgs.cameras.Cameras): OpenGL camera axes (x right,
+    y up, z back: c2w with y and z negated), pinhole intrinsics (pixel centres at +0.5 in both), each
+    frame's file under `image_folder` and its clip time."""
+    K = cameras.K
+    opengl = cameras.c2w @ np.diag([1.0, -1.0, -1.0, 1.0])
+    return {"camera_model": "OPENCV", "w": cameras.width, "h": cameras.height, "fl_x": float(K[0, 0]),
+            "fl_y": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2]),
+            "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
+            "frames": [{"file_path": f"{image_folder}/{name}", "transform_matrix": m.tolist(), "time": float(t),
+                        "frame_index": int(i)}
+                       for name, m, t, i in zip(cameras.frame_names(), opengl, cameras.times, cameras.frame_indices)]}

@@ -62,8 +62,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from tomgs.cameras import Cameras, short_repr
-from tomgs.errors import InputError
+from tomgs.cameras import Cameras
+from tomgs.errors import InputError, short_repr
 from tomgs.io import tsog
 from tomgs.io.kinds import SCENE_FIX, check_scene_path
 from tomgs.outputs import atomic_file

@@ -30,11 +30,10 @@ from pathlib import Path
 
 import numpy as np
 
-from tomgs.constants import SH_C0
+from tomgs.constants import SH_C0, sh_degree_of
 from tomgs.io.kinds import STATIC_FORMATS
 from tomgs.io.sog import sog_bytes
 from tomgs.outputs import atomic_file
-from tomgs.render.sh import sh_degree_of
 
 FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")  # StaticGaussians' arrays
 

@@ -12,7 +12,7 @@ Tets file, binary little endian PLY, coordinates in Blender axes (Z up):
     element binding 4G    (cage only) int tet, float b0 b1 b2 b3: Gaussian-tet vertex r of Gaussian g
                           (row 4g + r) = sum_j b_j * vertex[tet[tet_row][j]]
 Kind `gaussian`: V = 4G and Gaussian g owns vertices 4g..4g+3 in the order of
-`tomgs.edit.tets.DIRECTIONS`; its `tet` row lists them as 4g + (0, 1, 3, 2), the positive order.
+`tomgs.edit.tets.DIRECTIONS`; its `tet` row lists them as 4g + POSITIVE_ORDER (0, 1, 3, 2), of positive volume.
 Kind `cage`: a connected tet mesh (what a soft body moves) with every Gaussian tet bound into it.
 Blender imports vertex + face and skips the rest; keep "merge vertices" off so the order survives.
 
@@ -37,6 +37,7 @@ W = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # world (Ope
 KINDS = ("gaussian", "cage")
 # outward triangles of a positively oriented tet (a, b, c, d), as positions into its 4 vertices
 FACES = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+POSITIVE_ORDER = (0, 1, 3, 2)  # a Gaussian's 4 vertices (in DIRECTIONS' order) as a tet of positive volume
 
 
 def to_blender(points) -> np.ndarray:
@@ -73,8 +74,6 @@ class Tets:
 
 def gaussian_tet_indices(count: int) -> np.ndarray:
     """[G,4]: the positive-volume `tet` rows of a `gaussian` tets file of G Gaussians."""
-    from tomgs.edit.tets import POSITIVE_ORDER
-
     return 4 * np.arange(count, dtype=np.int64)[:, None] + np.array(POSITIVE_ORDER)
 
 

@@ -43,8 +43,8 @@ from pathlib import Path
 
 import numpy as np
 
-from tomgs.cameras import short_repr
-from tomgs.errors import InputError
+from tomgs.constants import sh_degree_of
+from tomgs.errors import InputError, short_repr
 from tomgs.io import quantise
 from tomgs.outputs import atomic_file
 
@@ -94,8 +94,6 @@ def encode_gaussians(arrays: dict, means_bits: int = MEANS_BITS,
     if not (1 <= means_bits <= 16 and 1 <= t_bits <= 16):
         raise ValueError(f"means_bits and t_bits must be 1..16, got {means_bits} and {t_bits}")
     n = len(arrays["means"])
-    from tomgs.render.sh import sh_degree_of
-
     degree = sh_degree_of(arrays["sh_rest"].shape[1] + 1)
     f64 = {name: np.asarray(value, np.float64).reshape(n, int(np.prod(np.shape(value)[1:])))
            for name, value in arrays.items()}
@@ -223,8 +221,6 @@ def write_tsog(path, arrays: dict, clip: dict, records: np.ndarray, means_bits: 
     `records` (tomgs.io.scene.CAMERA_RECORD [T])."""
     path = Path(path)
     header, images, _ = encode_gaussians(arrays, means_bits, t_bits)
-    from tomgs.render.sh import sh_degree_of
-
     degree = sh_degree_of(arrays["sh_rest"].shape[1] + 1)
     header = {"format": FORMAT, "version": VERSION, **header,
               "images": [{"name": name, "channels": channels, "bytes": len(data)}

@@ -27,6 +27,7 @@ import torch
 from tomgs.cameras import intrinsics
 from tomgs.poses.ba import bundle_adjust, pick_device, refine_poses, reprojection_errors, so3_exp
 from tomgs.poses.tracks import KLT, WORK_SIDE, FlowMotion, Tracks, WorkingFrames, robust_fit, select_keyframes
+from tomgs.poses.twoview import nearest_rotation, recover_pose, scale_K, triangulate, unit_depth_points
 from tomgs.runtime import one_cpu_thread
 
 REGISTER_RUN = 1 << 16  # observations refined at once when the frames between keyframes are registered
@@ -106,84 +107,6 @@ def is_fixed_camera(gray: dict, static0: np.ndarray, thresh_px: float = FIXED_PX
 def fixed_probes(T: int) -> set:
     """The frames is_fixed_camera compares: 0, 1 and the clip's quarters."""
     return {0, 1, T // 4, T // 2, (3 * T) // 4, T - 1} & set(range(T))
-
-
-def _sample_colors(images: np.ndarray, frame_idx: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Colours float32 [N,3] in [0,1] of images uint8 [T,h,w,3] sampled (nearest pixel) at
-    +0.5-convention pixels xy [N,2] of those images."""
-    T, H, W, _ = images.shape
-    xi = np.clip(np.floor(xy[:, 0]).astype(int), 0, W - 1)
-    yi = np.clip(np.floor(xy[:, 1]).astype(int), 0, H - 1)
-    return images[frame_idx, yi, xi].astype(np.float32) / 255.0
-
-
-def scale_K(K: np.ndarray, s: float) -> np.ndarray:
-    """Intrinsics [3,3] of an image resized by s (pixel centres at +0.5, so cx scales with it)."""
-    return np.diag([s, s, 1.0]) @ K
-
-
-def unit_depth_points(image: np.ndarray, K: np.ndarray, n: int = 4000, static: np.ndarray | None = None):
-    """Points at depth 1 on a grid of a frame's pixels (no parallax to do better): ([P,3], [P,3]).
-
-    image uint8 [H,W,3] with intrinsics K [3,3]; static bool [h,w] (any size, True = usable) or None."""
-    H, W, _ = image.shape
-    step = max(1, int(np.sqrt(H * W / n)))
-    ys, xs = np.mgrid[0:H:step, 0:W:step]
-    xy = np.stack([xs.ravel() + 0.5, ys.ravel() + 0.5], 1)
-    if static is not None:
-        sh, sw = static.shape
-        xy = xy[static[(ys.ravel() * sh) // H, (xs.ravel() * sw) // W]]
-    pts = np.concatenate([(xy - K[:2, 2]) / np.diag(K)[:2], np.ones((len(xy), 1))], 1)
-    return pts, _sample_colors(image[None], np.zeros(len(xy), int), xy)
-
-
-def triangulate(Ra, ta, Rb, tb, xa, xb, K):
-    """Two-view DLT for many points, each with its own pair of w2c cameras.
-
-    Ra, Rb [N,3,3]; ta, tb [N,3]; xa, xb [N,2] pixels -> X [N,3], parallax angle [N] (degrees).
-    """
-    Kinv = np.linalg.inv(K)
-    na = (np.concatenate([xa, np.ones((len(xa), 1))], 1) @ Kinv.T)
-    nb = (np.concatenate([xb, np.ones((len(xb), 1))], 1) @ Kinv.T)
-    Pa = np.concatenate([Ra, ta[:, :, None]], 2)
-    Pb = np.concatenate([Rb, tb[:, :, None]], 2)
-    A = np.stack([na[:, 0:1] * Pa[:, 2] - Pa[:, 0], na[:, 1:2] * Pa[:, 2] - Pa[:, 1],
-                  nb[:, 0:1] * Pb[:, 2] - Pb[:, 0], nb[:, 1:2] * Pb[:, 2] - Pb[:, 1]], 1)
-    A /= np.linalg.norm(A, axis=2, keepdims=True)
-    Xh = np.linalg.svd(A)[2][:, -1]
-    X = Xh[:, :3] / np.where(np.abs(Xh[:, 3:]) > 1e-12, Xh[:, 3:], 1e-12)
-    # rays in world frame: R^T (K^-1 x)
-    da = np.einsum("nji,nj->ni", Ra, na)
-    db = np.einsum("nji,nj->ni", Rb, nb)
-    cos = (da * db).sum(1) / (np.linalg.norm(da, axis=1) * np.linalg.norm(db, axis=1))
-    return X, np.degrees(np.arccos(np.clip(cos, -1, 1)))
-
-
-def _polar(M: np.ndarray) -> np.ndarray:
-    """Nearest rotation to a 3x3 matrix."""
-    U, _, Vt = np.linalg.svd(M)
-    R = U @ Vt
-    if np.linalg.det(R) < 0:
-        R = U @ np.diag([1, 1, -1]) @ Vt
-    return R
-
-
-def _recover_pose(E, xa, xb, K, inl):
-    """Pick among the four (R, t) of an essential matrix the one that puts most inliers in front
-    of both cameras. Unlike cv2.recoverPose's default, far points (small parallax) vote too.
-    Returns R [3,3], t [3] (unit) and the inliers in front (bool [N])."""
-    R1, R2, t = cv2.decomposeEssentialMat(E)
-    n = int(inl.sum())
-    best = (-1, None, None, None)
-    for R, tt in ((R1, t), (R1, -t), (R2, t), (R2, -t)):
-        X, _ = triangulate(np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3)), np.tile(R, (n, 1, 1)),
-                           np.tile(tt.ravel(), (n, 1)), xa[inl], xb[inl], K)
-        front = (X[:, 2] > 0) & ((X @ R.T + tt.ravel())[:, 2] > 0)
-        if front.sum() > best[0]:
-            ok = inl.copy()
-            ok[inl] = front
-            best = (int(front.sum()), R, tt.ravel(), ok)
-    return best[1], best[2], best[3]
 
 
 class Tracker:
@@ -460,7 +383,7 @@ class Tracker:
         E, inl = robust_fit(cv2.findEssentialMat, x0, xj, K, cv2.USAC_MAGSAC, 0.999, 1.0)
         if E is None or E.shape != (3, 3):
             return None
-        R, t, inl = _recover_pose(E, x0, xj, K, inl.ravel() > 0)
+        R, t, inl = recover_pose(E, x0, xj, K, inl.ravel() > 0)
         if inl.sum() < 20:
             return None
         self.Rw = np.tile(np.eye(3), (T, 1, 1))
@@ -774,7 +697,7 @@ class Tracker:
                                   "rotation copied")
                 Rrel = np.eye(3)
             else:
-                Rrel = _polar(Ki @ Hm @ K)
+                Rrel = nearest_rotation(Ki @ Hm @ K)
             self.Rw[k] = Rrel @ self.Rw[k - 1]
             self.reg[k] = True
             self._progress(self.T_all * (1 + 0.4 * (k + 1) / T))

@@ -103,7 +103,7 @@ def estimate_cameras(frames, masks=None, method="auto", focal=None, progress=Non
                          sol.point_frames, sol.keyframes)
         pts, cols = sol.points, sol.colors
     elif isinstance(method, (str, Path)) and str(method) == "identity":
-        from tomgs.poses.auto import unit_depth_points
+        from tomgs.poses.twoview import unit_depth_points
 
         K = intrinsics(focal if focal is not None else 1.2 * max(W, H), W, H)
         cams = Cameras.identity(T, K, W, H, indices)

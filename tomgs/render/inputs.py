@@ -6,8 +6,9 @@ from dataclasses import dataclass
 
 import torch
 
+from tomgs.constants import sh_degree_of
 from tomgs.errors import RenderError
-from tomgs.render.sh import fused_sh_to_colors, sh_degree_of, sh_to_colors
+from tomgs.render.sh import fused_sh_to_colors, sh_to_colors
 
 
 @dataclass

@@ -11,19 +11,9 @@ The basis's constants live in tomgs.constants, where tomgs.kernels.sh reads them
 
 from __future__ import annotations
 
-import math
-
 import torch
 
-from tomgs.constants import SH_C0, SH_C1, SH_C2, SH_C3, SH_DIR_EPS
-
-
-def sh_degree_of(num_coeffs: int) -> int:
-    """Degree d of an SH block with (d + 1)^2 coefficients; raises for other counts."""
-    degree = int(round(math.sqrt(num_coeffs))) - 1
-    if degree < 0 or degree > 3 or (degree + 1) ** 2 != num_coeffs:
-        raise ValueError(f"SH coefficients per channel must be 1, 4, 9 or 16, got {num_coeffs}")
-    return degree
+from tomgs.constants import SH_C0, SH_C1, SH_C2, SH_C3, SH_DIR_EPS, sh_degree_of
 
 
 def eval_sh(sh: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:

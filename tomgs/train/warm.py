@@ -40,7 +40,7 @@ def warm_up(config, device: torch.device) -> None:
     and a fit seeds torch again before its own Trainer. A failure is reported and left to the real
     steps to show."""
     from tomgs.cameras import Cameras
-    from tomgs.train.multigpu.shards import frame_psnr
+    from tomgs.metrics import frame_psnr
     from tomgs.train.trainer import Trainer
 
     try:

@@ -35,9 +35,10 @@ from tomgs.io import Video, read_video
 from tomgs.io.video import parse_frames, probe_clip, read_video_for
 from tomgs.train.checkpoint import START_OVER, FitInterrupted, StopSignals, read_checkpoint
 from tomgs.train.clip import check_clip, check_options, clip_fps, clip_identity
-from tomgs.train.multigpu.shards import (REFINE_FRACTION, assemble, boundary_psnr, default_overlap, frame_psnr,
-                                         gather_union, halo, local_cameras, log_row, merged_history, model_of,
-                                         plan_stretches, rank_paths, refine, stretch_points)
+from tomgs.metrics import frame_psnr
+from tomgs.train.multigpu.shards import (REFINE_FRACTION, assemble, boundary_psnr, default_overlap, gather_union,
+                                         halo, local_cameras, log_row, merged_history, model_of, plan_stretches,
+                                         rank_paths, refine, stretch_points)
 from tomgs.outputs import fit_output_paths
 from tomgs.train.phases import peak_memory, tomgs_started, train_ticks
 from tomgs.train.plan import SAVE_COST, make_plan, render_seconds

@@ -546,25 +546,6 @@ def refine(model: GaussianModel, part: Halo, frames: torch.Tensor, cameras, conf
     return out
 
 
-@torch.no_grad()
-def frame_psnr(model: GaussianModel, frames: torch.Tensor, cameras, device, tick=None) -> list[float]:
-    """PSNR [F] of each frame (uint8 [F,H,W,3]) rendered at its camera and time (clip time)."""
-    from tomgs.metrics import psnr
-    from tomgs.render.frame import rasterize
-
-    viewmats = cameras.viewmats(device)
-    K = torch.as_tensor(cameras.K, dtype=torch.float32, device=device)
-    inputs = model.render_inputs()
-    out = []
-    for k in range(len(cameras)):
-        image = rasterize(**inputs, viewmat=viewmats[k], K=K, width=cameras.width, height=cameras.height,
-                          t=float(cameras.times[k]))[0]
-        out.append(psnr(image, frames[k].to(device).float() / 255.0))
-        if tick is not None:
-            tick(k + 1, len(cameras))
-    return torch.stack(out).tolist() if out else []
-
-
 # -- collectives on rows -----------------------------------------------------------------------------
 
 
@@ -602,7 +583,7 @@ def assemble(model: GaussianModel, part: Halo) -> torch.Tensor:
 
 
 __all__ = ["MIN_STRETCH", "REFINE_FRACTION", "Halo", "Refined", "Stretch", "Union", "all_gather_rows", "assemble",
-           "boundary_psnr", "clip_rates", "frame_psnr", "gather_union", "halo", "local_cameras", "log_row",
+           "boundary_psnr", "clip_rates", "gather_union", "halo", "local_cameras", "log_row",
            "merged_history", "model_of", "moments_to_clip_time", "own_cut", "owned_rows", "pack", "plan_stretches",
            "rank_paths", "reach", "refine", "refine_optimizer", "stretch_points", "stretch_span", "to_clip_time",
            "unpack"]
