@@ -5,7 +5,10 @@ CLI, nothing decoded past a size that does not fit, nothing written)."""
 from __future__ import annotations
 
 import json
+import re
 import struct
+import warnings
+import zlib
 
 import numpy as np
 import pytest
@@ -159,6 +162,60 @@ def test_empty_and_awkward_models_round_trip(tmp_path):
     assert back.model.opacities.max() > 0.999 and back.model.opacities.min() < 1e-3
 
 
+def test_a_version_1_file_without_checksums_still_loads(saved, tmp_path):
+    model, _, _, path = saved
+    header, rest = _parts(path)
+    header["version"] = 1
+    header.pop("records_crc32")
+    for entry in header["images"]:
+        entry.pop("crc32")
+    text = json.dumps(header).encode()
+    old = tmp_path / "v1.tsog"
+    old.write_bytes(tsog.MAGIC + struct.pack("<Q", len(text)) + text + rest)  # version 1: no header CRC-32
+    back, now = load_scene(old).model, load_scene(path).model
+    assert all(torch.equal(getattr(back, name), getattr(now, name)) for name in PARAM_NAMES)
+
+
+def test_a_scene_of_one_repeated_gaussian_is_padded_to_a_byte_a_gaussian(tmp_path):
+    """Its images compress to almost nothing; the header's padding keeps it readable under the count's
+    bound."""
+    n = 40_000
+    model = GaussianModel(torch.zeros(n, 3) + 3.0, torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1),
+                          torch.full((n, 3), -3.0), torch.ones(n), torch.zeros(n, 1, 3), torch.zeros(n, 0, 3),
+                          torch.zeros(n), torch.zeros(n))
+    path = save_scene(tmp_path / "same.tsog", model, wall_cameras(), {})
+    assert path.stat().st_size >= n
+    assert len(load_scene(path).model) == n
+
+
+def test_decoding_takes_little_more_than_the_images_and_the_result(tmp_path, monkeypatch):
+    """Float32 a chunk at a time: the peak is the file, its images (20 bytes a Gaussian at SH degree 0)
+    and the float32 result (64), not float64 intermediates of every Gaussian."""
+    import tracemalloc
+
+    monkeypatch.setattr(tsog, "DECODE_CHUNK", 4096, raising=False)
+    n = 60_000
+    path = save_scene(tmp_path / "big.tsog", wall_model(n), wall_cameras(), {})
+    from tomgs.io.scene import CAMERA_RECORD
+
+    tracemalloc.start()
+    try:
+        tsog.read_tsog(path, CAMERA_RECORD, lambda clip: clip)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < path.stat().st_size + 110 * n, peak / n
+
+
+@pytest.mark.parametrize("content", [b"", b"PK\x03\x04" + bytes(300), bytes(range(256)) * 8])
+def test_a_tsog_path_that_is_no_tsog_is_told_so(tmp_path, content):
+    bad = tmp_path / "x.tsog"
+    bad.write_bytes(content)
+    result = run("info", bad)
+    assert result.exit_code == 2 and "not a compressed tomgs scene" in result.output, result.output
+    assert "PLY" not in result.output
+
+
 def test_a_scene_named_ply_but_compressed_loads_by_its_bytes(saved, tmp_path):
     *_, path = saved
     renamed = tmp_path / "looks_like.ply"
@@ -207,17 +264,29 @@ def test_smallest_three_round_trip():
 # ---- malformed files ---------------------------------------------------------------------------------
 
 def _parts(path):
-    """(header dict, the bytes after the header) of a .tsog file."""
+    """(header dict, the bytes after the header and its CRC-32) of a .tsog file."""
     data, lead = path.read_bytes(), len(tsog.MAGIC) + 8
     (length,) = struct.unpack("<Q", data[lead - 8:lead])
-    return json.loads(data[lead:lead + length]), data[lead + length:]
+    return json.loads(data[lead:lead + length]), data[lead + length + 4:]
 
 
 def _with_header(path, dst, header, rest=None):
+    """`dst`: `header` (its CRC-32 after it, as a version 2 file has) and `rest` (by default `path`'s)."""
     text = json.dumps(header).encode()
     parts_rest = _parts(path)[1] if rest is None else rest
-    dst.write_bytes(tsog.MAGIC + struct.pack("<Q", len(text)) + text + parts_rest)
+    dst.write_bytes(tsog.MAGIC + struct.pack("<Q", len(text)) + text + struct.pack("<I", zlib.crc32(text))
+                    + parts_rest)
     return dst
+
+
+def _with_image(path, dst, name, data):
+    """`dst`: `path` with image `name` replaced by the bytes `data`, its size and CRC-32 in the header."""
+    header, rest = _parts(path)
+    sizes = [entry["bytes"] for entry in header["images"]]
+    index = [entry["name"] for entry in header["images"]].index(name)
+    start = sum(sizes[:index])
+    header["images"][index].update(bytes=len(data), crc32=zlib.crc32(data))
+    return _with_header(path, dst, header, rest[:start] + data + rest[start + sizes[index]:])
 
 
 def _edit(path, dst, change):
@@ -238,13 +307,27 @@ def _set(*keys, value):
 def _bomb_image(path, dst):
     """The opacities image replaced by a 4000x4000 WebP of one colour: a few hundred bytes that decode
     to 16 million pixels."""
-    header, rest = _parts(path)
-    sizes = [entry["bytes"] for entry in header["images"]]
-    index = [entry["name"] for entry in header["images"]].index("opacities")
-    start = sum(sizes[:index])
-    big = quantise.encode_webp(np.zeros((4000, 4000, 1), np.uint8))
-    header["images"][index]["bytes"] = len(big)
-    return _with_header(path, dst, header, rest[:start] + big + rest[start + sizes[index]:])
+    return _with_image(path, dst, "opacities", quantise.encode_webp(np.zeros((4000, 4000, 1), np.uint8)))
+
+
+def _flip(at):
+    """A maker of a copy with one bit flipped at byte `at` (negative: from the end)."""
+    def make(path, dst):
+        data = bytearray(path.read_bytes())
+        data[at] ^= 1  # a digit stays a digit
+        return dst.write_bytes(bytes(data))
+    return make
+
+
+def _in_image(name):
+    """The offset of the middle byte of image `name` of a .tsog."""
+    def offset(path):
+        header, rest = _parts(path)
+        names = [entry["name"] for entry in header["images"]]
+        sizes = [entry["bytes"] for entry in header["images"]]
+        index = names.index(name)
+        return len(path.read_bytes()) - len(rest) + sum(sizes[:index]) + sizes[index] // 2
+    return offset
 
 
 CASES = {
@@ -257,9 +340,26 @@ CASES = {
                  "not valid JSON"),
     "JSON not an object": (lambda p, d: _with_header(p, d, [1, 2]), "lacks \"format\""),
     "wrong version": (lambda p, d: _edit(p, d, _set("version", value=99)), "version 99"),
+    "empty": (lambda p, d: d.write_bytes(b""), "is empty, not a compressed tomgs scene"),
+    "a ZIP": (lambda p, d: d.write_bytes(b"PK\x03\x04" + bytes(300)), "not a compressed tomgs scene"),
+    "random bytes": (lambda p, d: d.write_bytes(np.random.default_rng(0).bytes(3000)), "not a compressed tomgs scene"),
     "no clip": (lambda p, d: _edit(p, d, lambda h: h.pop("clip")), "\"clip\""),
     "bad clip": (lambda p, d: _edit(p, d, _set("clip", "width", value="wide")), "'width'"),
-    "count bomb": (lambda p, d: _edit(p, d, _set("count", value=100_000_000)), "at most 64 a byte"),
+    "count bomb": (lambda p, d: _edit(p, d, _set("count", value=100_000_000)), "at least a byte a Gaussian"),
+    "count 100x what the bytes hold": (lambda p, d: _edit(p, d, lambda h: h.update(
+        count=h["count"] * 100, grid=list(quantise.grid_shape(h["count"] * 100)))), "at least a byte a Gaussian"),
+    "a flipped byte in the header": (lambda p, d: _flip(re.search(rb'"codebook":\[-?(\d)', p.read_bytes()).start(1))(p, d),
+                                     "header fails its checksum"),  # a codebook's digit: still valid JSON
+    "a flipped byte in an image": (lambda p, d: _flip(_in_image("colours")(p))(p, d),
+                                   "image 'colours' fails its checksum"),
+    "a flipped byte in a camera record": (_flip(-100), "camera records fail their checksum"),
+    "a codebook of 1e308": (lambda p, d: _edit(p, d, lambda h: h["log_scales"]["codebook"].__setitem__(3, 1e308)),
+                            "'log_scales'"),
+    "a codebook of -1e308": (lambda p, d: _edit(p, d, lambda h: h["sh_dc"]["codebook"].__setitem__(0, -1e308)),
+                             "'sh_dc'"),
+    "means' range past float32": (lambda p, d: _edit(p, d, _set("means", "maxs", value=[1e308] * 3)), "'means'"),
+    "t_means' range past float32": (lambda p, d: _edit(p, d, _set("t_means", "max", value=1e308)), "'t_means'"),
+    "no image checksum": (lambda p, d: _edit(p, d, lambda h: h["images"][0].pop("crc32")), "'images'"),
     "count past the cap": (lambda p, d: _edit(p, d, _set("count", value=1 << 40)), "'count'"),
     "negative count": (lambda p, d: _edit(p, d, _set("count", value=-1)), "'count'"),
     "wrong grid": (lambda p, d: _edit(p, d, _set("grid", value=[16, 28])), "'grid'"),
@@ -285,22 +385,11 @@ CASES = {
 
 
 def _corrupt_image(path, dst, name):
-    header, rest = _parts(path)
-    sizes = [entry["bytes"] for entry in header["images"]]
-    index = [entry["name"] for entry in header["images"]].index(name)
-    start = sum(sizes[:index])
-    garbage = bytes(range(256)) * (sizes[index] // 256 + 1)
-    return _with_header(path, dst, header, rest[:start] + garbage[:sizes[index]] + rest[start + sizes[index]:])
+    return _with_image(path, dst, name, bytes(range(256)) * 4)
 
 
 def _replace_image(path, dst, name, image):
-    header, rest = _parts(path)
-    sizes = [entry["bytes"] for entry in header["images"]]
-    index = [entry["name"] for entry in header["images"]].index(name)
-    start = sum(sizes[:index])
-    data = quantise.encode_webp(image)
-    header["images"][index]["bytes"] = len(data)
-    return _with_header(path, dst, header, rest[:start] + data + rest[start + sizes[index]:])
+    return _with_image(path, dst, name, quantise.encode_webp(image))
 
 
 @pytest.mark.parametrize("case", sorted(CASES))
@@ -318,7 +407,9 @@ def test_malformed_files_raise_input_error_before_decoding_too_much(saved, tmp_p
         return image
 
     monkeypatch.setattr(quantise, "decode_webp", counting)
-    with pytest.raises(InputError, match=message.replace("(", r"\(").replace(")", r"\)")) as caught:
+    with pytest.raises(InputError, match=message.replace("(", r"\(").replace(")", r"\)")) as caught, \
+            warnings.catch_warnings():
+        warnings.simplefilter("error")  # nothing printed before the one line
         load_scene(bad)
     assert "\n" not in str(caught.value) and str(bad) in str(caught.value)
     assert max(decoded, default=0) <= 20 * 20 * 4  # the wall's grid: 400 Gaussians on 20 x 20 pixels, 4 channels
