@@ -65,7 +65,8 @@ PALETTE_SIZE = 4096  # most SH rest vectors in the palette (k-means on the CPU s
 PALETTE_ROW = 64  # palette entries per image row, as SOG
 OPACITY_FLOOR = 1e-7  # opacities are stored in [1e-7, 1 - 1e-7]: logits of +-16, past what the renderer tells apart
 FLOAT32_MAX = float(np.finfo(np.float32).max)
-MAX_LOG_MEAN = 88.0  # means' range in sign(x) log(1 + |x|): e^88 = 1.7e38 stays inside float32
+MAX_LOG_MEAN = 88.0  # means' distances (log r; version 1: sign(x) log(1 + |x|)) at most e^88 = 1.7e38
+MAX_CENTRE = 1e30  # the means' centre, inside float32's range with room for the distances
 MAX_GAUSSIANS = 1 << 27  # a grid of 134M pixels: WebP's 16383-pixel sides hold it
 MAX_GAUSSIANS_PER_BYTE = 1
 """Real files take 13-25 bytes a Gaussian (the noisiest image, means_lo, ~3 alone), and the writer pads
@@ -98,13 +99,14 @@ def _images(max_sh_degree: int) -> list[tuple[str, int]]:
     return images + ([("sh_labels", 2), ("sh_palette", 3)] if max_sh_degree > 0 else [])
 
 
-def encode_gaussians(arrays: dict, means_bits: int = MEANS_BITS,
-                     t_bits: int = T_MEANS_BITS) -> tuple[dict, list[bytes], np.ndarray]:
+def encode_gaussians(arrays: dict, means_bits: int = MEANS_BITS, t_bits: int = T_MEANS_BITS,
+                     centre=(0.0, 0.0, 0.0)) -> tuple[dict, list[bytes], np.ndarray]:
     """(the header's attribute entries and grid, the images in _images order, the order [N]: the
     k-th Gaussian of the file is row order[k] of `arrays`). `arrays`: the stored parameters, float32
     numpy: means [N,3], quats [N,4], log_scales [N,3], opacity_logits [N], sh_dc [N,1,3], sh_rest
     [N,K-1,3], t_means [N], log_t_scales [N]. `means_bits` and `t_bits` (1..16): the precision of
-    the means (an axis) and of t_mean; below 16 the high bytes' images hold fewer bits."""
+    the means (an axis) and of t_mean; below 16 the high bytes' images hold fewer bits. `centre`:
+    the point the means are stored about (write_tsog: the mean camera centre)."""
     if not (1 <= means_bits <= 16 and 1 <= t_bits <= 16):
         raise ValueError(f"means_bits and t_bits must be 1..16, got {means_bits} and {t_bits}")
     n = len(arrays["means"])
@@ -115,12 +117,19 @@ def encode_gaussians(arrays: dict, means_bits: int = MEANS_BITS,
            for name, value in arrays.items()}
     width, height = quantise.grid_shape(n)
 
-    log_means = np.clip(quantise.signed_log(f64["means"]), -MAX_LOG_MEAN, MAX_LOG_MEAN)
-    lo, hi = (log_means.min(0), log_means.max(0)) if n else (np.zeros(3), np.zeros(3))
-    q_means = quantise.fixed(log_means, lo, hi, means_bits)
+    centre = [float(c) for c in centre]
+    coords = quantise.polar(f64["means"], centre)
+    log_r = coords[:, 2]
+    finite = log_r[np.isfinite(log_r)]  # -inf: a mean at the centre
+    r_hi = min(float(finite.max()), MAX_LOG_MEAN) if len(finite) else 0.0
+    r_lo = max(float(finite.min()), r_hi - quantise.POLAR_DEPTHS) if len(finite) else 0.0
+    coords[:, 2] = np.clip(np.nan_to_num(log_r, neginf=r_lo), r_lo, r_hi)
+    q_means = quantise.fixed(coords, [-1.0, -1.0, r_lo], [1.0, 1.0, r_hi], means_bits)
     t = f64["t_means"][:, 0]
-    t_lo, t_hi = (float(t.min()), float(t.max())) if n else (0.0, 0.0)
-    q_t = quantise.fixed(t, t_lo, t_hi, t_bits)
+    linear = quantise.linear_range(t)
+    squashed = quantise.squash(t, *linear)
+    t_lo, t_hi = (float(squashed.min()), float(squashed.max())) if n else (0.0, 0.0)
+    q_t = quantise.fixed(squashed, t_lo, t_hi, t_bits)
     order = quantise.morton_order(q_means)  # t_mean left out of the curve: see docs/scene-format.md
 
     # opacities kept inside float32's logit range: an opacity that rounds to 0 or 1 has no logit to load
@@ -138,12 +147,12 @@ def encode_gaussians(arrays: dict, means_bits: int = MEANS_BITS,
         "t_scales": quantise.encode_codebook(f64["log_t_scales"], books["t_scales"]),
     }
     entries = {
-        "means": {"mins": lo.tolist(), "maxs": hi.tolist(), "bits": means_bits},
+        "means": {"centre": centre, "log_r": [r_lo, r_hi], "bits": means_bits},
         "quats": {},
         "log_scales": {"codebook": _short_floats(books["scales"])},
         "sh_dc": {"codebook": _short_floats(books["colours"])},
         "opacities": {"codebook": _short_floats(books["opacities"])},
-        "t_means": {"min": t_lo, "max": t_hi, "bits": t_bits},
+        "t_means": {"linear": linear, "min": t_lo, "max": t_hi, "bits": t_bits},
         "log_t_scales": {"codebook": _short_floats(books["t_scales"])},
     }
     palette_image = None
@@ -214,13 +223,12 @@ def decode_gaussians(header: dict, images: dict[str, np.ndarray], what: str) -> 
         if bad.any():
             raise InputError(f"{what}: quaternions carry a tag outside {quantise.QUAT_TAG}..{quantise.QUAT_TAG + 3}: "
                              f"the file is damaged: {FIX}")
-        log_means = quantise.unfixed(q_means, means["mins"], means["maxs"], means["bits"])
-        out["means"][rows] = quantise.signed_exp(log_means)  # the checked range stays inside float32's
+        out["means"][rows] = _means(q_means, means)
         out["quats"][rows] = quantise.unpack_quats(c["quats"])
         out["log_scales"][rows] = books["log_scales"][c["scales"]]
         out["opacity_logits"][rows] = books["opacities"][c["opacities"][:, 0]]
         out["sh_dc"][rows] = books["sh_dc"][c["colours"]].reshape(-1, 1, 3)
-        out["t_means"][rows] = quantise.unfixed(q_t, t["min"], t["max"], t["bits"])
+        out["t_means"][rows] = _t_means(q_t, t)
         out["log_t_scales"][rows] = books["log_t_scales"][c["t_scales"][:, 0]]
         if palette is not None:
             labels = c["sh_labels"][:, 0].astype(np.int64) | (c["sh_labels"][:, 1].astype(np.int64) << 8)
@@ -231,7 +239,31 @@ def decode_gaussians(header: dict, images: dict[str, np.ndarray], what: str) -> 
     return out
 
 
+def _means(q: np.ndarray, entry: dict) -> np.ndarray:
+    """float64 [N, 3]: the means of their cells `q` [N, 3] and the header's checked entry: about a
+    centre (version 2) or per axis in sign(x) log(1 + |x|) between mins and maxs (version 1)."""
+    bits = entry["bits"]
+    if "centre" in entry:
+        r_lo, r_hi = entry["log_r"]
+        return quantise.unpolar(quantise.unfixed(q, [-1.0, -1.0, r_lo], [1.0, 1.0, r_hi], bits), entry["centre"])
+    return quantise.signed_exp(quantise.unfixed(q, entry["mins"], entry["maxs"], bits))
+
+
+def _t_means(q: np.ndarray, entry: dict) -> np.ndarray:
+    """float64 [N]: t_means of their values `q` and the header's checked entry (squashed past the
+    entry's "linear" range in version 2)."""
+    t = quantise.unfixed(q, entry["min"], entry["max"], entry["bits"])
+    return quantise.unsquash(t, *entry["linear"]) if "linear" in entry else t
+
+
 # ---- the file ------------------------------------------------------------------------------------
+
+def camera_centre(records: np.ndarray) -> list[float]:
+    """The point a file's means are stored about: the mean of its cameras' centres (records of
+    tomgs.io.scene.CAMERA_RECORD), inside MAX_CENTRE."""
+    centre = np.asarray(records["c2w"], np.float64).reshape(-1, 4, 4)[:, :3, 3].mean(0)
+    return np.clip(np.nan_to_num(centre), -MAX_CENTRE, MAX_CENTRE).tolist()
+
 
 def write_tsog(path, arrays: dict, clip: dict, records: np.ndarray, means_bits: int = MEANS_BITS,
                t_bits: int = T_MEANS_BITS) -> Path:
@@ -239,11 +271,11 @@ def write_tsog(path, arrays: dict, clip: dict, records: np.ndarray, means_bits: 
     PLY scene's clip JSON object: format, version, size, K, SH degrees, cameras, info) and the camera
     `records` (tomgs.io.scene.CAMERA_RECORD [T])."""
     path = Path(path)
-    header, images, _ = encode_gaussians(arrays, means_bits, t_bits)
+    records = np.ascontiguousarray(records)
+    header, images, _ = encode_gaussians(arrays, means_bits, t_bits, camera_centre(records))
     from tomgs.render.sh import sh_degree_of
 
     degree = sh_degree_of(arrays["sh_rest"].shape[1] + 1)
-    records = np.ascontiguousarray(records)
     header = {"format": FORMAT, "version": VERSION, **header,
               "images": [{"name": name, "channels": channels, "bytes": len(data), "crc32": zlib.crc32(data)}
                          for (name, channels), data in zip(_images(degree), images)],
@@ -402,13 +434,21 @@ def _checked_header(text: bytes, f, size: int, record: int, path: Path, check_cl
     if not crc(header.get("records_crc32")):
         raise bad("records_crc32")
     entry = header.get("means")
-    if not (isinstance(entry, dict) and all(_numbers(entry.get(f), 3, MAX_LOG_MEAN) for f in ("mins", "maxs"))
+    fields = {"centre": (3, MAX_CENTRE), "log_r": (2, MAX_LOG_MEAN)} if version >= 2 else \
+        {"mins": (3, MAX_LOG_MEAN), "maxs": (3, MAX_LOG_MEAN)}
+    if not (isinstance(entry, dict) and all(_numbers(entry.get(f), *shape) for f, shape in fields.items())
             and _integer(entry.get("bits")) and 1 <= entry["bits"] <= 16):
         raise bad("means")
     t = header.get("t_means")
     if not (isinstance(t, dict) and _numbers([t.get("min"), t.get("max")], 2, FLOAT32_MAX / 2)
+            and (version < 2 or _numbers(t.get("linear"), 2, FLOAT32_MAX / 2))
             and _integer(t.get("bits")) and 1 <= t["bits"] <= 16):
         raise bad("t_means")
+    if version >= 2:  # the decoded range, past the linear part, inside float32's
+        with np.errstate(over="ignore"):
+            ends = quantise.unsquash(np.array([t["min"], t["max"]]), *t["linear"])
+        if not (np.abs(ends) <= FLOAT32_MAX / 2).all():
+            raise bad("t_means")
     books = ["log_scales", "sh_dc", "opacities", "log_t_scales"] + (["sh_rest"] if degree > 0 else [])
     for key in books:
         entry = header.get(key)
