@@ -438,7 +438,7 @@ def required_copy_psnr(scene_psnr: float, max_loss_db: float) -> float:
     return float(scene_psnr - 10.0 * np.log10(10.0 ** (max_loss_db / 10.0) - 1.0))
 
 
-def copy_psnr(model, copy, cameras, frames: int = 4, max_side: int = 480, device=None) -> float:
+def copy_psnr(model, copy, cameras, frames: int = 4, max_side: int = 1024, device=None) -> float:
     """PSNR (dB) of `copy`'s renders (a GaussianModel: a decoded .tsog) against `model`'s at
     `frames` frames spread over `cameras` (first to last), at most `max_side` pixels a side: the
     mean squared error over all of them, so a frame where both are black does not count as infinite.

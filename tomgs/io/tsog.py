@@ -20,13 +20,19 @@ or writes a scene takes one. docs/scene-format.md gives the layout and the why; 
     T camera records, 144 bytes each   as the PLY scene's (tomgs.io.scene.CAMERA_RECORD)
 
 Attributes (Gaussians sorted along a Z-order curve of their quantised means):
-    means          `bits` (16 by default) an axis of sign(x) log(1 + |x|) between the header's mins
-                   and maxs, high bytes in image means_hi (RGB), low bytes in means_lo (RGB), as SOG
+    means          about the header's centre (the mean camera centre): the direction's octahedral
+                   map (u, v) on [-1, 1] and log r between the header's log_r ends, `bits` (16 by
+                   default) each (quantise.polar): a step is a fixed fraction of the distance, which
+                   no far Gaussian coarsens; high bytes in image means_hi (RGB), low in means_lo.
+                   Version 1: per axis sign(x) log(1 + |x|) between the header's mins and maxs
     quats          smallest three, 8 bits each, and 252 + the largest's index (RGBA), as SOG
-    log_scales     indices (RGB) into a 256-entry codebook shared by the three axes
+    log_scales     indices (RGB) into a 256-entry codebook shared by the three axes (codebooks:
+                   quantise.codebook, outliers in entries of their own)
     sh_dc          indices (RGB) into a 256-entry codebook shared by the three channels
     opacities      index (grey) into a 256-entry codebook of sigmoid(opacity_logit)
-    t_means        `bits` (16 by default) between the header's min and max: t_hi and t_lo (grey)
+    t_means        `bits` (16 by default) of quantise.squash(t) (linear inside the header's "linear"
+                   range, logarithmic past it) between the header's min and max: t_hi and t_lo
+                   (grey). Version 1: t itself between min and max
     log_t_scales   index (grey) into a 256-entry codebook
     sh_rest        (SH degree > 0 only) a palette of up to PALETTE_SIZE vectors: labels 16 bits
                    (sh_labels: R low byte, G high byte) and the palette as an image of 64 entries a
