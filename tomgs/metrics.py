@@ -435,7 +435,8 @@ def loss_db(scene_psnr: float, copy_psnr: float) -> float:
 def required_copy_psnr(scene_psnr: float, max_loss_db: float) -> float:
     """The PSNR against the scene's renders a copy needs to lose at most `max_loss_db` (> 0) of
     `scene_psnr`: the inverse of `loss_db` (0.2 dB: 13.3 dB above the scene's PSNR)."""
-    return float(scene_psnr - 10.0 * np.log10(10.0 ** (max_loss_db / 10.0) - 1.0))
+    with np.errstate(divide="ignore"):  # a loss too small for a float64 asks for an infinite PSNR
+        return float(scene_psnr - 10.0 * np.log10(np.expm1(max_loss_db / 10.0 * np.log(10.0))))
 
 
 def copy_psnr(model, copy, cameras, frames: int = 4, max_side: int = 1024, device=None) -> float:
