@@ -214,8 +214,10 @@ def main(argv=None) -> dict:
                     "timed, the others swept")
     ap.add_argument("--t-bits", default="16", help="bits of t_mean, or a list (swept with --means-bits)")
     ap.add_argument("--synthetic", type=int, default=None, metavar="N", help="time a synthetic scene of N Gaussians")
-    ap.add_argument("--davis", type=Path, default=None, metavar="ROOT", help="a folder of <clip>/images: the clips' table")
-    ap.add_argument("--clips", default="blackswan,camel,car-shadow,cows,dog,goat,kite-surf,libby,motocross-jump,parkour")
+    ap.add_argument("--davis", type=Path, default=None, metavar="ROOT",
+                    help="a folder of <clip>/images: the clips' table")
+    ap.add_argument("--clips", default="blackswan,camel,car-shadow,cows,dog,goat,kite-surf,libby,motocross-jump,"
+                                       "parkour")
     ap.add_argument("--scenes", type=Path, default=None, help="the clips' scenes, <clip>.ply (default: --out)")
     ap.add_argument("--minutes", type=float, default=2.0, help="the budget of a fit of a clip without a scene")
     ap.add_argument("--smoke", action="store_true", help="tiny CPU run")

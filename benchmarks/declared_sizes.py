@@ -261,8 +261,8 @@ def make_cases(root: Path, names: list[str]) -> dict[str, tuple[str, str]]:
     return cases
 
 
-CASES = ["png", "jpeg_baseline", "jpeg_progressive", "bmp", "tiff", "mjpeg_avi", "mp4_cut", "scene_ply", "tsog", "tsog_bomb",
-         "tets_ply", "checkpoint", "npy", "npz_sequence"]
+CASES = ["png", "jpeg_baseline", "jpeg_progressive", "bmp", "tiff", "mjpeg_avi", "mp4_cut", "scene_ply", "tsog",
+         "tsog_bomb", "tets_ply", "checkpoint", "npy", "npz_sequence"]
 
 
 def child(loader: str, path: str) -> None:
