@@ -5,7 +5,14 @@ compress and to load it, and the PSNR of the scene before and after against the 
     python -m benchmarks.compress scene.ply                          # PSNR of the .tsog against the PLY's renders
     python -m benchmarks.compress scene.ply frames/ --means-bits 16,14,12 --t-bits 16,12   # precisions swept
     python -m benchmarks.compress --synthetic 1000000                # times at 1M Gaussians, no PSNR
+    python -m benchmarks.compress --davis ROOT --scenes DIR --clips camel,cows   # clips: one table (below)
     python -m benchmarks.compress --smoke                            # tiny CPU run (tests/test_benchmarks.py)
+
+With --davis ROOT (a folder of <clip>/images JPEG folders) each clip's scene is DIR/<clip>.ply, fitted
+first when it is missing (`tomgs fit ROOT/<clip>/images -o DIR/<clip>.ply --budget 60 x --minutes`);
+each is compressed and both evaluated against the clip, one row a clip: Gaussians, the PLY's and the
+.tsog's PSNR, the loss, the .tsog's renders against the PLY's (what `tomgs compress` checks) and the
+loss that predicts, bytes a Gaussian, and the .tsog against the clip's JPEGs.
 
 Reports: the input's bytes, the .tsog's bytes (and by image, per Gaussian), bits per pixel of the
 clip (8 bytes / (width x height x frames), the scene's cameras), compress time (tomgs.save_scene to
@@ -32,6 +39,7 @@ from tomgs.cameras import Cameras, intrinsics, look_at
 from tomgs.io.scene import bits_per_pixel
 from tomgs.io.tsog import image_sizes
 from tomgs.io.video import read_video_for
+from tomgs.metrics import copy_psnr, loss_db
 from tomgs.model import GaussianModel
 from tomgs.runtime import resolve_device
 from tomgs.render.sequence import render_sequence
@@ -123,6 +131,11 @@ def measure(scene_path: Path, frames_path: Path | None, out_dir: Path, device, r
         return {"psnr_output": psnr, "psnr_drop": report["psnr_input"] - psnr}
 
     report.update(scored(compressed.model))
+    report["psnr_output_against_input_renders"] = copy_psnr(scene.model.to(device), compressed.model.to(device), cams,
+                                                            frames=len(cams), max_side=max(cams.width, cams.height),
+                                                            device=device)
+    if report["psnr_input"] is not None:
+        report["predicted_drop"] = loss_db(report["psnr_input"], report["psnr_output_against_input_renders"])
     report["sweep"] = []
     for means_bits, t_bits in others:
         path = out_dir / f"{scene_path.stem}_m{means_bits}_t{t_bits}.tsog"
@@ -148,16 +161,46 @@ def measure_synthetic(n: int, out_dir: Path, repeats: int) -> dict:
             "load_cpu_seconds": load_cpu, "torch_threads": torch.get_num_threads()}
 
 
-def smoke(out_dir: Path) -> dict:
-    """A tiny CPU run: a synthetic scene of 3,000 Gaussians at 96x54, its own renders as the clip."""
-    from tomgs.io.writer import write_frames
+def smoke(out_dir: Path) -> list[dict]:
+    """A tiny CPU run: a synthetic scene of 3,000 Gaussians at 96x54, its own renders as the clip
+    (a folder of JPEGs), through the clips' table."""
+    import cv2
 
     model, cams = synthetic_scene(3000, frames=4, width=96, height=54)
-    scene_path = tomgs.save_scene(out_dir / "smoke.ply", model, cams, {})
-    images = [image.numpy() for _, image, _ in render_sequence(model.render_inputs(), cams, device="cpu")]
-    frames_dir = out_dir / "smoke_frames"
-    write_frames([np.clip(np.rint(image * 255), 0, 255).astype(np.uint8) for image in images], frames_dir)
-    return measure(scene_path, frames_dir, out_dir, torch.device("cpu"))
+    clip = out_dir / "smoke" / "images"
+    clip.mkdir(parents=True, exist_ok=True)
+    for k, (_, image, _) in enumerate(render_sequence(model.render_inputs(), cams, device="cpu")):
+        pixels = np.clip(np.rint(image.numpy() * 255), 0, 255).astype(np.uint8)
+        cv2.imwrite(str(clip / f"{k:05d}.jpg"), pixels[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 100])
+    tomgs.save_scene(out_dir / "smoke.ply", model, cams, {})
+    return clips(out_dir, ["smoke"], out_dir, 0.0, torch.device("cpu"), out_dir)
+
+
+def clips(root: Path, names: list[str], scenes: Path, minutes: float, device, out_dir: Path) -> list[dict]:
+    """`measure` of each clip's scene (scenes/<clip>.ply, fitted by `tomgs fit` when missing) against
+    the clip's frames (root/<clip>/images)."""
+    import subprocess
+    import sys
+
+    reports = []
+    for name in names:
+        frames, scene = root / name / "images", scenes / f"{name}.ply"
+        if not scene.exists():
+            subprocess.run([sys.executable, "-m", "tomgs.cli", "fit", str(frames), "-o", str(scene), "--budget",
+                            str(60 * minutes), "--device", str(device), "-q"], check=True)
+        reports.append(dict(clip=name, **measure(scene, frames, out_dir, device)))
+    return reports
+
+
+def clips_table(reports: list[dict]) -> str:
+    """The clips' table: one row a clip."""
+    head = ["clip", "Gaussians", "PLY PSNR", "tsog PSNR", "loss dB", "tsog vs PLY renders dB", "predicted loss dB",
+            "bytes/Gaussian", "x smaller than PLY", "tsog / clip's JPEGs"]
+    rows = [[r["clip"], f"{r['gaussians']:,}", f"{r['psnr_input']:.2f}", f"{r['psnr_output']:.2f}",
+             f"{r['psnr_drop']:.3f}", f"{r['psnr_output_against_input_renders']:.1f}", f"{r['predicted_drop']:.3f}",
+             f"{r['bytes_per_gaussian']:.2f}", f"{r['ratio']:.1f}",
+             f"{r['output_bytes'] / r['clip_jpeg_bytes']:.2f}" if r.get("clip_jpeg_bytes") else "-"] for r in reports]
+    return markdown_table(head, rows)
 
 
 def main(argv=None) -> dict:
@@ -171,15 +214,27 @@ def main(argv=None) -> dict:
                     "timed, the others swept")
     ap.add_argument("--t-bits", default="16", help="bits of t_mean, or a list (swept with --means-bits)")
     ap.add_argument("--synthetic", type=int, default=None, metavar="N", help="time a synthetic scene of N Gaussians")
+    ap.add_argument("--davis", type=Path, default=None, metavar="ROOT",
+                    help="a folder of <clip>/images: the clips' table")
+    ap.add_argument("--clips", default="blackswan,camel,car-shadow,cows,dog,goat,kite-surf,libby,motocross-jump,"
+                                       "parkour")
+    ap.add_argument("--scenes", type=Path, default=None, help="the clips' scenes, <clip>.ply (default: --out)")
+    ap.add_argument("--minutes", type=float, default=2.0, help="the budget of a fit of a clip without a scene")
     ap.add_argument("--smoke", action="store_true", help="tiny CPU run")
     args = ap.parse_args(argv)
-    if not (args.smoke or args.synthetic or args.scene):
-        ap.error("give SCENE [CLIP_FRAMES], --synthetic N or --smoke")
+    if not (args.smoke or args.synthetic or args.scene or args.davis):
+        ap.error("give SCENE [CLIP_FRAMES], --davis ROOT, --synthetic N or --smoke")
     out_dir = output_folder(args.out, args.smoke, "compress")
-    if args.smoke:
-        device = torch.device("cpu")
-        report = smoke(out_dir)
-    elif args.synthetic:
+    if args.smoke or args.davis:
+        device = torch.device("cpu") if args.smoke else resolve_device(args.device)
+        reports = smoke(out_dir) if args.smoke else clips(args.davis, args.clips.split(","), args.scenes or out_dir,
+                                                          args.minutes, device, out_dir)
+        body = clips_table(reports)
+        print(body)
+        write_report(out_dir, "compress", "compress: each clip's PLY and .tsog against the clip",
+                     environment(device, "compress", argv), body, reports)
+        return reports
+    if args.synthetic:
         device = torch.device("cpu")
         report = measure_synthetic(args.synthetic, out_dir, args.repeats)
     else:

@@ -4,7 +4,8 @@ answer should be nothing beyond the process's own.
 
 Every case is a small valid file of its kind, patched to declare more: images whose header claims a
 16000x16000 (or 16384-wide) frame, a Motion JPEG whose frames do, an MP4 cut to 1% of its bytes under
-an index of all its frames, a scene, tets file or .tsog whose element count is 100x, a checkpoint of
+an index of all its frames, a scene or tets file whose element count is 100x, a .tsog of 100,000
+random Gaussians (its images most of its bytes, checksums intact) declaring 100x as many, a checkpoint of
 stride-0 views declaring 200M rows, .npy / .npz arrays whose header shape is 100x. Each is loaded in a
 child process by the public loader a command uses; the child reports its resident memory after its
 imports and its peak during the load (Linux: VmHWM, reset before the load), and what the loader said.
@@ -90,6 +91,20 @@ def _tiff(frame) -> bytes:
             width = 2 if data[entry + 2] == 3 else 4
             data[entry + 8:entry + 8 + width] = SIDE.to_bytes(width, "little")
     return bytes(data)
+
+
+def _random_model(n: int):
+    """A GaussianModel of `n` Gaussians of random attributes in front of the demo's cameras: a .tsog of
+    it is mostly images, ~16 bytes a Gaussian as a fitted scene's."""
+    import torch
+
+    from tomgs.model import GaussianModel
+
+    g = torch.Generator().manual_seed(0)
+    means = torch.rand(n, 3, generator=g) * torch.tensor([4.0, 2.0, 4.0]) - torch.tensor([2.0, 1.0, -2.0])
+    return GaussianModel(means, torch.randn(n, 4, generator=g), torch.randn(n, 3, generator=g) * 0.5 - 4.0,
+                         torch.randn(n, generator=g), torch.randn(n, 1, 3, generator=g), torch.zeros(n, 0, 3),
+                         torch.rand(n, generator=g), torch.randn(n, generator=g) * 0.3 - 1.5)
 
 
 def _npy(array: np.ndarray, shape: tuple) -> bytes:
@@ -183,26 +198,38 @@ def make_cases(root: Path, names: list[str]) -> dict[str, tuple[str, str]]:
             path.write_bytes(scene.read_bytes())
             _scaled_count(path, b"vertex")
             cases[name] = ("load_scene", str(path))
-        elif name == "tsog":
+        elif name in ("tsog", "tsog_bomb"):
             import struct
+            import zlib
 
             import tomgs
+            from tomgs.io.quantise import grid_shape
             from tomgs.io.tsog import MAGIC
 
-            loaded = tomgs.load_scene(scene)
-            small = root / "small.tsog"
-            tomgs.save_scene(small, loaded.model, loaded.cameras, loaded.info)
-            data = small.read_bytes()
+            small = tomgs.save_scene(root / "small.tsog", _random_model(100_000), tomgs.load_scene(scene).cameras, {})
+            data = small.read_bytes()  # ~1.6 MB, its images most of it
             (length,) = struct.unpack("<Q", data[len(MAGIC):len(MAGIC) + 8])
             start = len(MAGIC) + 8
             header = json.loads(data[start:start + length])
-            from tomgs.io.quantise import grid_shape
-
             header["count"] *= 100
             header["grid"] = list(grid_shape(header["count"]))
+            rest = data[start + length + 4:]
+            if name == "tsog_bomb":  # each image one colour on the declared grid: a few kB of 10M pixels
+                from tomgs.io.quantise import QUAT_TAG, encode_webp
+
+                width, height = header["grid"]
+                records = rest[sum(entry["bytes"] for entry in header["images"]):]
+                images = []
+                for entry in header["images"]:
+                    pixels = np.zeros((height, width, entry["channels"]), np.uint8)
+                    pixels[..., 3:] = QUAT_TAG  # quaternions' tags valid: the bomb is a well-formed file
+                    images.append(encode_webp(pixels))
+                    entry.update(bytes=len(images[-1]), crc32=zlib.crc32(images[-1]))
+                rest = b"".join(images) + records
+                header["padding"] = " " * (header["count"] // 64)  # as big as 64 Gaussians a byte lets it be
             text = json.dumps(header).encode()
-            path = root / "count.tsog"
-            path.write_bytes(MAGIC + struct.pack("<Q", len(text)) + text + data[start + length:])
+            path = root / f"{name}.tsog"
+            path.write_bytes(MAGIC + struct.pack("<Q", len(text)) + text + struct.pack("<I", zlib.crc32(text)) + rest)
             cases[name] = ("load_scene", str(path))
         elif name == "tets_ply":
             from tomgs.edit.cage import make_tets
@@ -235,7 +262,7 @@ def make_cases(root: Path, names: list[str]) -> dict[str, tuple[str, str]]:
 
 
 CASES = ["png", "jpeg_baseline", "jpeg_progressive", "bmp", "tiff", "mjpeg_avi", "mp4_cut", "scene_ply", "tsog",
-         "tets_ply", "checkpoint", "npy", "npz_sequence"]
+         "tsog_bomb", "tets_ply", "checkpoint", "npy", "npz_sequence"]
 
 
 def child(loader: str, path: str) -> None:

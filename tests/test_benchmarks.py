@@ -169,13 +169,15 @@ def check_shards(r):
     assert set(r["results"]) == {"half0", "half1", "full_2gpu"} and r["goal"] is not None
 
 
-def check_compress(r):
-    assert r["gaussians"] == 3000 and r["frames"] == 4
-    assert 0 < r["output_bytes"] < r["input_bytes"]
+def check_compress(reports):
+    (r,) = reports
+    assert r["clip"] == "smoke" and r["gaussians"] == 3000 and r["frames"] == 4
+    assert 0 < r["output_bytes"] < r["input_bytes"] and r["clip_jpeg_bytes"] > 0
     assert r["bits_per_pixel"] == 8 * r["output_bytes"] / (96 * 54 * 4)
     assert r["compress_seconds"] > 0 and r["load_seconds"] > 0
     assert set(r["image_bytes_per_gaussian"]) >= {"means_hi", "means_lo", "quats", "t_hi", "t_lo"}
-    assert r["psnr_input"] > 40 and r["psnr_output"] > 35  # the clip is the input's own render
+    assert r["psnr_input"] > 28 and r["psnr_output"] > 28  # the clip is the input's own render as JPEGs (4:2:0)
+    assert abs(r["psnr_drop"] - r["predicted_drop"]) < 0.1  # what `tomgs compress` checks predicts the loss
 
 
 def check_safety_trials(r):

@@ -22,7 +22,7 @@ from tomgs.cli import main
 from tomgs.demo import demo_scene
 from tomgs.io.scene import load_scene, save_scene
 from tomgs.io.splats import RDF_TO_RUB, SPZ_SH_FLIPS
-from tomgs.model import GaussianModel, rgb_to_sh_dc
+from tomgs.model import PARAM_NAMES, GaussianModel, rgb_to_sh_dc
 from tomgs.temporal import frozen_at
 
 C0 = 0.28209479177387814
@@ -377,3 +377,23 @@ def test_export_refuses_to_replace_a_file_without_overwrite(scene_path, tmp_path
     out.write_bytes(b"keep")
     assert cli("export", scene_path, "--frame", 1, "-o", out).exit_code == 2 and out.read_bytes() == b"keep"
     assert cli("export", scene_path, "--frame", 1, "-o", out, "-y").exit_code == 0 and out.read_bytes() != b"keep"
+
+
+@pytest.mark.parametrize("sh_degree", [0, 1])
+def test_a_moment_with_nothing_alive_exports_an_empty_sog(tmp_path, sh_degree):
+    """A scene whose Gaussians all die before the frame, and one with none at all: a valid SOG of 0."""
+    import zipfile
+
+    model, cams = demo_model(sh_degree)
+    with torch.no_grad():
+        model.t_means[:] = 0.0
+        model.log_t_scales[:] = -8.0
+    empty = GaussianModel(**{name: getattr(model, name).detach()[:0] for name in PARAM_NAMES}, sh_degree=sh_degree)
+    for name, scene in (("dead", model), ("empty", empty)):
+        path = save_scene(tmp_path / f"{name}.ply", scene, cams, {})
+        out = tmp_path / f"{name}.sog"
+        result = cli("export", path, "--frame", FRAMES - 1, "-o", out)
+        assert result.exit_code == 0, result.output
+        with zipfile.ZipFile(out) as archive:
+            assert json.loads(archive.read("meta.json"))["count"] == 0
+            assert {"means_l.webp", "quats.webp", "sh0.webp"} <= set(archive.namelist())

@@ -194,3 +194,23 @@ def test_export_sog_is_playcanvas_sog_version_2(scenes, tmp_path):
         nearest = np.array(book)[np.abs(getattr(want, name)[..., None] - np.array(book)).argmin(-1)]
         np.testing.assert_allclose(got[name][match], nearest, atol=1e-6)
     assert np.abs(got["sh_rest"][match] - want.sh_rest).max() < 0.02  # palette of every vector, codebook steps
+
+
+def test_compress_reports_the_loss_and_refuses_more_than_asked(tmp_path):
+    """The far scene (tests/test_tsog.py): kept at 16 bits with the loss in its line; at 8 bits a
+    position it loses dB, and nothing is written."""
+    from tests.test_tsog import far_scene
+
+    model, cams = far_scene()
+    ply = save_scene(tmp_path / "far.ply", model, cams, {"clip_psnr": 38.0})
+    result = run("compress", ply, "-o", tmp_path / "far.tsog", "--device", "cpu")
+    assert result.exit_code == 0, result.output
+    found = re.search(r"renders ([\d.]+) dB against the scene's over 4 frames: ([\d.]+) dB of the scene's 38\.00 dB",
+                      result.output)
+    assert found and float(found.group(2)) <= 0.2, result.output
+    result = run("compress", ply, "-o", tmp_path / "coarse.tsog", "--means-bits", "8", "--device", "cpu")
+    lines = [line for line in result.output.splitlines() if line.startswith("Error:")]
+    assert result.exit_code == 2 and len(lines) == 1 and "would lose" in lines[0] and "--max-loss 0.2" in lines[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["far.ply", "far.tsog"]  # no .tsog, no temporary left
+    assert run("compress", ply, "-o", tmp_path / "coarse.tsog", "--means-bits", "8", "--max-loss", "30",
+               "--device", "cpu").exit_code == 0

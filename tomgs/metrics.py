@@ -443,3 +443,36 @@ def evaluate(model, cameras, frames, indices=None, lpips: LPIPS | None = None, d
 
 __all__ = ["psnr", "ssim", "ssim_map", "ssim_map_conv", "LPIPS", "EvalReport", "evaluate", "default_lpips_weights",
            "frame_psnr"]
+
+
+# ---- what a compressed copy of a scene loses ------------------------------------------------------
+
+def loss_db(scene_psnr: float, copy_psnr: float) -> float:
+    """dB the scene's PSNR against its clip falls when a copy renders at `copy_psnr` against the
+    scene's own renders: their errors add (independent), 10 log10(1 + 10^((scene - copy) / 10))."""
+    return float(10.0 * np.log10(1.0 + 10.0 ** ((scene_psnr - copy_psnr) / 10.0)))
+
+
+def required_copy_psnr(scene_psnr: float, max_loss_db: float) -> float:
+    """The PSNR against the scene's renders a copy needs to lose at most `max_loss_db` (> 0) of
+    `scene_psnr`: the inverse of `loss_db` (0.2 dB: 13.3 dB above the scene's PSNR)."""
+    with np.errstate(divide="ignore"):  # a loss too small for a float64 asks for an infinite PSNR
+        return float(scene_psnr - 10.0 * np.log10(np.expm1(max_loss_db / 10.0 * np.log(10.0))))
+
+
+def copy_psnr(model, copy, cameras, frames: int = 4, max_side: int = 1024, device=None) -> float:
+    """PSNR (dB) of `copy`'s renders (a GaussianModel: a decoded .tsog) against `model`'s at
+    `frames` frames spread over `cameras` (first to last), at most `max_side` pixels a side: the
+    mean squared error over all of them, so a frame where both are black does not count as infinite.
+    Both models' Gaussians in the same clip."""
+    from tomgs.render.sequence import render_sequence
+
+    scale = min(1.0, max_side / max(cameras.width, cameras.height))
+    small = cameras.resized(max(1, round(cameras.width * scale)), max(1, round(cameras.height * scale)))
+    indices = sorted(set(np.linspace(0, len(cameras) - 1, max(1, min(frames, len(cameras)))).round().astype(int)))
+    total = 0.0
+    for (_, a, _), (_, b, _) in zip(render_sequence(model.render_inputs(), small, indices, device=device),
+                                    render_sequence(copy.render_inputs(), small, indices, device=device)):
+        total += float(((a.double() - b.double()) ** 2).mean())
+    mse = total / len(indices)
+    return float("inf") if mse == 0 else float(-10.0 * np.log10(mse))

@@ -62,6 +62,66 @@ def unfixed(q: np.ndarray, lo, hi, bits: int) -> np.ndarray:
     return lo + np.asarray(q, np.float64) / ((1 << bits) - 1) * (hi - lo)
 
 
+# ---- positions about a centre, times about the clip ---------------------------------------------------
+
+POLAR_DEPTHS = 20.0  # log r spans at most this (a ratio of 5e8): points nearer the centre than that clamp to it
+
+
+def polar(points: np.ndarray, centre) -> np.ndarray:
+    """float64 [N, 3]: `points` [N, 3] as (u, v, log r) about `centre`: (u, v) in [-1, 1]^2 the
+    octahedral map of the direction, r the distance. A step in u or v is an angle, in log r a ratio:
+    quantised on one grid, a point's error is a fixed fraction of its distance from the centre (a
+    fraction of a pixel for a camera near the centre), however far the farthest point is."""
+    d = np.asarray(points, np.float64) - np.asarray(centre, np.float64)
+    r = np.linalg.norm(d, axis=1)
+    unit = np.where(r[:, None] > 0, d / np.where(r > 0, r, 1.0)[:, None], [0.0, 0.0, 1.0])
+    uv = unit[:, :2] / np.abs(unit).sum(1, keepdims=True)
+    folded = (1.0 - np.abs(uv[:, ::-1])) * np.where(uv >= 0, 1.0, -1.0)
+    uv = np.where(unit[:, 2:] < 0, folded, uv)
+    with np.errstate(divide="ignore"):
+        return np.concatenate([uv, np.log(r)[:, None]], axis=1)
+
+
+def unpolar(coords: np.ndarray, centre) -> np.ndarray:
+    """float64 [N, 3]: the points of `polar`'s (u, v, log r) [N, 3]."""
+    coords = np.asarray(coords, np.float64)
+    uv = coords[:, :2]
+    z = 1.0 - np.abs(uv).sum(1)
+    folded = (1.0 - np.abs(uv[:, ::-1])) * np.where(uv >= 0, 1.0, -1.0)
+    xy = np.where(z[:, None] < 0, folded, uv)
+    unit = np.concatenate([xy, z[:, None]], axis=1)
+    unit /= np.linalg.norm(unit, axis=1, keepdims=True)
+    return np.asarray(centre, np.float64) + unit * np.exp(coords[:, 2:])
+
+
+def linear_range(t: np.ndarray) -> list[float]:
+    """[lo, hi]: where `squash` keeps values linear: the quartiles widened by twice the interquartile
+    range, inside [min, max] (a stray value, even a quarter of them, stays out of it)."""
+    t = np.asarray(t, np.float64)
+    if len(t) == 0:
+        return [0.0, 1.0]
+    q1, q3 = np.quantile(t, [0.25, 0.75])
+    return [float(max(t.min(), q1 - 2 * (q3 - q1))), float(min(t.max(), q3 + 2 * (q3 - q1)))]
+
+
+def squash(t: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """float64: `t` unchanged inside [lo, hi] and logarithmic past it (lo - L log(1 + (lo - t) / L)
+    below, L = hi - lo or 1): a stray value far out widens a fixed-point range by its log only."""
+    t = np.asarray(t, np.float64)
+    span = hi - lo if hi > lo else 1.0
+    return np.where(t > hi, hi + span * np.log1p(np.maximum(t - hi, 0) / span),
+                    np.where(t < lo, lo - span * np.log1p(np.maximum(lo - t, 0) / span), t))
+
+
+def unsquash(s: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """float64: the inverse of `squash`."""
+    s = np.asarray(s, np.float64)
+    span = hi - lo if hi > lo else 1.0
+    with np.errstate(over="ignore"):
+        return np.where(s > hi, hi + span * np.expm1(np.maximum(s - hi, 0) / span),
+                        np.where(s < lo, lo - span * np.expm1(np.maximum(lo - s, 0) / span), s))
+
+
 # ---- order and layout ---------------------------------------------------------------------------
 
 _SPREAD = {  # (shift, mask) steps that move bit k of a value to bit k * dims (the classic magic numbers)
@@ -112,27 +172,55 @@ def grid_image(values: np.ndarray, width: int, height: int) -> np.ndarray:
 
 # ---- codebooks ----------------------------------------------------------------------------------
 
+OUTLIER_FENCE = 3.0  # values past the quartiles by this many interquartile ranges are outliers (Tukey's far
+OUTLIER_ENTRIES = 8  # fence; 4.7 sigma of a normal bulk): up to this many entries a side of their own
+
+
 def codebook(values: np.ndarray, size: int = CODEBOOK_SIZE) -> np.ndarray:
-    """float32 [size], ascending: a 1D k-means codebook of `values` (any shape, finite). Lloyd steps
-    weighted by a histogram of _HISTOGRAM_BINS bins (each bin stands for its values' mean), from
-    the values' quantiles, so a step costs O(bins) whatever the count. Values that fill at most
-    `size` bins come back exactly as they are (the rest of the book repeats the largest)."""
+    """float32 [size], ascending: a 1D k-means codebook of `values` (any shape, finite). Values that
+    fill at most `size` bins come back exactly as they are (the rest of the book repeats the largest).
+    Otherwise the values past OUTLIER_FENCE interquartile ranges from the quartiles get up to
+    OUTLIER_ENTRIES entries a side of their own (their quantiles, the extreme value included), and
+    the rest k-means (`_lloyd`) on the values between: a stray value cannot pull entries out of the
+    bulk nor coarsen its histogram."""
     v = np.asarray(values, np.float64).ravel()
     if len(v) == 0:
         return np.zeros(size, np.float32)
+    distinct = np.unique(v)
+    if len(distinct) <= size:
+        return distinct[np.minimum(np.arange(size), len(distinct) - 1)].astype(np.float32)
+    q1, q3 = np.quantile(v, [0.25, 0.75])
+    low, high = q1 - OUTLIER_FENCE * (q3 - q1), q3 + OUTLIER_FENCE * (q3 - q1)
+    below, above = v[v < low], v[v > high]
+    ends = []
+    for side in (below, above):
+        k = min(OUTLIER_ENTRIES, len(np.unique(side)))
+        ends.append(np.quantile(side, np.linspace(0.0, 1.0, k)) if k else np.zeros(0))
+    inner = v[(v >= low) & (v <= high)]
+    bulk = _lloyd(inner, size - len(ends[0]) - len(ends[1]))
+    return np.sort(np.concatenate([ends[0], bulk, ends[1]])).astype(np.float32)
+
+
+def _lloyd(v: np.ndarray, size: int) -> np.ndarray:
+    """float64 [size] ascending: Lloyd steps weighted by a histogram of _HISTOGRAM_BINS bins of `v`
+    (each bin stands for its values' mean), from the values' quantiles, so a step costs O(bins)
+    whatever the count; the bins' means when they are `size` or fewer."""
     lo, hi = float(v.min()), float(v.max())
     if hi == lo:
-        return np.full(size, lo, np.float32)
+        return np.full(size, lo)
     bins = np.minimum(((v - lo) / (hi - lo) * _HISTOGRAM_BINS).astype(np.int64), _HISTOGRAM_BINS - 1)
-    weight = np.bincount(bins, minlength=_HISTOGRAM_BINS).astype(np.float64)
+    count = np.bincount(bins, minlength=_HISTOGRAM_BINS).astype(np.float64)
     sums = np.bincount(bins, weights=v, minlength=_HISTOGRAM_BINS)
-    used = weight > 0
-    weight, centre = weight[used], sums[used] / weight[used]  # ascending: bins are
+    used = count > 0
+    weight, centre = count[used], sums[used] / count[used]  # ascending: bins are
     if len(centre) <= size:
-        return np.concatenate([centre, np.full(size - len(centre), centre[-1])]).astype(np.float32)
+        return np.concatenate([centre, np.full(size - len(centre), centre[-1])])
     cumulative = np.concatenate([[0.0], np.cumsum(weight)])
     moments = np.concatenate([[0.0], np.cumsum(centre * weight)])
-    centroids = centre[np.searchsorted(cumulative[1:], (np.arange(size) + 0.5) / size * cumulative[-1])]
+    # started where squared error wants them in the end (a density of the values' to the 1/3), not at the
+    # values' quantiles: Lloyd steps move entries into sparse tails slowly
+    spread = np.cumsum(weight ** (1.0 / 3.0))
+    centroids = centre[np.searchsorted(spread, (np.arange(size) + 0.5) / size * spread[-1])]
     for _ in range(_CODEBOOK_STEPS):
         # each centroid takes the bins between the midpoints to its neighbours: a step is `size` searches
         edges = np.concatenate([[0], np.searchsorted(centre, (centroids[1:] + centroids[:-1]) / 2), [len(centre)]])
@@ -142,7 +230,7 @@ def codebook(values: np.ndarray, size: int = CODEBOOK_SIZE) -> np.ndarray:
         if np.array_equal(moved, centroids):
             break
         centroids = moved
-    return centroids.astype(np.float32)
+    return centroids
 
 
 def encode_codebook(values: np.ndarray, book: np.ndarray) -> np.ndarray:

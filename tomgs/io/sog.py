@@ -50,8 +50,7 @@ def sog_bytes(g) -> bytes:
 
     def image(values: np.ndarray, alpha: np.ndarray | None = None) -> bytes:
         """A W x H image of uint8 `values` [N, C] in Morton order (C <= 3 padded to RGB; A = `alpha`,
-        or 255 when given none and C < 4), unused pixels repeating the last."""
-        values = values.reshape(n, -1)
+        or 255 when given none and C < 4), unused pixels repeating the last (all zero when N = 0)."""
         rgba = np.zeros((n, 4), np.uint8)
         rgba[:, 3] = 255
         rgba[:, :values.shape[1]] = values
