@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import time
 from pathlib import Path
 
@@ -47,7 +46,7 @@ def compress(scene, output, means_bits, t_bits, max_loss, check_frames, device, 
       tomgs render scene.tsog -o scene.mp4
       tomgs compress scene.tsog -o back.ply          # a PLY scene again, for 3DGS tools
     """
-    from tomgs.outputs import check_distinct, check_file_output
+    from tomgs.outputs import check_distinct, check_file_output, discard, publish, temporary
     from tomgs.cli.preflight import check_scene
 
     check_distinct({"-o": output}, {"SCENE": scene, "--cameras": cameras_path})
@@ -64,16 +63,19 @@ def compress(scene, output, means_bits, t_bits, max_loss, check_frames, device, 
     before = Path(scene).stat().st_size
     started = time.perf_counter()
     check = output.lower().endswith(".tsog") and check_frames > 0 and len(loaded.model) > 0
-    written = Path(output).with_name(f".{Path(output).name}.unchecked.tsog") if check else Path(output)
+    # a checked .tsog is staged as out.tsog in a temporary folder of this process (removed on every exit
+    # path, and by a later writer if this process dies) and published once it has passed
+    stage = temporary(output, folder=True) if check else None
+    written = stage / "out.tsog" if check else Path(output)
     try:
         save_scene(written, loaded.model, loaded.cameras, loaded.info, means_bits=means_bits, t_bits=t_bits)
         seconds = time.perf_counter() - started
         verdict = _checked(loaded, written, output, max_loss, check_frames, device) if check else ""
         if check:
-            os.replace(written, output)
+            publish(written, output)
     finally:
         if check:
-            written.unlink(missing_ok=True)
+            discard(stage)
     after = Path(output).stat().st_size
     n, cams = len(loaded.model), loaded.cameras
     per = f", {after / n:.2f} bytes a Gaussian" if n else ""

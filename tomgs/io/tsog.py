@@ -207,8 +207,8 @@ def decode_gaussians(header: dict, images: dict[str, np.ndarray], what: str) -> 
         palette = np.asarray(header["sh_rest"]["codebook"], np.float32)[cells].reshape(count, coefficients, 3)
     books = {name: np.asarray(header[name]["codebook"], np.float64)
              for name in ("log_scales", "sh_dc", "opacities", "log_t_scales")}
-    logits = books["opacities"]
-    books["opacities"] = np.log(logits) - np.log1p(-logits)  # the checked header keeps them inside (0, 1)
+    opacities = books["opacities"]
+    books["opacities"] = np.log(opacities) - np.log1p(-opacities)  # logits: the checked header keeps them in (0, 1)
     out = {"means": np.empty((n, 3), np.float32), "quats": np.empty((n, 4), np.float32),
            "log_scales": np.empty((n, 3), np.float32), "opacity_logits": np.empty(n, np.float32),
            "sh_dc": np.empty((n, 1, 3), np.float32), "sh_rest": np.zeros((n, coefficients, 3), np.float32),
