@@ -26,6 +26,7 @@ from tomgs.errors import InputError
 from tomgs.train import Trainer, fit, preset
 from tomgs.train.checkpoint import read_checkpoint
 from tomgs.train.sampler import FrameSampler
+from tomgs.train.loop import RunHooks
 
 TESTS = Path(__file__).parent
 
@@ -197,7 +198,7 @@ def test_checkpoint_temporaries_never_follow_a_planted_link(tmp_path):
     trainer = trainer_for(30)
     trainer.config.checkpoint_interval_s = 0.0
     with pytest.raises(KeyboardInterrupt):
-        trainer.run(checkpoint=checkpoint, progress=lambda row: (_ for _ in ()).throw(KeyboardInterrupt))
+        trainer.run(hooks=RunHooks(checkpoint=checkpoint, progress=lambda row: (_ for _ in ()).throw(KeyboardInterrupt)))
     assert victim.read_bytes() == b"precious"
     assert checkpoint.is_file() and not checkpoint.is_symlink()
     assert read_state(checkpoint)["iteration"] == 25
@@ -320,11 +321,11 @@ def scheduled_saves(monkeypatch, iterations: int, save_seconds: float = 0.0) -> 
     trainer.config = preset("quick", iterations=iterations, log_interval=25, eval_interval_s=1e9)
     monkeypatch.setattr(time, "perf_counter", lambda: clock[0])
     monkeypatch.setattr(Trainer, "step", step)
-    monkeypatch.setattr(Trainer, "_checkpoint_in_background", save)  # the periodic checkpoints
+    monkeypatch.setattr(Trainer, "checkpoint_in_background", save)  # the periodic checkpoints
     monkeypatch.setattr(Trainer, "clip_psnr",
                         lambda self, tick=None, frames=None, hidden=None: [20.0] * len(
                             range(self.num_frames) if frames is None else frames))
-    trainer.run(checkpoint=Path("unused.ckpt"))
+    trainer.run(hooks=RunHooks(checkpoint=Path("unused.ckpt")))
     monkeypatch.undo()
     return saves
 
@@ -351,7 +352,7 @@ def test_sigint_saves_the_step_it_reached_and_restores_the_handlers(tmp_path):
             os.kill(os.getpid(), signal.SIGINT)
 
     with pytest.raises(KeyboardInterrupt) as caught:
-        trainer_for(100).run(checkpoint=checkpoint, progress=progress)
+        trainer_for(100).run(hooks=RunHooks(checkpoint=checkpoint, progress=progress))
     assert getattr(caught.value, "checkpoint", "missing") == checkpoint
     assert getattr(caught.value, "signum", None) == signal.SIGINT
     assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
@@ -372,7 +373,7 @@ def test_a_checkpoint_from_before_clip_frames_loads_and_resumes(tmp_path):
     trainer = trainer_for(100)
     trainer.config = trainer.config.replace(eval_interval_s=0.0)
     with pytest.raises(KeyboardInterrupt):
-        trainer.run(checkpoint=checkpoint, progress=progress)
+        trainer.run(hooks=RunHooks(checkpoint=checkpoint, progress=progress))
     state = read_state(checkpoint)
     assert any(row["clip_psnr"] != "" for row in state["history"]), state["history"]
     for row in state["history"]:
@@ -383,7 +384,7 @@ def test_a_checkpoint_from_before_clip_frames_loads_and_resumes(tmp_path):
     resumed = trainer_for(100)
     resumed.config = resumed.config.replace(eval_interval_s=0.0)
     resumed.load_checkpoint(checkpoint)
-    result = resumed.run(log_csv=tmp_path / "run.csv")
+    result = resumed.run(hooks=RunHooks(log_csv=tmp_path / "run.csv"))
     assert result.iterations == 100 and result.history[-1]["clip_frames"] == 3
     with open(tmp_path / "run.csv") as f:
         rows = list(csv.DictReader(f))
@@ -398,7 +399,7 @@ def test_a_run_outside_the_main_thread_trains_without_signal_handlers(tmp_path):
     import threading
 
     outcome = []
-    thread = threading.Thread(target=lambda: outcome.append(trainer_for(10).run(checkpoint=tmp_path / "run.ckpt")))
+    thread = threading.Thread(target=lambda: outcome.append(trainer_for(10).run(hooks=RunHooks(checkpoint=tmp_path / "run.ckpt"))))
     thread.start()
     thread.join(timeout=300)
     assert outcome and outcome[0].iterations == 10
@@ -410,6 +411,7 @@ SIGTERM_SCRIPT = textwrap.dedent("""
     sys.path.insert(0, sys.argv[2])
     from test_train import CPU, small_config, synthetic_clip
     from tomgs.train import Trainer
+    from tomgs.train.loop import RunHooks
 
     images, cams, points, colors = synthetic_clip(3, 32, 18)
     trainer = Trainer(images, cams, points, colors, small_config(100), CPU)
@@ -419,7 +421,7 @@ SIGTERM_SCRIPT = textwrap.dedent("""
             os.kill(os.getpid(), signal.SIGTERM)
 
     try:
-        trainer.run(checkpoint=Path(sys.argv[1]), progress=progress)
+        trainer.run(hooks=RunHooks(checkpoint=Path(sys.argv[1]), progress=progress))
     except KeyboardInterrupt as e:
         print(json.dumps(dict(signum=getattr(e, "signum", None), checkpoint=str(getattr(e, "checkpoint", None)))))
 """)
@@ -453,7 +455,7 @@ def test_an_interrupt_inside_densification_never_saves_a_torn_state(tmp_path, mo
 
     monkeypatch.setattr(GaussianModel, "replace", replace)
     with pytest.raises(KeyboardInterrupt):
-        trainer_for(200).run(checkpoint=checkpoint)  # densifies at 100 and 150
+        trainer_for(200).run(hooks=RunHooks(checkpoint=checkpoint))  # densifies at 100 and 150
     monkeypatch.undo()
     assert fired
     state = read_state(checkpoint)
@@ -461,7 +463,7 @@ def test_an_interrupt_inside_densification_never_saves_a_torn_state(tmp_path, mo
     assert_consistent(state)
     resumed = trainer_for(200)
     resumed.load_checkpoint(checkpoint)
-    assert resumed.run(checkpoint=checkpoint).iterations == 200
+    assert resumed.run(hooks=RunHooks(checkpoint=checkpoint)).iterations == 200
     assert_consistent(read_state(checkpoint))
 
 
@@ -483,7 +485,7 @@ def test_an_exception_inside_densification_keeps_the_last_good_checkpoint(tmp_pa
 
     monkeypatch.setattr(GaussianModel, "replace", replace)
     with pytest.raises(KeyboardInterrupt):
-        trainer.run(checkpoint=checkpoint)
+        trainer.run(hooks=RunHooks(checkpoint=checkpoint))
     assert checkpoint.read_bytes() == good
 
 

@@ -7,7 +7,7 @@ edge, and so is the package a module sits in (importing tomgs.io.video runs tomg
 
 The floors, lowest first: kernels import only constants; model, cameras, temporal and geometry import
 no io, render, train or edit; io imports no render, train or edit; render no train or edit; train's
-single-process modules no train.multigpu (only the pipeline hands a fit to it). An import from a
+single-process modules no train.multigpu (only the api hands a fit to it). An import from a
 lower floor up is an arrow up whether it sits at module level or inside a function, with one kind of
 exception, each listed in DELEGATIONS: a public method of a lower floor's value type that hands the
 reading of a file to the io module that owns the format (`Cameras.load` -> tomgs.io.cameras), imported
@@ -150,7 +150,7 @@ def test_the_graph_sees_imports_inside_functions_and_packages():
     graph = import_graph()
     assert "tomgs.errors" in graph["tomgs.io"]  # package __init__ at module level
     assert "tomgs.io" in graph["tomgs.io.scene"]  # the package a sibling sits in
-    assert "tomgs.train.multigpu.launch" in graph["tomgs.train.pipeline"]  # imported inside fit()
+    assert "tomgs.train.multigpu.launch" in graph["tomgs.train.api"]  # imported inside fit()
     assert cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
     assert cycle({"a": {"b"}, "b": set()}) is None
 
@@ -167,9 +167,9 @@ FLOORS = [  # (the modules of a floor, what they may not import, what of that th
     (BASE, ("tomgs.io", "tomgs.render", "tomgs.train", "tomgs.edit"), ()),
     (("tomgs.io",), ("tomgs.render", "tomgs.train", "tomgs.edit"), ()),
     (("tomgs.render",), ("tomgs.train", "tomgs.edit"), ()),
-    (("tomgs.train",), ("tomgs.train.multigpu",), ()),  # multigpu itself and the pipeline aside (below)
+    (("tomgs.train",), ("tomgs.train.multigpu",), ()),  # multigpu itself and the api aside (below)
 ]
-ABOVE_TRAIN = ("tomgs.train.multigpu", "tomgs.train.pipeline")  # a sharded fit's modules, and the fit that starts one
+ABOVE_TRAIN = ("tomgs.train.multigpu", "tomgs.train.api")  # a sharded fit's modules, and the fit that starts one
 DELEGATIONS = {  # (lower module, its method, the io module it hands a file's reading to)
     ("tomgs.cameras", "Cameras.load", "tomgs.io.cameras"),
     ("tomgs.cameras", "Cameras.from_anycam", "tomgs.io.cameras"),
@@ -210,7 +210,7 @@ def test_the_floors_see_arrows_up():
         ["tomgs.io.tets -> tomgs.edit.tets (in gaussian_tet_indices)"]
     assert arrows_up({"tomgs.kernels.sh": {("tomgs.runtime", "")}}) == ["tomgs.kernels.sh -> tomgs.runtime"]
     assert arrows_up({"tomgs.train.warm": {("tomgs.train.multigpu.shards", "warm_up")}}) != []
-    assert arrows_up({"tomgs.train.pipeline": {("tomgs.train.multigpu.launch", "fit")},
+    assert arrows_up({"tomgs.train.api": {("tomgs.train.multigpu.launch", "fit")},
                       "tomgs.kernels.sh": {("tomgs.constants", ""), ("tomgs.kernels.rows", "")},
                       "tomgs.cameras": {("tomgs.io.cameras", "Cameras.load")}}) == []
     assert arrows_up({"tomgs.cameras": {("tomgs.io.cameras", "Cameras.save")}}) != []

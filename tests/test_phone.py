@@ -14,6 +14,7 @@ import torch
 from click.testing import CliRunner
 
 from tomgs.cli import main
+from tomgs.train.loop import RunHooks
 
 CPU = torch.device("cpu")
 GOP = 10
@@ -236,7 +237,7 @@ def test_a_long_clip_has_a_clip_psnr_early_over_evenly_spaced_frames(monkeypatch
     monkeypatch.setattr(time, "perf_counter", lambda: clock[0])
     monkeypatch.setattr(Trainer, "step", step)
     monkeypatch.setattr(Trainer, "clip_psnr", clip_psnr)
-    result = trainer.run(log_csv=tmp_path / "log.csv")
+    result = trainer.run(hooks=RunHooks(log_csv=tmp_path / "log.csv"))
     monkeypatch.undo()
 
     rows = [r for r in result.history if r["clip_psnr"] != ""]

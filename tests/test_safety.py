@@ -18,6 +18,7 @@ from tomgs.cameras import Cameras, intrinsics, look_at
 from tomgs.cli import main
 from tomgs.io.scene import load_scene, save_scene
 from tomgs.model import GaussianModel
+from tomgs.train.budget import Budget
 
 W, H, T = 32, 24, 3
 
@@ -369,7 +370,7 @@ def test_defect11_a_resumed_fit_says_the_limit_it_ran_under():
     images, cams, points, colors = synthetic_clip(2, 24, 14)
     trainer = Trainer(images, cams, points, colors, small_config(10**6), CPU)
     trainer.elapsed = 500.0  # as if resumed after 500 s of training
-    result = trainer.run(time_limit=501.0)
+    result = trainer.run(Budget(iterations=trainer.config.iterations, training_until=501.0))
     note = [n for n in result.notes if n.startswith("training stopped")]
     assert note and "1 s of training in this run, 501 s in all" in note[0], result.notes
 

@@ -233,12 +233,13 @@ def _phase1(rank: int, stretch, cams):
 
 def _refine_rank(rank: int, store: str, folder: str) -> None:
     """A rank of test_the_refinement_keeps_shared_replicas_equal (spawned): gather the union of both
-    ranks' stand-ins for phase 1 with their Adam states (as Rank.merge does), refine its part, assemble
+    ranks' stand-ins for phase 1 with their Adam states (as ShardedPipeline.after_training does), refine its part, assemble
     the scene, save what each step saw."""
     import torch.distributed as dist
 
     from tomgs.train.optim import adam_estimates
-    from tomgs.train.multigpu.shards import assemble, gather_union, halo, model_of, refine, refine_optimizer
+    from tomgs.train.multigpu.joint import joint_trainer, refine_jointly, refine_optimizer
+    from tomgs.train.multigpu.shards import assemble, gather_union, halo, model_of
 
     dist.init_process_group("gloo", init_method=store, rank=rank, world_size=2)
     torch.set_num_threads(1)
@@ -260,12 +261,13 @@ def _refine_rank(rank: int, store: str, folder: str) -> None:
     t = model1.t_means.detach().double() * span + t0
     mask = (t >= lo) & (t < hi)
     phase1 = {name: (e[0][mask], e[1][mask], e[2]) for name, e in adam_estimates(optimizer1).items()}
-    out = refine(model, part, torch.as_tensor(images[s.own_lo:s.own_hi]), cams[s.own_lo:s.own_hi],
-                 small_config(20), gathered.rates, torch.device("cpu"), moments=moments, adam_steps=gathered.steps,
-                 steps=20, defer=True)  # frames that do not wait for their counts, as on a GPU
+    trainer = joint_trainer(model, images[s.own_lo:s.own_hi], cams[s.own_lo:s.own_hi], small_config(20),
+                            gathered.rates, 1.0, torch.device("cpu"), moments=moments, adam_steps=gathered.steps,
+                            seed=rank)
+    out = refine_jointly(trainer, part, steps=20)
     after = union.clone()
-    after[part.rows] = pack(model.parameters_by_name())
-    final = assemble(model, part)
+    after[part.rows] = pack(trainer.model.parameters_by_name())
+    final = assemble(trainer.model, part)
     torch.save(dict(before=union, after=after, rows=part.rows, holder=part.holder, final=final, steps=out.steps,
                     own=own, phase1=phase1, span=span, start=start, raw=raw, rates=gathered.rates,
                     adam_steps=gathered.steps), f"{folder}/rank{rank}.pt")

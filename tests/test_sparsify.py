@@ -197,15 +197,18 @@ def test_under_a_time_limit_the_rounds_cost_at_most_their_share_of_the_training(
     """A round costs ROUND_PASSES passes over the clip: under a limit it waits until the rounds taken and it
     fit in ROUND_OVERHEAD of the training so far (a 289-frame 720p clip's eight took a third of a minute's
     training); a fit by iterations alone (no limit) takes every round on its slot."""
+    from tomgs.train.budget import Budget
+    from tomgs.train.loop import RunHooks, TrainingRun
     from tomgs.train.plan import ROUND_OVERHEAD, ROUND_PASSES
 
     trainer, _ = fit("default", 1)
+    run = TrainingRun(trainer, Budget(training_until=60.0), RunHooks())
     round_seconds = ROUND_PASSES * 0.01 * trainer.num_frames  # a frame of the clip PSNR takes 10 ms
-    assert not trainer._round_affordable(0.9 * round_seconds / ROUND_OVERHEAD, 0.01)
-    assert trainer._round_affordable(1.1 * round_seconds / ROUND_OVERHEAD, 0.01)
+    assert not run.round_affordable(0.9 * round_seconds / ROUND_OVERHEAD, 0.01)
+    assert run.round_affordable(1.1 * round_seconds / ROUND_OVERHEAD, 0.01)
     trainer.sparsifier.seconds = 2 * round_seconds  # two taken: the third waits until three are affordable
-    assert not trainer._round_affordable(2.9 * round_seconds / ROUND_OVERHEAD, 0.01)
-    assert trainer._round_affordable(3.1 * round_seconds / ROUND_OVERHEAD, 0.01)
+    assert not run.round_affordable(2.9 * round_seconds / ROUND_OVERHEAD, 0.01)
+    assert run.round_affordable(3.1 * round_seconds / ROUND_OVERHEAD, 0.01)
     state = trainer.sparsifier.state_dict()
     again, _ = fit("default", 1)
     again.sparsifier.load_state_dict(state)

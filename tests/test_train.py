@@ -24,6 +24,8 @@ from tomgs.train.densify import Densifier
 from tomgs.train.init import initial_model
 from tomgs.train.optim import SeenAdam
 from tomgs.train.sampler import FrameSampler
+from tomgs.train.loop import RunHooks
+from tomgs.train.budget import Budget
 from scenes import devices
 
 CPU = torch.device("cpu")
@@ -447,7 +449,7 @@ def run_clip(iterations, interrupt_at=None, checkpoint=None, resume_from=None, o
         if row["iteration"] == interrupt_at:
             raise KeyboardInterrupt
 
-    return trainer.run(checkpoint=checkpoint, progress=progress)
+    return trainer.run(hooks=RunHooks(checkpoint=checkpoint, progress=progress))
 
 
 @pytest.mark.slow  # a long fit
@@ -476,7 +478,7 @@ def background_writes(monkeypatch, kept: dict, seconds: float = 0.0, error: Exce
     """Checkpoints every step, written by the thread after `seconds` (training runs on meanwhile and changes
     its own tensors), or failing with `error`; a copy of each written there is kept by iteration in `kept`."""
     import tomgs.train.checkpoint as checkpoints
-    import tomgs.train.trainer as trainer
+    import tomgs.train.loop as loop
 
     write = checkpoints.write_checkpoint
 
@@ -489,7 +491,7 @@ def background_writes(monkeypatch, kept: dict, seconds: float = 0.0, error: Exce
         return written
 
     monkeypatch.setattr(checkpoints, "write_checkpoint", slow)
-    monkeypatch.setattr(trainer, "CHECKPOINT_OVERHEAD", 1e12)  # no spacing by the wait: one every step
+    monkeypatch.setattr(loop, "CHECKPOINT_OVERHEAD", 1e12)  # no spacing by the wait: one every step
 
 
 def test_a_checkpoint_written_while_training_goes_on_holds_its_own_step(tmp_path, monkeypatch):
@@ -619,7 +621,7 @@ def clocked_run(monkeypatch, limit: float, step_seconds, frame_seconds=None):
     monkeypatch.setattr(Trainer, "step", step)
     monkeypatch.setattr(Trainer, "clip_psnr", clip_psnr)
     monkeypatch.setattr(Trainer, "compact", lambda self, tick=None: 0)
-    result = trainer.run(time_limit=limit)
+    result = trainer.run(Budget(iterations=trainer.config.iterations, training_until=limit))
     monkeypatch.undo()
     return result, stepped[0], covered
 
@@ -627,7 +629,7 @@ def clocked_run(monkeypatch, limit: float, step_seconds, frame_seconds=None):
 def test_slow_first_steps_do_not_end_training_early(monkeypatch):
     """Two slow first steps (a busy machine, kernels loading) made the end's estimate exceed the limit and
     stopped training after 2 of them; the end keeps at most END_SHARE of the limit."""
-    from tomgs.train.trainer import END_SHARE
+    from tomgs.train.loop import END_SHARE
 
     result, trained, covered = clocked_run(monkeypatch, 200.0, lambda k: 30.0 if k < 3 else 1.0)
     assert trained >= (1 - END_SHARE) * 200.0 - 1.0, (trained, result.iterations, result.notes)

@@ -210,6 +210,27 @@ def l1_dssim(img: torch.Tensor, ref: torch.Tensor, ssim_weight: float) -> torch.
     return l1_dssim_and_psnr(img, ref, ssim_weight)[0]
 
 
+def training_loss(img: torch.Tensor, ref: torch.Tensor, ssim_weight: float,
+                  weights: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """TOM-GS's training loss and the image's PSNR, the one formula every training step uses:
+    (1 - ssim_weight) L1 + ssim_weight D-SSIM of img [H,W,3] against ref [H,W,3]; with `weights` [H,W,1]
+    in [0,1], both terms and the PSNR over the weighted pixels. Returns (loss 0-d, PSNR 0-d without
+    gradient)."""
+    if weights is None:
+        return l1_dssim_and_psnr(img, ref, ssim_weight)
+    total = 3 * weights.sum().clamp_min(1e-12)
+    l1 = (img - ref).abs().sum() / total
+    similarity = (ssim_map(img[None], ref[None])[0] * weights.permute(2, 0, 1)).sum() / total
+    loss = (1 - ssim_weight) * l1 + ssim_weight * (1 - similarity)
+    return loss, weighted_psnr(img.detach(), ref.detach(), weights)
+
+
+def weighted_psnr(img: torch.Tensor, ref: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """PSNR (0-d) of img [H,W,3] against ref over the pixels weighted by `weights` [H,W,1] in [0,1]."""
+    mse = (img - ref).square().sum() / (3 * weights.sum().clamp_min(1e-12))
+    return -10.0 * torch.log10(mse)
+
+
 def l1_dssim_and_psnr(img: torch.Tensor, ref: torch.Tensor, ssim_weight: float) -> tuple[torch.Tensor, torch.Tensor]:
     """(`l1_dssim`, the PSNR of all of img's values against ref's: 0-d, no gradient; for one image
     [H,W,3] `psnr`'s). On the Warp path the PSNR comes from the loss's own sums: a training step
@@ -441,7 +462,7 @@ def evaluate(model, cameras, frames, indices=None, lpips: LPIPS | None = None, d
     return report
 
 
-__all__ = ["psnr", "ssim", "ssim_map", "ssim_map_conv", "LPIPS", "EvalReport", "evaluate", "default_lpips_weights",
+__all__ = ["psnr", "training_loss", "weighted_psnr", "ssim", "ssim_map", "ssim_map_conv", "LPIPS", "EvalReport", "evaluate", "default_lpips_weights",
            "frame_psnr"]
 
 

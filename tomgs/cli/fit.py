@@ -134,8 +134,7 @@ def fit(video, output, preset, iterations, quality, frames, max_side, masks, pos
             result = fit_scene(video, output, config, masks=masks, frames=frames, max_side=max_side, poses=poses,
                                focal=focal, device=device, resume=resume, overwrite=overwrite, progress=on_row,
                                layer=layer, mask_dilation=mask_dilation, phases=bars,
-                               on_plan=lambda plan: say(plan.summary()), auto_budget=iterations is None,
-                               started=started, gpus=gpus)
+                               on_plan=lambda plan: say(plan.summary()), started=started, gpus=gpus)
     except FitInterrupted as e:
         click.echo(f"\n{e.message()}", err=True)
         raise SystemExit(e.exit_code) from None

@@ -1,11 +1,13 @@
 """Training: the TOM-GS trainer, frame sampler, densification, presets, and `fit`.
 
-    pipeline    `fit`: a clip in, a scene file out (one process; dispatches to multigpu for shards)
+    api         `fit`: checks the inputs and outputs, then runs the pipeline here or in shards (multigpu)
+    pipeline    a fit in one process, its phases in order (Pipeline): a clip in, a scene file out
+    budget      a fit's time: the one reader of max_seconds and of the iteration stop
     clip        what a checkpoint records of the clip and options, a resume's checks; phases: the
                 phases' names, ticks, start and peak memory
     init        the Gaussians a fit starts from
-    trainer     the training loop (Trainer, FitResult); log: its CSV and plot; captured_step: a step
-                as one CUDA graph
+    trainer     the Trainer (its step, measurements, checkpoints; FitResult); loop: its run, the cadences
+                around the steps; log: its CSV and plot; captured_step: a step as one CUDA graph
     config      TrainConfig and its presets; plan: the budget's plan of a fit
     densify     the densification strategy; growth: how far it grows (stages priced per Gaussian);
                 sparsify: the quality levels and their prune rounds; optim: Adam; sampler: which
@@ -27,9 +29,9 @@ _EXPORTS = {
     "PRESETS": "tomgs.train.config",
     "TrainConfig": "tomgs.train.config",
     "preset": "tomgs.train.config",
-    "check_outputs": "tomgs.train.pipeline",
-    "fit": "tomgs.train.pipeline",
-    "output_paths": "tomgs.train.pipeline",
+    "check_outputs": "tomgs.train.api",
+    "fit": "tomgs.train.api",
+    "output_paths": "tomgs.train.api",
     "FitResult": "tomgs.train.trainer",
     "Trainer": "tomgs.train.trainer",
 }

@@ -45,7 +45,7 @@ import warp as wp
 from tomgs.errors import RenderError
 from tomgs.kernels import adam, project
 from tomgs.kernels import step as kernels
-from tomgs.metrics import l1_dssim_and_psnr
+from tomgs.metrics import training_loss
 from tomgs.model import PARAM_NAMES
 from tomgs.render.captured import key_bound, known_to_warp, no_collection, remember_total, time_table, timed_frame
 from tomgs.render.frame import MAX_INTERSECTIONS, issue_frame
@@ -330,7 +330,7 @@ class CapturedStep:
             frame = timed_frame(p.width, p.height, p.near, p.far, self.device, times)
             image, _, meta, flags, _ = issue_frame(p, frame, self.keys, wait=False, queue_counts=False)
             target = trainer.frames.index_select(0, k)[0].float() / 255.0
-            loss, measured = l1_dssim_and_psnr(image, target, trainer.config.ssim_weight)
+            loss, measured = training_loss(image, target, trainer.config.ssim_weight)
             wanted = [leaves[name] for name in PARAM_NAMES] + [meta["means2d"]]
             *grads, v_means2d = torch.autograd.grad(loss, wanted, allow_unused=True)
         grads = dict(zip(PARAM_NAMES, grads))

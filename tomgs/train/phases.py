@@ -30,12 +30,14 @@ def peak_memory(device) -> tuple[float, float | None]:
     return host, gpu
 
 
-def train_ticks(phases, iterations: int, time_limit: float):
-    """The trainer's tick as the "train" phase: iterations done, or seconds under a time limit."""
+def train_ticks(phases, budget):
+    """The trainer's tick as the "train" phase: iterations done, or seconds under the Budget's time limit."""
+    limit = budget.training_until
+
     def tick(iteration, seconds, text):
         text = text or f"iteration {iteration:,}"
-        if time_limit > 0:
-            phases("train", min(seconds, time_limit), time_limit, text)
+        if limit > 0:
+            phases("train", min(seconds, limit), limit, text)
         else:
-            phases("train", iteration, iterations, text)
+            phases("train", iteration, budget.iterations, text)
     return tick

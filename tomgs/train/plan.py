@@ -26,6 +26,7 @@ import math
 from dataclasses import dataclass, field
 
 from tomgs.errors import counted
+from tomgs.train.budget import UNTIL_BUDGET, Budget, asked_seconds, budget_iterations
 
 # seconds per training step (render, loss, backward, Adam): a + b * Gaussians + c * pixels (cpu: CPU seconds of
 # the bundled clip's steps, 0.135-0.497 s at 160x96 with 4k-128k Gaussians, 0.054-0.182 s at 80x48 with 4k-64k;
@@ -47,9 +48,6 @@ SAVE_COST = (0.5, 0.2e-6)
 # when the preset would run longer than this on the device, the fit stops at this budget instead
 DEFAULT_BUDGET = {"cpu": 600.0, "cuda": 3600.0}
 MIN_STEPS = 500  # a CPU fit must be able to step its starting cloud this many times
-# the iterations of a fit whose budget was asked for (TrainConfig.stop_at_iterations False): more than any
-# budget holds, so the budget alone ends the training and its schedules follow the clock
-UNTIL_BUDGET = 2**31 - 1
 # What the trainer (tomgs.train.trainer) spends beside its steps, which it and the estimates here share:
 # Clip PSNR measurements may cost at most this fraction of the run (a long clip's takes seconds).
 EVAL_OVERHEAD = 0.1
@@ -103,6 +101,10 @@ class FitPlan:
     phases: dict = field(default_factory=dict)
     reasons: list = field(default_factory=list)
     source: str = ""  # what the clip's file says of itself: its frame rate, a display rotation
+
+    def budget_from(self, started: float) -> Budget:
+        """The fit's Budget: this plan's seconds from `started` (a time.perf_counter() value) and iterations."""
+        return Budget(self.budget, self.iterations, started, self.budget_chosen)
 
     @property
     def eta(self) -> float:
@@ -161,7 +163,7 @@ def make_plan(config, frames: int, height: int, width: int, source_pixels: int, 
     compiles: the kernels are not compiled yet for this device (tomgs.runtime.kernels_compiled):
     the first steps will compile them, a phase of its own in the estimates and the budget.
     A budget asked for (max_seconds) is the time training takes: the iterations become UNTIL_BUDGET
-    unless `config.stop_at_iterations`."""
+    unless they were asked for too (tomgs.train.budget.budget_iterations)."""
     pixels = height * width
     setup = SETUP_COST.get(device_type, SETUP_COST["cpu"])
     phases = dict(read=DECODE_COST * frames * source_pixels,
@@ -170,10 +172,10 @@ def make_plan(config, frames: int, height: int, width: int, source_pixels: int, 
                   init=setup + 2e-4 * frames)
     if compiles:
         phases["compile"] = COMPILE_COST.get(device_type, COMPILE_COST["cpu"])
-    budget, chosen = float(config.max_seconds), False
+    budget, chosen = asked_seconds(config), False
     reasons = []
-    if budget > 0 and not config.stop_at_iterations:  # a longer budget trains longer
-        config = config.replace(iterations=UNTIL_BUDGET)
+    if budget_iterations(config) != config.iterations:  # a longer budget trains longer
+        config = config.replace(iterations=budget_iterations(config))
     cap, cap_why = (config.max_gaussians, f"cap {config.max_gaussians:,} as asked") \
         if config.max_gaussians is not None else auto_cap(frames, pixels, device_type, free_bytes)
     per_frame = config.replace(max_gaussians=cap).points_per_frame(pixels, frames, device_type)
@@ -185,7 +187,7 @@ def make_plan(config, frames: int, height: int, width: int, source_pixels: int, 
         rounds = config.sparsify_rounds * ROUND_PASSES * clip if config.quality != "max" else 0.0
         end = (COMPACT_SHARE * clip if config.compact_pixels > 0 else 0.0) + clip
         steps = config.iterations * step_seconds(device_type, grown, pixels)
-        if config.max_seconds > 0:  # under a limit the rounds take at most ROUND_OVERHEAD of the training
+        if asked_seconds(config) > 0:  # under a limit the rounds take at most ROUND_OVERHEAD of the training
             rounds = min(rounds, ROUND_OVERHEAD * steps)
         return steps * (1 + EVAL_OVERHEAD) + rounds + end
 

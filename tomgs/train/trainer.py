@@ -14,7 +14,7 @@ each row.
 Durability (tomgs/train/checkpoint.py): a checkpoint every `checkpoint_interval_s` seconds of
 training (30 s), copied where the state lives at a step boundary and written by a thread while
 training goes on (CheckpointWriter; spaced further when the wait for it is long, so that it costs
-at most CHECKPOINT_OVERHEAD of the run), and one when SIGINT or SIGTERM arrives: the signal is read
+at most tomgs.train.loop.CHECKPOINT_OVERHEAD of the run), and one when SIGINT or SIGTERM arrives: the signal is read
 at the next step boundary (never inside a densification, where the parameters and the optimiser disagree),
 that step is saved and FitInterrupted raised. A crash (kill -9, power loss) loses at most the
 interval (or 20 saves' time) of training; `resume=True` continues from the checkpoint, and a seeded
@@ -25,7 +25,6 @@ training goes on; the last complete checkpoint stays the one to resume.
 from __future__ import annotations
 
 import math
-import signal
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,13 +35,12 @@ import torch
 from tomgs.render.alive import TrainingIndex, pays_on
 from tomgs.cameras import Cameras
 from tomgs.io.scene import vertex_bytes
-from tomgs.metrics import l1_dssim_and_psnr, psnr, ssim_map
+from tomgs.metrics import psnr, training_loss, weighted_psnr
 from tomgs.model import GaussianModel
 from tomgs.render.frame import blend_weights, render_frame
 from tomgs.render.sequence import IssuedFrame, issue_in_order
-from tomgs.errors import InputError, counted
-from tomgs.train.checkpoint import (FORMAT, START_OVER, VERSION, CheckpointWriter, FitInterrupted,
-                                    StopSignals, check_same_settings, config_from, config_to_dict, own_copies,
+from tomgs.errors import InputError
+from tomgs.train.checkpoint import (FORMAT, START_OVER, VERSION, CheckpointWriter, check_same_settings, config_from, config_to_dict, own_copies,
                                     read_checkpoint, state_bytes, write_checkpoint)
 from tomgs.train.captured_step import CapturedStep, unsupported
 from tomgs.train.clip import frame_store, uint8_planes
@@ -50,29 +48,16 @@ from tomgs.train.config import TrainConfig
 from tomgs.train.densify import Densifier
 from tomgs.train.growth import Growth
 from tomgs.train.init import initial_model
-from tomgs.train.log import log_memory_mb, write_csv
-from tomgs.train.sparsify import Sparsifier, take_round
+from tomgs.train.log import log_memory_mb
+from tomgs.train.sparsify import Sparsifier
 from tomgs.train.optim import make_adam, uses_seen_adam
-from tomgs.train.plan import COMPACT_SHARE, EVAL_OVERHEAD, ROUND_OVERHEAD, ROUND_PASSES
+from tomgs.train.budget import Budget
+from tomgs.train.loop import RunHooks, TrainingRun
 from tomgs.train.sampler import FrameSampler
 
 # The sampler hears each step's PSNR up to this many steps late: reading it back every step made the
 # host wait for the device once more per step than the rasterizer needs.
 SAMPLER_LAG = 8
-# A save may cost at most this fraction of the training time: with slow saves (millions of
-# Gaussians, a slow disk) checkpoints are spaced to 1 / CHECKPOINT_OVERHEAD times a save's duration.
-CHECKPOINT_OVERHEAD = 0.05
-CHEAP_EVAL = 1.0  # seconds: a measurement this quick is taken whenever it is due
-# Before the last, a measurement the run cannot yet pay for in full covers evenly spaced frames: as
-# many as EVAL_OVERHEAD allows, or up to EVAL_FRAMES that take CHEAP_EVAL, never fewer than
-# MIN_EVAL_FRAMES (a 900-frame 1080p clip's full measurement first fitted the 10% after 1.5 minutes)
-EVAL_FRAMES = 64
-MIN_EVAL_FRAMES = 8
-# A budget's end (the compaction and the last clip PSNR) keeps at most this share of the training time: when
-# they would cost more (a busy machine, slow first steps, a long clip), the compaction is left out and the
-# last measurement covers evenly spaced frames, so that the budget goes to training
-END_SHARE = 0.1
-RENDER_SHARE = 0.5  # a forward render's time over a training step's (CPU, the bundled clip: 0.11 / 0.22 s)
 # a clip PSNR reads a frame's counts this many frames after issuing it: late enough that the read does not
 # wait, and few, since each frame in flight holds its image until then (all 90 of camel's in flight, each with
 # its own activated parameters and buffers, raised a 5M-Gaussian fit's peak GPU memory from 2.9 to 16.2 GB)
@@ -177,6 +162,9 @@ class Trainer:
         self._measured: list[tuple[int, torch.Tensor]] = []  # (frame, PSNR) not yet given to the sampler
         self._in_flight = None  # (frames, PSNRs on their way to the host, the event after their copy)
         self.eval_frame_seconds = 0.0  # seconds a frame of the last clip PSNR took
+        # None, or hook(frame, PSNR 0-d, seen bool [M]) after each eager step's backward, before Adam (a sharded
+        # fit's joint refinement sums the shared Gaussians' gradients over the ranks: tomgs.train.multigpu.joint)
+        self.gradient_hook = None
 
     # -- set-up --------------------------------------------------------------------------------
 
@@ -235,16 +223,8 @@ class Trainer:
                        target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(`loss`, `_psnr` of the same image and target): without weights both come from the loss's
         passes, so a step measures its frame for its sampler at no further host cost."""
-        c = self.config
-        if self.weights is None:
-            loss, measured = l1_dssim_and_psnr(image, target, c.ssim_weight)
-        else:
-            w = self.weight(k)
-            total = 3 * w.sum().clamp_min(1e-12)
-            l1 = (image - target).abs().sum() / total
-            similarity = (ssim_map(image[None], target[None])[0] * w.permute(2, 0, 1)).sum() / total
-            loss = (1 - c.ssim_weight) * l1 + c.ssim_weight * (1 - similarity)
-            measured = self.frame_psnr(k, image, target)
+        loss, measured = training_loss(image, target, self.config.ssim_weight,
+                                       None if self.weights is None else self.weight(k))
         if self.alpha_targets is not None:
             alpha_target = self.alpha_targets[k].to(self.device, non_blocking=True).float() / 255.0
             loss = loss + (alpha[..., 0] - alpha_target).abs().mean()
@@ -261,8 +241,7 @@ class Trainer:
         target = self.target(k, image) if target is None else target.detach()
         if self.weights is None:
             return psnr(image, target)
-        mse = (image - target).square().sum() / (3 * self.weight(k).sum().clamp_min(1e-12))
-        return -10.0 * torch.log10(mse)
+        return weighted_psnr(image, target, self.weight(k))
 
     def render(self, k: int, defer: bool = False, inputs: dict | None = None, **kw):
         """Frame k at its time: (image, alpha, meta) as `rasterize` gives them for the Gaussians that
@@ -304,6 +283,8 @@ class Trainer:
             defer = False
         self._heard(k, measured)
         seen = in_view = (meta["radii"] > 0).any(-1)  # bool [M]: the rendered rows this step's gradient reaches
+        if self.gradient_hook is not None:  # before Adam: it may change the gradients and `seen` in place
+            self.gradient_hook(k, measured, seen)
         if meta["rows"] is not None:  # -> bool [N]
             in_view = torch.zeros(len(self.model), dtype=torch.bool, device=self.device).index_put_(
                 (meta["rows"],), seen)
@@ -410,157 +391,21 @@ class Trainer:
                               f"({len(self.model):,} kept; {time.perf_counter() - began:.1f} s)")
         return removed
 
-    def eval_frames(self, now: float, frame_seconds: float) -> int:
-        """How many frames a clip PSNR taken `now` seconds into the run covers when a frame takes
-        `frame_seconds`: all when that is under CHEAP_EVAL or EVAL_OVERHEAD of the run so far; else
-        what EVAL_OVERHEAD pays for, or up to EVAL_FRAMES that take CHEAP_EVAL, whichever is more; 0
-        (wait) while that is under MIN_EVAL_FRAMES."""
-        T = self.num_frames
-        if frame_seconds * T < CHEAP_EVAL or EVAL_OVERHEAD * now >= frame_seconds * T:
-            return T
-        count = max(int(EVAL_OVERHEAD * now / frame_seconds), min(int(CHEAP_EVAL / frame_seconds), EVAL_FRAMES))
-        return min(count, T) if count >= min(MIN_EVAL_FRAMES, T) else 0
+    def run(self, budget: Budget | None = None, hooks: RunHooks | None = None) -> FitResult:
+        """Train to the budget's iterations or its time limit (default `Budget.of_training`: config.iterations,
+        and config.max_seconds of training), the cadences of tomgs.train.loop around the steps; `hooks` say
+        where it saves and whom it tells (RunHooks). The run stops early enough that its end (the compaction
+        and the last clip PSNR) ends by the limit, and keeps at most END_SHARE of it for that end."""
+        return TrainingRun(self, Budget.of_training(self.config) if budget is None else budget,
+                           RunHooks() if hooks is None else hooks).run()
 
-    def run(self, checkpoint: Path | None = None, log_csv: Path | None = None, progress=None, *,
-            time_limit: float | None = None, tick=None) -> FitResult:
-        """Train to `config.iterations`, or for `time_limit` seconds of training (default
-        `config.max_seconds`; 0: no limit), stopping early enough that the run's end (the compaction
-        and the last clip PSNR) ends by then; the end keeps at most END_SHARE of the limit, and one
-        that would cost more leaves the compaction out and measures evenly spaced frames (`_end`).
-        `progress(dict)` is called with every CSV row (a KeyboardInterrupt it raises stops the run
-        like Ctrl-C); `tick(iteration, seconds, text)` after every step (text: `status()`) and every
-        frame of a clip measurement, a display's heartbeat. With `checkpoint`, the state is saved there
-        on the schedule above and on SIGINT / SIGTERM, which then raise FitInterrupted.
-
-        The clip PSNR is measured every `eval_interval_s` (further apart when a measurement is slow,
-        so measuring costs at most EVAL_OVERHEAD of the run), and only once `densify_interval` / 2
-        steps have passed since the last densification, prune or opacity reset: right after one the
-        clip PSNR dips by 2-3 dB for a few dozen steps, a saw-tooth of the schedule rather than of
-        the fit. A measurement the run cannot yet pay for in full covers evenly spaced frames
-        (`eval_frames`), so a long clip has a curve from its first minute; the final one, taken
-        wherever the run ends, covers every frame. Each row says how many frames its value covers
-        (clip_frames)."""
-        c = self.config
-        limit = c.max_seconds if time_limit is None else float(time_limit)
-        tick = tick or (lambda iteration, seconds, text: None)
-        start = time.perf_counter() - self.elapsed
-        measured = [r["wall_s"] for r in self.history if r["clip_psnr"] != ""]  # a resume keeps the schedule
-        next_eval = measured[-1] + c.eval_interval_s if measured else 0.0
-        next_ckpt = self.elapsed + c.checkpoint_interval_s  # nothing to lose at the first step
-        saved = Path(checkpoint) if checkpoint is not None and Path(checkpoint).is_file() else None
-        settle = max(c.densify_interval // 2, 1)
-        step_seconds = None  # running mean of a step's time (the first, which loads kernels, left out)
-        failures = {}  # what could not be written: "log" / "checkpoint" -> (times, the latest OSError)
-        began_at = self.elapsed  # training seconds before this run (a resume's)
-
-        def stop_here(signum):
-            """Save the step just finished (a step boundary) and raise FitInterrupted; when that save
-            fails (a full disk), the last complete checkpoint is the one to resume."""
-            if checkpoint is None:
-                raise FitInterrupted(None, signum)
-            writer.wait()
-            self.elapsed = time.perf_counter() - start
-            try:
-                self.save_checkpoint(checkpoint)
-            except OSError as e:
-                raise FitInterrupted(writer.done or saved, signum, unsaved=f"{e.filename}: {e.strerror}") from None
-            raise FitInterrupted(checkpoint, signum, self.iteration)
-
-        def log(rows):
-            """The CSV log as of now; a write that fails (a full disk) is noted, and training goes on."""
-            try:
-                write_csv(log_csv, rows)
-            except OSError as e:
-                failures["log"] = (failures.get("log", (0,))[0] + 1, e)
-
-        # the periodic checkpoints are written while training goes on; leaving the block waits for the last
-        with CheckpointWriter() as writer, StopSignals(checkpoint=lambda: writer.done or saved) as stop:
-            while self.iteration < c.iterations:
-                before = time.perf_counter() - start
-                self.progress = max(self.iteration / c.iterations, before / limit if limit > 0 else 0.0)
-                self.step()
-                now = time.perf_counter() - start
-                if self.iteration > 1:
-                    step_seconds = now - before if step_seconds is None else 0.9 * step_seconds + 0.1 * (now - before)
-                tick(self.iteration, now, self.status())
-                if self.iteration % c.densify_interval == 0 and self.growth.staged and \
-                        self.progress < c.densify_stop_fraction:
-                    self._grow()
-                rounded = None  # (clip PSNR, frames, Gaussians measured) of a round of the quality rule
-                # until one is measured, a frame of the clip PSNR costs what RENDER_SHARE of a step costs
-                frame_seconds = self.eval_frame_seconds or RENDER_SHARE * (step_seconds or 0.0)
-                # a round prices its prune against the clip PSNR, which dips for a few dozen steps after a change
-                if self.iteration - self.densifier.changed_at >= settle and \
-                        self._round_fits(limit - now if limit > 0 else math.inf, frame_seconds) and \
-                        (limit <= 0 or self._round_affordable(now, frame_seconds)) and \
-                        self.sparsifier.due(self.progress):
-                    size = len(self.model)
-                    began = time.perf_counter()
-                    measured = take_round(self, self.sparsifier, lambda text: tick(self.iteration, now, text))
-                    self.sparsifier.seconds += time.perf_counter() - began
-                    if measured is not None:
-                        rounded = (*measured, size)
-                        next_eval = now + max(c.eval_interval_s, (time.perf_counter() - began) / EVAL_OVERHEAD)
-                ending = self._ending(frame_seconds)
-                out_of_time = 0 < limit <= now + min(sum(ending), END_SHARE * limit)
-                last = self.iteration == c.iterations or out_of_time
-                count = self.eval_frames(now, frame_seconds)
-                if last:
-                    count = self._end(limit - now if limit > 0 else math.inf, frame_seconds,
-                                      lambda text: tick(self.iteration, now, text))
-                settled = self.iteration - self.densifier.changed_at >= settle
-                measure = last or (now >= next_eval and count > 0 and settled)
-                if self.iteration % c.log_interval == 0 or measure or rounded:
-                    clip, size = None, None
-                    if rounded and not measure:  # the round's pass measured the clip before its prune
-                        clip, size = rounded[:2], rounded[2]
-                    if measure:
-                        frames = None if count == self.num_frames else spread(self.num_frames, count)
-                        began = time.perf_counter()
-                        values = self.clip_psnr(lambda text: tick(self.iteration, now, text), frames)
-                        seconds = time.perf_counter() - began
-                        clip, self.eval_frame_seconds = (float(np.mean(values)), len(values)), seconds / len(values)
-                        next_eval = now + max(c.eval_interval_s, seconds / EVAL_OVERHEAD)
-                    if last:
-                        self.flush_measurements()  # no draw follows: the last row has every step's PSNR
-                    row = self._row(now, clip, size)
-                    self.history.append(row)
-                    if log_csv is not None:
-                        log(self.history)
-                    if progress is not None:
-                        try:
-                            progress(row)
-                        except KeyboardInterrupt:  # the caller's Ctrl-C, also at a step boundary
-                            stop.request(signal.SIGINT)
-                if stop.signum is not None:
-                    stop_here(stop.signum)
-                if checkpoint is not None and time.perf_counter() - start >= next_ckpt:
-                    self.elapsed = time.perf_counter() - start
-                    tick(self.iteration, self.elapsed, "saving a checkpoint")
-                    began = time.perf_counter()
-                    self._checkpoint_in_background(checkpoint, writer)
-                    self._count_failed(writer, failures, lambda text: tick(self.iteration, self.elapsed, text))
-                    cost = time.perf_counter() - began  # what training waited for
-                    next_ckpt = time.perf_counter() - start + max(c.checkpoint_interval_s, cost / CHECKPOINT_OVERHEAD)
-                if out_of_time:
-                    this_run = f"{limit - began_at:.0f} s of training in this run, {limit:.0f} s in all" \
-                        if began_at > 0 else f"{limit:.0f} s"
-                    self.notes.append(f"training stopped after {counted(self.iteration, 'iteration')} at its time limit "
-                                      f"({this_run})")
-                    break
-        self._count_failed(writer, failures, lambda text: tick(self.iteration, self.elapsed, text))
-        for what, (times, error) in failures.items():
-            kept = f"; the last complete one is {writer.done or saved}" if what == "checkpoint" and \
-                (writer.done or saved) else ""
-            self.notes.append(f"the {what} could not be written {times} time{'s' if times > 1 else ''} "
-                              f"({error.filename}: {error.strerror}): training went on{kept}")
-        if stop.signum is not None:  # arrived after the loop's last look: still a step boundary
-            stop_here(stop.signum)
+    def run_result(self) -> FitResult:
+        """The FitResult of a run that has ended: the summaries of growth, the quality rule and the captured
+        step in the notes, and the final clip PSNR (measured now when the run's last step did not)."""
         if len(self.growth.stages) > 1:
             self.notes.append(self.growth.summary())
         if self.sparsifier.measured:
-            self.notes.append(self.sparsifier.summary(c.quality))
-        self.elapsed = time.perf_counter() - start
+            self.notes.append(self.sparsifier.summary(self.config.quality))
         if self.captured is not None:
             self.captured.settle()
             if self.captured.dropped:
@@ -574,53 +419,6 @@ class Trainer:
         return FitResult(self.model, self.cameras, float(final), self.iteration, self.elapsed, self.history,
                          list(self.notes), clip_frames=covered)
 
-    def _ending(self, frame_seconds: float) -> tuple[float, float]:
-        """(the compaction's, the last full clip PSNR's) estimated seconds, a frame of the clip PSNR
-        taking `frame_seconds`."""
-        full = frame_seconds * self.num_frames
-        return (COMPACT_SHARE * full if self.config.compact_pixels > 0 else 0.0), full
-
-    def _round_fits(self, left: float, frame_seconds: float) -> bool:
-        """Whether a round of the quality rule (ROUND_PASSES clip PSNRs) and the run's end fit in the `left`
-        seconds of the limit (inf: none), once the rounds' window has come; the first that does not ends
-        the rounds, said in `notes`."""
-        full = frame_seconds * self.num_frames
-        if not self.sparsifier.active or self.progress < self.sparsifier.start or \
-                ROUND_PASSES * full + sum(self._ending(frame_seconds)) <= left:
-            return True
-        if not self.sparsifier.stopped:
-            self.sparsifier.stopped = "the time left"
-            self.notes.append(f"quality rounds left out from {left:.0f} s before the time limit: a round (~"
-                              f"{ROUND_PASSES * full:.0f} s) and the end did not fit (--quality max keeps every "
-                              f"Gaussian without them)")
-        return False
-
-    def _round_affordable(self, now: float, frame_seconds: float) -> bool:
-        """Under a time limit, whether the rounds taken so far and the next (ROUND_PASSES clip PSNRs) cost at most
-        ROUND_OVERHEAD of the `now` seconds trained: a round of a long clip takes seconds (a 289-frame 720p
-        clip's ~4 s), and eight of them took a third of a 1-minute fit's training. A round that waits takes
-        the slot due when it is affordable; the slots passed meanwhile are skipped."""
-        return self.sparsifier.seconds + ROUND_PASSES * frame_seconds * self.num_frames <= ROUND_OVERHEAD * now
-
-    def _end(self, left: float, frame_seconds: float, tick) -> int:
-        """The end of a run with `left` seconds of its limit (inf: none): the compaction, when it fits
-        with a clip PSNR of MIN_EVAL_FRAMES frames beside it, then the frames the last clip PSNR can
-        cover in what remains (every frame when it fits, else evenly spaced ones); what was cut short is
-        said in `notes`. Returns that frame count."""
-        compact, full = self._ending(frame_seconds)
-        if compact and compact + frame_seconds * min(MIN_EVAL_FRAMES, self.num_frames) <= left:
-            self.compact(tick)
-            left -= compact
-        elif compact:
-            self.notes.append(f"kept every Gaussian: leaving out those that no frame shows (~{compact:.0f} s) did not "
-                              f"fit in the {max(left, 0):.0f} s the budget left")
-        if full <= left:
-            return self.num_frames
-        count = min(max(int(left / max(frame_seconds, 1e-9)), 1), self.num_frames)
-        self.notes.append(f"the final clip PSNR covers {counted(count, 'evenly spaced frame')} of {self.num_frames}: "
-                          f"the budget left {max(left, 0):.0f} s for it (`tomgs eval` measures every frame)")
-        return count
-
     def status(self) -> str:
         """'iteration N, PSNR x dB, G Gaussians': where training is, for a display (the PSNR of the
         training frames as the sampler has heard it, left out before it has)."""
@@ -628,9 +426,11 @@ class Trainer:
         psnr = "" if train is None else f", PSNR {train:.2f} dB"
         return f"iteration {self.iteration:,}{psnr}, {len(self.model):,} Gaussians"
 
-    def _grow(self) -> None:
-        """A densification interval of a fit growing in stages (tomgs.train.growth): the densifier's limit
-        doubles when its stage has paid, or densification stops."""
+    def grow(self) -> None:
+        """At a densification interval of a fit growing in stages (tomgs.train.growth), while it densifies:
+        the densifier's limit doubles when its stage has paid, or densification stops."""
+        if not self.growth.staged or self.progress >= self.config.densify_stop_fraction:
+            return
         done = self.growth.update(self.progress, len(self.model), self.densifier.capped, self.train_psnr())
         if done == "grow":
             self.densifier.limit, self.densifier.capped = self.growth.limit, False
@@ -645,7 +445,7 @@ class Trainer:
         what it draws next at moments set by the clock, and a seeded run would no longer repeat."""
         return self.sampler.latest_mean()
 
-    def _row(self, now: float, clip: tuple[float, int] | None, count: int | None = None) -> dict:
+    def log_row(self, now: float, clip: tuple[float, int] | None, count: int | None = None) -> dict:
         """The CSV row at `now` seconds; clip: (clip PSNR, the frames it covers) or None; count: the
         Gaussians that clip PSNR measured (default: the model's now). Its train PSNR is `train_psnr`."""
         train = self.train_psnr()
@@ -701,16 +501,7 @@ class Trainer:
             if sent else None
         self._measured = [(int(k), torch.tensor(float(v), device=self.device)) for k, v in kept]
 
-    @staticmethod
-    def _count_failed(writer: CheckpointWriter, failures: dict, say) -> None:
-        """Count the write `writer` could not make (a full disk: training goes on) and `say` it."""
-        writer.wait()
-        if writer.failed is not None:
-            error, writer.failed = writer.failed, None
-            failures["checkpoint"] = (failures.get("checkpoint", (0,))[0] + 1, error)
-            say(f"checkpoint not written ({error.strerror})")
-
-    def _checkpoint_in_background(self, path: Path, writer: CheckpointWriter) -> None:
+    def checkpoint_in_background(self, path: Path, writer: CheckpointWriter) -> None:
         """Hand `writer` a copy of the state (made where the tensors live, at this step boundary), or
         write it here when the device lacks the room for that copy."""
         writer.wait()
@@ -784,8 +575,3 @@ class Trainer:
         if changed:
             self.notes.append(f"resumed at iteration {self.iteration} with other settings: {', '.join(changed)}")
         return state
-
-
-def spread(total: int, count: int) -> np.ndarray:
-    """int [count]: `count` of `total` frames evenly spaced, the first and last among them (count >= 1)."""
-    return np.unique(np.linspace(0, total - 1, count).round().astype(np.int64))

@@ -45,7 +45,8 @@ from tomgs.train.checkpoint import START_OVER, FitInterrupted
 from tomgs.train.clip import fit_options
 from tomgs.train.config import TrainConfig
 from tomgs.train.multigpu import pool as rank_pool
-from tomgs.train.multigpu.rank import Job, Timeline, rank_plan, run_rank
+from tomgs.train.multigpu.group import run_rank
+from tomgs.train.multigpu.job import Job, Timeline, rank_plan
 from tomgs.train.multigpu.shards import REFINE_FRACTION, default_overlap, plan_stretches, rank_paths
 from tomgs.train.plan import duration
 from tomgs.train.trainer import FitResult

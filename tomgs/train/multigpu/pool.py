@@ -4,7 +4,7 @@ A spawned rank begins with Python's and torch's imports (~3 s on the GPU hosts),
 parent before it can check the inputs and plan the run: spawned only then (tomgs.train.multigpu.launch), every
 rank's start-up came after the parent's, ~3 s of the budget that no rank trained in. A command that
 knows it fits in shards (the CLI's `fit --gpus N`) calls `start(N)` first thing: its ranks import
-tomgs.train.multigpu.rank while the parent imports and plans, then wait for their Job. The parent's
+tomgs.train.multigpu.group while the parent imports and plans, then wait for their Job. The parent's
 `take(N)` (tomgs.train.multigpu.launch, when it would spawn) hands them over; a pool nobody takes (the parent
 refused its inputs, or failed) is sent away when the parent exits, and a rank whose parent dies
 gets SIGTERM (Linux). It also says where a process stands (torchrun's environment, whether a fit runs
@@ -204,8 +204,8 @@ def leave_terminal() -> None:
 
 def run_spawned(rank: int, job, reports) -> None:
     """A rank spawned with its job (no pool): its imports, then out of the terminal's process group, then
-    its run (tomgs.train.multigpu.rank.spawned), reported on `reports`."""
-    from tomgs.train.multigpu import rank as ranks
+    its run (tomgs.train.multigpu.group.spawned), reported on `reports`."""
+    from tomgs.train.multigpu import group as ranks
 
     leave_terminal()
     ranks.spawned(rank, job, reports)
@@ -215,7 +215,7 @@ def _waiting(jobs, reports) -> None:
     """A waiting rank: import what a rank runs, then run the (rank, job) the parent sends (None, or the
     parent gone: leave without a word)."""
     leave_terminal()  # before the parent's Ctrl-C can reach an import half done
-    from tomgs.train.multigpu import rank as ranks
+    from tomgs.train.multigpu import group as ranks
 
     imported = time.time()
     try:

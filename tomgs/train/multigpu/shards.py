@@ -37,16 +37,18 @@ rows, then the union's refinement and, last, the full-clip PSNR of the scene wri
 from __future__ import annotations
 
 import math
-import signal
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from tomgs.errors import InputError
+from tomgs.io import Video, read_video
+from tomgs.io.video import parse_frames, probe_clip, read_video_for
 from tomgs.model import PARAM_NAMES, GaussianModel
+from tomgs.train.checkpoint import START_OVER
 
 MIN_STRETCH = 2  # frames per rank: a stretch's own clip time needs two
 REFINE_FRACTION = 0.15  # of the training time, for the joint refinement of the union
@@ -410,140 +412,55 @@ def halo(union: torch.Tensor, max_sh_degree: int, times, stretches: list[Stretch
     return Halo(rank, rows, shared, slot_of[rows[shared]], int(is_shared.sum()), holder)
 
 
-@dataclass
-class Refined:
-    """What the refinement did on one rank: steps, seconds, the rows it logged."""
-
-    steps: int = 0
-    seconds: float = 0.0
-    rows: list = field(default_factory=list)
-    stopped_by: int | None = None  # a signal number when SIGINT / SIGTERM stopped it
+# -- a rank's frames -------------------------------------------------------------------------------
 
 
-def refine_optimizer(model: GaussianModel, rates: dict[str, float], config, device: torch.device,
-                     moments: torch.Tensor | None = None, steps: dict | None = None) -> torch.optim.Optimizer:
-    """The refinement's Adam (the trainer's kind: make_adam) for `model`, at `rates`; with `moments`
-    (float32 [M, 2 D], the model's rows of Union.moments) and `steps` (Union.steps), primed to go on
-    from phase 1's state of each row (`prime_adam`) rather than from nothing: a fresh Adam's first
-    steps are a full learning rate in the gradient's sign, whatever the gradient, and knock every
-    converged Gaussian about (H200s: the union's training PSNR fell 1.3 dB over its first 400 steps)."""
-    from tomgs.train.optim import make_adam, prime_adam, uses_seen_adam
+def read_early(job, rank: int):
+    """A rank's frames (a tomgs.io.Video) read before rank 0's cameras arrive, when the selection (--frames) names their
+    source frame numbers without the source's length (a range from a start >= 0); None otherwise. The
+    clip's frame count comes from its index (tomgs.io.video.probe_clip)."""
+    if isinstance(job.video, Video):
+        return None
+    sel = parse_frames(job.frames)
+    if sel.start is not None and sel.start < 0:
+        return None
+    count = probe_clip(job.video, job.frames, job.max_side)[0]
+    overlap = default_overlap(count, job.world) if job.overlap is None else job.overlap
+    stretch = plan_stretches(count, job.world, overlap)[rank]
+    start, step = sel.start or 0, sel.step or 1
+    numbers = slice(start + stretch.lo * step, start + (stretch.hi - 1) * step + 1, step)
+    return read_video(job.video, frames=numbers, max_side=job.max_side)
 
-    params = model.parameters_by_name()
-    optimizer = make_adam(params, rates, uses_seen_adam(config, device), device)
-    if moments is not None:
-        width = sum(row_widths(model.max_sh_degree).values())
-        first, second = unpack(moments[:, :width], model.max_sh_degree), unpack(moments[:, width:], model.max_sh_degree)
-        prime_adam(optimizer, {name: (first[name], second[name]) for name in params}, steps or {})
-    return optimizer
+
+def read_stretch(job, cameras, stretch: Stretch) -> np.ndarray:
+    """uint8 [F,H,W,3]: a rank's frames, read from the clip by their source frame numbers."""
+    if isinstance(job.video, Video):
+        return np.ascontiguousarray(job.video.frames[stretch.lo:stretch.hi])
+    return read_video_for(job.video, cameras[stretch.lo:stretch.hi])
 
 
-def refine(model: GaussianModel, part: Halo, frames: torch.Tensor, cameras, config, rates: dict[str, float],
-           device: torch.device, *, moments: torch.Tensor | None = None, adam_steps: dict | None = None,
-           steps: int = 0, until: float | None = None, start_wall: float = 0.0, start_iteration: int = 0,
-           log_rows=None, tick=None, defer: bool | None = None) -> Refined:
-    """Train `model` (rank part.rank's Halo of the union: its Gaussians in `part.rows` order) jointly
-    with the other ranks': it renders its own frames (`frames` uint8 [F,H,W,3] on any device,
-    `cameras` theirs in clip time), and the gradients and 'in view' flags of the shared Gaussians are
-    summed over the ranks at each step, so that every replica of one takes the same Adam step. Adam
-    (`refine_optimizer`) runs at `rates` (Union.rates: where phase 1's schedule ended), from phase 1's
-    state of each row when `moments` (its rows of Union.moments) and `adam_steps` are given. Stops
-    after `steps` steps, or before the wall-clock time `until` (time.time()) that any rank reaches
-    first (when a step as long as its latest would end past it), or at SIGINT / SIGTERM on any rank
-    (Refined.stopped_by). Needs an initialised default process group. `log_rows(row)` hears a CSV
-    row every config.log_interval steps (wall_s from `start_wall`, iteration from `start_iteration`;
-    train_psnr the ranks' mean). `defer` (None: on a GPU): a step's frame does not wait for its
-    counts, as in Trainer.step."""
-    import torch.distributed as dist
+def identity_of(indices, frames) -> dict:
+    """tomgs.train.clip.clip_identity of a stretch's frames (uint8 [F,H,W,3], source frame numbers `indices`),
+    read without masks: what its checkpoint identifies them by."""
+    from types import SimpleNamespace
 
-    from tomgs.io.scene import vertex_bytes
-    from tomgs.metrics import psnr, ssim
-    from tomgs.render.frame import render_frame
-    from tomgs.train.checkpoint import StopSignals
-    from tomgs.train.optim import uses_seen_adam
-    from tomgs.train.sampler import MAX_PSNR, FrameSampler
-    from tomgs.train.log import log_memory_mb
+    from tomgs.train.clip import clip_identity
 
-    c = config
-    world = dist.get_world_size()
-    params = model.parameters_by_name()
-    n = len(model)
-    sparse = uses_seen_adam(c, device)
-    optimizer = refine_optimizer(model, rates, c, device, moments, adam_steps)
-    shared, slots = part.shared.to(device), part.slots.to(device)
-    widths = [p[0].numel() if n else 0 for p in params.values()]
-    viewmats = cameras.viewmats(device)
-    K = torch.as_tensor(cameras.K, dtype=torch.float32, device=device)
-    sampler = FrameSampler(len(cameras), c.sampling, c.psnr_momentum, c.seed + 1000 + part.rank)
-    out = Refined()
-    began = time.perf_counter()
-    recent = []
-    step_s, stepped = 0.0, began  # the latest step's seconds
-    with StopSignals() as stop:
-        while True:
-            k = sampler.sample()
-            target = frames[k].to(device, non_blocking=True).float() / 255.0
-            wait = not (device.type == "cuda" if defer is None else defer)
-            while True:  # a frame whose keys overflowed their bound drops its gradients, renders again, waiting
-                image, _, meta, counts = render_frame(**model.render_inputs(), viewmat=viewmats[k], K=K,
-                                                      width=cameras.width, height=cameras.height,
-                                                      t=float(cameras.times[k]), defer=not wait)
-                loss = (1 - c.ssim_weight) * (image - target).abs().mean() + c.ssim_weight * (1 - ssim(image, target))
-                loss.backward()
-                if counts is None or not counts.overflowed:
-                    break
-                for p in params.values():
-                    p.grad = None
-                wait = True
-            seen = (meta["radii"] > 0).any(-1)  # bool [M]
-            grads = [p.grad if p.grad is not None else torch.zeros_like(p) for p in params.values()]
-            out.steps += 1
-            done = steps > 0 and out.steps >= steps
-            # stop when the next step would end past `until` (the last step: the time of the latest)
-            late = until is not None and time.time() + step_s >= until
-            value = psnr(image.detach(), target).clamp(max=MAX_PSNR).reshape(1)
-            # one all_reduce: [the union's shared Gaussians x (gradients, 'in view') | PSNR, signal, done]
-            buffer = torch.zeros(part.total, sum(widths) + 1, device=device)
-            buffer[slots] = torch.cat([g.index_select(0, shared).reshape(len(shared), -1) for g in grads]
-                                      + [seen.index_select(0, shared).float()[:, None]], dim=1)
-            # built on the host and sent without waiting (a copy from pageable memory that is not
-            # non_blocking waits for the device)
-            flags = torch.tensor([float(stop.signum or 0), float(done or late)]).to(device, non_blocking=True)
-            buffer = torch.cat([buffer.reshape(-1), value, flags])
-            dist.all_reduce(buffer)
-            summed = buffer[:-3].view(part.total, -1).index_select(0, slots)
-            at = 0
-            for g, width in zip(grads, widths):
-                g.index_copy_(0, shared, summed[:, at:at + width].reshape(len(shared), *g.shape[1:]))
-                at += width
-            seen.index_copy_(0, shared, summed[:, at] > 0)
-            for p, g in zip(params.values(), grads):
-                p.grad = g
-            optimizer.step(seen) if sparse else optimizer.step()
-            optimizer.zero_grad(set_to_none=True)
-            # the one wait for the device a step has: the sums and this rank's own PSNR together
-            total, signum, finished, own = torch.cat([buffer[-3:], value]).tolist()
-            step_s, stepped = time.perf_counter() - stepped, time.perf_counter()
-            sampler.update(k, own)
-            recent.append(total / world)  # the ranks' mean: the union's training PSNR
-            now = time.perf_counter() - began
-            if tick is not None:
-                tick(start_iteration + out.steps, start_wall + now)
-            if log_rows is not None and (out.steps % c.log_interval == 0 or signum or finished):
-                row = log_row(iteration=start_iteration + out.steps, wall_s=round(start_wall + now, 3),
-                              train_psnr=round(float(np.mean(recent)), 3), gaussians=n,
-                              scene_bytes=vertex_bytes(n, model.max_sh_degree),
-                              memory_mb=round(log_memory_mb(device), 1))
-                recent.clear()
-                out.rows.append(row)
-                log_rows(row)
-            if signum:
-                out.stopped_by = stop.signum or signal.SIGTERM  # another rank's signal stops this one too
-                break
-            if finished:
-                break
-    out.seconds = time.perf_counter() - began
-    return out
+    return clip_identity(SimpleNamespace(indices=indices, frames=frames, masks=None))
+
+
+def check_shard(shard, stretch, world: int, checkpoint) -> None:
+    """A rank's checkpoint must be of this run's ranks and stretch."""
+    if not isinstance(shard, dict):
+        raise InputError(f"{checkpoint} is not a checkpoint of a sharded fit: {START_OVER}")
+    if shard.get("world") != world:
+        raise InputError(f"{checkpoint} was fitted with --gpus {shard.get('world')}, this run asks for --gpus {world}: "
+                         f"resume with the --gpus it was started with, or {START_OVER}")
+    if [shard.get(k) for k in ("lo", "hi", "own_lo", "own_hi")] != [stretch.lo, stretch.hi, stretch.own_lo,
+                                                                     stretch.own_hi]:
+        raise InputError(f"{checkpoint} was fitted on positions {shard.get('lo')}..{shard.get('hi')} of the clip, "
+                         f"this run gives rank {stretch.rank} {stretch.lo}..{stretch.hi}: resume with the options it "
+                         f"was started with, or {START_OVER}")
 
 
 # -- collectives on rows -----------------------------------------------------------------------------
@@ -582,8 +499,8 @@ def assemble(model: GaussianModel, part: Halo) -> torch.Tensor:
     return out
 
 
-__all__ = ["MIN_STRETCH", "REFINE_FRACTION", "Halo", "Refined", "Stretch", "Union", "all_gather_rows", "assemble",
-           "boundary_psnr", "clip_rates", "gather_union", "halo", "local_cameras", "log_row",
+__all__ = ["MIN_STRETCH", "REFINE_FRACTION", "Halo", "Stretch", "Union", "all_gather_rows", "assemble",
+           "boundary_psnr", "check_shard", "identity_of", "clip_rates", "gather_union", "halo", "local_cameras", "log_row",
            "merged_history", "model_of", "moments_to_clip_time", "own_cut", "owned_rows", "pack", "plan_stretches",
-           "rank_paths", "reach", "refine", "refine_optimizer", "stretch_points", "stretch_span", "to_clip_time",
+           "rank_paths", "reach", "read_early", "read_stretch", "stretch_points", "stretch_span", "to_clip_time",
            "unpack"]
