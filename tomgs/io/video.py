@@ -287,11 +287,12 @@ def probe_source(path) -> Source:
             turns = _turns(first) if first is not None else 0
             if turns % 2:
                 w, h = h, w
+            rate = _frame_rate(stream, pts)  # while the container is open (PyAV 19 refuses a closed one's stream)
     except InputError:
         raise
     except (av.error.FFmpegError, UnicodeDecodeError, ValueError) as e:
         raise _unreadable(path, e) from None
-    return Source(path, len(pts), h, w, *_frame_rate(stream, pts), rotation=(360 - 90 * turns) % 360)
+    return Source(path, len(pts), h, w, *rate, rotation=(360 - 90 * turns) % 360)
 
 
 def probe_clip(path, frames=None, max_side: int | None = None,
