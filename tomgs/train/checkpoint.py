@@ -52,6 +52,7 @@ import signal
 import threading
 import warnings
 from pathlib import Path
+from typing import Callable, NoReturn
 
 import torch
 
@@ -343,12 +344,29 @@ def _bad(path, what: str) -> InputError:
 
 def check_state(state, path="<checkpoint>", ours: bool = False) -> None:
     """Check the layout of a checkpoint's state before anything of it is used: InputError naming
-    `path` otherwise (a RuntimeError when `ours`: the trainer about to write a torn state)."""
+    `path` otherwise (a RuntimeError when `ours`: the trainer about to write a torn state). The parts
+    are checked in the order they are listed here, so the first fault found is the one named."""
     def fail(what):
         if ours:
             raise RuntimeError(f"refusing to write checkpoint {path}: {what}")
         raise _bad(path, what)
 
+    _check_header(state, path, fail)
+    rows = _check_params(state["params"], fail)
+    _check_optimizer(state["optimizer"], state["params"], rows, fail)
+    _check_sampler(state["sampler"], state["frames"][0], fail)
+    _check_densifier(state["densifier"], rows, fail)
+    _check_growth(state.get("growth", dict(limit=1, stages=[], full_since=None, heard=[], stopped="")), fail)
+    _check_sparsifier(state.get("sparsifier", dict(taken=0, share=0.5, measured=[], priced=[], stopped="",
+                                                   grown=None)), fail)
+
+
+# check_state's parts: each calls `fail(what)` (which raises) at the first fault it finds
+
+
+def _check_header(state, path, fail: Callable[[str], NoReturn]) -> None:
+    """The format and version, every top-level key present with its type, the counters, the frames
+    ([views, height, width]), the settings (config_from), the notes and the history rows."""
     if not isinstance(state, dict) or state.get("format") != FORMAT:
         fail(f"no \"format\": \"{FORMAT}\"")
     if state.get("version") != VERSION:
@@ -375,15 +393,21 @@ def check_state(state, path="<checkpoint>", ours: bool = False) -> None:
                 or not all(isinstance(v, (int, float, str)) for v in row.values()):
             fail(f"history rows are not {', '.join(LOG_FIELDS)}")
 
-    params = state["params"]
+
+def _check_params(params: dict, fail: Callable[[str], NoReturn]) -> int:
+    """The Gaussians' rows N: `params` must be the float tensors PARAM_NAMES, each [N, ...]."""
     if set(params) != set(PARAM_NAMES) or not all(torch.is_tensor(v) and v.is_floating_point() for v in params.values()):
         fail(f"params are not the float tensors {', '.join(PARAM_NAMES)}")
     rows = {name: (v.shape[0] if v.dim() else -1) for name, v in params.items()}
     n = rows["means"]
     if len(set(rows.values())) != 1 or n < 0:
         fail(f"parameters of different lengths {sorted(set(rows.values()))}")
+    return n
 
-    optimizer = state["optimizer"]
+
+def _check_optimizer(optimizer: dict, params: dict, n: int, fail: Callable[[str], NoReturn]) -> None:
+    """Adam's state_dict: one named group a parameter, and moments [N, ...] shaped as their parameter
+    (n: the rows, for the message)."""
     groups, moments = optimizer.get("param_groups"), optimizer.get("state")
     if not isinstance(groups, list) or not isinstance(moments, dict) or len(groups) != len(PARAM_NAMES):
         fail("optimizer state of another layout")
@@ -401,17 +425,24 @@ def check_state(state, path="<checkpoint>", ours: bool = False) -> None:
             if not torch.is_tensor(entry.get(key)) or entry[key].shape != shape:
                 fail(f"Adam moments of {ids[index]} ({key}) do not match its {n} rows")
 
-    sampler = state["sampler"]
-    if not torch.is_tensor(sampler.get("psnr")) or tuple(sampler["psnr"].shape) != (frames[0],) \
+
+def _check_sampler(sampler: dict, views: int, fail: Callable[[str], NoReturn]) -> None:
+    """The frame sampler's PSNRs [views] (running, and each frame's latest when present), its
+    generator, and its pending [frame, PSNR] pairs, of frames below `views`."""
+    if not torch.is_tensor(sampler.get("psnr")) or tuple(sampler["psnr"].shape) != (views,) \
             or not torch.is_tensor(sampler.get("generator")) or ("latest" in sampler and (
-                not torch.is_tensor(sampler["latest"]) or tuple(sampler["latest"].shape) != (frames[0],))):
+                not torch.is_tensor(sampler["latest"]) or tuple(sampler["latest"].shape) != (views,))):
         fail("sampler state does not match the frames")
     pending = sampler.get("pending", [])
     if not isinstance(pending, list) or not all(
-            isinstance(p, list) and len(p) == 2 and type(p[0]) is int and 0 <= p[0] < frames[0]
+            isinstance(p, list) and len(p) == 2 and type(p[0]) is int and 0 <= p[0] < views
             and type(p[1]) is float for p in pending):
         fail("sampler's pending measurements are not [frame, PSNR] pairs of its frames")
-    densifier = state["densifier"]
+
+
+def _check_densifier(densifier: dict, n: int, fail: Callable[[str], NoReturn]) -> None:
+    """The densifier's statistics [n] (grad_sum, seen) and its flags, counters, generator and limit
+    (the keys added later may be absent)."""
     for key in ("grad_sum", "seen"):
         if not torch.is_tensor(densifier.get(key)) or tuple(densifier[key].shape) != (n,):
             fail(f"densifier statistics ({key}) do not match the {n} rows")
@@ -419,7 +450,11 @@ def check_state(state, path="<checkpoint>", ours: bool = False) -> None:
             or type(densifier.get("changed_at", 0)) is not int or type(densifier.get("stopped", False)) is not bool \
             or type(densifier.get("densified_at", 0)) is not int or not _count(densifier.get("limit", 1)):
         fail("densifier state of another layout")
-    growth = state.get("growth", dict(limit=1, stages=[], full_since=None, heard=[], stopped=""))
+
+
+def _check_growth(growth, fail: Callable[[str], NoReturn]) -> None:
+    """tomgs.train.growth.Growth's state: a limit, [count, PSNR, worth] stages, the PSNRs heard, when
+    it was full (a float or None) and why it stopped."""
     if not isinstance(growth, dict) or not _count(growth.get("limit")) or not isinstance(growth.get("stopped"), str) \
             or not isinstance(growth.get("stages"), list) or not isinstance(growth.get("heard"), list) \
             or not all(isinstance(s, list) and len(s) == 3 and type(s[0]) is int and type(s[1]) is float
@@ -427,7 +462,11 @@ def check_state(state, path="<checkpoint>", ours: bool = False) -> None:
             or not all(type(p) is float for p in growth["heard"]) \
             or not (growth.get("full_since") is None or type(growth["full_since"]) is float):
         fail("growth state of another layout")
-    sparsifier = state.get("sparsifier", dict(taken=0, share=0.5, measured=[], priced=[], stopped="", grown=None))
+
+
+def _check_sparsifier(sparsifier, fail: Callable[[str], NoReturn]) -> None:
+    """tomgs.train.sparsify.Sparsifier's state: counts, its share, the [count, PSNR] measured, the
+    rounds priced ([count, proposed, PSNR, PSNR without them, taken]), why it stopped, its seconds."""
     if not isinstance(sparsifier, dict) or type(sparsifier.get("taken")) is not int \
             or type(sparsifier.get("share")) is not float or not isinstance(sparsifier.get("stopped"), str) \
             or not isinstance(sparsifier.get("measured"), list) or not isinstance(sparsifier.get("priced"), list) \

@@ -50,46 +50,26 @@ def initial_model(frames: torch.Tensor, cameras: Cameras, config: TrainConfig, d
     w2c = cameras.viewmats()
     depth = median_depth(points, w2c)
     per_frame = c.points_per_frame(width * height, num_frames, device.type)
-    fx, fy, cx, cy = cameras.K[0, 0], cameras.K[1, 1], cameras.K[0, 2], cameras.K[1, 2]
     frame_sigma = frames_to_clip_time(c.init_t_scale_frames, num_frames)
     wide = int(round(wide_fraction * per_frame))  # the first `wide` of each frame's points (random)
     tracked_means, tracked_sigma = tracked_windows(point_frames, times, len(points), frame_sigma)
     # sizes: tracked points from their neighbours (few), per-frame points from one sample's
     # share of the image at their depth (many: a neighbour search over them would be quadratic)
-    sample_pixels = math.sqrt(width * height / per_frame) / float(fx)
+    sample_pixels = math.sqrt(width * height / per_frame) / float(cameras.K[0, 0])
     pixel_size = max(float(np.median(depth)) * sample_pixels, 1e-6)
-    # float32 arrays on the training device, filled a frame at a time: the host holds one frame's
-    # points, never the whole cloud (7.2M points, ~1.8 GB with their SH, for 900 frames on a GPU)
-    P, total = len(points), len(points) + num_frames * per_frame
-    dev = dict(dtype=torch.float32, device=device)
-    all_points, all_colors = torch.empty(total, 3, **dev), torch.empty(total, 3, **dev)
-    t_means, start_t_scales = torch.empty(total, **dev), torch.empty(total, **dev)
-    sizes = torch.full((total,), pixel_size, **dev)
-    if P:
-        all_points[:P] = torch.as_tensor(points, dtype=torch.float32)
-        all_colors[:P] = torch.as_tensor(colors, dtype=torch.float32)
-        t_means[:P] = torch.as_tensor(tracked_means, dtype=torch.float32)
-        start_t_scales[:P] = torch.as_tensor(tracked_sigma, dtype=torch.float32)
-        sizes[:P] = nearest_neighbour_distance(torch.as_tensor(points, dtype=torch.float32)).to(device)
+    total = len(points) + num_frames * per_frame
+    all_points, all_colors, t_means, start_t_scales, sizes = _cloud_with_tracked_points(
+        points, colors, tracked_means, tracked_sigma, total, pixel_size, device)
     if c.init_depth == "tracks":
         grids, known = log_depth_grids(points, w2c, cameras, point_frames, device)
     else:
         grids, known = None, torch.zeros(num_frames, dtype=torch.bool)
-    n = P
+    n = len(points)
     for k in range(num_frames):
         u, v = initial_pixels(weights, k, per_frame, width, height, g)
-        if known[k]:
-            z = torch.exp(sample_grid(grids[k], u, v, width, height))
-        else:
-            z = torch.full_like(u, depth[k])
-        z = z * torch.exp(c.init_depth_jitter * torch.randn(len(u), generator=g, dtype=torch.float64))
-        cam = torch.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], -1).numpy()
-        c2w = cameras.c2w[k]
+        z = _frame_depths(grids[k] if known[k] else None, depth[k], u, v, width, height, c.init_depth_jitter, g)
         m = len(u)
-        all_points[n:n + m] = torch.from_numpy(cam @ c2w[:3, :3].T + c2w[:3, 3]).float()
-        pix = frames[k, v.long().clamp(max=height - 1).to(frames.device),
-                     u.long().clamp(max=width - 1).to(frames.device)]
-        all_colors[n:n + m] = pix.float().to(device) / 255.0
+        all_points[n:n + m], all_colors[n:n + m] = _frame_points(frames, cameras, k, u, v, z, device)
         if known[k]:
             sizes[n:n + m] = (z * sample_pixels).clamp_min(1e-6).float().to(device)
         early = torch.arange(m, device=device) < wide
@@ -116,6 +96,55 @@ def initial_model(frames: torch.Tensor, cameras: Cameras, config: TrainConfig, d
         notes.append("SH degree 0: view-dependent colour left out (--sh-degree 1..3 fits it; Python: "
                      "sh_degree=)")
     return model.to(device), float(np.median(depth)), notes
+
+
+def _cloud_with_tracked_points(points: np.ndarray, colors: np.ndarray, t_means: np.ndarray, t_scales: np.ndarray,
+                               total: int, pixel_size: float, device: torch.device) -> tuple[torch.Tensor, ...]:
+    """The starting cloud's float32 arrays on the training device, room for `total` points: positions and
+    colours [total,3], t_means, temporal sigmas and sizes [total]. The first P rows hold the tracked
+    points (points, colors [P,3]; t_means, t_scales [P]; sized by their nearest neighbour); the rest
+    (sizes `pixel_size` until then) are filled a frame at a time, so the host holds one frame's points,
+    never the whole cloud (7.2M points, ~1.8 GB with their SH, for 900 frames on a GPU)."""
+    P = len(points)
+    dev = dict(dtype=torch.float32, device=device)
+    all_points, all_colors = torch.empty(total, 3, **dev), torch.empty(total, 3, **dev)
+    all_t_means, all_t_scales = torch.empty(total, **dev), torch.empty(total, **dev)
+    sizes = torch.full((total,), pixel_size, **dev)
+    if P:
+        all_points[:P] = torch.as_tensor(points, dtype=torch.float32)
+        all_colors[:P] = torch.as_tensor(colors, dtype=torch.float32)
+        all_t_means[:P] = torch.as_tensor(t_means, dtype=torch.float32)
+        all_t_scales[:P] = torch.as_tensor(t_scales, dtype=torch.float32)
+        sizes[:P] = nearest_neighbour_distance(torch.as_tensor(points, dtype=torch.float32)).to(device)
+    return all_points, all_colors, all_t_means, all_t_scales, sizes
+
+
+def _frame_depths(grid: torch.Tensor | None, median: float, u: torch.Tensor, v: torch.Tensor, width: int,
+                  height: int, jitter: float, g: torch.Generator) -> torch.Tensor:
+    """Depths float64 [n] of one frame's new points at pixels u, v [n] of its width x height image: its
+    log-depth `grid` [gh, gw] sampled there (None: the frame's `median` tracked depth), times a
+    log-normal factor of sigma `jitter` (one draw of n normals from `g`)."""
+    if grid is not None:
+        z = torch.exp(sample_grid(grid, u, v, width, height))
+    else:
+        z = torch.full_like(u, median)
+    return z * torch.exp(jitter * torch.randn(len(u), generator=g, dtype=torch.float64))
+
+
+def _frame_points(frames: torch.Tensor, cameras: Cameras, k: int, u: torch.Tensor, v: torch.Tensor, z: torch.Tensor,
+                  device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """(world positions float32 [n,3] on the host, colours in [0,1] float32 [n,3] on `device`) of frame
+    k's new points: pixels u, v [n] at depths z [n] (float64) through its camera, coloured by the pixel
+    of frames [T,H,W,3] they fall in."""
+    height, width = frames.shape[1:3]
+    fx, fy, cx, cy = cameras.K[0, 0], cameras.K[1, 1], cameras.K[0, 2], cameras.K[1, 2]
+    cam = torch.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], -1).numpy()
+    c2w = cameras.c2w[k]
+    world = torch.from_numpy(cam @ c2w[:3, :3].T + c2w[:3, 3]).float()
+    pix = frames[k, v.long().clamp(max=height - 1).to(frames.device),
+                 u.long().clamp(max=width - 1).to(frames.device)]
+    return world, pix.float().to(device) / 255.0
+
 
 def tracked_windows(point_frames, times, count: int, min_sigma: float) -> tuple[np.ndarray, np.ndarray]:
     """(t_means [P], t_scales [P]) of the tracked points: centred on the frames that saw each one,

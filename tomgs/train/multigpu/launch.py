@@ -27,6 +27,7 @@ fit(..., gpus=N) keeps that call under `if __name__ == "__main__":`.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import signal
@@ -253,120 +254,180 @@ def _spawn_and_watch(job: Job, paths: dict, progress, phases, pose_progress, tim
     return rank 0's summary (or raise ShardFailed, InputError, ShardsInterrupted). `timeline` (a
     Timeline) hears the spawn and the wait for the ranks; the summary's "timeline" is then every
     rank's own phases, each with its end seen from here ("exit": its report to its process gone)."""
-    import multiprocessing as mp
-    from multiprocessing.connection import wait
-
     pool = rank_pool.take(job.world)  # ranks the caller started before its imports (tomgs.train.multigpu.pool)
     if pool is None:
-        ctx = mp.get_context("spawn")
-        pipes = [ctx.Pipe(duplex=False) for _ in range(job.world)]
-        procs = [ctx.Process(target=rank_pool.run_spawned, args=(rank, job, pipes[rank][1]), name=f"tomgs-rank{rank}",
-                             daemon=False)
-                 for rank in range(job.world)]
-        report_pipes = [reader for reader, _ in pipes]
+        procs, report_pipes, writers = _new_ranks(job)
     else:
-        procs, report_pipes = pool.procs, pool.reports
-    readers = {report_pipes[r]: r for r in range(job.world)}
-    outcome: dict[int, tuple[str, dict]] = {}  # rank -> (done | interrupted | failed, payload)
-    died: dict[int, int] = {}  # rank -> exit code, for a rank that ended without a report
-    first_fault: list[int] = []  # ranks in the order their fault was seen
-    signals: list[int] = []
-    stopping = {"at": None}
+        procs, report_pipes, writers = pool.procs, pool.reports, []
+    watch = _RankWatch(procs, report_pipes, progress, phases, pose_progress)
+    with _signals_forwarded(watch.forward):
+        try:
+            spawning = time.time()
+            _start_ranks(job, pool, procs, writers)
+            if timeline is not None:
+                timeline.add("spawn" if pool is None else "hand the job to the ranks", spawning)
+            running = time.time()
+            watch.until_all_gone()
+            if timeline is not None:
+                timeline.add("ranks", running)
+        except BaseException:  # the parent's own failure (a callback's error): no rank outlives it
+            watch.stop_all()
+            raise
+    summary = _verdict(job, paths, procs, watch.outcome, watch.died, watch.first_fault, watch.signals)
+    if timeline is not None:  # each rank's own phases (its summary's), and its exit as seen from here
+        summary = dict(summary, timeline=watch.rank_timelines(timeline.origin))
+    return summary
 
-    def send(signum) -> None:
+
+def _new_ranks(job: Job) -> tuple[list, list, list]:
+    """job.world rank processes, not started yet (spawn, not fork): (procs, the parent's reading ends of
+    their report pipes, the writing ends, which the parent closes once the ranks have started)."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("spawn")
+    pipes = [ctx.Pipe(duplex=False) for _ in range(job.world)]
+    procs = [ctx.Process(target=rank_pool.run_spawned, args=(rank, job, pipes[rank][1]), name=f"tomgs-rank{rank}",
+                         daemon=False)
+             for rank in range(job.world)]
+    return procs, [reader for reader, _ in pipes], [writer for _, writer in pipes]
+
+
+def _start_ranks(job: Job, pool, procs: list, writers: list) -> None:
+    """Start the new ranks `procs` (without a `pool`), or tell the pool's waiting ranks their rank and
+    the job: they started and imported before the caller did."""
+    if pool is None:
         for p in procs:
+            p.start()
+        for writer in writers:
+            writer.close()  # the parent's copy: a rank's end of file is its own pipe closing
+    else:  # started and imported already: each is told its rank and the job
+        for rank, conn in enumerate(pool.jobs):
+            conn.send((rank, job))
+            conn.close()
+
+
+@contextlib.contextmanager
+def _signals_forwarded(forward):
+    """SIGINT and SIGTERM to this process call `forward(signum, frame)` inside the block, and the caller's
+    handlers come back after it. Only from the main thread (the only one that may set handlers), and a
+    signal the caller ignores stays ignored."""
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            if signal.getsignal(sig) not in (signal.SIG_IGN, None):
+                previous[sig] = signal.signal(sig, forward)
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+class _RankWatch:
+    """The parent's watch over a spawned run's ranks (procs, and the reading ends of their report
+    pipes, one a rank): it relays rank 0's phases, pose progress and log rows to the callbacks, keeps
+    each rank's outcome, and stops every rank (SIGTERM, then SIGKILL after STOP_GRACE_S) once one
+    fails or dies, or a signal to this process asks it to."""
+
+    def __init__(self, procs: list, report_pipes: list, progress, phases, pose_progress):
+        self.procs, self.report_pipes = procs, report_pipes
+        self.progress, self.phases, self.pose_progress = progress, phases, pose_progress
+        self.readers = {conn: rank for rank, conn in enumerate(report_pipes)}  # the pipes not at their end yet
+        self.outcome: dict[int, tuple[str, dict]] = {}  # rank -> (done | interrupted | failed, payload)
+        self.died: dict[int, int] = {}  # rank -> exit code, for a rank that ended without a report
+        self.first_fault: list[int] = []  # ranks in the order their fault was seen
+        self.signals: list[int] = []  # the signals this process forwarded, in order
+        self.stop_at: float | None = None  # time.monotonic() when the ranks were first asked to stop
+        self.faulted = False  # whether they were asked because a rank failed or died
+        self.reported: dict[int, float] = {}  # rank -> when its last report arrived (time.time())
+        self.ended: dict[int, float] = {}  # rank -> when its process was seen gone
+
+    def send(self, signum) -> None:
+        """`signum` to every rank still alive."""
+        for p in self.procs:
             if p.is_alive():
                 try:
                     os.kill(p.pid, signum)
                 except OSError:
                     pass
 
-    def forward(signum, frame):  # the parent's SIGINT / SIGTERM: every rank saves and stops
-        signals.append(signum)
-        stopping["at"] = stopping["at"] or time.monotonic()
-        send(signum)
+    def forward(self, signum, frame) -> None:
+        """The parent's SIGINT / SIGTERM handler: every rank saves and stops."""
+        self.signals.append(signum)
+        self.stop_at = self.stop_at or time.monotonic()
+        self.send(signum)
 
-    previous = {}
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            if signal.getsignal(sig) not in (signal.SIG_IGN, None):
-                previous[sig] = signal.signal(sig, forward)
-    reported: dict[int, float] = {}  # rank -> when its last report arrived (time.time())
-    ended: dict[int, float] = {}  # rank -> when its process was seen gone
-    try:
-        spawning = time.time()
-        if pool is None:
-            for p in procs:
-                p.start()
-            for _, writer in pipes:
-                writer.close()  # the parent's copy: a rank's end of file is its own pipe closing
-        else:  # started and imported already: each is told its rank and the job
-            for rank, conn in enumerate(pool.jobs):
-                conn.send((rank, job))
-                conn.close()
-        if timeline is not None:
-            timeline.add("spawn" if pool is None else "hand the job to the ranks", spawning)
-        running = time.time()
-        while any(p.is_alive() for p in procs) or readers:
-            ready = wait(list(readers) + [p.sentinel for p in procs if p.is_alive()], timeout=0.5)
-            for conn in [c for c in ready if c in readers]:
-                rank = readers[conn]
-                try:
-                    kind, payload = conn.recv()
-                except (EOFError, OSError):
-                    del readers[conn]
-                    continue
-                if kind in ("done", "interrupted", "failed"):
-                    outcome[rank] = (kind, payload)
-                    reported[rank] = time.time()
-                    if kind == "failed":
-                        first_fault.append(rank)
-                elif kind == "phase" and rank == 0:
-                    phases(*payload)
-                elif kind == "poses" and rank == 0 and pose_progress is not None:
-                    pose_progress(*payload)
-                elif kind == "row" and rank == 0 and progress is not None:
-                    try:
-                        progress(payload)
-                    except KeyboardInterrupt:  # the caller's Ctrl-C, as in a one-GPU fit
-                        forward(signal.SIGINT, None)
-            for rank, p in enumerate(procs):
-                if rank not in ended and not p.is_alive():
-                    ended[rank] = time.time()
-                if not p.is_alive() and p.exitcode is not None and rank not in outcome and rank not in died \
-                        and not _pending(report_pipes[rank], readers):
-                    died[rank] = p.exitcode
-                    first_fault.append(rank)
-            if first_fault and not stopping.get("faulted"):
-                stopping.update(at=stopping["at"] or time.monotonic(), faulted=True)
-                send(signal.SIGTERM)
-            if stopping["at"] is not None and time.monotonic() - stopping["at"] > STOP_GRACE_S:
-                send(signal.SIGKILL)  # blocked in a collective with a dead peer: it keeps its last checkpoint
-        for rank, p in enumerate(procs):
+    def until_all_gone(self) -> None:
+        """Relay reports and note exits until every rank has ended and every report pipe is read, asking
+        the ranks to stop once one faults; then join them."""
+        from multiprocessing.connection import wait
+
+        while any(p.is_alive() for p in self.procs) or self.readers:
+            ready = wait(list(self.readers) + [p.sentinel for p in self.procs if p.is_alive()], timeout=0.5)
+            for conn in [c for c in ready if c in self.readers]:
+                self._receive(conn)
+            self._note_exits()
+            if self.first_fault and not self.faulted:
+                self.stop_at, self.faulted = self.stop_at or time.monotonic(), True
+                self.send(signal.SIGTERM)
+            if self.stop_at is not None and time.monotonic() - self.stop_at > STOP_GRACE_S:
+                self.send(signal.SIGKILL)  # blocked in a collective with a dead peer: it keeps its last checkpoint
+        for rank, p in enumerate(self.procs):
             p.join()
-            ended.setdefault(rank, time.time())  # gone between the loop's last look and its end
-        if timeline is not None:
-            timeline.add("ranks", running)
-    except BaseException:  # the parent's own failure (a callback's error): no rank outlives it
-        send(signal.SIGTERM)
-        for p in procs:
+            self.ended.setdefault(rank, time.time())  # gone between the loop's last look and its end
+
+    def _receive(self, conn) -> None:
+        """One message from a rank's report pipe: its outcome, or rank 0's progress for the callbacks;
+        the pipe's end (the rank gone) drops it from the readers."""
+        rank = self.readers[conn]
+        try:
+            kind, payload = conn.recv()
+        except (EOFError, OSError):
+            del self.readers[conn]
+            return
+        if kind in ("done", "interrupted", "failed"):
+            self.outcome[rank] = (kind, payload)
+            self.reported[rank] = time.time()
+            if kind == "failed":
+                self.first_fault.append(rank)
+        elif kind == "phase" and rank == 0:
+            self.phases(*payload)
+        elif kind == "poses" and rank == 0 and self.pose_progress is not None:
+            self.pose_progress(*payload)
+        elif kind == "row" and rank == 0 and self.progress is not None:
+            try:
+                self.progress(payload)
+            except KeyboardInterrupt:  # the caller's Ctrl-C, as in a one-GPU fit
+                self.forward(signal.SIGINT, None)
+
+    def _note_exits(self) -> None:
+        """When each rank was seen gone; a rank gone with no report and none left unread died (a fault)."""
+        for rank, p in enumerate(self.procs):
+            if rank not in self.ended and not p.is_alive():
+                self.ended[rank] = time.time()
+            if not p.is_alive() and p.exitcode is not None and rank not in self.outcome and rank not in self.died \
+                    and not _pending(self.report_pipes[rank], self.readers):
+                self.died[rank] = p.exitcode
+                self.first_fault.append(rank)
+
+    def stop_all(self) -> None:
+        """The parent's own failure: SIGTERM to every rank, a wait of up to STOP_GRACE_S for each, then SIGKILL."""
+        self.send(signal.SIGTERM)
+        for p in self.procs:
             p.join(STOP_GRACE_S)
-        send(signal.SIGKILL)
-        raise
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-    summary = _verdict(job, paths, procs, outcome, died, first_fault, signals)
-    if timeline is not None:  # each rank's own phases (its summary's), and its exit as seen from here
+        self.send(signal.SIGKILL)
+
+    def rank_timelines(self, origin: float) -> dict[str, list[dict]]:
+        """{"rank<r>": events} for each rank with an outcome: its own phases (a finished rank's
+        summary's), then its "exit" (its report to its process gone), in seconds from `origin`."""
         ranks = {}
-        for rank, (kind, payload) in sorted(outcome.items()):
+        for rank, (kind, payload) in sorted(self.outcome.items()):
             events = list(payload.get("own_timeline") or []) if kind == "done" else []
-            if rank in reported and rank in ended:
-                events.append(dict(phase="exit", start=round(reported[rank] - timeline.origin, 3),
-                                   end=round(max(ended[rank], reported[rank]) - timeline.origin, 3)))
+            if rank in self.reported and rank in self.ended:
+                events.append(dict(phase="exit", start=round(self.reported[rank] - origin, 3),
+                                   end=round(max(self.ended[rank], self.reported[rank]) - origin, 3)))
             ranks[f"rank{rank}"] = events
-        summary = dict(summary, timeline=ranks)
-    return summary
+        return ranks
 
 
 def _pending(conn, readers) -> bool:
