@@ -9,7 +9,7 @@ import torch
 
 import tomgs
 from scenes import INPUT_NAMES, devices, random_scene, render_both
-from test_raster import assert_matches_reference, assert_matches_within_float32
+from tests.render.test_raster import assert_matches_reference, assert_matches_within_float32
 
 DEVICES = devices()
 

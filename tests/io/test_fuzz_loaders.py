@@ -160,7 +160,7 @@ def corpus(tmp_path_factory) -> Corpus:
     try:
         import torch
 
-        from test_poses_onnx import TinyPoses, _export
+        from tests.poses.test_poses_onnx import TinyPoses, _export
 
         c.files["onnx"] = _export(TinyPoses(), root / "poses.onnx", ["c2w", "K"])
         del torch

@@ -165,7 +165,7 @@ def test_full_clip_psnr_is_not_measured_right_after_a_densification():
     densification, prune or reset; before, every row at a densification step measured the dip."""
     from tomgs.train import Trainer
 
-    from test_train import small_config, synthetic_clip
+    from tests.train.test_train import small_config, synthetic_clip
 
     images, cams, points, colors = synthetic_clip(3, 32, 18)
     config = small_config(300).replace(eval_interval_s=0.0)
@@ -216,7 +216,7 @@ def test_a_long_clip_has_a_clip_psnr_early_over_evenly_spaced_frames(monkeypatch
     from tomgs.train import Trainer
     from tomgs.train.log import write_plot
 
-    from test_train import small_config
+    from tests.train.test_train import small_config
 
     T, clock, asked = 300, [0.0], []
 
@@ -262,7 +262,7 @@ def test_a_long_clip_has_a_clip_psnr_early_over_evenly_spaced_frames(monkeypatch
 def test_a_clip_psnr_of_some_frames_is_theirs_of_every_frame():
     from tomgs.train import Trainer
 
-    from test_train import small_config, synthetic_clip
+    from tests.train.test_train import small_config, synthetic_clip
 
     images, cams, points, colors = synthetic_clip(6, 32, 18)
     trainer = Trainer(images, cams, points, colors, small_config(10), CPU)
@@ -282,7 +282,7 @@ def test_the_hosts_frames_go_once_the_trainer_has_its_own_copy(tmp_path, monkeyp
     import tomgs.io
     from tomgs.train import Trainer, fit
 
-    from test_train import small_config
+    from tests.train.test_train import small_config
 
     video = tmp_path / "clip.mp4"
     assert run("demo", "--frames", 6, "--size", "64x36", "-o", video, "-q", "--device", "cpu").exit_code == 0
