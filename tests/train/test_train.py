@@ -744,7 +744,7 @@ def test_a_depth_grid_samples_a_linear_function_exactly():
 
 
 def test_initial_cloud_is_built_a_frame_at_a_time_not_on_the_host():
-    """Issue 14: the initial cloud goes straight into float32 arrays on the training device, so the
+    """The initial cloud goes straight into float32 arrays on the training device, so the
     host never holds the whole cloud (the old float64 lists and their concatenations held ~100 bytes
     a point: 1.8 GB for 900 frames of 8,000 points on a GPU, before the model's own host copy)."""
     import tracemalloc
