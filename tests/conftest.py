@@ -41,7 +41,7 @@ def chromium() -> str:
 
 @pytest.fixture(scope="session")
 def blender() -> str:
-    """Blender, for the round trip through its Python (tests/test_blender.py)."""
+    """Blender, for the round trip through its Python (tests/io/test_blender.py)."""
     return required_program("blender", "Debian: apt-get install blender python3-numpy")
 
 

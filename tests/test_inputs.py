@@ -1,4 +1,4 @@
-"""Inputs checked at the door: one test per finding of the safety issue "inputs checked at the door".
+"""Inputs checked at the door: one test per way a file could make a loader misbehave.
 
 Every loader raises InputError (exit 2 from the CLI) for anything a file holds, and sizes read from a
 file are checked against what the file can hold before anything is allocated. Allocation bounds are
@@ -182,7 +182,7 @@ def _bomb(path, name, shape, dtype="<f4", zeros_mb=None):
 
 
 def test_npz_zip_bomb_is_refused_before_decompressing(tmp_path):
-    """A 1 MB .npz whose 'vertices' expands to 1 GiB (the issue's 4.7 MB one reached 4.9 GB)."""
+    """A 1 MB .npz whose 'vertices' expands to 1 GiB (a 4.7 MB one once reached 4.9 GB)."""
     mesh = _tets(tmp_path)
     bomb = _bomb(tmp_path / "bomb.npz", "vertices", (2**30 // 48, 4, 3), "<f4")  # V = 4 like the tets file
     wrong = _bomb(tmp_path / "wrong.npz", "vertices", (2**30 // 60, 5, 3), "<f4")  # V = 5: not this mesh

@@ -282,7 +282,7 @@ def test_defect10_the_ends_of_every_range_run(scene, tmp_path):
 def test_defect03_a_checkpoint_that_cannot_be_written_lets_training_go_on(tmp_path, monkeypatch):
     """A fit died at 64.6 s with a multi-page traceback when a checkpoint met a full disk. The run goes
     on, notes it, and the last complete checkpoint stays the one to resume."""
-    from test_train import background_writes, run_clip
+    from tests.train.test_train import background_writes, run_clip
 
     background_writes(monkeypatch, {}, error=OSError(errno.ENOSPC, "No space left on device", "run.ckpt"))
     rows = []
@@ -295,7 +295,7 @@ def test_defect03_a_checkpoint_that_cannot_be_written_lets_training_go_on(tmp_pa
 
 def test_defect03_torch_zip_writer_on_a_full_disk_is_an_os_error_naming_the_checkpoint(tmp_path, monkeypatch):
     import tomgs.train.checkpoint as checkpoint
-    from test_train import CPU, small_config, synthetic_clip
+    from tests.train.test_train import CPU, small_config, synthetic_clip
     from tomgs.train import Trainer
 
     images, cams, points, colors = synthetic_clip(2, 24, 14)
@@ -312,7 +312,7 @@ def test_defect03_torch_zip_writer_on_a_full_disk_is_an_os_error_naming_the_chec
 
 def test_defect03_a_stop_whose_save_fails_points_at_the_last_complete_checkpoint(tmp_path, monkeypatch):
     import tomgs.train.trainer as trainer
-    from test_train import background_writes, run_clip
+    from tests.train.test_train import background_writes, run_clip
     from tomgs.train import FitInterrupted
 
     background_writes(monkeypatch, {})
@@ -364,7 +364,7 @@ def test_defect11_the_cap_holds_from_the_first_step(clip, tmp_path):
 
 def test_defect11_a_resumed_fit_says_the_limit_it_ran_under():
     """A resume's note claimed a time limit longer than its --budget: the training seconds of both runs."""
-    from test_train import CPU, small_config, synthetic_clip
+    from tests.train.test_train import CPU, small_config, synthetic_clip
     from tomgs.train import Trainer
 
     images, cams, points, colors = synthetic_clip(2, 24, 14)
@@ -485,7 +485,7 @@ def test_defect04_gpus_are_counted_without_torch(monkeypatch, tmp_path):
 def test_defect05_a_checkpoint_of_views_declaring_more_than_their_storage_is_refused(tmp_path):
     """A 32 KB checkpoint whose tensors were stride-0 views declaring 200M rows over one made `--resume`
     allocate without bound (5.7 GB, then an allocator traceback)."""
-    from test_train import CPU, small_config, synthetic_clip
+    from tests.train.test_train import CPU, small_config, synthetic_clip
     from tomgs.errors import InputError
     from tomgs.train import Trainer, read_checkpoint
 

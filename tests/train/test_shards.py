@@ -21,7 +21,7 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from test_train import small_config, synthetic_clip
+from tests.train.test_train import small_config, synthetic_clip
 from tomgs.errors import InputError
 from tomgs.model import GaussianModel
 from tomgs.render.frame import rasterize
@@ -30,7 +30,8 @@ from tomgs.train.multigpu.launch import check_shard_outputs
 from tomgs.train.multigpu.shards import (Stretch, boundary_psnr, local_cameras, merged_history, own_cut, owned_rows,
                                          pack, plan_stretches, rank_paths, reach, stretch_points, unpack)
 
-TESTS = Path(__file__).parent
+# what a subprocess puts on its sys.path to import the tests' helpers: the repository root and tests/
+TESTS = os.pathsep.join(str(Path(__file__).resolve().parents[i]) for i in (2, 1))
 FRAMES, WIDTH, HEIGHT = 12, 32, 24
 
 
@@ -427,9 +428,9 @@ def test_two_ranks_fit_one_ordinary_scene(clip, tmp_path):
 
 ITERATIONS = 150  # of each rank: long enough to be killed in the middle (~10 steps a second here)
 KILLABLE = textwrap.dedent("""
-    import sys
-    sys.path.insert(0, sys.argv[1])
-    from test_train import small_config
+    import os, sys
+    sys.path[:0] = sys.argv[1].split(os.pathsep)
+    from tests.train.test_train import small_config
     from tomgs.train import fit
 
     if __name__ == "__main__":

@@ -142,7 +142,7 @@ def test_training_steps_that_do_not_wait_train_what_waiting_ones_do(sparse_adam,
     bit what one that waits trains, densification included; steps whose keys overflow the bound
     render again, and their first gradients are dropped. (Frames drawn uniformly: a pipelined
     sampler hears its PSNRs a flush later, which would pick other frames.)"""
-    from test_train import CPU, small_config, synthetic_clip
+    from tests.train.test_train import CPU, small_config, synthetic_clip
     from tomgs.train import Trainer
 
     images, cams, points, colors = synthetic_clip(3, 32, 18)
@@ -174,7 +174,7 @@ def test_a_pipelined_trainer_hands_its_psnrs_to_the_sampler_a_flush_late():
     """Every SAMPLER_LAG steps the PSNRs go to the host without waiting; the sampler hears them at the
     next flush. A checkpoint carries what it has not heard, and hands it nothing (that would change its
     next draws: a seeded run would not repeat)."""
-    from test_train import CPU, small_config, synthetic_clip
+    from tests.train.test_train import CPU, small_config, synthetic_clip
     from tomgs.train import Trainer
     from tomgs.train.trainer import SAMPLER_LAG
 
@@ -203,7 +203,7 @@ def test_a_pipelined_trainer_hands_its_psnrs_to_the_sampler_a_flush_late():
 def test_a_pipelined_trainer_resumes_with_its_flushes_on_the_same_steps(tmp_path):
     """A checkpoint written between flushes, the older PSNRs on their way to the sampler: resumed, they
     arrive at the step they would have, and the run goes on as if never stopped."""
-    from test_train import CPU, small_config, synthetic_clip
+    from tests.train.test_train import CPU, small_config, synthetic_clip
     from tomgs.train import Trainer
     from tomgs.train.trainer import SAMPLER_LAG
 

@@ -88,7 +88,7 @@ def test_the_state_round_trips():
 def test_a_checkpoint_from_before_the_stages_resumes_grown_to_its_cap():
     """A checkpoint without the growth's state (or the densifier's limit) was grown toward the cap: its resume
     takes no stage, which would have put the limit back to twice the start."""
-    from test_sparsify import fit
+    from tests.train.test_sparsify import fit
 
     trainer, _ = fit("default", 30, max_gaussians=12_000)
     state = trainer.state_dict()
@@ -110,7 +110,7 @@ def test_a_fit_below_max_grows_in_stages_within_each_limit():
     """The trainer hands the rule each interval's training PSNR (every Gaussian hot, so growth is quick): the
     default's stages end at their limits, each twice the last, and its notes say so; at "max" the densifier's
     limit is the cap."""
-    from test_sparsify import fit
+    from tests.train.test_sparsify import fit
 
     hot = dict(densify_stop_fraction=0.9, max_gaussians=12_000, grad_threshold=1e-7, densify_interval=25,
                sparsify_rounds=0)  # no prune rounds inside this long growth window

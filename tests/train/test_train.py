@@ -73,7 +73,7 @@ def test_adam_is_sparse_on_a_gpu_and_dense_on_a_cpu_unless_asked():
 def test_seen_adam_is_adam_on_the_rows_in_view(device):
     """SeenAdam against torch's Adam in float64 on fresh random gradients: seen rows take Adam's
     step, unseen rows keep their values and moments; parameters of 1-3 axes, 45 columns (the SH of
-    degree 3) and an empty one, and more parameters than one launch takes (kernels/adam.py SLOTS);
+    degree 3) and an empty one, and more parameters than one launch takes (tomgs/kernels/adam.py SLOTS);
     moments replaced by other tensors (a checkpoint loaded) and a parameter replaced (densification)
     between steps; a step with no rows named (`step()`) is dense Adam, moving every row (those without a
     gradient by their momentum). On every device the tests run on."""
@@ -216,7 +216,7 @@ def test_seen_adam_does_not_import_torch_dynamo():
 
 
 def test_initial_points_per_frame_respect_device_frame_size_and_cap():
-    config = preset("default", quality="max")  # a GPU fit below max starts smaller: tests/test_growth.py
+    config = preset("default", quality="max")  # a GPU fit below max starts smaller: tests/train/test_growth.py
     assert config.points_per_frame(854 * 480, 90, "cuda") == 48000
     # a longer clip starts from 5M Gaussians in all, never from fewer than 16,000 a frame
     assert config.points_per_frame(854 * 480, 200, "cuda") == 25000
@@ -744,7 +744,7 @@ def test_a_depth_grid_samples_a_linear_function_exactly():
 
 
 def test_initial_cloud_is_built_a_frame_at_a_time_not_on_the_host():
-    """Issue 14: the initial cloud goes straight into float32 arrays on the training device, so the
+    """The initial cloud goes straight into float32 arrays on the training device, so the
     host never holds the whole cloud (the old float64 lists and their concatenations held ~100 bytes
     a point: 1.8 GB for 900 frames of 8,000 points on a GPU, before the model's own host copy)."""
     import tracemalloc

@@ -42,7 +42,7 @@ SEED = int(os.environ.get("TOMGS_FUZZ_SEED", "0"))
 SCALE = float(os.environ.get("TOMGS_FUZZ_SCALE", "8"))  # 8: about 15,600 inputs, a minute on 2 CPU cores
 BOUND_BASE = 48 << 20  # bytes any loader may allocate beyond 64 per byte of its input (tracemalloc)
 BOUND_PER_BYTE = 64
-SECONDS = 10.0  # the most one input may take (the 50 MB header comment took 93 s)
+SECONDS = 10.0  # the most one input may take (a 50 MB header comment once took 93 s)
 ADDRESS_HEADROOM = 3 << 30  # RLIMIT_AS over the address space in use when the fuzz starts
 
 NASTY_NUMBERS = ["0", "-1", "1", "255", "256", "65535", "65536", "2147483647", "2147483648", "4294967296",
@@ -160,7 +160,7 @@ def corpus(tmp_path_factory) -> Corpus:
     try:
         import torch
 
-        from test_poses_onnx import TinyPoses, _export
+        from tests.poses.test_poses_onnx import TinyPoses, _export
 
         c.files["onnx"] = _export(TinyPoses(), root / "poses.onnx", ["c2w", "K"])
         del torch

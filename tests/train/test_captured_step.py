@@ -18,7 +18,7 @@ import tomgs.train.captured_step as captured_step
 from tomgs.train.captured_step import (RING, CapturedStep, keys_capacity, keys_fit, keys_needed, rows_capacity,
                                        rows_fit, unsupported)
 from scenes import devices
-from test_train import CPU, small_config, synthetic_clip
+from tests.train.test_train import CPU, small_config, synthetic_clip
 
 DEVICES = devices()
 CLIP = {}  # the tests' clip, made once

@@ -107,7 +107,7 @@ def test_the_fit_s_clock_starts_with_tomgs_not_with_its_process(clip, tmp_path):
     import time
     from pathlib import Path
 
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     code = ("import sys, time; time.sleep(4); sys.argv[0] = 'tomgs'; from tomgs.cli import main; main()")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, (str(root), os.environ.get("PYTHONPATH"))))}
     began = time.perf_counter()

@@ -66,7 +66,7 @@ def test_every_numeric_option_is_checked_by_the_cli_types():
 @pytest.fixture(scope="module")
 def inputs(tmp_path_factory):
     """A tiny scene (2 frames of 16x12), its tets and a one-frame vertex sequence, a tiny clip."""
-    from test_safety import tiny_cameras, tiny_model
+    from tests.test_safety import tiny_cameras, tiny_model
 
     from tomgs.io.scene import save_scene
 

@@ -20,7 +20,7 @@ import torch
 
 import tomgs
 from scenes import INPUT_NAMES, look_at
-from test_raster import assert_matches_within_float32
+from tests.render.test_raster import assert_matches_within_float32
 
 FUZZ_SEED = int(os.environ.get("TOMGS_FUZZ_SEED", "0"))
 CHUNKS = 8  # pytest cases, so a failure names its chunk and the run shows progress

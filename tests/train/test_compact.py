@@ -51,7 +51,7 @@ def test_blend_weights_are_the_references(seed, device):
 
 
 def fitted(compact_pixels: float, iterations: int = 150):
-    from test_train import CPU, small_config, synthetic_clip
+    from tests.train.test_train import CPU, small_config, synthetic_clip
     from tomgs.train import Trainer
 
     images, cams, points, colors = synthetic_clip(3, 32, 18)
@@ -95,7 +95,7 @@ def test_a_run_ends_leaving_out_what_no_frame_shows():
 
 def test_an_interrupted_run_leaves_nothing_out(tmp_path, monkeypatch):
     """Ctrl-C saves the run as it is (it may resume); only a run that reaches its end compacts, once."""
-    from test_train import run_clip
+    from tests.train.test_train import run_clip
     from tomgs.train import Trainer
 
     calls = []

@@ -13,7 +13,7 @@ import torch
 
 import tomgs
 from scenes import INPUT_NAMES, devices, random_scene, rel_l2, split
-from test_raster import assert_matches_reference
+from tests.render.test_raster import assert_matches_reference
 
 DEVICES = devices()
 

@@ -21,14 +21,15 @@ import numpy as np
 import pytest
 import torch
 
-from test_train import CPU, small_config, synthetic_clip
+from tests.train.test_train import CPU, small_config, synthetic_clip
 from tomgs.errors import InputError
 from tomgs.train import Trainer, fit, preset
 from tomgs.train.checkpoint import read_checkpoint
 from tomgs.train.sampler import FrameSampler
 from tomgs.train.loop import RunHooks
 
-TESTS = Path(__file__).parent
+# what a subprocess puts on its sys.path to import the tests' helpers: the repository root and tests/
+TESTS = os.pathsep.join(str(Path(__file__).resolve().parents[i]) for i in (2, 1))
 
 
 def write_frames(folder: Path, count: int = 5, width: int = 32, height: int = 18, black: bool = False,
@@ -408,8 +409,8 @@ def test_a_run_outside_the_main_thread_trains_without_signal_handlers(tmp_path):
 SIGTERM_SCRIPT = textwrap.dedent("""
     import json, os, signal, sys
     from pathlib import Path
-    sys.path.insert(0, sys.argv[2])
-    from test_train import CPU, small_config, synthetic_clip
+    sys.path[:0] = sys.argv[2].split(os.pathsep)
+    from tests.train.test_train import CPU, small_config, synthetic_clip
     from tomgs.train import Trainer
     from tomgs.train.loop import RunHooks
 

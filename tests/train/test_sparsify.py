@@ -168,7 +168,7 @@ def test_the_rules_state_round_trips():
 
 
 def fit(quality: str, iterations: int = 300, **kw):
-    from test_train import small_config, synthetic_clip
+    from tests.train.test_train import small_config, synthetic_clip
 
     images, cams, points, colors = synthetic_clip(4, 48, 27)
     torch.manual_seed(0)

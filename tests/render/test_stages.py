@@ -1,6 +1,6 @@
 """Each rasterizer stage alone against its pure-torch reference (tomgs.render.reference), on fresh random
 inputs with the extremes mixed in: projection (values and gradients) and binning (the sorted
-intersection list and the tile ranges). tests/test_raster.py checks the stages end to end."""
+intersection list and the tile ranges). tests/render/test_raster.py checks the stages end to end."""
 
 from __future__ import annotations
 

@@ -16,7 +16,7 @@ import pytest
 
 from tomgs.io.tets import Tets, load_sequence, load_tets, save_tets
 
-SCRIPT = Path(__file__).resolve().parents[1] / "tomgs" / "data" / "blender_softbody.py"
+SCRIPT = Path(__file__).resolve().parents[2] / "tomgs" / "data" / "blender_softbody.py"
 W = np.array([[1, 0, 0], [0, 0, 1], [0, -1, 0]], np.float64)  # world (OpenCV) -> Blender axes
 FRAMES, DROP = 24, 0.5
 

@@ -7,7 +7,7 @@ import torch
 
 from tomgs.cameras import Cameras, intrinsics
 from tomgs.train import Trainer, preset
-from test_train import synthetic_clip
+from tests.train.test_train import synthetic_clip
 
 
 def fit(frames, cams, iterations=120, **settings):

@@ -1,4 +1,4 @@
-"""Phone videos (issue 14): frames decoded only where selected and kept as uint8, a plan line and a
+"""Phone videos: frames decoded only where selected and kept as uint8, a plan line and a
 progress bar per phase, a default that ends on a CPU, and a full-clip PSNR measured away from
 densification."""
 
@@ -155,7 +155,7 @@ def test_plan_scales_capacity_with_the_clip_and_the_cpu_time():
     asked, config = make_plan(preset("default", max_gaussians=123_456), 900, 1080, 1920, 1080 * 1920, "cuda")
     assert asked.cap == config.max_gaussians == 123_456
     cpu, config = make_plan(preset("default", max_seconds=180), 141, 240, 184, 368 * 480, "cpu")
-    assert cpu.points_per_frame * 141 <= 60_000 < 2000 * 141  # the issue's portrait clip started from 282,950
+    assert cpu.points_per_frame * 141 <= 60_000 < 2000 * 141  # a phone's portrait clip started from 282,950
     assert config.init_points_per_frame == cpu.points_per_frame and config.max_gaussians == cpu.cap
     assert any("fewer than 500 steps" in r for r in cpu.reasons) and cpu.eta == 180
 
@@ -165,7 +165,7 @@ def test_full_clip_psnr_is_not_measured_right_after_a_densification():
     densification, prune or reset; before, every row at a densification step measured the dip."""
     from tomgs.train import Trainer
 
-    from test_train import small_config, synthetic_clip
+    from tests.train.test_train import small_config, synthetic_clip
 
     images, cams, points, colors = synthetic_clip(3, 32, 18)
     config = small_config(300).replace(eval_interval_s=0.0)
@@ -204,7 +204,7 @@ def test_the_eta_is_when_the_iterations_end_when_that_comes_before_the_budget():
 
 
 def test_a_long_clip_has_a_clip_psnr_early_over_evenly_spaced_frames(monkeypatch, tmp_path):
-    """Issue 14: a full-clip PSNR was taken only once it cost at most 10% of the run, so a long clip's
+    """A full-clip PSNR was taken only once it cost at most 10% of the run, so a long clip's
     curve began late (900 frames at 1080p on the H100: none in the first 1.5 minutes). Before the
     last, a measurement covers evenly spaced frames, as many as 10% of the run so far pays for or as
     take a second; the CSV says how many (clip_frames); the last covers every frame. On a fake clock a
@@ -216,7 +216,7 @@ def test_a_long_clip_has_a_clip_psnr_early_over_evenly_spaced_frames(monkeypatch
     from tomgs.train import Trainer
     from tomgs.train.log import write_plot
 
-    from test_train import small_config
+    from tests.train.test_train import small_config
 
     T, clock, asked = 300, [0.0], []
 
@@ -262,7 +262,7 @@ def test_a_long_clip_has_a_clip_psnr_early_over_evenly_spaced_frames(monkeypatch
 def test_a_clip_psnr_of_some_frames_is_theirs_of_every_frame():
     from tomgs.train import Trainer
 
-    from test_train import small_config, synthetic_clip
+    from tests.train.test_train import small_config, synthetic_clip
 
     images, cams, points, colors = synthetic_clip(6, 32, 18)
     trainer = Trainer(images, cams, points, colors, small_config(10), CPU)
@@ -273,7 +273,7 @@ def test_a_clip_psnr_of_some_frames_is_theirs_of_every_frame():
 
 
 def test_the_hosts_frames_go_once_the_trainer_has_its_own_copy(tmp_path, monkeypatch):
-    """Issue 14: on a GPU the trainer keeps the clip on the device, and the fit let go of the host's
+    """On a GPU the trainer keeps the clip on the device, and the fit let go of the host's
     copy only when it returned (1.7 GiB of 4.1 for 300 frames of 1080p on the H100). Here the trainer
     is given its own copy as a GPU's would be: the decoded frames are freed before training starts;
     on a CPU, where the trainer's frames are the decoded ones, they stay."""
@@ -282,7 +282,7 @@ def test_the_hosts_frames_go_once_the_trainer_has_its_own_copy(tmp_path, monkeyp
     import tomgs.io
     from tomgs.train import Trainer, fit
 
-    from test_train import small_config
+    from tests.train.test_train import small_config
 
     video = tmp_path / "clip.mp4"
     assert run("demo", "--frames", 6, "--size", "64x36", "-o", video, "-q", "--device", "cpu").exit_code == 0

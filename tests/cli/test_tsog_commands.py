@@ -13,7 +13,7 @@ import pytest
 from click.testing import CliRunner
 from PIL import Image
 
-from tests.test_tsog import wall_cameras, wall_model
+from tests.io.test_tsog import wall_cameras, wall_model
 from tomgs.cli import main
 from tomgs.edit.export import pick_moment, static_moment
 from tomgs.io import tsog
@@ -197,9 +197,9 @@ def test_export_sog_is_playcanvas_sog_version_2(scenes, tmp_path):
 
 
 def test_compress_reports_the_loss_and_refuses_more_than_asked(tmp_path):
-    """The far scene (tests/test_tsog.py): kept at 16 bits with the loss in its line; at 8 bits a
+    """The far scene (tests/io/test_tsog.py): kept at 16 bits with the loss in its line; at 8 bits a
     position it loses dB, and nothing is written."""
-    from tests.test_tsog import far_scene
+    from tests.io.test_tsog import far_scene
 
     model, cams = far_scene()
     ply = save_scene(tmp_path / "far.ply", model, cams, {"clip_psnr": 38.0})

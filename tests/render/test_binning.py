@@ -16,7 +16,7 @@ from tomgs.constants import ALPHA_MIN, DEPTH_SORT_BITS, RADIUS_SIGMAS, TILE_SIZE
 from tomgs.render.reference import bin_reference, tile_rects, tiles_touched_reference
 from tomgs.render.frame import bin_stage, project_stage
 from scenes import SEED_BASE, devices, random_scene
-from test_stages import camera_points, float32_values
+from tests.render.test_stages import camera_points, float32_values
 
 DEVICES = devices()
 

@@ -126,7 +126,7 @@ def test_frames_are_read_once_and_kept_small():
 
 @pytest.mark.parametrize("W, H, step, T", [(320, 180, 0, 12), (192, 108, 3, 12)], ids=["fixed", "pan"])
 def test_tracker_keeps_no_copy_of_each_frame(W, H, step, T):
-    """Issue 14: what the tracker keeps per frame is its tracks (32 bytes an observation: at most 0.15
+    """What the tracker keeps per frame is its tracks (32 bytes an observation: at most 0.15
     of a frame at these sizes), never copies of the frames. Growing the clip from T to 4T frames may
     add at most 0.3 of a frame's uint8 size per frame to the peak of Python-side allocations; the
     tracker that kept a gray, a colour and a mask copy of every frame added 1.4-1.8 (a fixed camera

@@ -9,7 +9,7 @@ import torch
 
 import tomgs
 from scenes import INPUT_NAMES, devices, random_scene, render_both
-from test_raster import assert_matches_reference, assert_matches_within_float32
+from tests.render.test_raster import assert_matches_reference, assert_matches_within_float32
 
 DEVICES = devices()
 
@@ -226,7 +226,7 @@ def _tilted_needle(length: float, cond: float) -> dict:
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("length", [10.0, 100.0, 1e3, 1e4])
 def test_needles_across_the_view(length, device):
-    """The safety issue's case: a needle across the view, condition number 1e5 (L = 10) to 1e11
+    """A needle across the view, condition number 1e5 (L = 10) to 1e11
     (L = 1e4). The backward used to form dL/dSigma2d = -Q V Q and lose eps * cond of it: the
     quaternion gradient was off by 0.6% at L = 10 and 60x at L = 1e3 while the image was right.
     Every gradient within 1e-3 of the float64 reference (the image within float32's own reach)."""

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.test_train import small_config, synthetic_clip
+from tests.train.test_train import small_config, synthetic_clip
 from tomgs.render import alive
 from tomgs.constants import ALPHA_MIN
 from tomgs.model import GaussianModel
