@@ -245,3 +245,85 @@ def test_module_sizes_and_the_top_level():
     assert long == {}
     top = [p.name for p in PACKAGE.glob("*.py") if p.name != "__init__.py"]
     assert len(top) <= 12, top
+
+
+# -- the fit spine: one place for each of its concepts (tomgs.train.pipeline, budget, loop, metrics) ------
+
+TRAIN = PACKAGE / "train"
+LONGEST_FUNCTION = 80  # lines of a function in tomgs/train, its docstring included
+RANK_LINES = 350  # a sharded rank is the fit's pipeline with its hooks, no second fit
+
+
+def shown(path: Path) -> str:
+    """`path` as the counts name it: relative to the repository, or its name elsewhere."""
+    return str(path.relative_to(ROOT)) if path.is_relative_to(ROOT) else path.name
+
+
+def functions_over(path: Path, limit: int) -> list[str]:
+    """'file:function (lines)' for every function (methods and nested ones too) of `path` over `limit` lines."""
+    tree = ast.parse(path.read_text())
+    return [f"{shown(path)}:{node.name} ({node.end_lineno - node.lineno + 1})" for node in ast.walk(tree)
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.end_lineno - node.lineno + 1 > limit]
+
+
+def attribute_reads(path: Path, names: set[str]) -> list[str]:
+    """'file:line .name' for every read of an attribute in `names` in `path`."""
+    tree = ast.parse(path.read_text())
+    return [f"{shown(path)}:{node.lineno} .{node.attr}" for node in ast.walk(tree)
+            if isinstance(node, ast.Attribute) and node.attr in names and isinstance(node.ctx, ast.Load)]
+
+
+def calls_of(path: Path, names: set[str]) -> list[str]:
+    """'file:line name' for every call of a function or method named in `names` in `path`."""
+    tree = ast.parse(path.read_text())
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Call):
+            name = node.func.attr if isinstance(node.func, ast.Attribute) else getattr(node.func, "id", None)
+            if name in names:
+                out.append(f"{shown(path)}:{node.lineno} {name}")
+    return out
+
+
+def test_the_spine_checks_see_what_they_count(tmp_path):
+    """The counts find a long function, an attribute read (not a write or a keyword) and a call."""
+    source = tmp_path / "x.py"
+    source.write_text("def f(config):\n" + "    a = 1\n" * 80 + "    config.max_seconds = 1\n"
+                      "    g(max_seconds=2)\n    return config.max_seconds + ssim(a, a)\n")
+    assert functions_over(source, LONGEST_FUNCTION) == ["x.py:f (84)"]
+    assert attribute_reads(source, {"max_seconds"}) == ["x.py:84 .max_seconds"]
+    assert calls_of(source, {"ssim"}) == ["x.py:84 ssim"]
+
+
+def test_no_function_in_train_is_over_80_lines():
+    """Every function of tomgs/train reads in one screen: the Trainer's run is its cadences (tomgs.train.loop),
+    the fit its phases (tomgs.train.pipeline)."""
+    assert [f for path in sorted(TRAIN.rglob("*.py")) for f in functions_over(path, LONGEST_FUNCTION)] == []
+
+
+def test_a_rank_is_the_fit_pipeline_with_its_hooks():
+    """A sharded rank subclasses the one-process fit's Pipeline and stays short: it overrides hooks, it does
+    not restate the fit."""
+    source = (TRAIN / "multigpu" / "rank.py").read_text()
+    assert len(source.splitlines()) < RANK_LINES
+    assert "class ShardedPipeline(Pipeline):" in source
+
+
+def test_only_the_budget_reads_max_seconds_and_the_iteration_stop():
+    """TrainConfig.max_seconds and stop_at_iterations are read in one place, tomgs.train.budget; the rest of the
+    package asks the Budget."""
+    reads = [r for path in sorted(PACKAGE.rglob("*.py")) if path != TRAIN / "budget.py"
+             for r in attribute_reads(path, {"max_seconds", "stop_at_iterations"})]
+    assert reads == []
+
+
+def test_one_loss_formula():
+    """Every training step (the Trainer's eager one, its captured one, a rank's joint refinement, which is the
+    Trainer's) takes its loss from tomgs.metrics.training_loss; nothing in tomgs/train computes L1, SSIM or
+    their mix itself."""
+    own = [c for path in sorted(TRAIN.rglob("*.py"))
+           for c in calls_of(path, {"ssim", "ssim_map", "ssim_map_conv", "l1_dssim", "l1_dssim_and_psnr"})]
+    assert own == []
+    users = sorted({c.split(":")[0] for path in sorted(TRAIN.rglob("*.py"))
+                    for c in calls_of(path, {"training_loss"})})
+    assert users == ["tomgs/train/captured_step.py", "tomgs/train/trainer.py"]

@@ -1,14 +1,22 @@
 """What a rank of a sharded fit is given and how its time is recorded: the Job (pickled to spawned
-ranks), the plan of a stretch, and the Timeline of each process's phases."""
+ranks), the plan of a stretch, what rank 0 broadcasts to every rank (`camera_payload`), and the
+Timeline of each process's phases."""
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass
 
-from tomgs.train.multigpu.shards import REFINE_FRACTION
+import numpy as np
+
+from tomgs.errors import InputError
+from tomgs.train.budget import shard_times
+from tomgs.train.checkpoint import START_OVER, read_checkpoint
+from tomgs.train.clip import clip_fps
+from tomgs.train.multigpu.joint import EXIT_S
+from tomgs.train.multigpu.shards import REFINE_FRACTION, plan_stretches, rank_paths
 from tomgs.train.phases import tomgs_started
-from tomgs.train.plan import make_plan
+from tomgs.train.plan import SAVE_COST, make_plan, render_seconds
 
 
 class Timeline:
@@ -87,4 +95,44 @@ def rank_plan(config, frames: int, height: int, width: int, source: int, device_
                      auto_budget=auto_budget, free_bytes=free)
 
 
-__all__ = ["Job", "Timeline", "rank_plan", "tomgs_start_epoch"]
+
+def checkpoint_cameras(job: Job, resumed: dict | None) -> dict | None:
+    """The cameras (Cameras.to_dict) of this run's checkpoints: rank 0's (`resumed`, its state), or another
+    rank's when rank 0 never saved; None when the job does not resume or none has any."""
+    if resumed is not None:
+        return resumed["clip"].get("cameras")
+    if not job.resume:
+        return None
+    for path in (p["checkpoint"] for p in rank_paths(job.output, job.world)[1:]):
+        if path.is_file():
+            return read_checkpoint(path)["clip"].get("cameras")
+    return None
+
+
+def camera_payload(job: Job, state, device_type: str, overlap: int) -> dict:
+    """What rank 0 broadcasts once it has the clip and its cameras (`state`, a tomgs.train.pipeline.FitState):
+    the cameras, the tracker's points, the notes, the clip's facts, and the budget's times
+    (tomgs.train.budget.shard_times) for the largest stretch's plan."""
+    clip, cameras = state.clip, state.cameras
+    if len(cameras) != len(clip):
+        raise InputError(f"the checkpoints beside {job.output} were fitted on {len(cameras)} frames, this run "
+                         f"reads {len(clip)}: resume with the --frames it was started with, or {START_OVER}")
+    height, width = clip.frames.shape[1:3]
+    stretches = plan_stretches(len(clip), job.world, overlap)
+    largest = max(s.frames for s in stretches)
+    plan, config = rank_plan(job.config, largest, height, width, height * width, device_type, job.auto_budget)
+    # what follows the refinement, as modelled to place the end of phase 1: the final measurement of a rank's
+    # frames with the whole scene (about the ranks' starting clouds), the scene written and read back by the
+    # parent, the processes ending (the refinement itself ends by what is measured then)
+    own = max(s.own_hi - s.own_lo for s in stretches)
+    scene = job.world * min(config.max_gaussians, config.init_points_per_frame * largest)
+    after = EXIT_S + own * render_seconds(device_type, scene, height * width) + 2 * (SAVE_COST[0] + SAVE_COST[1] * scene)
+    point_frames = None if state.point_frames is None else np.asarray(state.point_frames, np.int64).reshape(-1, 2)
+    return dict(cameras=cameras.to_dict(), points=np.asarray(state.points, dtype=np.float64).reshape(-1, 3),
+                colors=np.asarray(state.colors, dtype=np.float32).reshape(-1, 3), point_frames=point_frames,
+                notes=state.notes, pose_seconds=round(state.pose_seconds, 3), fps=clip_fps(clip),
+                source=str(getattr(job.video, "path", job.video)),
+                times=shard_times(plan.budget, job.start_time, after, job.refine_fraction))
+
+
+__all__ = ["Job", "Timeline", "camera_payload", "checkpoint_cameras", "rank_plan", "tomgs_start_epoch"]

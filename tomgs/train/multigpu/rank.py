@@ -1,15 +1,12 @@
-"""One rank of a sharded fit (tomgs.train.multigpu.shards): the fit's Pipeline (tomgs.train.pipeline) with
-the hooks of a rank. Its process (group, signals, exit): tomgs.train.multigpu.group.
+"""One rank of a sharded fit (tomgs.train.multigpu.shards): the fit's Pipeline with a rank's hooks (its
+process: tomgs.train.multigpu.group).
 
-    read, cameras   rank 0 reads the clip and estimates the cameras (or takes them from a checkpoint) as a
-                    one-process fit does, and broadcasts them with the budget's times; the others meanwhile
-                    read their stretch and warm up (tomgs.train.warm, in a thread). Every rank checks its
-                    checkpoint on resume, and all refuse together when one refuses, before anything is written
-    init, train     phase 1: an ordinary Trainer on the stretch, with its checkpoint and log beside the output
-    after_training  the merge, the joint refinement and the measurement of its frames
-                    (tomgs.train.multigpu.joint), ending by what follows it as measured
-    save, result    rank 0 writes the scene, the merged CSV and plot; every rank removes its checkpoint;
-                    the summary (rank 0's describes the run)
+    read, cameras   rank 0 reads the clip and estimates the cameras as a one-process fit does and broadcasts
+                    them; the others meanwhile read their stretch and warm up. Every rank checks its checkpoint
+                    on resume, and all refuse together when one refuses, before anything is written
+    init, train     phase 1: an ordinary Trainer on the stretch, its checkpoint and log beside the output
+    after_training  the merge, the joint refinement (tomgs.train.multigpu.joint), the measurement of its frames
+    save, result    rank 0 writes the scene, the merged CSV and plot; every rank removes its checkpoint
 """
 
 from __future__ import annotations
@@ -25,18 +22,17 @@ from tomgs.cameras import Cameras
 from tomgs.errors import InputError
 from tomgs.metrics import frame_psnr
 from tomgs.outputs import fit_output_paths
-from tomgs.train.budget import Budget, shard_times
-from tomgs.train.checkpoint import START_OVER, FitInterrupted, read_checkpoint
-from tomgs.train.clip import check_clip, check_options, clip_fps
+from tomgs.train.budget import Budget
+from tomgs.train.checkpoint import FitInterrupted, read_checkpoint
+from tomgs.train.clip import check_clip, check_options
 from tomgs.train.log import write_csv
-from tomgs.train.multigpu.job import Job, Timeline, rank_plan
-from tomgs.train.multigpu.joint import (EXIT_S, joint_trainer, refine_jointly, time_scene_io, write_outputs)
+from tomgs.train.multigpu.job import Job, Timeline, camera_payload, checkpoint_cameras, rank_plan
+from tomgs.train.multigpu.joint import EXIT_S, joint_trainer, refine_jointly, time_scene_io, write_outputs
 from tomgs.train.multigpu.shards import (assemble, check_shard, default_overlap, gather_union, halo, identity_of,
                                          local_cameras, model_of, plan_stretches, rank_paths, read_early,
-                                         read_stretch, stretch_points)
+                                         stretch_frames, stretch_points)
 from tomgs.train.phases import peak_memory
 from tomgs.train.pipeline import Pipeline
-from tomgs.train.plan import SAVE_COST, render_seconds
 from tomgs.train.trainer import Trainer
 from tomgs.train.warm import WarmUp
 
@@ -104,15 +100,7 @@ class ShardedPipeline(Pipeline):
         self.warming = WarmUp(self.config, self.device)  # joined before phase 1's Trainer
 
     def saved_cameras(self) -> dict | None:
-        """The cameras of this run's checkpoints: rank 0's, or another rank's when rank 0 never saved."""
-        if self.resumed is not None:
-            return self.resumed["clip"].get("cameras")
-        if not self.job.resume:
-            return None
-        for path in (p["checkpoint"] for p in rank_paths(self.job.output, self.world)[1:]):
-            if path.is_file():
-                return read_checkpoint(path)["clip"].get("cameras")
-        return None
+        return checkpoint_cameras(self.job, self.resumed)
 
     def cameras(self) -> None:
         """Rank 0's cameras and the budget's times broadcast; this rank's stretch, frames and checkpoint
@@ -152,41 +140,18 @@ class ShardedPipeline(Pipeline):
         return default_overlap(count, self.world) if self.job.overlap is None else self.job.overlap
 
     def share_cameras(self) -> None:
-        """Rank 0: the payload every rank receives: the cameras, the tracker's points, the notes, and the
-        budget's times (tomgs.train.budget.shard_times) for the largest stretch's plan."""
-        state, job = self.state, self.job
-        clip = state.clip
-        if len(state.cameras) != len(clip):
-            raise InputError(f"the checkpoints beside {job.output} were fitted on {len(state.cameras)} frames, this "
-                             f"run reads {len(clip)}: resume with the --frames it was started with, or {START_OVER}")
-        height, width = clip.frames.shape[1:3]
-        stretches = plan_stretches(len(clip), self.world, self.overlap(len(clip)))
-        largest = max(s.frames for s in stretches)
-        plan, config = rank_plan(job.config, largest, height, width, height * width, self.device.type,
-                                 job.auto_budget)
-        # what follows the refinement, as modelled to place the end of phase 1: the final measurement of a
-        # rank's frames with the whole scene (about the ranks' starting clouds), the scene written and read
-        # back by the parent, the processes ending (the refinement itself ends by what is measured then)
-        own = max(s.own_hi - s.own_lo for s in stretches)
-        scene = self.world * min(config.max_gaussians, config.init_points_per_frame * largest)
-        after = EXIT_S + own * render_seconds(self.device.type, scene, height * width) + \
-            2 * (SAVE_COST[0] + SAVE_COST[1] * scene)
-        self.payload = dict(
-            cameras=state.cameras.to_dict(), points=np.asarray(state.points, dtype=np.float64).reshape(-1, 3),
-            colors=np.asarray(state.colors, dtype=np.float32).reshape(-1, 3),
-            point_frames=None if state.point_frames is None else np.asarray(state.point_frames, np.int64).reshape(-1, 2),
-            notes=state.notes, pose_seconds=round(state.pose_seconds, 3), fps=clip_fps(clip),
-            source=str(getattr(job.video, "path", job.video)),
-            times=shard_times(plan.budget, job.start_time, after, job.refine_fraction))
+        """Rank 0: the payload every rank receives (tomgs.train.multigpu.job.camera_payload)."""
+        self.payload = camera_payload(self.job, self.state, self.device.type, self.overlap(len(self.state.clip)))
 
     def check_stretch(self) -> None:
-        """This rank's frames (`own_frames`) and its checkpoint checked against them; every rank's refusal
+        """This rank's frames (shards.stretch_frames) and its checkpoint checked against them; every rank's refusal
         gathered, the first raised on every rank."""
         saved, stretch = self.resumed, self.stretch
         try:
             if saved is not None and not self.errors:
                 check_shard(saved["clip"].get("shard"), stretch, self.world, self.paths["checkpoint"])
-            self.frames, self.identity = self.own_frames()
+            self.frames, self.identity = stretch_frames(self.job, self.state.cameras, stretch, self.state.clip,
+                                                        self.early, getattr(self, "early_identity", None))
             self.state.clip = self.state.inputs = self.early = None  # rank 0: the rest of the clip goes now
             if saved is not None and not self.errors:
                 check_clip(saved["clip"], self.identity, self.job.options, self.paths["checkpoint"])
@@ -195,22 +160,6 @@ class ShardedPipeline(Pipeline):
         refused = [e for e in self.gather(self.errors[0] if self.errors else None) if e is not None]
         if refused:
             raise InputError(refused[0])
-
-    def own_frames(self):
-        """(uint8 [F,H,W,3] of the stretch, what identifies them for a checkpoint): from rank 0's clip, the
-        early read, or read now."""
-        s, cameras, early = self.stretch, self.state.cameras, self.early
-        numbers = cameras.frame_indices[s.lo:s.hi]
-        if self.state.clip is not None:
-            frames = np.ascontiguousarray(self.state.clip.frames[s.lo:s.hi]).copy()
-        elif early is not None and np.array_equal(early.indices, numbers) \
-                and early.frames.shape[1:3] == (cameras.height, cameras.width):
-            if getattr(self, "early_identity", None) is not None:  # worked out while rank 0 estimated the cameras
-                return early.frames, self.early_identity
-            frames = early.frames
-        else:
-            frames = read_stretch(self.job, cameras, s)
-        return frames, identity_of(numbers, frames)
 
     def compile(self) -> None:
         """Nothing: a rank's first steps pay their one-off costs in the warm-up."""

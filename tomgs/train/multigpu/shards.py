@@ -439,6 +439,23 @@ def read_stretch(job, cameras, stretch: Stretch) -> np.ndarray:
     return read_video_for(job.video, cameras[stretch.lo:stretch.hi])
 
 
+def stretch_frames(job, cameras, stretch: Stretch, clip=None, early=None, early_identity: dict | None = None):
+    """(uint8 [F,H,W,3] of `stretch`, what identifies them for a checkpoint): from rank 0's `clip`, a rank's
+    `early` read (`read_early`; `early_identity` its identity when worked out already) when it holds the
+    stretch's frames at the cameras' size, or read now."""
+    numbers = cameras.frame_indices[stretch.lo:stretch.hi]
+    if clip is not None:
+        frames = np.ascontiguousarray(clip.frames[stretch.lo:stretch.hi]).copy()
+    elif early is not None and np.array_equal(early.indices, numbers) \
+            and early.frames.shape[1:3] == (cameras.height, cameras.width):
+        if early_identity is not None:
+            return early.frames, early_identity
+        frames = early.frames
+    else:
+        frames = read_stretch(job, cameras, stretch)
+    return frames, identity_of(numbers, frames)
+
+
 def identity_of(indices, frames) -> dict:
     """tomgs.train.clip.clip_identity of a stretch's frames (uint8 [F,H,W,3], source frame numbers `indices`),
     read without masks: what its checkpoint identifies them by."""
@@ -502,5 +519,5 @@ def assemble(model: GaussianModel, part: Halo) -> torch.Tensor:
 __all__ = ["MIN_STRETCH", "REFINE_FRACTION", "Halo", "Stretch", "Union", "all_gather_rows", "assemble",
            "boundary_psnr", "check_shard", "identity_of", "clip_rates", "gather_union", "halo", "local_cameras", "log_row",
            "merged_history", "model_of", "moments_to_clip_time", "own_cut", "owned_rows", "pack", "plan_stretches",
-           "rank_paths", "reach", "read_early", "read_stretch", "stretch_points", "stretch_span", "to_clip_time",
+           "rank_paths", "reach", "read_early", "read_stretch", "stretch_frames", "stretch_points", "stretch_span", "to_clip_time",
            "unpack"]
