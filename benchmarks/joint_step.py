@@ -1,7 +1,7 @@
 """The joint refinement's step (a sharded fit's: tomgs.train.multigpu.joint) on one process, timed.
 
-    python -m benchmarks.joint_step --out $OUT/after.json                               # the code imported
-    PYTHONPATH=/path/to/old/checkout python benchmarks/joint_step.py --out $OUT/before.json
+    python -m benchmarks.joint_step --out $OUT/after                                    # the code imported
+    PYTHONPATH=/path/to/old/checkout python benchmarks/joint_step.py --out $OUT/before
     python -m benchmarks.joint_step --smoke                                              # CPU, seconds
 
 A part of a union as a rank holds it: the demo scene at --size, its Gaussians copied with jittered
@@ -17,7 +17,6 @@ Works with the refinement before it became the Trainer's (tomgs.train.multigpu.s
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 import time
@@ -27,9 +26,9 @@ import numpy as np
 import torch
 
 if __package__:
-    from .common import demo_frames, demo_model, parse_size
-else:
-    from common import demo_frames, demo_model, parse_size
+    from .common import demo_frames, demo_model, environment, markdown_table, output_folder, parse_size, write_report
+else:  # run as a file (with an older checkout's tomgs): Python puts this folder first on sys.path
+    from common import demo_frames, demo_model, environment, markdown_table, output_folder, parse_size, write_report
 
 RATES = dict(means=1.6e-6, quats=1e-3, log_scales=5e-3, opacity_logits=5e-2, sh_dc=2.5e-3, sh_rest=2.5e-3 / 20,
              t_means=1e-3, log_t_scales=2e-2)  # where phase 1's schedule ends, about
@@ -128,15 +127,15 @@ def main(argv=None) -> dict:
     ap.add_argument("--steps", type=int, default=600)
     ap.add_argument("--device", default="cuda")
     ap.add_argument("--smoke", action="store_true", help="CPU: 2,000 Gaussians, 4 frames of 48x27, 4 steps")
-    ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--out", type=Path, default=None, help="the folder for joint_step.md and joint_step.json")
     args = ap.parse_args(argv)
     if args.smoke:
         args.gaussians, args.frames, args.size, args.warm, args.steps, args.device = 2000, 4, "48x27", 1, 4, "cpu"
     result = run(args)
-    print(json.dumps(result))
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(result, indent=1))
+    keys = ["version", "gaussians", "shared", "frames", "steps", "steps_per_s", "psnr_before", "psnr_after"]
+    write_report(output_folder(args.out, args.smoke, "joint_step"), "joint_step", "The joint refinement's step",
+                 environment(result["device"], "joint_step", argv), markdown_table(keys, [[result[k] for k in keys]]),
+                 result)
     return result
 
 

@@ -1,8 +1,9 @@
 """The gate of a change meant to change no behaviour: a seeded CPU fit of set iterations, fingerprinted.
 
-    python -m benchmarks.same_fit --out bench_out/same_fit/after.json
-    PYTHONPATH=/path/to/old/checkout python benchmarks/same_fit.py --out bench_out/same_fit/before.json
-    python -m benchmarks.same_fit --compare bench_out/same_fit/before.json bench_out/same_fit/after.json
+    python -m benchmarks.same_fit --out bench_out/same_fit/after
+    PYTHONPATH=/path/to/old/checkout python benchmarks/same_fit.py --out bench_out/same_fit/before
+    python -m benchmarks.same_fit --compare bench_out/same_fit/before bench_out/same_fit/after
+    python -m benchmarks.same_fit --smoke                         # 30 iterations at 48 px, seconds
 
 A fit of the bundled clip (tomgs.fit, as `tomgs fit` runs it) on the CPU, seeded, for --iterations
 (a few densifications and quality rounds included), and its fingerprint: the SHA-256 of every parameter
@@ -23,6 +24,11 @@ import re
 import sys
 import tempfile
 from pathlib import Path
+
+if __package__:
+    from .common import environment, markdown_table, output_folder, write_report
+else:  # run as a file (with an older checkout's tomgs): Python puts this folder first on sys.path
+    from common import environment, markdown_table, output_folder, write_report
 
 UNCOMPARED = ("train_seconds", "pose_seconds", "source")  # the header's fields that the clock or the checkout decides
 SECONDS = re.compile(r"~?\d+(\.\d+)? ?(s|min)\b")  # a duration inside a note
@@ -76,27 +82,34 @@ def differences(before: dict, after: dict) -> list[str]:
     return out
 
 
+def load(path: Path) -> dict:
+    """The fingerprint in an --out folder (or its same_fit.json)."""
+    path = path / "same_fit.json" if path.is_dir() else path
+    return json.loads(path.read_text())["results"]
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--iterations", type=int, default=240)
     parser.add_argument("--max-side", type=int, default=96)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", type=Path, help="write the fingerprint here (JSON)")
+    parser.add_argument("--out", type=Path, help="the folder for same_fit.md and same_fit.json")
     parser.add_argument("--compare", nargs=2, type=Path, metavar=("BEFORE", "AFTER"))
+    parser.add_argument("--smoke", action="store_true", help="30 iterations at 48 px")
     args = parser.parse_args(argv)
     if args.compare:
-        before, after = (json.loads(p.read_text()) for p in args.compare)
-        changed = differences(before, after)
+        changed = differences(*(load(p) for p in args.compare))
         print("same fit" if not changed else "differs in: " + ", ".join(changed))
         return 1 if changed else 0
+    if args.smoke:
+        args.iterations, args.max_side = 30, 48
     with tempfile.TemporaryDirectory() as folder:
         result = run_fit(args.iterations, args.max_side, args.seed, Path(folder))
-    text = json.dumps(result, indent=1)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text)
-    print(f"{len(result['log'])} log rows, final clip PSNR {result['clip_psnr']}, "
-          f"{result['log'][-1][2] if result['log'] else 0} Gaussians")
+    rows = [[name, digest[:16]] for name, digest in result["params"].items()]
+    body = (f"{len(result['log'])} log rows, final clip PSNR {result['clip_psnr']} dB, "
+            f"{result['log'][-1][2] if result['log'] else 0} Gaussians\n\n" + markdown_table(["parameter", "sha256"], rows))
+    write_report(output_folder(args.out, args.smoke, "same_fit"), "same_fit", "A seeded CPU fit, fingerprinted",
+                 environment("cpu", "same_fit", argv), body, result)
     return 0
 
 

@@ -203,6 +203,14 @@ def check_compact(r):
         assert row["psnr_300s"] is None  # past the fit's end: no figure
 
 
+def check_same_fit(r):
+    assert len(r["params"]) == 8 and r["log"] and r["clip_psnr"]  # every parameter fingerprinted, the log read
+
+
+def check_joint_step(r):
+    assert r["version"] == "trainer" and r["steps"] == 4 and r["steps_per_s"] > 0 and r["shared"] == 400
+
+
 def check_shards_plan(r):
     two = next(row for row in r["rows"] if row["ranks"] == 2)
     assert round(two["gap_db"], 2) == -0.61  # the measured gap of the two-H200 run it models (benchmarks/README.md)

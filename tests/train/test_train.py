@@ -267,8 +267,8 @@ def test_the_sampler_keeps_its_distribution_until_a_psnr_changes():
 def test_densification_threshold_by_device_unless_given():
     """A GPU fit grows its cloud within the first minute (1e-4), a CPU fit keeps 3DGS's 2e-4; a given
     threshold, and the paper preset's, hold on every device."""
-    assert Densifier(preset("default"), 1.0, 1, "cpu").threshold == 2e-4
-    assert Densifier(preset("default"), 1.0, 1, CPU).threshold == 2e-4
+    assert Densifier(preset("default"), 1.0, 1, "cpu").settings.threshold == 2e-4
+    assert Densifier(preset("default"), 1.0, 1, CPU).settings.threshold == 2e-4
     assert preset("default").threshold("cuda") == 1e-4
     assert preset("default", grad_threshold=3e-4).threshold("cuda") == 3e-4
     assert preset("paper").threshold("cuda") == preset("paper").threshold("cpu") == 2e-4

@@ -6,6 +6,8 @@ moments aligned with the rows it keeps, copies and adds (new rows start with zer
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 import warp as wp
 
@@ -15,18 +17,45 @@ from tomgs.model import PARAM_NAMES, GaussianModel, stored_opacities, stored_sca
 from tomgs.temporal import peak_opacity_at
 
 
+@dataclass(frozen=True)
+class DensifySettings:
+    """The densification strategy's knobs, its own (as gsplat's strategies hold theirs), read once from a
+    TrainConfig (`of`): the cap; densify every `interval` steps inside [start, stop) of the run's progress;
+    `threshold` the view-space gradient that makes a Gaussian hot; clone below `percent_dense` of the scene
+    extent, split above; `share_opacity`: a clone's or split's pair share its opacity; prune below
+    `prune_opacity`, and (`temporal`) what is alive at no training frame; the 3DGS opacity reset every
+    `opacity_reset_interval` steps (0: off)."""
+
+    cap: int | None
+    start: float
+    stop: float
+    interval: int
+    threshold: float
+    percent_dense: float
+    share_opacity: bool
+    prune_opacity: float
+    temporal: bool
+    opacity_reset_interval: int
+
+    @classmethod
+    def of(cls, config, device_type: str) -> "DensifySettings":
+        """The settings of TrainConfig `config` (its cap resolved) on a `device_type` device."""
+        return cls(config.max_gaussians, config.densify_start_fraction, config.densify_stop_fraction,
+                   config.densify_interval, config.threshold(device_type), config.percent_dense,
+                   config.shares_opacity(device_type), config.prune_opacity, config.temporal,
+                   config.opacity_reset_interval)
+
+
 class Densifier:
     def __init__(self, config, extent: float, num_gaussians: int, device, seed: int = 0, times=None):
-        """`times`: the clip times of the training frames ([T]; None: any time in [0, 1]), at which a
-        Gaussian must be alive somewhere to be kept."""
-        self.config = config
+        """`config`: a TrainConfig, its cap resolved (DensifySettings.of); `times`: the clip times of the
+        training frames ([T]; None: any time in [0, 1]), at which a Gaussian must be alive somewhere to be kept."""
+        self.settings = DensifySettings.of(config, torch.device(device).type)
         self.times = None if times is None else torch.as_tensor(sorted(times), dtype=torch.float32, device=device)
         self.extent = extent
-        self.threshold = config.threshold(torch.device(device).type)
-        self.share_opacity = config.shares_opacity(torch.device(device).type)
         self.generator = torch.Generator(device=device).manual_seed(seed + 1)
         self.reset_stats(num_gaussians, device)
-        self.limit = config.max_gaussians  # the most Gaussians now: the cap, or a stage's (tomgs.train.growth)
+        self.limit = self.settings.cap  # the most Gaussians now: the cap, or a stage's (tomgs.train.growth)
         self.capped = False  # at the limit
         self.stopped = False  # growth ended by the quality's price (tomgs.train.growth)
         self.changed_at = 0  # the iteration of the last densification, prune or opacity reset
@@ -74,11 +103,11 @@ class Densifier:
     def collecting(self, progress: float) -> bool:
         """Whether this step's screen-space gradients are wanted: until densification stops
         (`densify_stop_fraction` of the run), the cap is reached or growth is stopped."""
-        return progress < self.config.densify_stop_fraction and not self.capped and not self.stopped
+        return progress < self.settings.stop and not self.capped and not self.stopped
 
     def may_grow(self, progress: float) -> bool:
         """Whether densification may still add Gaussians: before the end of its window, under the limit."""
-        return self.collecting(progress) and self.config.densify_start_fraction < self.config.densify_stop_fraction
+        return self.collecting(progress) and self.settings.start < self.settings.stop
 
     def step_pre_backward(self, meta: dict, progress: float) -> None:
         """Before loss.backward(): keep the gradient of the projected means when collecting."""
@@ -103,35 +132,32 @@ class Densifier:
     def schedule(self, model: GaussianModel, optimizer, iteration: int, progress: float) -> None:
         """`step_post_backward`'s decisions, once the step's statistics are in (a captured step
         accumulates them on the device): densify, prune, reset opacities when due."""
-        c = self.config
+        c = self.settings
         if self.due(iteration, progress) and not self.capped and not self.stopped:
             self.step(model, optimizer)
             self.changed_at = self.densified_at = iteration
-        elif iteration % (10 * c.densify_interval) == 0:
-            if self.prune(model, optimizer) and progress < c.densify_stop_fraction \
-                    and len(model) < self.limit:
+        elif iteration % (10 * c.interval) == 0:
+            if self.prune(model, optimizer) and progress < c.stop and len(model) < self.limit:
                 self.capped = False
             self.reset_stats(len(model), model.means.device)
             self.changed_at = iteration
-        if c.opacity_reset_interval and iteration % c.opacity_reset_interval == 0 \
-                and progress < c.densify_stop_fraction:
+        if c.opacity_reset_interval and iteration % c.opacity_reset_interval == 0 and progress < c.stop:
             self.reset_opacity(model, optimizer)
             self.changed_at = iteration
 
     def due(self, iteration: int, progress: float) -> bool:
         """Every `densify_interval` iterations while the run's progress (by iterations or by
         wall-clock budget) is inside [densify_start_fraction, densify_stop_fraction)."""
-        c = self.config
-        return (c.densify_start_fraction <= progress < c.densify_stop_fraction
-                and iteration % c.densify_interval == 0)
+        c = self.settings
+        return c.start <= progress < c.stop and iteration % c.interval == 0
 
     def step(self, model: GaussianModel, optimizer: torch.optim.Optimizer) -> dict:
         """Clone small and split large Gaussians with high gradients (until the limit), then prune.
         Returns counts of what happened."""
-        c = self.config
+        c = self.settings
         n = len(model)
         grads = self.grad_sum / self.seen.clamp_min(1.0)
-        hot = grads >= self.threshold
+        hot = grads >= c.threshold
         scales = model.scales.detach()
         max_scale = scales.amax(-1)
         room = max(self.limit - n, 0)
@@ -141,7 +167,7 @@ class Densifier:
         self.capped = self.capped or room == 0 or bool((clone.sum() + 2 * split.sum()) >= room)
 
         params = {k: v.detach() for k, v in model.parameters_by_name().items()}
-        if self.share_opacity and (clone.any() or split.any()):
+        if c.share_opacity and (clone.any() or split.any()):
             params["opacity_logits"] = torch.where(clone | split, shared_opacity_logits(params["opacity_logits"]),
                                                    params["opacity_logits"])
         added = {k: [params[k][clone]] for k in PARAM_NAMES}
@@ -170,8 +196,8 @@ class Densifier:
 
     @torch.no_grad()
     def _prunable(self, model: GaussianModel) -> torch.Tensor:
-        remove = model.opacities < self.config.prune_opacity
-        if self.config.temporal:
+        remove = model.opacities < self.settings.prune_opacity
+        if self.settings.temporal:
             peak = model.peak_opacity(0.0, 1.0) if self.times is None else \
                 peak_opacity_at(model.opacities, model.t_means, model.t_scales, self.times)
             remove |= peak < ALPHA_MIN
@@ -208,7 +234,7 @@ class Densifier:
         self.changed_at = int(state.get("changed_at", 0))  # checkpoints before it: as if unchanged
         self.stopped = bool(state.get("stopped", False))  # checkpoints before it: growth never stopped
         self.densified_at = int(state.get("densified_at", 0))
-        self.limit = state.get("limit", self.config.max_gaussians)  # checkpoints before it: the cap
+        self.limit = state.get("limit", self.settings.cap)  # checkpoints before it: the cap
 
 
 def shared_opacity_logits(logits: torch.Tensor) -> torch.Tensor:

@@ -83,7 +83,7 @@ class FitResult:
     peak_host_mb_by_phase: dict = field(default_factory=dict)  # the peak so far at the end of each phase
     clip_frames: int = 0  # the frames the final clip PSNR covers (all of them, unless a budget's end was short)
     # a sharded fit's: each process's phases ({"parent" | "rankN": [{phase, start, end}]}, seconds since the
-    # command started: tomgs.train.multigpu.rank.Timeline) and its report (ranks, merge, refinement, PSNRs)
+    # command started: tomgs.train.multigpu.job.Timeline) and its report (ranks, merge, refinement, PSNRs)
     timeline: dict | None = None
     shards: dict | None = None
 
