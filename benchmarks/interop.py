@@ -17,7 +17,7 @@ round trip a SuperSplat user makes: the native scene through splat-transform, lo
     python -m benchmarks.interop --smoke              # the demo scene, no splat-transform
 
 Run from the repository root: the readers' transcriptions are the tests' (tests/scenes.py,
-tests/test_export.py). `--npm DIR` is a folder where `npm install @playcanvas/splat-transform` was run
+tests/io/test_export.py). `--npm DIR` is a folder where `npm install @playcanvas/splat-transform` was run
 (default: install it into a temporary folder when npm is there; skipped with a note when not). Writes
 interop.md / .json.
 """
@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from tests.scenes import inria_load_ply  # the readers, transcribed once, for the tests and this table
-from tests.test_export import C0, demo_model, resaved_like_splat_transform, stride_summing_parse
+from tests.io.test_export import C0, demo_model, resaved_like_splat_transform, stride_summing_parse
 from tomgs import load_scene, render_sequence, save_scene
 from tomgs.edit.export import pick_moment, static_moment, write_cameras
 from tomgs.io.splats import RDF_TO_RUB, write_static

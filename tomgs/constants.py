@@ -17,7 +17,7 @@ ONE_MINUS_ALPHA_FLOOR = 1e-6  # floor on (1 - alpha) when the backward divides t
 # exponent, 20 of mantissa) take 5. Depths within ~2^-20 relative tie (about the projection's own float32
 # rounding of a depth), and tied Gaussians are drawn in index order, the reference's order too. 21 bits
 # (4 passes) sorted camel's frames 33% quicker but cost a small CPU fit of a flat static clip 2.2 dB (43.40
-# -> 41.21; 25 bits, 29 and every bit: 43.40; tests/test_stiff_clips.py): docs/notes/rasterizer.md.
+# -> 41.21; 25 bits, 29 and every bit: 43.40; tests/train/test_stiff_clips.py): docs/notes/rasterizer.md.
 DEPTH_SORT_BITS = 29
 
 

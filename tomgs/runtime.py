@@ -445,7 +445,7 @@ def sort_pairs(keys: torch.Tensor, values: torch.Tensor, count: int, end_bit: in
     a tensor on a GPU machine's CPU, twice a frame, after the frame's host sync, where the GPU waits
     for them. It reads their pointers and, for these dtypes, calls the native entry points below with
     the same arguments; they are Warp's private API (checked on 1.19.0), so a release that renames
-    them fails here with an AttributeError, and tests/test_binning.py runs this on the CPU.
+    them fails here with an AttributeError, and tests/render/test_binning.py runs this on the CPU.
     """
     if (keys.dtype != torch.int64 or values.dtype != torch.int32 or not keys.is_contiguous()
             or not values.is_contiguous() or keys.device != values.device):

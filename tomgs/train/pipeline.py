@@ -111,6 +111,7 @@ class Pipeline:
         self.config, self.device = request.config, request.device
         self.say = request.phases or (lambda *a: None)
         self.state = FitState()
+        self.warming = None  # a GPU's warm-up (tomgs.train.warm.WarmUp), joined before the Trainer
         self._mark = time.perf_counter()
 
     def run(self) -> FitResult:
