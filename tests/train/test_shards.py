@@ -26,7 +26,7 @@ from tomgs.errors import InputError
 from tomgs.model import GaussianModel
 from tomgs.render.frame import rasterize
 from tomgs.train import fit
-from tomgs.train.multigpu.launch import check_shard_outputs
+from tomgs.train.multigpu.shards import check_shard_outputs
 from tomgs.train.multigpu.shards import (Stretch, boundary_psnr, local_cameras, merged_history, own_cut, owned_rows,
                                          pack, plan_stretches, rank_paths, reach, stretch_points, unpack)
 

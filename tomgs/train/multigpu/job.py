@@ -5,7 +5,7 @@ Timeline of each process's phases."""
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -14,9 +14,9 @@ from tomgs.train.budget import shard_times
 from tomgs.train.checkpoint import START_OVER, read_checkpoint
 from tomgs.train.clip import clip_fps
 from tomgs.train.multigpu.joint import EXIT_S
-from tomgs.train.multigpu.shards import REFINE_FRACTION, plan_stretches, rank_paths
+from tomgs.train.multigpu.shards import REFINE_FRACTION, default_overlap, plan_stretches, rank_paths
 from tomgs.train.phases import tomgs_started
-from tomgs.train.plan import SAVE_COST, make_plan, render_seconds
+from tomgs.train.plan import SAVE_COST, duration, make_plan, render_seconds
 
 
 class Timeline:
@@ -96,6 +96,50 @@ def rank_plan(config, frames: int, height: int, width: int, source: int, device_
 
 
 
+@dataclass
+class ShardPlan:
+    """A sharded fit's plan: one rank's (tomgs.train.plan.FitPlan, for its stretch) and the stretches."""
+
+    rank_plan: object
+    frames: int
+    world: int
+    device: str
+    stretches: list = field(default_factory=list)
+    refine_fraction: float = REFINE_FRACTION
+
+    def __getattr__(self, name):  # budget, eta, phases, reasons, ...: the rank's plan's
+        if name == "rank_plan":
+            raise AttributeError(name)
+        return getattr(self.rank_plan, name)
+
+    def summary(self) -> str:
+        p = self.rank_plan
+        sizes = sorted({s.frames for s in self.stretches})
+        each = "-".join(str(n) for n in (sizes[0], sizes[-1])) if len(sizes) > 1 else str(sizes[0])
+        work = (f"{p.iterations:,} iterations or {duration(p.budget)}, whichever comes first"
+                if p.budget > 0 else f"{p.iterations:,} iterations")
+        return (f"plan: {self.frames} frames of {p.width}x{p.height} on {self.world} x {self.device}, a stretch of "
+                f"{each} frames each, {work}, the last {self.refine_fraction:.0%} of training joint; start from "
+                f"{p.points_per_frame * self.frames:,} Gaussians, cap {p.cap:,} per rank; ETA {duration(p.eta)}")
+
+
+def sharded_plan(job: Job) -> ShardPlan:
+    """The plan printed before the ranks start: the largest stretch's, from the clip's index."""
+    from tomgs.io import Video
+    from tomgs.io.video import probe_clip
+
+    if isinstance(job.video, Video):
+        count, height, width = job.video.frames.shape[:3]
+        source = height * width
+    else:
+        count, height, width, source = probe_clip(job.video, job.frames, job.max_side)
+    overlap = default_overlap(count, job.world) if job.overlap is None else job.overlap
+    stretches = plan_stretches(count, job.world, overlap)
+    largest = max(s.frames for s in stretches)
+    plan, _ = rank_plan(job.config, largest, height, width, source, job.device_type, job.auto_budget)
+    return ShardPlan(plan, count, job.world, job.device_type, stretches, job.refine_fraction)
+
+
 def checkpoint_cameras(job: Job, resumed: dict | None) -> dict | None:
     """The cameras (Cameras.to_dict) of this run's checkpoints: rank 0's (`resumed`, its state), or another
     rank's when rank 0 never saved; None when the job does not resume or none has any."""
@@ -135,4 +179,4 @@ def camera_payload(job: Job, state, device_type: str, overlap: int) -> dict:
                 times=shard_times(plan.budget, job.start_time, after, job.refine_fraction))
 
 
-__all__ = ["Job", "Timeline", "camera_payload", "checkpoint_cameras", "rank_plan", "tomgs_start_epoch"]
+__all__ = ["Job", "ShardPlan", "Timeline", "camera_payload", "checkpoint_cameras", "rank_plan", "sharded_plan", "tomgs_start_epoch"]

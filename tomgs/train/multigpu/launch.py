@@ -1,4 +1,5 @@
-"""How a sharded fit's processes start and stop (what each rank does: tomgs.train.multigpu.rank).
+"""How a sharded fit's processes start, are watched and stop: supervision (what each rank does:
+tomgs.train.multigpu.rank; its plan: job.sharded_plan; its outputs: shards.check_shard_outputs).
 
 Start: `fit(..., gpus=N)` (the CLI's --gpus N) checks the inputs and every output, hands the plan to
 `on_plan`, and spawns N processes on this host (spawn, not fork: CUDA and Warp start clean in each),
@@ -35,21 +36,18 @@ import sys
 import tempfile
 import threading
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 
 from tomgs.errors import InputError
-from tomgs.outputs import check_file_output, fit_output_paths, remove_stale_temporaries
-from tomgs.train.checkpoint import START_OVER, FitInterrupted
+from tomgs.train.checkpoint import FitInterrupted
 from tomgs.train.clip import fit_options
 from tomgs.train.config import TrainConfig
 from tomgs.train.multigpu import pool as rank_pool
 from tomgs.train.multigpu.group import run_rank
-from tomgs.train.multigpu.job import Job, Timeline, rank_plan
-from tomgs.train.multigpu.shards import REFINE_FRACTION, default_overlap, plan_stretches, rank_paths
-from tomgs.train.plan import duration
+from tomgs.train.multigpu.job import Job, Timeline, sharded_plan
+from tomgs.train.multigpu.shards import REFINE_FRACTION, check_shard_outputs
 from tomgs.train.trainer import FitResult
 
 STOP_GRACE_S = 120.0  # after SIGTERM, a rank's time to save before SIGKILL
@@ -120,7 +118,7 @@ def fit_shards(video, output, config, *, gpus=None, masks=None, frames=None, max
     if env is not None:  # torchrun: this process is one rank
         rank, _, local_rank, local_world = env
         check_shard_outputs(output, world, resume, overwrite, tidy=rank == 0)
-        plan = _parent_plan(job)
+        plan = sharded_plan(job)
         if on_plan is not None and rank == 0:
             on_plan(plan)
         phases = phases or (lambda *a: None)
@@ -134,7 +132,7 @@ def fit_shards(video, output, config, *, gpus=None, masks=None, frames=None, max
     timeline = Timeline(job.start_time)  # the parent's phases; the ranks' come with their summaries
     timeline.add("start-up", job.start_time, entered)  # the process, Python, imports, the CLI
     paths = check_shard_outputs(output, world, resume, overwrite, tidy=True)
-    plan = _parent_plan(job)
+    plan = sharded_plan(job)
     if on_plan is not None:
         on_plan(plan)
     timeline.add("plan", entered)
@@ -153,100 +151,6 @@ def _device_type(device, world: int, env) -> str:
     (tomgs.train.multigpu.pool.check_world, with the GPUs torch sees)."""
     gpus = torch.cuda.device_count() if torch.cuda.is_available() else 0
     return rank_pool.check_world(world, device, gpus, local=env[3] if env is not None else None)
-
-
-def check_shard_outputs(output, world: int, resume: bool, overwrite: bool, tidy: bool = False) -> dict:
-    """The outputs of a sharded fit (tomgs.outputs.fit_output_paths plus each rank's checkpoint and CSV)
-    once every one can be written, else InputError saying how to proceed. Resume expects the ranks'
-    checkpoints (at least one) and refuses those of another number of ranks, or a one-GPU fit's
-    checkpoint; without resume, any checkpoint is refused unless `overwrite`. `tidy`: remove, with
-    overwrite, the checkpoints that this run replaces (a one-GPU fit's, other ranks'), and stale
-    temporaries."""
-    import re
-
-    paths = fit_output_paths(output)
-    if paths["scene"].suffix.lower() != ".ply":
-        raise InputError(f"{output}: a scene is written as .ply; name the output like scene.ply")
-    ranks = rank_paths(output, world)
-    check_file_output(paths["scene"], overwrite, "scene")
-    check_file_output(paths["plot"], overwrite, "PSNR plot")
-    check_file_output(paths["csv"], overwrite or resume, "log")
-    stem = paths["scene"].with_suffix("").name
-    pattern = re.compile(re.escape(stem) + r"\.rank(\d+)\.ckpt$")
-    others = sorted((int(m.group(1)), p) for p in paths["scene"].parent.glob(f"{stem}.rank*.ckpt")
-                    if (m := pattern.match(p.name)) and int(m.group(1)) >= world)
-    single = paths["checkpoint"]
-    have = [r["checkpoint"] for r in ranks if r["checkpoint"].is_file()]
-    if resume:
-        if single.is_file():
-            raise InputError(f"{single} holds an interrupted one-GPU fit of {paths['scene'].name}: resume it without "
-                             f"--gpus, or {START_OVER}")
-        if others:
-            raise InputError(f"{others[0][1]} belongs to a fit of {others[-1][0] + 1} or more ranks: resume with the "
-                             f"--gpus it was started with, or {START_OVER}")
-        if not have:
-            names = ", ".join(str(r["checkpoint"].name) for r in ranks)
-            raise InputError(f"no checkpoint of a {world}-rank fit beside {output} ({names}) to resume from; run "
-                             f"without --resume")
-    elif (have or others or single.is_file()) and not overwrite:
-        found = (have + [p for _, p in others] + ([single] if single.is_file() else []))[0]
-        raise InputError(f"{found} holds an interrupted fit of {paths['scene'].name}: pass --resume to continue it "
-                         f"(with the --gpus it was started with), or --overwrite (-y) to start over (Python: "
-                         f"resume=True or overwrite=True)")
-    for r in ranks:
-        check_file_output(r["checkpoint"], True, "checkpoint")
-        check_file_output(r["csv"], overwrite or resume, "log")
-    if tidy:
-        if overwrite and not resume:
-            for path in [p for _, p in others] + [single]:
-                path.unlink(missing_ok=True)
-        for path in [*paths.values(), *(p for r in ranks for p in r.values())]:
-            remove_stale_temporaries(path)
-    return dict(paths, ranks=ranks)
-
-
-@dataclass
-class ShardPlan:
-    """A sharded fit's plan: one rank's (tomgs.train.plan.FitPlan, for its stretch) and the stretches."""
-
-    rank_plan: object
-    frames: int
-    world: int
-    device: str
-    stretches: list = field(default_factory=list)
-    refine_fraction: float = REFINE_FRACTION
-
-    def __getattr__(self, name):  # budget, eta, phases, reasons, ...: the rank's plan's
-        if name == "rank_plan":
-            raise AttributeError(name)
-        return getattr(self.rank_plan, name)
-
-    def summary(self) -> str:
-        p = self.rank_plan
-        sizes = sorted({s.frames for s in self.stretches})
-        each = "-".join(str(n) for n in (sizes[0], sizes[-1])) if len(sizes) > 1 else str(sizes[0])
-        work = (f"{p.iterations:,} iterations or {duration(p.budget)}, whichever comes first"
-                if p.budget > 0 else f"{p.iterations:,} iterations")
-        return (f"plan: {self.frames} frames of {p.width}x{p.height} on {self.world} x {self.device}, a stretch of "
-                f"{each} frames each, {work}, the last {self.refine_fraction:.0%} of training joint; start from "
-                f"{p.points_per_frame * self.frames:,} Gaussians, cap {p.cap:,} per rank; ETA {duration(p.eta)}")
-
-
-def _parent_plan(job: Job) -> ShardPlan:
-    """The plan printed before the ranks start: the largest stretch's, from the clip's index."""
-    from tomgs.io import Video
-    from tomgs.io.video import probe_clip
-
-    if isinstance(job.video, Video):
-        count, height, width = job.video.frames.shape[:3]
-        source = height * width
-    else:
-        count, height, width, source = probe_clip(job.video, job.frames, job.max_side)
-    overlap = default_overlap(count, job.world) if job.overlap is None else job.overlap
-    stretches = plan_stretches(count, job.world, overlap)
-    largest = max(s.frames for s in stretches)
-    plan, _ = rank_plan(job.config, largest, height, width, source, job.device_type, job.auto_budget)
-    return ShardPlan(plan, count, job.world, job.device_type, stretches, job.refine_fraction)
 
 
 def _spawn_and_watch(job: Job, paths: dict, progress, phases, pose_progress, timeline=None) -> dict:
@@ -513,4 +417,4 @@ def _result(summary: dict, output, started: float, leader: bool):
     return result
 
 
-__all__ = ["ShardFailed", "ShardPlan", "ShardsInterrupted", "check_shard_outputs", "fit_shards"]
+__all__ = ["ShardFailed", "ShardsInterrupted", "fit_shards"]

@@ -48,6 +48,7 @@ from tomgs.errors import InputError
 from tomgs.io import Video, read_video
 from tomgs.io.video import parse_frames, probe_clip, read_video_for
 from tomgs.model import PARAM_NAMES, GaussianModel
+from tomgs.outputs import check_file_output, fit_output_paths, remove_stale_temporaries
 from tomgs.train.checkpoint import START_OVER
 
 MIN_STRETCH = 2  # frames per rank: a stretch's own clip time needs two
@@ -412,6 +413,59 @@ def halo(union: torch.Tensor, max_sh_degree: int, times, stretches: list[Stretch
     return Halo(rank, rows, shared, slot_of[rows[shared]], int(is_shared.sum()), holder)
 
 
+# -- the outputs -----------------------------------------------------------------------------------
+
+
+def check_shard_outputs(output, world: int, resume: bool, overwrite: bool, tidy: bool = False) -> dict:
+    """The outputs of a sharded fit (tomgs.outputs.fit_output_paths plus each rank's checkpoint and CSV)
+    once every one can be written, else InputError saying how to proceed. Resume expects the ranks'
+    checkpoints (at least one) and refuses those of another number of ranks, or a one-GPU fit's
+    checkpoint; without resume, any checkpoint is refused unless `overwrite`. `tidy`: remove, with
+    overwrite, the checkpoints that this run replaces (a one-GPU fit's, other ranks'), and stale
+    temporaries."""
+    import re
+
+    paths = fit_output_paths(output)
+    if paths["scene"].suffix.lower() != ".ply":
+        raise InputError(f"{output}: a scene is written as .ply; name the output like scene.ply")
+    ranks = rank_paths(output, world)
+    check_file_output(paths["scene"], overwrite, "scene")
+    check_file_output(paths["plot"], overwrite, "PSNR plot")
+    check_file_output(paths["csv"], overwrite or resume, "log")
+    stem = paths["scene"].with_suffix("").name
+    pattern = re.compile(re.escape(stem) + r"\.rank(\d+)\.ckpt$")
+    others = sorted((int(m.group(1)), p) for p in paths["scene"].parent.glob(f"{stem}.rank*.ckpt")
+                    if (m := pattern.match(p.name)) and int(m.group(1)) >= world)
+    single = paths["checkpoint"]
+    have = [r["checkpoint"] for r in ranks if r["checkpoint"].is_file()]
+    if resume:
+        if single.is_file():
+            raise InputError(f"{single} holds an interrupted one-GPU fit of {paths['scene'].name}: resume it without "
+                             f"--gpus, or {START_OVER}")
+        if others:
+            raise InputError(f"{others[0][1]} belongs to a fit of {others[-1][0] + 1} or more ranks: resume with the "
+                             f"--gpus it was started with, or {START_OVER}")
+        if not have:
+            names = ", ".join(str(r["checkpoint"].name) for r in ranks)
+            raise InputError(f"no checkpoint of a {world}-rank fit beside {output} ({names}) to resume from; run "
+                             f"without --resume")
+    elif (have or others or single.is_file()) and not overwrite:
+        found = (have + [p for _, p in others] + ([single] if single.is_file() else []))[0]
+        raise InputError(f"{found} holds an interrupted fit of {paths['scene'].name}: pass --resume to continue it "
+                         f"(with the --gpus it was started with), or --overwrite (-y) to start over (Python: "
+                         f"resume=True or overwrite=True)")
+    for r in ranks:
+        check_file_output(r["checkpoint"], True, "checkpoint")
+        check_file_output(r["csv"], overwrite or resume, "log")
+    if tidy:
+        if overwrite and not resume:
+            for path in [p for _, p in others] + [single]:
+                path.unlink(missing_ok=True)
+        for path in [*paths.values(), *(p for r in ranks for p in r.values())]:
+            remove_stale_temporaries(path)
+    return dict(paths, ranks=ranks)
+
+
 # -- a rank's frames -------------------------------------------------------------------------------
 
 
@@ -517,7 +571,7 @@ def assemble(model: GaussianModel, part: Halo) -> torch.Tensor:
 
 
 __all__ = ["MIN_STRETCH", "REFINE_FRACTION", "Halo", "Stretch", "Union", "all_gather_rows", "assemble",
-           "boundary_psnr", "check_shard", "identity_of", "clip_rates", "gather_union", "halo", "local_cameras", "log_row",
+           "boundary_psnr", "check_shard", "check_shard_outputs", "identity_of", "clip_rates", "gather_union", "halo", "local_cameras", "log_row",
            "merged_history", "model_of", "moments_to_clip_time", "own_cut", "owned_rows", "pack", "plan_stretches",
            "rank_paths", "reach", "read_early", "read_stretch", "stretch_frames", "stretch_points", "stretch_span", "to_clip_time",
            "unpack"]
