@@ -275,6 +275,38 @@ def _refine_rank(rank: int, store: str, folder: str) -> None:
     dist.destroy_process_group()
 
 
+def test_the_joint_trainer_adds_and_removes_nothing_and_keeps_its_rates(tmp_path):
+    """The refinement's Trainer (joint_trainer) steps with the rates phase 1 ended with, however its config would
+    densify, prune or decay them; refine_jointly stops at its steps, logs from where phase 1 ended and takes its
+    gradient hook away (one rank: the all_reduce of its shared rows is the identity)."""
+    import torch.distributed as dist
+
+    from tomgs.train import Trainer
+    from tomgs.train.multigpu.joint import joint_trainer, refine_jointly
+    from tomgs.train.multigpu.shards import Halo
+
+    images, cams, points, colors = synthetic_clip(4, 32, 18)
+    model = Trainer(images, cams, points, colors, small_config(20), torch.device("cpu")).model
+    n = len(model)
+    shared = torch.arange(0, n, 3)
+    part = Halo(0, torch.arange(n), shared, torch.arange(len(shared)), len(shared), torch.zeros(n, dtype=torch.long))
+    dist.init_process_group("gloo", init_method=f"file://{tmp_path}/store", rank=0, world_size=1)
+    try:
+        trainer = joint_trainer(model, images, cams, small_config(20, densify_interval=2, densify_start_fraction=0.0,
+                                                                  max_gaussians=10 * n), RATES, 2.0,
+                                torch.device("cpu"), seed=3)
+        rows = []
+        out = refine_jointly(trainer, part, steps=12, start_wall=10.0, start_iteration=100, log_rows=rows.append)
+    finally:
+        dist.destroy_process_group()
+    assert out.steps == 12 and out.stopped_by is None and len(trainer.model) == n
+    rates = {g["name"]: g["lr"] for g in trainer.optimizer.param_groups}
+    assert rates["means"] == pytest.approx(RATES["means"], rel=1e-9)
+    assert all(rates[name] == RATES[name] for name in RATES if name != "means")
+    assert rows[-1]["iteration"] == 112 and rows[-1]["wall_s"] >= 10.0 and rows[-1]["gaussians"] == n
+    assert trainer.gradient_hook is None
+
+
 @pytest.mark.slow  # two processes, each importing torch and Warp
 def test_the_refinement_keeps_shared_replicas_equal_and_private_rows_their_ranks(tmp_path):
     """Two gloo processes gather the union of their phase-1 Gaussians with each one's Adam state, and

@@ -797,3 +797,30 @@ def test_a_first_run_s_compilation_is_in_the_plan_and_its_budget(monkeypatch, tm
     assert not runtime.kernels_compiled("cpu")
     runtime.mark_kernels_compiled("cpu")
     assert runtime.kernels_compiled("cpu") and not runtime.kernels_compiled("cuda")
+
+
+def test_a_gradient_hook_sees_each_step_and_its_changes_reach_adam():
+    """Trainer.gradient_hook(frame, PSNR, seen) runs after each eager step's backward, before Adam: a hook that
+    zeroes every gradient and marks nothing seen leaves the parameters where they were; without it they move."""
+    images, cams, points, colors = synthetic_clip(3, 32, 18)
+    trainer = Trainer(images, cams, points, colors, small_config(10, densify_start_fraction=1.0), CPU)
+    heard = []
+
+    def frozen(k, psnr, seen):
+        heard.append((k, float(psnr), seen.dtype, seen.shape))
+        for p in trainer.model.parameters_by_name().values():
+            if p.grad is not None:
+                p.grad.zero_()
+        seen.zero_()
+
+    before = {k: v.detach().clone() for k, v in trainer.model.parameters_by_name().items()}
+    trainer.gradient_hook = frozen
+    for _ in range(3):
+        trainer.step()
+    assert len(heard) == 3
+    assert all(0 <= k < 3 and math.isfinite(p) and dtype == torch.bool for k, p, dtype, _ in heard)
+    after = trainer.model.parameters_by_name()
+    assert all(torch.equal(before[k], after[k].detach()) for k in before)
+    trainer.gradient_hook = None
+    trainer.step()
+    assert not torch.equal(before["means"], trainer.model.means.detach())
