@@ -116,7 +116,7 @@ class TrainConfig:
     # used alone stops its training after this long
     max_seconds: float = 0.0
     # under a budget (max_seconds) asked for, stop at `iterations` too, whichever comes first; False: `fit`
-    # trains for the whole budget (tomgs.train.plan.UNTIL_BUDGET), however many iterations that holds
+    # trains for the whole budget (tomgs.train.budget.UNTIL_BUDGET), however many iterations that holds
     stop_at_iterations: bool = False
     seed: int = 0
 

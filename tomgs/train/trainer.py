@@ -40,7 +40,8 @@ from tomgs.model import GaussianModel
 from tomgs.render.frame import blend_weights, render_frame
 from tomgs.render.sequence import IssuedFrame, issue_in_order
 from tomgs.errors import InputError
-from tomgs.train.checkpoint import (FORMAT, START_OVER, VERSION, CheckpointWriter, check_same_settings, config_from, config_to_dict, own_copies,
+from tomgs.train.checkpoint import (FORMAT, START_OVER, VERSION, CheckpointWriter, check_same_settings, config_from,
+                                    config_to_dict, own_copies,
                                     read_checkpoint, state_bytes, write_checkpoint)
 from tomgs.train.captured_step import CapturedStep, unsupported
 from tomgs.train.clip import frame_store, uint8_planes

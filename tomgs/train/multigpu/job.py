@@ -170,7 +170,8 @@ def camera_payload(job: Job, state, device_type: str, overlap: int) -> dict:
     # parent, the processes ending (the refinement itself ends by what is measured then)
     own = max(s.own_hi - s.own_lo for s in stretches)
     scene = job.world * min(config.max_gaussians, config.init_points_per_frame * largest)
-    after = EXIT_S + own * render_seconds(device_type, scene, height * width) + 2 * (SAVE_COST[0] + SAVE_COST[1] * scene)
+    after = EXIT_S + own * render_seconds(device_type, scene, height * width) + \
+        2 * (SAVE_COST[0] + SAVE_COST[1] * scene)
     point_frames = None if state.point_frames is None else np.asarray(state.point_frames, np.int64).reshape(-1, 2)
     return dict(cameras=cameras.to_dict(), points=np.asarray(state.points, dtype=np.float64).reshape(-1, 3),
                 colors=np.asarray(state.colors, dtype=np.float32).reshape(-1, 3), point_frames=point_frames,
@@ -179,4 +180,5 @@ def camera_payload(job: Job, state, device_type: str, overlap: int) -> dict:
                 times=shard_times(plan.budget, job.start_time, after, job.refine_fraction))
 
 
-__all__ = ["Job", "ShardPlan", "Timeline", "camera_payload", "checkpoint_cameras", "rank_plan", "sharded_plan", "tomgs_start_epoch"]
+__all__ = ["Job", "ShardPlan", "Timeline", "camera_payload", "checkpoint_cameras", "rank_plan", "sharded_plan",
+           "tomgs_start_epoch"]

@@ -255,4 +255,5 @@ def write_outputs(job, everyone, stretches, cameras, payload, final, refine_rows
                              else None))
 
 
-__all__ = ["EXIT_S", "NEVER", "Refined", "SharedGradients", "joint_trainer", "refine_jointly", "refine_optimizer", "time_scene_io", "write_outputs"]
+__all__ = ["EXIT_S", "NEVER", "Refined", "SharedGradients", "joint_trainer", "refine_jointly", "refine_optimizer",
+           "time_scene_io", "write_outputs"]

@@ -570,8 +570,8 @@ def assemble(model: GaussianModel, part: Halo) -> torch.Tensor:
     return out
 
 
-__all__ = ["MIN_STRETCH", "REFINE_FRACTION", "Halo", "Stretch", "Union", "all_gather_rows", "assemble",
-           "boundary_psnr", "check_shard", "check_shard_outputs", "identity_of", "clip_rates", "gather_union", "halo", "local_cameras", "log_row",
-           "merged_history", "model_of", "moments_to_clip_time", "own_cut", "owned_rows", "pack", "plan_stretches",
-           "rank_paths", "reach", "read_early", "read_stretch", "stretch_frames", "stretch_points", "stretch_span", "to_clip_time",
-           "unpack"]
+__all__ = ["Halo", "MIN_STRETCH", "REFINE_FRACTION", "Stretch", "Union", "all_gather_rows", "assemble",
+           "boundary_psnr", "check_shard", "check_shard_outputs", "clip_rates", "gather_union", "halo",
+           "identity_of", "local_cameras", "log_row", "merged_history", "model_of", "moments_to_clip_time",
+           "own_cut", "owned_rows", "pack", "plan_stretches", "rank_paths", "reach", "read_early", "read_stretch",
+           "stretch_frames", "stretch_points", "stretch_span", "to_clip_time", "unpack"]
