@@ -167,11 +167,12 @@ def importance(trainer, tick=None) -> tuple[torch.Tensor, list[float]]:
 
 
 def take_round(trainer, sparsifier: Sparsifier, tick=None) -> tuple[float, int] | None:
-    """A round of `sparsifier`'s rule on `trainer` (a tomgs.train.Trainer): the clip PSNR and the importance
-    in one pass; the least important Gaussians the rule proposes priced by a second pass without them
-    (`trainer.clip_psnr(hidden=)`), and removed when the rule takes the prune. Returns (the clip PSNR
-    before the prune, the frames it covers), or None for an empty cloud."""
-    model, densifier = trainer.model, trainer.densifier
+    """A round of `sparsifier`'s rule on `trainer` (a tomgs.train.Trainer, of which it uses the model, the
+    frames' renders and PSNRs (`importance`), `clip_psnr`, `remove` and `mark_changed`): the clip PSNR and
+    the importance in one pass; the least important Gaussians the rule proposes priced by a second pass
+    without them (`trainer.clip_psnr(hidden=)`), and removed when the rule takes the prune. Returns (the clip
+    PSNR before the prune, the frames it covers), or None for an empty cloud."""
+    model = trainer.model
     if len(model) == 0:
         return None
     scores, psnrs = importance(trainer, tick)
@@ -182,7 +183,6 @@ def take_round(trainer, sparsifier: Sparsifier, tick=None) -> tuple[float, int] 
         least[torch.argsort(scores)[:remove]] = True
         without = float(np.mean(trainer.clip_psnr(tick, hidden=least)))
         if sparsifier.judge(len(model), remove, measured, without):
-            densifier.remove(model, trainer.optimizer, least)
-            densifier.reset_stats(len(model), trainer.device)
-    densifier.changed_at = trainer.iteration
+            trainer.remove(least)
+    trainer.mark_changed()
     return measured, trainer.num_frames

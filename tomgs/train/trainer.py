@@ -362,6 +362,19 @@ class Trainer:
                     tick(f"measuring the clip PSNR: frame {i + 1} of {len(frames)}")
         return torch.stack(out).tolist() if out else []
 
+    def remove(self, rows: torch.Tensor) -> int:
+        """Remove the Gaussians `rows` (bool [N]) from the model, with their Adam moments and densification
+        statistics; returns how many went."""
+        removed = self.densifier.remove(self.model, self.optimizer, rows)
+        if removed:
+            self.densifier.reset_stats(len(self.model), self.device)
+        return removed
+
+    def mark_changed(self) -> None:
+        """The cloud changed at this step (a round's prune): the clip PSNR dips for a few dozen steps, and the
+        cadences that price or measure it wait (tomgs.train.loop.TrainingRun.settled)."""
+        self.densifier.changed_at = self.iteration
+
     def compact(self, tick=None) -> int:
         """Leave out the Gaussians that give no frame of the clip `config.compact_pixels` pixels' worth
         of colour (`tomgs.render.blend_weights`, the largest over the frames); returns how many went
@@ -385,9 +398,8 @@ class Trainer:
                               f"frame is {float(largest.max()):.3g} of a pixel's colour): all kept; give a smaller "
                               f"--compact")
             return 0
-        removed = self.densifier.remove(self.model, self.optimizer, largest < threshold)
+        removed = self.remove(largest < threshold)
         if removed:
-            self.densifier.reset_stats(len(self.model), self.device)
             self.notes.append(f"left out {removed:,} Gaussians that gave no frame {threshold:g} of a pixel's colour "
                               f"({len(self.model):,} kept; {time.perf_counter() - began:.1f} s)")
         return removed
