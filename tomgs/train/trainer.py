@@ -41,8 +41,7 @@ from tomgs.render.frame import blend_weights, render_frame
 from tomgs.render.sequence import IssuedFrame, issue_in_order
 from tomgs.errors import InputError
 from tomgs.train.checkpoint import (FORMAT, START_OVER, VERSION, CheckpointWriter, check_same_settings, config_from,
-                                    config_to_dict, own_copies,
-                                    read_checkpoint, state_bytes, write_checkpoint)
+                                    config_to_dict, own_copies, read_checkpoint, state_bytes, write_checkpoint)
 from tomgs.train.captured_step import CapturedStep, unsupported
 from tomgs.train.clip import frame_store, uint8_planes
 from tomgs.train.config import TrainConfig
@@ -474,7 +473,7 @@ class Trainer:
     def state_dict(self) -> dict:
         """The trainer's state as tensors and plain data (tomgs/train/checkpoint.py's layout). The
         measurements the sampler has not heard yet go with it as they are (handing them over now would
-        change the draws that follow, as `_row` says)."""
+        change the draws that follow, as `train_psnr` says)."""
         # tensors stay where they live: torch.save copies one storage at a time to the file, where a
         # whole-model host copy made the checkpoint the training phase's host peak (7.4M Gaussians,
         # 1080p x 900 on the H100: +0.96 GiB during training); read_checkpoint maps them to the CPU

@@ -89,6 +89,11 @@ class SharedGradients:
     [the ranks' PSNR sum, a signal, done, this rank's PSNR]."""
 
     def __init__(self, model: GaussianModel, part: Halo, device: torch.device, decide):
+        import torch.distributed as dist
+
+        from tomgs.train.sampler import MAX_PSNR
+
+        self.all_reduce, self.max_psnr = dist.all_reduce, MAX_PSNR  # looked up once, not at every step
         self.params = list(model.parameters_by_name().values())
         self.shared, self.slots = part.shared.to(device), part.slots.to(device)
         self.total, self.device, self.decide = part.total, device, decide
@@ -96,11 +101,8 @@ class SharedGradients:
         self.result = None
 
     def __call__(self, k: int, measured: torch.Tensor, seen: torch.Tensor) -> None:
-        from tomgs.train.sampler import MAX_PSNR
-        import torch.distributed as dist
-
         grads = [p.grad if p.grad is not None else torch.zeros_like(p) for p in self.params]
-        value = measured.detach().float().clamp(max=MAX_PSNR).reshape(1)
+        value = measured.detach().float().clamp(max=self.max_psnr).reshape(1)
         buffer = torch.zeros(self.total, sum(self.widths) + 1, device=self.device)
         buffer[self.slots] = torch.cat([g.index_select(0, self.shared).reshape(len(self.shared), -1) for g in grads]
                                        + [seen.index_select(0, self.shared).float()[:, None]], dim=1)
@@ -108,7 +110,7 @@ class SharedGradients:
         signum, done = self.decide()
         flags = torch.tensor([float(signum or 0), float(done)]).to(self.device, non_blocking=True)
         buffer = torch.cat([buffer.reshape(-1), value, flags])
-        dist.all_reduce(buffer)
+        self.all_reduce(buffer)
         summed = buffer[:-3].view(self.total, -1).index_select(0, self.slots)
         at = 0
         for p, g, width in zip(self.params, grads, self.widths):

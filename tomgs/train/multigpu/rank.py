@@ -47,7 +47,8 @@ class ShardedPipeline(Pipeline):
         self.job, self.rank, self.world, self.control, self.report = job, rank, job.world, control, report
         self.timeline = timeline or Timeline(job.start_time)
         self.outputs = fit_output_paths(job.output)
-        self.payload, self.failure, self.errors, self.resumed, self.early = None, None, [], None, None
+        self.payload, self.failure, self.errors, self.resumed = None, None, [], None
+        self.early = self.early_identity = None  # a rank's early read (not rank 0's) and its identity
 
     def gather(self, value) -> list:
         """`value` of every rank, in rank order (the gloo group: plain Python objects)."""
@@ -151,7 +152,7 @@ class ShardedPipeline(Pipeline):
             if saved is not None and not self.errors:
                 check_shard(saved["clip"].get("shard"), stretch, self.world, self.paths["checkpoint"])
             self.frames, self.identity = stretch_frames(self.job, self.state.cameras, stretch, self.state.clip,
-                                                        self.early, getattr(self, "early_identity", None))
+                                                        self.early, self.early_identity)
             self.state.clip = self.state.inputs = self.early = None  # rank 0: the rest of the clip goes now
             if saved is not None and not self.errors:
                 check_clip(saved["clip"], self.identity, self.job.options, self.paths["checkpoint"])
